@@ -1,0 +1,293 @@
+"""Simulated breathing: a subject, manoeuvres and the protocol that strings them together.
+
+The lung volume signal (litres above the end-tidal level at the start, positive = inhaled)
+drives the torso's displacement modes; the volume a reader must recover is measured from the
+displaced surfaces (core/sim/scene.py), not taken from this signal.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import brentq
+
+RATE_HZ = 1000.0  # sampling of the generated waveforms
+
+
+@dataclass(frozen=True)
+class Subject:
+    """A simulated subject. Lung volumes default to the ECSC 1993 predicted values (Quanjer et al.)."""
+
+    id: str = "SIM-0001"
+    sex: str = "male"
+    age_years: float = 30.0
+    height_cm: float = 175.0
+    weight_kg: float = 75.0
+    fvc_l: float | None = None
+    fev1_l: float | None = None
+    pef_lps: float | None = None
+    tidal_volume_l: float | None = None
+    respiratory_rate_bpm: float = 14.0
+    ie_ratio: float = 1.5  # expiratory over inspiratory time
+    chest_share: float = 0.62  # of each breath; the abdomen has the rest
+    left_share: float = 0.5  # of the chest's share
+    abdomen_lag_s: float = 0.08  # abdomen after chest (thoraco-abdominal phase)
+
+    def __post_init__(self) -> None:
+        if self.sex not in ("male", "female"):
+            raise ValueError(f"sex must be 'male' or 'female', got {self.sex!r}")
+        if not 3 <= self.age_years <= 100:
+            raise ValueError(f"age_years {self.age_years} outside 3-100")
+        if not 90 <= self.height_cm <= 230:
+            raise ValueError(f"height_cm {self.height_cm} outside 90-230")
+
+    @property
+    def _h(self) -> float:
+        return self.height_cm / 100.0
+
+    @property
+    def predicted(self) -> dict[str, float]:
+        h, a = self._h, self.age_years
+        if self.sex == "male":
+            return {"FVC": 5.76 * h - 0.026 * a - 4.34, "FEV1": 4.30 * h - 0.029 * a - 2.49,
+                    "PEF": 6.14 * h - 0.043 * a + 0.15, "TLC": 7.99 * h - 7.08,
+                    "FRC": 2.34 * h + 0.009 * a - 1.09, "RV": 1.31 * h + 0.022 * a - 1.23}
+        return {"FVC": 4.43 * h - 0.026 * a - 2.89, "FEV1": 3.95 * h - 0.025 * a - 2.60,
+                "PEF": 5.50 * h - 0.030 * a - 1.11, "TLC": 6.60 * h - 5.79,
+                "FRC": 2.24 * h + 0.001 * a - 1.00, "RV": 1.81 * h + 0.016 * a - 2.00}
+
+    @property
+    def fvc(self) -> float:
+        return self.fvc_l if self.fvc_l is not None else self.predicted["FVC"]
+
+    @property
+    def fev1(self) -> float:
+        return self.fev1_l if self.fev1_l is not None else self.predicted["FEV1"]
+
+    @property
+    def pef(self) -> float:
+        return self.pef_lps if self.pef_lps is not None else self.predicted["PEF"]
+
+    @property
+    def tidal_volume(self) -> float:
+        return self.tidal_volume_l if self.tidal_volume_l is not None else 0.007 * self.weight_kg
+
+    @property
+    def inspiratory_capacity(self) -> float:
+        p = self.predicted
+        return (p["TLC"] - p["FRC"]) * self.fvc / p["FVC"]
+
+    @property
+    def expiratory_reserve(self) -> float:
+        p = self.predicted
+        return (p["FRC"] - p["RV"]) * self.fvc / p["FVC"]
+
+    def compartment_shares(self) -> dict[str, float]:
+        chest = self.chest_share
+        return {"chest_left": chest * self.left_share, "chest_right": chest * (1 - self.left_share),
+                "abdomen": 1.0 - chest}
+
+
+@dataclass(frozen=True)
+class ForcedBlow:
+    """One forced expiration; the defaults are a good blow."""
+
+    rise_time_s: float = 0.06  # slow start: 0.3 s or more
+    stop_after_s: float | None = None  # early stop: expiration ends here
+    cough_at_s: float | None = None  # a cough: flow stops for 80 ms at this time
+    effort: float = 1.0  # scales PEF (and FEV1 a little)
+
+
+@dataclass
+class Waveform:
+    """Lung volume at RATE_HZ from t = 0, with protocol events."""
+
+    volume_l: np.ndarray
+    events: list[tuple[float, str]] = field(default_factory=list)
+
+    @property
+    def duration_s(self) -> float:
+        return len(self.volume_l) / RATE_HZ
+
+    def at(self, t_s: np.ndarray | float) -> np.ndarray:
+        t = np.asarray(t_s, dtype=float)
+        grid = np.arange(len(self.volume_l)) / RATE_HZ
+        return np.interp(t, grid, self.volume_l)
+
+    def flow_at(self, t_s: np.ndarray | float) -> np.ndarray:
+        flow = np.gradient(self.volume_l) * RATE_HZ
+        grid = np.arange(len(self.volume_l)) / RATE_HZ
+        return np.interp(np.asarray(t_s, dtype=float), grid, flow)
+
+
+def _samples(duration_s: float) -> np.ndarray:
+    return np.arange(int(round(duration_s * RATE_HZ))) / RATE_HZ
+
+
+def _ramp(level_from: float, level_to: float, duration_s: float) -> np.ndarray:
+    """A smooth (raised-cosine) change of level."""
+    t = _samples(duration_s)
+    return level_from + (level_to - level_from) * 0.5 * (1 - np.cos(np.pi * t / duration_s))
+
+
+def tidal(subject: Subject, duration_s: float, rng: np.random.Generator, level_l: float = 0.0) -> np.ndarray:
+    """Tidal breaths: raised-cosine inspiration, passive (exponential) expiration, 8% variability."""
+    parts: list[np.ndarray] = []
+    total = int(round(duration_s * RATE_HZ))
+    while sum(len(p) for p in parts) < total:
+        period = 60.0 / subject.respiratory_rate_bpm * (1 + 0.06 * rng.standard_normal())
+        vt = subject.tidal_volume * (1 + 0.08 * rng.standard_normal())
+        ti = period / (1 + subject.ie_ratio)
+        te = period - ti
+        inspiration = level_l + vt * 0.5 * (1 - np.cos(np.pi * _samples(ti) / ti))
+        tau = te / 4.0
+        t = _samples(te)
+        expiration = level_l + vt * (np.exp(-t / tau) - np.exp(-te / tau)) / (1 - np.exp(-te / tau))
+        parts += [inspiration, expiration]
+    return np.concatenate(parts)[:total]
+
+
+def slow_vc(subject: Subject, rng: np.random.Generator) -> tuple[np.ndarray, list[tuple[float, str]]]:
+    """Two tidal breaths, a slow full inspiration to TLC, a slow full expiration to RV, back to FRC."""
+    ic, erv = subject.inspiratory_capacity, subject.expiratory_reserve
+    lead = tidal(subject, 2 * 60.0 / subject.respiratory_rate_bpm, rng)
+    parts = [lead, _ramp(0.0, ic, 3.0), np.full(int(0.5 * RATE_HZ), ic), _ramp(ic, -erv, 6.5),
+             np.full(int(0.4 * RATE_HZ), -erv), _ramp(-erv, 0.0, 2.5)]
+    start = len(lead) / RATE_HZ
+    end = sum(len(p) for p in parts) / RATE_HZ
+    return np.concatenate(parts), [(start, "vc-start"), (end, "maneuver-end")]
+
+
+def forced_expiration_curve(fvc: float, fev1: float, pef: float, blow: ForcedBlow,
+                            duration_s: float = 7.0) -> np.ndarray:
+    """Exhaled volume (L) against time for one forced expiration at RATE_HZ.
+
+    Flow rises to PEF as sin^2 over the rise time, then falls with the volume still to exhale,
+    F(v) = PEF * ((FVC - v) / (FVC - v_peak))**k, k chosen so that the volume at 1 s after
+    back-extrapolated time zero is FEV1: concave (obstructive) curves have k > 1.
+    """
+    pef = pef * blow.effort
+    t = _samples(duration_s)
+    tr = blow.rise_time_s
+    v_peak = pef * tr / 2.0
+    if v_peak >= 0.5 * fvc:
+        raise ValueError("rise time too long for this PEF and FVC")
+
+    def curve(k: float) -> np.ndarray:
+        w_peak = fvc - v_peak
+        a = pef / w_peak**k
+        ts = np.clip(t - tr, 0.0, None)
+        if abs(k - 1.0) < 1e-9:
+            w = w_peak * np.exp(-a * ts)
+        else:
+            base = w_peak ** (1 - k) - (1 - k) * a * ts
+            w = np.where(base > 0, np.abs(base) ** (1 / (1 - k)), 0.0) if k < 1 else base ** (1 / (1 - k))
+        rise = pef * (t / 2.0 - tr / (2 * np.pi) * np.sin(np.pi * np.clip(t, 0, tr) / tr))
+        return np.where(t < tr, rise, fvc - w)
+
+    t0 = tr / 2.0  # back-extrapolated time zero of a sin^2 rise (tangent at peak flow)
+
+    def fev1_error(k: float) -> float:
+        return float(np.interp(t0 + 1.0, t, curve(k))) - fev1
+
+    lo, hi = 0.2, 8.0
+    if fev1_error(lo) * fev1_error(hi) > 0:
+        k = lo if abs(fev1_error(lo)) < abs(fev1_error(hi)) else hi
+    else:
+        k = brentq(fev1_error, lo, hi, xtol=1e-6)
+    volume = curve(k)
+    if blow.cough_at_s is not None:
+        i = int(blow.cough_at_s * RATE_HZ)
+        n = int(0.08 * RATE_HZ)
+        volume = np.concatenate([volume[:i], np.full(n, volume[i]), volume[i:-n]])
+    if blow.stop_after_s is not None:
+        i = int(blow.stop_after_s * RATE_HZ)
+        volume[i:] = volume[i]
+    return volume
+
+
+def forced(subject: Subject, blow: ForcedBlow, rng: np.random.Generator,
+           blow_s: float = 7.0) -> tuple[np.ndarray, list[tuple[float, str]]]:
+    """Tidal breaths, a full inspiration to TLC, a short hold, the blow, back to the tidal level."""
+    ic = subject.inspiratory_capacity
+    lead = tidal(subject, 60.0 / subject.respiratory_rate_bpm, rng)
+    inhale = _ramp(0.0, ic, 1.6)
+    hold = np.full(int(0.4 * RATE_HZ), ic)
+    exhaled = forced_expiration_curve(subject.fvc, subject.fev1, subject.pef, blow, blow_s)
+    blow_part = ic - exhaled
+    recover = _ramp(blow_part[-1], 0.0, 2.0)
+    start = (len(lead) + len(inhale) + len(hold)) / RATE_HZ
+    end = start + len(blow_part) / RATE_HZ
+    parts = [lead, inhale, hold, blow_part, recover]
+    return np.concatenate(parts), [(start, "forced-start"), (end, "maneuver-end")]
+
+
+PROTOCOLS = ("tidal", "vc", "forced", "full", "static")
+
+
+def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, seed: int,
+                      blows: list[ForcedBlow] | None = None) -> Waveform:
+    """The lung volume of a whole protocol; `seconds` trims or pads (with tidal breathing) the end.
+
+    full: 12 s tidal breathing, a slow VC, then forced expirations (three good blows by default).
+    """
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"unknown protocol {protocol!r}: one of {', '.join(PROTOCOLS)}")
+    rng = np.random.default_rng(seed + 17)
+    blows = blows if blows is not None else [ForcedBlow(), ForcedBlow(effort=0.97), ForcedBlow(effort=1.02)]
+    parts: list[np.ndarray] = []
+    events: list[tuple[float, str]] = []
+
+    def add(samples: np.ndarray, part_events: list[tuple[float, str]] = ()) -> None:
+        offset = sum(len(p) for p in parts) / RATE_HZ
+        events.extend((offset + t, label) for t, label in part_events)
+        parts.append(samples)
+
+    if protocol == "static":
+        add(np.zeros(int(round((seconds or 5.0) * RATE_HZ))))
+        return Waveform(np.concatenate(parts), events)
+    if protocol in ("tidal", "full"):
+        add(tidal(subject, 12.0 if protocol == "full" else (seconds or 30.0), rng), [(0.0, "tidal-start")])
+        if protocol == "full":
+            events.append((12.0, "maneuver-end"))
+    if protocol in ("vc", "full"):
+        add(*slow_vc(subject, rng))
+    if protocol in ("forced", "full"):
+        for blow in blows:
+            add(*forced(subject, blow, rng))
+    volume = np.concatenate(parts)
+    if seconds is not None:
+        n = int(round(seconds * RATE_HZ))
+        if n > len(volume):
+            volume = np.concatenate([volume, tidal(subject, (n - len(volume)) / RATE_HZ, rng)])
+        volume = volume[:n]
+        events = [(t, label) for t, label in events if t < seconds]
+    return Waveform(volume, events)
+
+
+def natural_duration_s(subject: Subject, protocol: str, seed: int) -> float:
+    return protocol_waveform(subject, protocol, None, seed).duration_s
+
+
+@dataclass(frozen=True)
+class Sway:
+    """Postural sway: smooth random rigid shifts of the whole subject (mm), peak amplitudes given."""
+
+    axial_mm: float = 50.0
+    lateral_mm: float = 15.0
+    vertical_mm: float = 3.0
+    seed: int = 0
+
+    def at(self, t_s: np.ndarray | float) -> np.ndarray:
+        """(..., 3) shift in the front camera frame: x lateral, y vertical, z along the axis."""
+        t = np.asarray(t_s, dtype=float)
+        rng = np.random.default_rng(self.seed + 23)
+        out = []
+        for amplitude in (self.lateral_mm, self.vertical_mm, self.axial_mm):
+            freqs = rng.uniform(0.03, 0.25, 4)
+            phases = rng.uniform(0, 2 * np.pi, 4)
+            weights = rng.uniform(0.5, 1.0, 4)
+            s = sum(w * np.sin(2 * np.pi * f * t + p) for w, f, p in zip(weights, freqs, phases))
+            out.append(amplitude * s / weights.sum())
+        return np.stack(out, axis=-1)

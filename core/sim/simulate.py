@@ -1,0 +1,305 @@
+"""Simulate a whole session: build the rig and scene, render every frame, write the session file."""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from core.rig import DARK, Head, Rig, thesis_rig
+from core.session import SessionWriter, SubjectRecord
+from core.sim import shapes
+from core.sim.breathing import RATE_HZ, ForcedBlow, Subject, Sway, Waveform, protocol_waveform
+from core.sim.flowsensor import FlowSensorModel
+from core.sim.render import CameraModel
+from core.sim.surfaces import mode_volumes_mm3
+from core.sim.scene import Digitiser, HeightFieldScene, Scene, SpherePlacement, SphereScene, noise_key
+
+SCENES = ("torso", "plane", "vase", "relief", "sphere", "specular-sphere", "matte-sphere")
+CALIBRATION_SCENES = ("specular-sphere", "matte-sphere")
+CLOCK_START_NS = 1_000_000_000  # the session clock's value at the first frame
+TRUTH_RATE_HZ = 200.0
+
+
+@dataclass
+class SimConfig:
+    """Everything that defines a simulated session; defaults are the thesis rig and a healthy adult."""
+
+    scene: str = "torso"
+    protocol: str = "full"
+    seconds: float | None = None  # None: the protocol's natural length
+    scale: float = 0.25
+    seed: int = 1
+    heads: tuple[str, ...] = ("front", "back")
+    distance_mm: float = 2000.0  # front camera to the surface on its optical axis, at rest
+    distance_back_mm: float = 2000.0
+    sway: Sway | None = None  # None: the scene's default (torso: 50 mm axial, 15 mm lateral)
+    subject: Subject = field(default_factory=Subject)
+    blows: list[ForcedBlow] | None = None
+    camera: CameraModel = field(default_factory=CameraModel)
+    bit_depth: int = 12
+    frame_rate_hz: float = 110.0
+    clothing: str = "tshirt"
+    specular: float = 0.0
+    led_offset_mm: float = 0.0  # as built: each LED this far (random direction) from the drawing
+    led_intensity_spread: float = 0.0  # as built: relative intensities 1 +- this (uniform)
+    led_mu: float = 0.0  # LED anisotropy exponent (0: isotropic), axes along the optical axis
+    flow_sensor: FlowSensorModel | None = field(default_factory=FlowSensorModel)
+    drop_rate: float = 0.0  # fraction of frames lost on the way (gaps in frame_id)
+    truth_maps_at: list[int] | None = None  # frame indices; None: five spread over the session
+    grid_step_mm: float = 1.0
+    sphere_radius_mm: float = 75.0
+    placements: int = 7
+    placement_cycles: int = 3
+    created: str | None = None
+    compression: str | None = None
+
+
+@dataclass
+class SimSummary:
+    path: Path
+    frames: dict[str, int]
+    lost: dict[str, int]
+    duration_s: float
+    elapsed_s: float
+    truth_volume_range_l: tuple[float, float]
+    flow_samples: int
+
+
+def as_built_heads(rig: Rig, config: SimConfig) -> dict[str, Head]:
+    """The heads as built: LEDs off their drawn positions and intensities, as the config says."""
+    rng = np.random.default_rng(config.seed + 41)
+    out = {}
+    for name, head in rig.heads.items():
+        positions = head.light_positions_mm.copy()
+        if config.led_offset_mm > 0:
+            directions = rng.standard_normal((4, 3))
+            directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+            positions = positions + config.led_offset_mm * directions
+        intensity = 1.0 + config.led_intensity_spread * rng.uniform(-1, 1, 4)
+        axis = mu = None
+        if config.led_mu > 0:
+            axis = np.tile([0.0, 0.0, 1.0], (4, 1))
+            mu = np.full(4, config.led_mu)
+        out[name] = replace(head, light_positions_mm=positions, light_intensity=intensity, light_axis=axis,
+                            light_mu=mu)
+    return out
+
+
+def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> HeightFieldScene:
+    surfaces = shapes.torso(config.grid_step_mm, config.clothing, config.seed, config.specular)
+    subject = config.subject
+    shares = subject.compartment_shares()
+    names = surfaces["front"].mode_names
+    per_mode_l = (mode_volumes_mm3(surfaces["front"]) + mode_volumes_mm3(surfaces["back"])) * 1e-6
+    lags = np.array([subject.abdomen_lag_s if n == "abdomen" else 0.0 for n in names])
+    share = np.array([shares[n] for n in names])
+
+    def compartments(t: np.ndarray) -> np.ndarray:
+        t = np.asarray(t, dtype=float)
+        return np.stack([share[k] * waveform.at(np.clip(t - lags[k], 0, None)) for k in range(len(names))], -1)
+
+    def amplitudes(t: float) -> np.ndarray:
+        return compartments(np.array(t)) / per_mode_l
+
+    def flow(t: np.ndarray) -> np.ndarray:
+        return sum(share[k] * waveform.flow_at(np.clip(t - lags[k], 0, None)) for k in range(len(names)))
+
+    sway = config.sway if config.sway is not None else Sway(seed=config.seed)
+    probe = HeightFieldScene(surfaces, 0.0, baseline)
+    z_mid = config.distance_mm + probe.on_axis_height_mm("front")
+    baseline = z_mid + probe.on_axis_height_mm("back") + config.distance_back_mm
+    scene = HeightFieldScene(surfaces, z_mid, baseline, amplitudes, sway.at, compartments, flow, waveform.events,
+                             kind="simulation")
+    scene.root_attrs = {"simulated_scene": "torso", "simulated_protocol": config.protocol,
+                        "compartments": ",".join(names)}
+    return scene
+
+
+def _object_scene(config: SimConfig) -> HeightFieldScene:
+    builder = shapes.SHAPES[config.scene]
+    surfaces = builder(config.grid_step_mm) if config.scene == "plane" else builder(config.grid_step_mm, seed=config.seed)
+    probe = HeightFieldScene(surfaces, 0.0, 0.0)
+    z_mid = config.distance_mm + probe.on_axis_height_mm("front")
+    baseline = z_mid + probe.on_axis_height_mm("back") + config.distance_back_mm
+    sway = config.sway.at if config.sway is not None else None
+    scene = HeightFieldScene(surfaces, z_mid, baseline, sway=sway)
+    scene.root_attrs = {"simulated_scene": config.scene}
+    return scene
+
+
+def sphere_placements(config: SimConfig, baseline: float, cycle_s: float) -> list[SpherePlacement]:
+    """The centre of the view first (pseudo light vectors), then places spread through the working volume."""
+    mid = config.distance_mm if len(config.heads) == 1 else baseline / 2.0
+    rng = np.random.default_rng(config.seed + 53)
+    spots = [(0.0, 0.0, 0.0), (-220, -150, -150), (220, 150, 150), (220, -150, 0), (-220, 150, 0),
+             (0, -170, 150), (0, 170, -150), (-120, 0, 180), (120, 0, -180)]
+    while len(spots) < config.placements:
+        spots.append((rng.uniform(-230, 230), rng.uniform(-170, 170), rng.uniform(-180, 180)))
+    hold = config.placement_cycles * cycle_s
+    return [SpherePlacement(k * hold, np.array([x, y, mid + z], dtype=float))
+            for k, (x, y, z) in enumerate(spots[: config.placements])]
+
+
+def build_scene(config: SimConfig, rig: Rig) -> tuple[Scene, Waveform | None]:
+    if config.scene not in SCENES:
+        raise ValueError(f"unknown scene {config.scene!r}: one of {', '.join(SCENES)}")
+    baseline = config.distance_mm + config.distance_back_mm + 230.0
+    if config.scene == "torso":
+        waveform = protocol_waveform(config.subject, config.protocol, config.seconds, config.seed, config.blows)
+        return _torso_scene(config, waveform, baseline), waveform
+    if config.scene in ("plane", "vase", "relief"):
+        return _object_scene(config), None
+    cycle_s = rig.cycle_length / rig.frame_rate_hz
+    if config.scene == "sphere":
+        centre = np.array([0.0, 0.0, config.distance_mm + 150.0])
+        return SphereScene(150.0, [SpherePlacement(0.0, centre)], baseline, albedo=0.8, events=[(0.0, "static")]), None
+    finish = "specular" if config.scene == "specular-sphere" else "matte"
+    radius = config.sphere_radius_mm
+    # A glossy highlight about two pixels in half-width: the LED's image through the lens' blur.
+    footprint_rad = rig.heads["front"].pixel_size_mm / rig.heads["front"].focal_length_mm * 2.0 * 2000.0 / radius
+    shininess = 2.0 * np.log(2.0) / (footprint_rad / 2.0) ** 2
+    scene = SphereScene(radius, sphere_placements(config, baseline, cycle_s), baseline,
+                        albedo=0.08 if finish == "specular" else 0.8,
+                        specular=0.7 if finish == "specular" else 0.0, shininess=float(shininess),
+                        kind="sphere-calibration")
+    scene.root_attrs = {"sphere_radius_mm": float(radius), "sphere_finish": finish,
+                        "simulated_scene": config.scene}
+    return scene, None
+
+
+def _default_map_frames(n_frames: int, cycle: int) -> list[int]:
+    ends = np.arange(cycle - 1, n_frames, cycle)
+    if len(ends) == 0:
+        return []
+    return sorted(set(int(ends[int(round(k))]) for k in np.linspace(0, len(ends) - 1, min(5, len(ends)))))
+
+
+def session_length_s(config: SimConfig, rig: Rig, waveform: Waveform | None, scene: Scene) -> float:
+    if config.seconds is not None:
+        return float(config.seconds)
+    if waveform is not None:
+        return waveform.duration_s
+    if isinstance(scene, SphereScene):
+        return len(scene.placements) * config.placement_cycles * rig.cycle_length / rig.frame_rate_hz
+    return 2.0
+
+
+def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], None] | None = None) -> SimSummary:
+    """Render the session described by `config` into a session file at `path`."""
+    started = time.perf_counter()
+    rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
+    scene, waveform = build_scene(config, rig)
+    true_heads = as_built_heads(rig, config)
+    duration = session_length_s(config, rig, waveform, scene)
+    n_frames = int(round(duration * rig.frame_rate_hz))
+    if n_frames < rig.cycle_length:
+        raise ValueError(f"{duration:.3f} s is shorter than one light cycle")
+    period_ns = rig.frame_period_ns
+    map_frames = set(config.truth_maps_at if config.truth_maps_at is not None
+                     else _default_map_frames(n_frames, rig.cycle_length))
+    bad = [i for i in map_frames if not 0 <= i < n_frames]
+    if bad:
+        raise ValueError(f"truth map frames {bad} outside 0-{n_frames - 1}")
+    rng = np.random.default_rng(config.seed + 61)
+    kept = rng.random(n_frames) >= config.drop_rate
+    digitisers = {h: Digitiser(config.camera, config.bit_depth) for h in rig.heads}
+
+    subject = None
+    if scene.kind in ("simulation", "patient"):
+        s = config.subject
+        subject = SubjectRecord(s.id, s.sex, s.age_years, s.height_cm, s.weight_kg)
+    root = dict(scene.root_attrs)
+    root["simulated_seed"] = int(config.seed)
+    block = rig.cycle_length * 11
+    maps: dict[str, dict[int, object]] = {h: {} for h in rig.heads}
+
+    with SessionWriter(path, kind=scene.kind, rig=rig, subject=subject, created=config.created,
+                       root_attrs=root, compression=config.compression) as writer:
+        for t, label in scene.events:
+            writer.add_event(CLOCK_START_NS + int(round(t * 1e9)), label)
+        errors: list[BaseException] = []
+        jobs: queue.Queue = queue.Queue(maxsize=4)
+
+        def write_loop() -> None:
+            while (job := jobs.get()) is not None:
+                if not errors:
+                    try:
+                        writer.append_frames(*job)
+                    except BaseException as exc:  # reported on the main thread
+                        errors.append(exc)
+
+        thread = threading.Thread(target=write_loop, name="session-writer", daemon=True)
+        thread.start()
+        try:
+            for start in range(0, n_frames, block):
+                indices = [i for i in range(start, min(start + block, n_frames))]
+                for name, head in true_heads.items():
+                    frames, ids, lights, stamps = [], [], [], []
+                    for i in indices:
+                        light = rig.sequence[i % rig.cycle_length]
+                        key = noise_key(config.seed, name, i, head.width * head.height)
+                        frame, rendered = scene.render(head, i / rig.frame_rate_hz, light, key, digitisers[name],
+                                                       want_maps=i in map_frames)
+                        if rendered is not None:
+                            maps[name][i] = rendered
+                        if kept[i]:
+                            frames.append(frame)
+                            ids.append(i)
+                            lights.append(light)
+                            stamps.append(CLOCK_START_NS + int(round(i * period_ns)))
+                    if frames:
+                        jobs.put((name, np.stack(frames), lights, stamps, ids))
+                if errors:
+                    break
+                if progress is not None:
+                    progress(min(1.0, (start + block) / n_frames))
+        finally:
+            jobs.put(None)
+            thread.join()
+        if errors:
+            raise errors[0]
+
+        truth_t = np.arange(0.0, duration, 1.0 / TRUTH_RATE_HZ)
+        truth_heads = {}
+        for name, head in true_heads.items():
+            indices = sorted(maps[name])
+            truth_heads[name] = {
+                "light_positions_mm": head.light_positions_mm,
+                "map_frame_index": np.array(indices, dtype=np.int64),
+                "normals": np.stack([maps[name][i].normals for i in indices]).astype(np.float32)
+                if indices else np.zeros((0, head.height, head.width, 3), np.float32),
+                "depth_mm": np.stack([maps[name][i].depth_mm for i in indices]).astype(np.float32)
+                if indices else np.zeros((0, head.height, head.width), np.float32),
+            }
+            truth_heads[name]["light_intensity"] = head.light_intensity
+        extra = {"sway_mm": scene.sway_mm(truth_t), "flow_lps": scene.truth_flow_lps(truth_t)}
+        if isinstance(scene, HeightFieldScene) and scene.compartment_volumes_l(truth_t) is not None:
+            extra["compartment_volume_l"] = scene.compartment_volumes_l(truth_t)
+        truth_volume = scene.truth_volume_l(truth_t)
+        writer.write_truth(CLOCK_START_NS + np.round(truth_t * 1e9).astype(np.int64), truth_volume, truth_heads,
+                           extra)
+
+        flow_samples = 0
+        if config.flow_sensor is not None and scene.kind == "simulation" and waveform is not None:
+            sensor = config.flow_sensor
+            t = np.arange(0.0, duration, 1.0 / sensor.sample_rate_hz)
+            adc = sensor.adc_counts(scene.truth_flow_lps(t), t, config.seed)
+            writer.configure_flow(sample_rate_hz=sensor.sample_rate_hz, adc_bits=sensor.adc_bits, sensor=sensor.sensor,
+                                  conditions="ATPS", gain_lps=sensor.gain_lps, offset_lps=sensor.offset_lps,
+                                  extra_attrs=sensor.file_attrs())
+            writer.append_flow(adc, CLOCK_START_NS + np.round(t * 1e9).astype(np.int64))
+            flow_samples = len(adc)
+
+    n_kept = int(kept.sum())
+    return SimSummary(Path(path), {h: n_kept for h in rig.heads}, {h: n_frames - n_kept for h in rig.heads},
+                      duration, time.perf_counter() - started,
+                      (float(truth_volume.min()), float(truth_volume.max())), flow_samples)
+
+
+__all__ = ["SimConfig", "SimSummary", "simulate", "build_scene", "SCENES", "CALIBRATION_SCENES", "RATE_HZ", "DARK"]
