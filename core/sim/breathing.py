@@ -133,7 +133,7 @@ def _ramp(level_from: float, level_to: float, duration_s: float) -> np.ndarray:
 
 def tidal(subject: Subject, duration_s: float, rng: np.random.Generator, level_l: float = 0.0) -> np.ndarray:
     """Tidal breaths: raised-cosine inspiration, passive (exponential) expiration, 8% variability."""
-    parts: list[np.ndarray] = []
+    parts: list[np.ndarray] = [np.zeros(0)]
     total = int(round(duration_s * RATE_HZ))
     while sum(len(p) for p in parts) < total:
         period = 60.0 / subject.respiratory_rate_bpm * (1 + 0.06 * rng.standard_normal())
@@ -148,55 +148,56 @@ def tidal(subject: Subject, duration_s: float, rng: np.random.Generator, level_l
     return np.concatenate(parts)[:total]
 
 
-def slow_vc(subject: Subject, rng: np.random.Generator) -> tuple[np.ndarray, list[tuple[float, str]]]:
-    """Two tidal breaths, a slow full inspiration to TLC, a slow full expiration to RV, back to FRC."""
+def slow_vc(subject: Subject, rng: np.random.Generator,
+            lead_breaths: int = 0) -> tuple[np.ndarray, list[tuple[float, str]]]:
+    """Tidal breaths, a slow full inspiration to TLC, a slow full expiration to RV, back to FRC."""
     ic, erv = subject.inspiratory_capacity, subject.expiratory_reserve
-    lead = tidal(subject, 2 * 60.0 / subject.respiratory_rate_bpm, rng)
-    parts = [lead, _ramp(0.0, ic, 3.0), np.full(int(0.5 * RATE_HZ), ic), _ramp(ic, -erv, 6.5),
-             np.full(int(0.4 * RATE_HZ), -erv), _ramp(-erv, 0.0, 2.5)]
+    lead = tidal(subject, lead_breaths * 60.0 / subject.respiratory_rate_bpm, rng)
+    parts = [lead, _ramp(0.0, ic, 3.0), np.full(int(0.5 * RATE_HZ), ic), _ramp(ic, -erv, 6.0),
+             np.full(int(0.4 * RATE_HZ), -erv), _ramp(-erv, 0.0, 2.0)]
     start = len(lead) / RATE_HZ
     end = sum(len(p) for p in parts) / RATE_HZ
     return np.concatenate(parts), [(start, "vc-start"), (end, "maneuver-end")]
 
 
 def forced_expiration_curve(fvc: float, fev1: float, pef: float, blow: ForcedBlow,
-                            duration_s: float = 7.0) -> np.ndarray:
+                            duration_s: float = 6.0) -> np.ndarray:
     """Exhaled volume (L) against time for one forced expiration at RATE_HZ.
 
-    Flow rises to PEF as sin^2 over the rise time, then falls with the volume still to exhale,
-    F(v) = PEF * ((FVC - v) / (FVC - v_peak))**k, k chosen so that the volume at 1 s after
-    back-extrapolated time zero is FEV1: concave (obstructive) curves have k > 1.
+    Flow rises to PEF as sin^2 over the rise time; the volume still to exhale then falls as
+    two exponentials, a fast (large airways) and a slow (small airways) part,
+    w(t) = w_peak * (a * exp(-t / tau_fast) + (1 - a) * exp(-t / tau_slow)), with tau_slow a fifth
+    of the blow (a plateau by its end), and a, tau_fast fixed by PEF (the initial slope) and
+    FEV1 at back-extrapolated time zero. Obstructed curves have a large slow part.
     """
     pef = pef * blow.effort
+    fev1 = fev1 * (0.85 + 0.15 * blow.effort)
     t = _samples(duration_s)
     tr = blow.rise_time_s
     v_peak = pef * tr / 2.0
-    if v_peak >= 0.5 * fvc:
-        raise ValueError("rise time too long for this PEF and FVC")
-
-    def curve(k: float) -> np.ndarray:
-        w_peak = fvc - v_peak
-        a = pef / w_peak**k
-        ts = np.clip(t - tr, 0.0, None)
-        if abs(k - 1.0) < 1e-9:
-            w = w_peak * np.exp(-a * ts)
-        else:
-            base = w_peak ** (1 - k) - (1 - k) * a * ts
-            w = np.where(base > 0, np.abs(base) ** (1 / (1 - k)), 0.0) if k < 1 else base ** (1 / (1 - k))
-        rise = pef * (t / 2.0 - tr / (2 * np.pi) * np.sin(np.pi * np.clip(t, 0, tr) / tr))
-        return np.where(t < tr, rise, fvc - w)
-
+    w_peak = fvc - v_peak
+    if v_peak >= 0.5 * fvc or fev1 >= fvc:
+        raise ValueError(f"no forced expiration fits FVC {fvc:.2f} L, FEV1 {fev1:.2f} L, PEF {pef:.2f} L/s, "
+                         f"rise {tr:.2f} s")
+    tau_slow = (duration_s - tr) / 5.0
     t0 = tr / 2.0  # back-extrapolated time zero of a sin^2 rise (tangent at peak flow)
 
-    def fev1_error(k: float) -> float:
-        return float(np.interp(t0 + 1.0, t, curve(k))) - fev1
+    def tau_fast(a: float) -> float:
+        return a / (pef / w_peak - (1 - a) / tau_slow)
 
-    lo, hi = 0.2, 8.0
-    if fev1_error(lo) * fev1_error(hi) > 0:
-        k = lo if abs(fev1_error(lo)) < abs(fev1_error(hi)) else hi
-    else:
-        k = brentq(fev1_error, lo, hi, xtol=1e-6)
-    volume = curve(k)
+    def remaining(a: float, ts: np.ndarray) -> np.ndarray:
+        return w_peak * (a * np.exp(-ts / tau_fast(a)) + (1 - a) * np.exp(-ts / tau_slow))
+
+    def fev1_error(a: float) -> float:
+        return float(fvc - remaining(a, np.array(t0 + 1.0 - tr))) - fev1
+
+    a_min = max(1e-6, 1.0 - pef * tau_slow / w_peak + 1e-6)  # tau_fast must stay positive
+    if fev1_error(a_min) * fev1_error(1.0 - 1e-9) > 0:
+        raise ValueError(f"FEV1 {fev1:.2f} L cannot follow from PEF {pef:.2f} L/s and FVC {fvc:.2f} L "
+                         f"in a {duration_s:.0f} s blow")
+    a = brentq(fev1_error, a_min, 1.0 - 1e-9, xtol=1e-9)
+    rise = pef * (t / 2.0 - tr / (2 * np.pi) * np.sin(np.pi * np.clip(t, 0, tr) / tr))
+    volume = np.where(t < tr, rise, fvc - remaining(a, np.clip(t - tr, 0.0, None)))
     if blow.cough_at_s is not None:
         i = int(blow.cough_at_s * RATE_HZ)
         n = int(0.08 * RATE_HZ)
@@ -207,16 +208,21 @@ def forced_expiration_curve(fvc: float, fev1: float, pef: float, blow: ForcedBlo
     return volume
 
 
-def forced(subject: Subject, blow: ForcedBlow, rng: np.random.Generator,
-           blow_s: float = 7.0) -> tuple[np.ndarray, list[tuple[float, str]]]:
-    """Tidal breaths, a full inspiration to TLC, a short hold, the blow, back to the tidal level."""
+def forced(subject: Subject, blow: ForcedBlow, rng: np.random.Generator, blow_s: float | None = None,
+           lead_breaths: int = 1) -> tuple[np.ndarray, list[tuple[float, str]]]:
+    """Tidal breaths, a full inspiration to TLC, a short hold, the blow, back to the tidal level.
+
+    The blow lasts 6 s, or 10 s when FEV1/FVC < 0.7 (obstructed lungs empty slowly).
+    """
     ic = subject.inspiratory_capacity
-    lead = tidal(subject, 60.0 / subject.respiratory_rate_bpm, rng)
+    if blow_s is None:
+        blow_s = 6.0 if subject.fev1 / subject.fvc >= 0.7 else 10.0
+    lead = tidal(subject, lead_breaths * 60.0 / subject.respiratory_rate_bpm, rng)
     inhale = _ramp(0.0, ic, 1.6)
     hold = np.full(int(0.4 * RATE_HZ), ic)
     exhaled = forced_expiration_curve(subject.fvc, subject.fev1, subject.pef, blow, blow_s)
     blow_part = ic - exhaled
-    recover = _ramp(blow_part[-1], 0.0, 2.0)
+    recover = _ramp(blow_part[-1], 0.0, 1.5)
     start = (len(lead) + len(inhale) + len(hold)) / RATE_HZ
     end = start + len(blow_part) / RATE_HZ
     parts = [lead, inhale, hold, blow_part, recover]
@@ -230,7 +236,7 @@ def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, se
                       blows: list[ForcedBlow] | None = None) -> Waveform:
     """The lung volume of a whole protocol; `seconds` trims or pads (with tidal breathing) the end.
 
-    full: 12 s tidal breathing, a slow VC, then forced expirations (three good blows by default).
+    full (57 s): 8 s tidal breathing, a slow VC, then forced expirations (three good blows by default).
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"unknown protocol {protocol!r}: one of {', '.join(PROTOCOLS)}")
@@ -248,14 +254,14 @@ def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, se
         add(np.zeros(int(round((seconds or 5.0) * RATE_HZ))))
         return Waveform(np.concatenate(parts), events)
     if protocol in ("tidal", "full"):
-        add(tidal(subject, 12.0 if protocol == "full" else (seconds or 30.0), rng), [(0.0, "tidal-start")])
+        add(tidal(subject, 8.0 if protocol == "full" else (seconds or 30.0), rng), [(0.0, "tidal-start")])
         if protocol == "full":
-            events.append((12.0, "maneuver-end"))
+            events.append((8.0, "maneuver-end"))
     if protocol in ("vc", "full"):
-        add(*slow_vc(subject, rng))
+        add(*slow_vc(subject, rng, lead_breaths=0 if protocol == "full" else 1))
     if protocol in ("forced", "full"):
-        for blow in blows:
-            add(*forced(subject, blow, rng))
+        for k, blow in enumerate(blows):
+            add(*forced(subject, blow, rng, lead_breaths=0 if k == 0 and protocol == "full" else 1))
     volume = np.concatenate(parts)
     if seconds is not None:
         n = int(round(seconds * RATE_HZ))

@@ -35,6 +35,7 @@ class CameraModel:
     ambient_level: float = 0.04  # fraction of full well added by room light on a white surface
     background_level: float = 0.01  # fraction of full well from the dark background
     reference_distance_mm: float = 2000.0
+    noise: bool = True  # False: the exact expected signal, only quantised (for physics tests)
 
     @property
     def exposure_gain(self) -> float:
@@ -102,7 +103,9 @@ def _radiance(px, py, pz, nx, ny, nz, albedo, light, spec, shin):
 
 @njit(inline="always")
 def _digitise(signal_e, read_e, dn_per_e, max_dn, key):
-    e = signal_e + np.sqrt(signal_e + read_e * read_e) * _gaussian(key)
+    e = signal_e
+    if read_e >= 0.0:
+        e += np.sqrt(signal_e + read_e * read_e) * _gaussian(key)
     dn = np.floor(e * dn_per_e + 0.5)
     if dn < 0.0:
         return 0.0

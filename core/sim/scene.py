@@ -39,7 +39,7 @@ class Digitiser:
     def args(self) -> tuple:
         c = self.camera
         return (c.exposure_gain, c.ambient_level * c.full_well_e, c.background_level * c.full_well_e,
-                c.read_noise_e, self.dn_per_e, self.max_dn)
+                c.read_noise_e if c.noise else -1.0, self.dn_per_e, self.max_dn)
 
 
 def noise_key(seed: int, head: str, frame_index: int, n_pixels: int) -> np.uint64:

@@ -1,0 +1,257 @@
+"""The `photopft` command line."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from core import __version__
+from core.session import SessionError, SessionFile, validate_session
+
+log = logging.getLogger("photopft")
+
+BLOW_KINDS = ("good", "slow-start", "early-stop", "cough", "weak")
+
+
+class UserError(Exception):
+    """An error the user can act on: printed as one line, exit status 2."""
+
+
+def _float_list(text: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected comma-separated frame indices, got {text!r}") from exc
+
+
+def _blows(text: str):
+    from core.sim.breathing import ForcedBlow
+
+    table = {"good": ForcedBlow(), "slow-start": ForcedBlow(rise_time_s=0.4), "early-stop": ForcedBlow(stop_after_s=1.2),
+             "cough": ForcedBlow(cough_at_s=0.45), "weak": ForcedBlow(effort=0.7)}
+    names = [x.strip() for x in text.split(",") if x.strip()]
+    unknown = [n for n in names if n not in table]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown blow {unknown[0]!r}: use {', '.join(BLOW_KINDS)}")
+    return [table[n] for n in names]
+
+
+def _positive(kind):
+    def parse(text: str):
+        value = kind(text)
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+        return value
+
+    return parse
+
+
+def add_simulate(sub: argparse._SubParsersAction) -> None:
+    from core.sim.breathing import PROTOCOLS
+    from core.sim.simulate import SCENES
+
+    p = sub.add_parser("simulate", help="simulate a session on the simulated rig",
+                       description="Render a session of the simulated rig into a session file (with /truth).")
+    p.add_argument("-o", "--output", required=True, type=Path, help="session file to write (.h5)")
+    p.add_argument("--scene", choices=SCENES, default="torso", help="what stands between the heads (default torso)")
+    p.add_argument("--protocol", choices=PROTOCOLS, default="full",
+                   help="torso manoeuvres: tidal, vc (slow vital capacity), forced, full (all three), static")
+    p.add_argument("--seconds", type=_positive(float), help="length (default: the protocol's own length)")
+    p.add_argument("--scale", type=_positive(float), default=0.25, help="sensor resolution scale, 1.0 = 1400 x 1024")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--heads", choices=("front", "both"), default="both", help="front-only or both heads")
+    p.add_argument("--distance-mm", type=_positive(float), default=2000.0,
+                   help="front camera to the subject's surface on the optical axis")
+    p.add_argument("--distance-back-mm", type=_positive(float), default=2000.0)
+    p.add_argument("--sway-mm", type=float, default=None,
+                   help="peak postural sway along the optical axis (torso default 50; other scenes 0)")
+    p.add_argument("--lateral-sway-mm", type=float, default=15.0)
+    s = p.add_argument_group("subject")
+    s.add_argument("--subject-id", default="SIM-0001")
+    s.add_argument("--sex", choices=("male", "female"), default="male")
+    s.add_argument("--age", type=float, default=30.0, help="years")
+    s.add_argument("--height", type=float, default=175.0, help="cm")
+    s.add_argument("--weight", type=float, default=75.0, help="kg")
+    s.add_argument("--fvc", type=_positive(float), help="L (default: predicted)")
+    s.add_argument("--fev1", type=_positive(float), help="L (default: predicted)")
+    s.add_argument("--pef", type=_positive(float), help="L/s (default: predicted)")
+    s.add_argument("--tidal-volume", type=_positive(float), help="L (default 7 mL/kg)")
+    s.add_argument("--rate", type=_positive(float), default=14.0, help="breaths per minute")
+    s.add_argument("--chest-share", type=float, default=0.62, help="share of each breath in the chest (0-1)")
+    s.add_argument("--blows", type=_blows, help=f"forced blows, comma-separated: {', '.join(BLOW_KINDS)}")
+    c = p.add_argument_group("camera and lights")
+    c.add_argument("--bits", type=int, choices=(8, 10, 12, 16), default=12)
+    c.add_argument("--fps", type=_positive(float), default=110.0)
+    c.add_argument("--clothing", choices=("tshirt", "skin"), default="tshirt")
+    c.add_argument("--specular", type=float, default=0.0, help="specular weight of the torso's surface")
+    c.add_argument("--led-offset-mm", type=float, default=0.0, help="as built: LEDs this far from the drawing")
+    c.add_argument("--led-intensity-spread", type=float, default=0.0, help="as built: relative intensities 1 +- this")
+    c.add_argument("--led-mu", type=float, default=0.0, help="LED anisotropy exponent (0 = isotropic)")
+    c.add_argument("--drop-rate", type=float, default=0.0, help="fraction of frames lost (gaps in frame_id)")
+    c.add_argument("--no-flow", action="store_true", help="no flow sensor recording")
+    c.add_argument("--truth-maps-at", type=_float_list, help="frame indices of the true maps (default: five)")
+    k = p.add_argument_group("sphere calibration scenes")
+    k.add_argument("--placements", type=int, default=7, help="sphere placements (>= 2)")
+    k.add_argument("--sphere-radius-mm", type=_positive(float), default=75.0)
+    p.set_defaults(run=run_simulate)
+
+
+def run_simulate(args: argparse.Namespace) -> int:
+    from core.sim.breathing import Subject, Sway
+    from core.sim.flowsensor import FlowSensorModel
+    from core.sim.simulate import SimConfig, simulate
+
+    if args.placements < 2:
+        raise UserError("--placements must be 2 or more")
+    if not 0.0 <= args.drop_rate < 0.5:
+        raise UserError(f"--drop-rate must be in [0, 0.5), got {args.drop_rate}")
+    try:
+        subject = Subject(id=args.subject_id, sex=args.sex, age_years=args.age, height_cm=args.height,
+                          weight_kg=args.weight, fvc_l=args.fvc, fev1_l=args.fev1, pef_lps=args.pef,
+                          tidal_volume_l=args.tidal_volume, respiratory_rate_bpm=args.rate,
+                          chest_share=args.chest_share)
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
+    sway_default = 50.0 if args.scene == "torso" else 0.0
+    axial = sway_default if args.sway_mm is None else args.sway_mm
+    lateral = args.lateral_sway_mm if (args.scene == "torso" or args.sway_mm) else 0.0
+    sway = Sway(axial, lateral, 3.0 if axial or lateral else 0.0, seed=args.seed)
+    config = SimConfig(
+        scene=args.scene, protocol=args.protocol, seconds=args.seconds, scale=args.scale, seed=args.seed,
+        heads=("front",) if args.heads == "front" else ("front", "back"), distance_mm=args.distance_mm,
+        distance_back_mm=args.distance_back_mm, sway=sway, subject=subject, blows=args.blows, bit_depth=args.bits,
+        frame_rate_hz=args.fps, clothing=args.clothing, specular=args.specular, led_offset_mm=args.led_offset_mm,
+        led_intensity_spread=args.led_intensity_spread, led_mu=args.led_mu,
+        flow_sensor=None if args.no_flow else FlowSensorModel(), drop_rate=args.drop_rate,
+        truth_maps_at=args.truth_maps_at, sphere_radius_mm=args.sphere_radius_mm, placements=args.placements)
+    show = sys.stderr.isatty()
+
+    def progress(fraction: float) -> None:
+        if show:
+            print(f"\rsimulating {args.output.name}: {100 * fraction:5.1f} %", end="", file=sys.stderr, flush=True)
+
+    try:
+        summary = simulate(args.output, config, progress)
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
+    if show:
+        print(file=sys.stderr)
+    frames = ", ".join(f"{h} {n}" for h, n in summary.frames.items())
+    print(f"wrote {summary.path}: {summary.duration_s:.1f} s, frames {frames}, "
+          f"flow samples {summary.flow_samples}, simulated in {summary.elapsed_s:.1f} s")
+    lo, hi = summary.truth_volume_range_l
+    if hi - lo > 0:
+        print(f"true volume change {lo:+.3f} to {hi:+.3f} L")
+    return 0
+
+
+def add_info(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("info", help="summarise a session file", description="A human summary of a session file.")
+    p.add_argument("session", type=Path)
+    p.set_defaults(run=run_info)
+
+
+def describe_session(path: Path) -> str:
+    lines = []
+    with SessionFile(path) as s:
+        lines.append(f"{path}: {s.kind} session, created {s.created} by {s.software}")
+        lines.append(f"rig {s.rig.name!r}: {s.rig.frame_rate_hz:.1f} frames/s, cycle {list(s.rig.sequence)}")
+        for name in s.heads:
+            head = s.rig.heads[name]
+            n = s.n_frames(name)
+            ts = s.timestamp_ns(name)
+            duration = (ts[-1] - ts[0]) / 1e9 + 1 / s.rig.frame_rate_hz if n else 0.0
+            lines.append(f"  {name}: {head.width} x {head.height} px, {head.bit_depth}-bit, f {head.fx:.1f} px, "
+                         f"{n} frames over {duration:.2f} s, {s.lost_frames(name)} lost, lights calibrated "
+                         f"{head.calibrated or 'never'}")
+        flow = s.flow
+        if flow is None:
+            lines.append("flow sensor: none")
+        else:
+            calibration = (f"flow = {flow.gain_lps:g} * adc {flow.offset_lps:+g} L/s" if flow.gain_lps is not None
+                           else "uncalibrated")
+            lines.append(f"flow sensor: {flow.sensor}, {flow.n_samples} samples at {flow.sample_rate_hz:g} Hz, "
+                         f"{flow.adc_bits}-bit, {calibration}, {flow.conditions}")
+        if s.subject is not None:
+            sub = s.subject
+            lines.append(f"subject {sub.id}: {sub.sex}, {sub.age_years:g} years, {sub.height_cm:g} cm, "
+                         f"{sub.weight_kg:g} kg")
+        if s.kind == "sphere-calibration":
+            lines.append(f"sphere: radius {float(s.attrs['sphere_radius_mm']):g} mm, {s.attrs['sphere_finish']}")
+        events = s.events()
+        start = min((s.timestamp_ns(h)[0] for h in s.heads if s.n_frames(h)), default=0)
+        if events:
+            lines.append("events: " + ", ".join(f"{label} at {(t - start) / 1e9:.2f} s" for t, label in events))
+        else:
+            lines.append("events: none")
+        if s.has_truth:
+            truth = s.truth()
+            volume = np.asarray(truth["volume_l"])
+            lines.append(f"truth: volume {volume.min():+.3f} to {volume.max():+.3f} L; maps at "
+                         + "; ".join(f"{h} {np.asarray(truth[h]['map_frame_index']).tolist()}" for h in s.heads
+                                     if h in truth))
+    return "\n".join(lines)
+
+
+def run_info(args: argparse.Namespace) -> int:
+    print(describe_session(args.session))
+    return 0
+
+
+def add_validate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("validate", help="check a session file against the format spec",
+                       description="Exit 0 if the file follows the session format, 1 with the problems listed.")
+    p.add_argument("session", type=Path)
+    p.set_defaults(run=run_validate)
+
+
+def run_validate(args: argparse.Namespace) -> int:
+    problems = validate_session(args.session)
+    if problems:
+        print(f"{args.session}: {len(problems)} problem(s)")
+        for problem in problems:
+            print(f"  - {problem}")
+        return 1
+    print(f"{args.session}: valid photopft session (format version 1)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="photopft", description="Non-contact lung function testing by "
+                                     "near-light photometric stereo. Every verb has --help.")
+    parser.add_argument("--version", action="version", version=f"photopft {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log details to standard error")
+    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    add_simulate(sub)
+    add_info(sub)
+    add_validate(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "run", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.run(args) or 0)
+    except (UserError, SessionError) as exc:
+        print(f"photopft {args.verb}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"photopft {args.verb}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"photopft {args.verb}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,70 @@
+"""The photopft command line, run as a user runs it."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import h5py
+import pytest
+
+from app.cli import build_parser, main
+
+
+def photopft(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "app", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_simulate_info_validate(tmp_path):
+    out = tmp_path / "s.h5"
+    r = photopft("simulate", "--protocol", "tidal", "--seconds", "0.5", "--scale", "0.05", "--seed", "2", "-o", str(out))
+    assert r.returncode == 0, r.stderr
+    assert "wrote" in r.stdout
+    r = photopft("validate", str(out))
+    assert r.returncode == 0 and "valid photopft session" in r.stdout
+    r = photopft("info", str(out))
+    assert r.returncode == 0
+    for text in ("simulation session", "front: 70 x 51 px", "back:", "flow sensor:", "subject SIM-0001", "tidal-start"):
+        assert text in r.stdout, text
+
+
+def test_validate_lists_problems_and_exits_1(small_session, tmp_path):
+    broken = tmp_path / "broken.h5"
+    broken.write_bytes(small_session.read_bytes())
+    with h5py.File(broken, "r+") as f:
+        del f["rig/front"].attrs["fy"]
+        f.attrs["kind"] = "party"
+    r = photopft("validate", str(broken))
+    assert r.returncode == 1
+    assert "/rig/front@fy" in r.stdout and "/@kind" in r.stdout
+
+
+def test_front_only(tmp_path):
+    out = tmp_path / "f.h5"
+    assert main(["simulate", "--heads", "front", "--seconds", "0.1", "--scale", "0.05", "-o", str(out)]) == 0
+    with h5py.File(out) as f:
+        assert list(f["rig"]) == ["front"] and list(f["heads"]) == ["front"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["simulate", "--age", "300", "-o", "x.h5"], "age_years"),
+    (["simulate", "--scale", "2", "-o", "x.h5"], "scale"),
+    (["simulate", "--placements", "1", "--scene", "specular-sphere", "-o", "x.h5"], "placements"),
+    (["info", "missing.h5"], "no such file"),
+])
+def test_bad_input_gives_one_clear_line(tmp_path, capsys, args, message):
+    args = [a if a != "x.h5" else str(tmp_path / a) for a in args]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_every_verb_has_help(capsys):
+    parser = build_parser()
+    verbs = parser._subparsers._group_actions[0].choices
+    assert {"simulate", "info", "validate"} <= set(verbs)
+    for verb in verbs:
+        with pytest.raises(SystemExit) as exit_info:
+            main([verb, "--help"])
+        assert exit_info.value.code == 0
+        assert "usage: photopft " + verb in capsys.readouterr().out

@@ -1,0 +1,129 @@
+"""The renderer against the image formation model, computed independently here."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.rig import thesis_head
+from core.sim.render import CameraModel
+from core.sim.scene import Digitiser, HeightFieldScene, SpherePlacement, SphereScene
+from core.sim.surfaces import BodyGrid, build_height_field
+
+QUIET = CameraModel(noise=False)
+
+
+def _board(tilt_x=0.2, tilt_y=-0.1, albedo=0.7, modes=None):
+    grid = BodyGrid.covering(400.0, -320.0, 320.0, 1.0)
+    x, y = grid.coordinates()
+    h = 10.0 + x * tilt_x + y * tilt_y
+    return grid, build_height_field(grid, h, np.full_like(x, albedo), modes)
+
+
+def test_plane_under_one_light_equals_the_formula():
+    tx, ty, albedo, z_mid = 0.2, -0.1, 0.7, 2010.0
+    _, board = _board(tx, ty, albedo)
+    head = thesis_head("front", scale=0.1)
+    scene = HeightFieldScene({"front": board}, z_mid, 4000.0)
+    digitiser = Digitiser(QUIET, 12)
+    light = 2
+    frame, maps = scene.render(head, 0.0, light, np.uint64(0), digitiser, want_maps=True)
+
+    gain, ambient_e, _, _, dn_per_e, _ = digitiser.args()
+    rows, cols = np.meshgrid(np.arange(3, head.height, 7), np.arange(5, head.width, 9), indexing="ij")
+    u = (cols - head.cx) / head.fx
+    v = (rows - head.cy) / head.fy
+    z = (z_mid - 10.0) / (1.0 + u * tx + v * ty)  # Z = z_mid - h(X, Y) along the ray (u, v, 1) Z
+    normal = np.array([-tx, -ty, -1.0]) / np.linalg.norm([-tx, -ty, -1.0])
+    point = np.stack([u * z, v * z, z], axis=-1)
+    to_light = head.light_positions_mm[light] - point
+    r2 = np.sum(to_light**2, axis=-1)
+    cos = np.clip(to_light @ normal / np.sqrt(r2), 0, None)
+    expected = np.round((gain * albedo * cos / r2 + ambient_e * albedo) * dn_per_e)
+
+    on = np.isfinite(maps.depth_mm[rows, cols])  # the board ends short of the image corners
+    assert on.mean() > 0.9
+    rows, cols, z, expected = rows[on], cols[on], z[on], expected[on]
+    np.testing.assert_allclose(maps.depth_mm[rows, cols], z, rtol=1e-6)
+    np.testing.assert_allclose(maps.normals[rows, cols], np.broadcast_to(normal, z.shape + (3,)), atol=1e-5)
+    assert np.max(np.abs(frame[rows, cols].astype(float) - expected)) <= 1.0
+    dark, _ = scene.render(head, 0.0, -1, np.uint64(0), digitiser)
+    np.testing.assert_allclose(dark[rows, cols], np.round(ambient_e * albedo * dn_per_e), atol=1)
+
+
+def test_truth_volume_of_an_analytic_deformation_equals_its_closed_form():
+    sigma, peak_mm = 60.0, 5.0
+    grid = BodyGrid.covering(400.0, -320.0, 320.0, 1.0)
+    x, y = grid.coordinates()
+    bump = np.exp(-(x**2 + (y - 20) ** 2) / (2 * sigma**2))
+    _, board = _board(0.0, 0.0, modes={"bump": bump})
+    closed_form_l = peak_mm * 2 * np.pi * sigma**2 * 1e-6
+    scene = HeightFieldScene({"front": board}, 2010.0, 4000.0, mode_amplitudes=lambda t: np.array([peak_mm * t]))
+    assert scene.truth_volume_l(np.array([1.0]))[0] == pytest.approx(closed_form_l, rel=0.005)
+
+    # The rendered surfaces sweep the same volume: integrate the depth change over the pixel footprints.
+    head = thesis_head("front", scale=0.25)
+    digitiser = Digitiser(QUIET, 12)
+    _, rest = scene.render(head, 0.0, 0, np.uint64(0), digitiser, want_maps=True)
+    _, moved = scene.render(head, 1.0, 0, np.uint64(0), digitiser, want_maps=True)
+    footprint = (rest.depth_mm / head.fx) * (rest.depth_mm / head.fy)
+    swept = np.nansum((rest.depth_mm - moved.depth_mm) * footprint) * 1e-6
+    assert swept == pytest.approx(closed_form_l, rel=0.005)
+
+
+def test_specular_highlight_sits_where_the_normal_bisects_view_and_light():
+    head = thesis_head("front", scale=0.5)
+    scene = SphereScene(75.0, [SpherePlacement(0.0, np.array([60.0, -40.0, 2100.0]))], 4300.0, albedo=0.05,
+                        specular=1.5, shininess=4000.0)
+    digitiser = Digitiser(QUIET, 12)
+    for light in range(4):
+        frame, maps = scene.render(head, 0.0, light, np.uint64(0), digitiser, want_maps=True)
+        u = (np.arange(head.width) - head.cx) / head.fx
+        v = (np.arange(head.height) - head.cy) / head.fy
+        point = np.stack(np.broadcast_arrays(u[None] * maps.depth_mm, v[:, None] * maps.depth_mm, maps.depth_mm), -1)
+        to_light = head.light_positions_mm[light] - point
+        half = to_light / np.linalg.norm(to_light, axis=-1, keepdims=True) - point / np.linalg.norm(
+            point, axis=-1, keepdims=True)
+        alignment = np.nan_to_num(np.sum(maps.normals * half, -1) / np.linalg.norm(half, axis=-1), nan=-1)
+        mirror = np.unravel_index(np.argmax(alignment), alignment.shape)
+        brightest = np.unravel_index(np.argmax(frame), frame.shape)
+        assert np.hypot(*np.subtract(mirror, brightest)) <= 1.0, (light, mirror, brightest)
+
+
+def test_inverse_square_falloff_with_distance():
+    head = thesis_head("front", scale=0.1)
+    digitiser = Digitiser(QUIET, 16)
+    _, board = _board(0.0, 0.0, 0.8)
+    centre = (head.height // 2, head.width // 2)
+    values = []
+    for z in (1810.0, 2210.0):
+        frame, _ = HeightFieldScene({"front": board}, z, 5000.0).render(head, 0.0, 0, np.uint64(0), digitiser)
+        values.append(float(frame[centre]))
+    gain, ambient_e, _, _, dn_per_e, _ = digitiser.args()
+    ambient = ambient_e * 0.8 * dn_per_e
+
+    def lit(z):
+        ray = np.array([(centre[1] - head.cx) / head.fx, (centre[0] - head.cy) / head.fy, 1.0])
+        d = head.light_positions_mm[0] - ray * (z - 10.0)
+        r = np.linalg.norm(d)
+        return gain * 0.8 * (-d[2] / r) / r**2 * dn_per_e
+
+    assert values[0] - ambient == pytest.approx(lit(1810.0), abs=1.0)
+    assert values[1] - ambient == pytest.approx(lit(2210.0), abs=1.0)
+    assert values[0] / values[1] > 1.3  # nearer is brighter
+
+
+def test_noise_has_the_shot_and_read_variance():
+    head = thesis_head("front", scale=0.25)
+    camera = CameraModel(ambient_level=0.0)
+    digitiser = Digitiser(camera, 16)
+    _, board = _board(0.0, 0.0, 0.8)
+    scene = HeightFieldScene({"front": board}, 2010.0, 5000.0)
+    a, _ = scene.render(head, 0.0, 0, np.uint64(1000), digitiser)
+    b, _ = scene.render(head, 0.0, 0, np.uint64(10_000_000), digitiser)
+    quiet, _ = scene.render(head, 0.0, 0, np.uint64(0), Digitiser(CameraModel(ambient_level=0.0, noise=False), 16))
+    centre = (slice(100, 150), slice(150, 200))
+    e_per_dn = 1 / digitiser.dn_per_e
+    signal_e = quiet[centre].astype(float).mean() * e_per_dn
+    measured = np.var((a[centre].astype(float) - b[centre].astype(float)) * e_per_dn) / 2
+    assert measured == pytest.approx(signal_e + camera.read_noise_e**2, rel=0.1)
