@@ -229,6 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_simulate(sub)
     add_info(sub)
     add_validate(sub)
+    from app.demo import add_demo
+
+    add_demo(sub, run_simulate, describe_session)
     return parser
 
 
