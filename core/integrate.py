@@ -1,0 +1,113 @@
+"""Normals to metric depth.
+
+Perspective integration works on log-depth: for a pixel (u, v) with ray (x, y, 1),
+x = (u - cx) / fx, y = (v - cy) / fy, and a normal n, the point Z (x, y, 1) lies on the surface
+when d(log Z)/du = -n_x / (fx n.(x, y, 1)) and d(log Z)/dv = -n_y / (fy n.(x, y, 1)). Integrating
+those gradients (a Poisson problem, as the thesis did orthographically) gives the shape up to a
+scale, which the subject distance fixes (exp of the log-depth times the anchor).
+
+Two solvers: `integrate_dct`, a Poisson solve on the whole rectangle with the gradients
+zeroed off the mask (Neumann boundary, fast, for the live view), and `integrate_masked`,
+least squares over the mask's own pixel edges (accurate, no artefacts at the mask edge).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+from scipy.fft import dctn, idctn
+from scipy.sparse.linalg import spsolve
+
+
+def log_depth_gradients(normals: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """d(log Z)/du and d(log Z)/dv per pixel (columns, rows) from unit normals (H, W, 3)."""
+    height, width = normals.shape[:2]
+    x = ((np.arange(width) - cx) / fx)[None, :]
+    y = ((np.arange(height) - cy) / fy)[:, None]
+    denominator = normals[..., 0] * x + normals[..., 1] * y + normals[..., 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return -normals[..., 0] / (fx * denominator), -normals[..., 1] / (fy * denominator)
+
+
+def integrate_dct(gu: np.ndarray, gv: np.ndarray) -> np.ndarray:
+    """Least-squares surface from its gradients on the whole rectangle (DCT Poisson, Neumann boundary).
+
+    gu, gv: derivatives along columns and rows (per pixel); NaN counts as zero. The result has
+    zero mean.
+    """
+    gu = np.nan_to_num(gu)
+    gv = np.nan_to_num(gv)
+    height, width = gu.shape
+    # Divergence with the boundary handling of the DCT-II Neumann problem.
+    div = np.zeros_like(gu)
+    div[:, :-1] += (gu[:, :-1] + gu[:, 1:]) / 2
+    div[:, 1:] -= (gu[:, :-1] + gu[:, 1:]) / 2
+    div[:-1, :] += (gv[:-1, :] + gv[1:, :]) / 2
+    div[1:, :] -= (gv[:-1, :] + gv[1:, :]) / 2
+    transformed = dctn(-div, type=2, norm="ortho")
+    wu = 2 * np.cos(np.pi * np.arange(width) / width) - 2
+    wv = 2 * np.cos(np.pi * np.arange(height) / height) - 2
+    denominator = wv[:, None] + wu[None, :]
+    denominator[0, 0] = 1.0
+    transformed = transformed / -denominator
+    transformed[0, 0] = 0.0
+    return idctn(transformed, type=2, norm="ortho")
+
+
+def _edge_system(mask: np.ndarray, gu: np.ndarray, gv: np.ndarray):
+    index = -np.ones(mask.shape, dtype=np.int64)
+    index[mask] = np.arange(int(mask.sum()))
+    rows, cols, vals, rhs = [], [], [], []
+    n_eq = 0
+    for axis, g in ((1, gu), (0, gv)):
+        a = mask[:, :-1] & mask[:, 1:] if axis == 1 else mask[:-1, :] & mask[1:, :]
+        if axis == 1:
+            i0, i1 = index[:, :-1][a], index[:, 1:][a]
+            target = ((g[:, :-1] + g[:, 1:]) / 2)[a]
+        else:
+            i0, i1 = index[:-1, :][a], index[1:, :][a]
+            target = ((g[:-1, :] + g[1:, :]) / 2)[a]
+        k = np.arange(n_eq, n_eq + len(i0))
+        rows += [k, k]
+        cols += [i1, i0]
+        vals += [np.ones(len(k)), -np.ones(len(k))]
+        rhs.append(target)
+        n_eq += len(k)
+    a_matrix = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                                 shape=(n_eq, int(mask.sum())))
+    return a_matrix, np.concatenate(rhs), index
+
+
+def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Least-squares surface over the mask's own edges; NaN off the mask; zero mean per connected piece.
+
+    Each pixel edge inside the mask gives one equation z[next] - z[this] = mean of their gradients.
+    """
+    mask = mask & np.isfinite(gu) & np.isfinite(gv)
+    out = np.full(mask.shape, np.nan)
+    if mask.sum() < 2:
+        return out
+    a_matrix, rhs, _ = _edge_system(mask, gu, gv)
+    normal = (a_matrix.T @ a_matrix).tocsr()
+    # Fix the null space (one constant per connected piece) with a tiny pull towards zero.
+    normal = normal + sparse.identity(normal.shape[0], format="csr") * 1e-9
+    z = spsolve(normal.tocsc(), a_matrix.T @ rhs)
+    out[mask] = z - z.mean()
+    return out
+
+
+def depth_from_normals(normals: np.ndarray, mask: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                       anchor_depth_mm: float, method: str = "masked") -> np.ndarray:
+    """Metric depth (mm) from normals: perspective log-depth integration, scaled so that the
+    median depth over the mask is `anchor_depth_mm` (the estimated subject distance)."""
+    gu, gv = log_depth_gradients(normals, fx, fy, cx, cy)
+    mask = mask & np.isfinite(gu) & np.isfinite(gv)
+    if method == "masked":
+        log_depth = integrate_masked(gu, gv, mask)
+    elif method == "dct":
+        log_depth = np.where(mask, integrate_dct(np.where(mask, gu, 0.0), np.where(mask, gv, 0.0)), np.nan)
+    else:
+        raise ValueError(f"unknown integration method {method!r}: masked or dct")
+    relative = np.exp(log_depth - np.nanmedian(log_depth))
+    return anchor_depth_mm * relative

@@ -1,0 +1,148 @@
+"""Photometric stereo: cycle assembly, ambient subtraction and the per-pixel solve.
+
+Normals are in the head's camera frame (OpenCV) and point towards the camera (n_z < 0);
+light vectors point from the surface towards each light.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from core.rig import DARK
+
+
+@dataclass(frozen=True)
+class CycleWindow:
+    """The frames of one complete light cycle: positions in the head's arrays."""
+
+    newest: int  # position of the newest frame (the map's frame index)
+    lit: tuple[int, int, int, int]  # position of the frame lit by light 0, 1, 2, 3
+    dark: int
+
+
+def complete_cycles(light_index: np.ndarray, frame_id: np.ndarray, cycle_length: int) -> list[CycleWindow]:
+    """Every window of `cycle_length` consecutive frame ids that holds each light once and a dark frame.
+
+    The window slides one frame at a time (the thesis' circular shift), so there is a map at
+    nearly every frame; windows that span a lost frame are skipped, never shifted.
+    """
+    ids = np.asarray(frame_id, dtype=np.int64)
+    lights = np.asarray(light_index)
+    windows = []
+    for end in range(cycle_length - 1, len(ids)):
+        start = end - cycle_length + 1
+        if ids[end] - ids[start] != cycle_length - 1:
+            continue
+        window = lights[start:end + 1]
+        lit = [-1] * 4
+        dark = -1
+        for offset, light in enumerate(window):
+            if light == DARK:
+                dark = start + offset
+            elif 0 <= light < 4:
+                lit[light] = start + offset
+        if dark >= 0 and min(lit) >= 0:
+            windows.append(CycleWindow(end, tuple(lit), dark))
+    return windows
+
+
+def distant_light_normals(images: np.ndarray, dark: np.ndarray, light_vectors: np.ndarray,
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Woodham's photometric stereo with one light vector per light for every pixel.
+
+    images (4, H, W) lit frames, dark (H, W) the cycle's dark frame (background subtraction),
+    light_vectors (4, 3) unit vectors towards the lights. M = (L^T L)^-1 L^T I (eq. 3.4);
+    albedo = |M| (3.7); N = M / |M| (3.6). Returns normals (H, W, 3) and albedo (H, W).
+    """
+    signal = images.astype(np.float64) - dark.astype(np.float64)[None]
+    pinv = np.linalg.pinv(np.asarray(light_vectors, dtype=np.float64))  # (3, 4)
+    m = np.einsum("ck,khw->hwc", pinv, signal)
+    albedo = np.linalg.norm(m, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normals = m / albedo[..., None]
+    normals[albedo <= 0] = np.nan
+    return normals, albedo
+
+
+def gradients_from_normals(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """p = -n_x / n_z, q = -n_y / n_z (eq. 3.5): dZ/dX and dZ/dY of the surface."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return -normals[..., 0] / normals[..., 2], -normals[..., 1] / normals[..., 2]
+
+
+@njit(parallel=True, fastmath=True, cache=True, nogil=True)
+def near_light_normals(signal, points, light_positions, light_intensity, light_axis, light_mu, saturated,
+                       min_signal, normals, albedo, n_lights_used):
+    """Per-pixel light vectors from each pixel's 3D point, with inverse-square falloff and LED anisotropy.
+
+    signal (4, H, W) lit minus dark; points (H, W, 3) mm; a light whose signal is below
+    `min_signal` (shadow) or whose frame is saturated is left out, so a pixel that one light
+    misses is solved from the other three. Writes normals (H, W, 3), albedo (H, W) and the
+    number of lights used (H, W); NaN where fewer than three lights remain.
+    """
+    _, height, width = signal.shape
+    for i in prange(height):
+        for j in range(width):
+            px = points[i, j, 0]
+            py = points[i, j, 1]
+            pz = points[i, j, 2]
+            ata = np.zeros((3, 3))
+            atb = np.zeros(3)
+            used = 0
+            if np.isfinite(pz):
+                for k in range(4):
+                    if saturated[k, i, j] or signal[k, i, j] < min_signal:
+                        continue
+                    dx = light_positions[k, 0] - px
+                    dy = light_positions[k, 1] - py
+                    dz = light_positions[k, 2] - pz
+                    r2 = dx * dx + dy * dy + dz * dz
+                    r = np.sqrt(r2)
+                    lx = dx / r
+                    ly = dy / r
+                    lz = dz / r
+                    scale = light_intensity[k] / r2
+                    if light_mu[k] > 0.0:
+                        c = -(lx * light_axis[k, 0] + ly * light_axis[k, 1] + lz * light_axis[k, 2])
+                        scale *= c ** light_mu[k] if c > 0.0 else 0.0
+                    if scale <= 0.0:
+                        continue
+                    # I_k / scale = rho * n . l_k: one row of the per-pixel system
+                    b = signal[k, i, j] / scale
+                    row0 = lx
+                    row1 = ly
+                    row2 = lz
+                    ata[0, 0] += row0 * row0
+                    ata[0, 1] += row0 * row1
+                    ata[0, 2] += row0 * row2
+                    ata[1, 1] += row1 * row1
+                    ata[1, 2] += row1 * row2
+                    ata[2, 2] += row2 * row2
+                    atb[0] += row0 * b
+                    atb[1] += row1 * b
+                    atb[2] += row2 * b
+                    used += 1
+            n_lights_used[i, j] = used
+            if used < 3:
+                normals[i, j, 0] = np.nan
+                normals[i, j, 1] = np.nan
+                normals[i, j, 2] = np.nan
+                albedo[i, j] = np.nan
+                continue
+            ata[1, 0] = ata[0, 1]
+            ata[2, 0] = ata[0, 2]
+            ata[2, 1] = ata[1, 2]
+            m = np.linalg.solve(ata, atb)
+            rho = np.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
+            albedo[i, j] = rho
+            if rho > 0.0:
+                normals[i, j, 0] = m[0] / rho
+                normals[i, j, 1] = m[1] / rho
+                normals[i, j, 2] = m[2] / rho
+            else:
+                normals[i, j, 0] = np.nan
+                normals[i, j, 1] = np.nan
+                normals[i, j, 2] = np.nan
