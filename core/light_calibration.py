@@ -1,0 +1,205 @@
+"""`photopft calibrate lights`: sphere-calibration sessions in, a rig calibration profile out."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from core.lights import (CalibrationError, Highlight, SphereFit, closest_points, detect_highlight, detect_sphere,
+                         pixel_rays, refine_on_matte, triangulate)
+from core.photometric import complete_cycles
+from core.profile import HeadCalibration, RigCalibration
+from core.rig import Head
+from core.session import SessionFile, now_iso
+
+DEFAULT_MAX_RESIDUAL_MM = 25.0
+DEFAULT_PRIOR_SIGMA_MM = 15.0
+
+
+@dataclass
+class PlacementImages:
+    """The mean lit-minus-dark image of each light over one still placement."""
+
+    index: int
+    signal: np.ndarray  # (4, H, W)
+    saturation: float
+
+
+def placement_images(session: SessionFile, head_name: str) -> list[PlacementImages]:
+    """Average every complete light cycle inside each placement (between 'placement' events)."""
+    starts = sorted(t for t, label in session.events() if label == "placement")
+    if not starts:
+        raise CalibrationError(f"{session.path}: no 'placement' events")
+    timestamps = session.timestamp_ns(head_name)
+    windows = complete_cycles(session.light_index(head_name), session.frame_id(head_name), session.rig.cycle_length)
+    frames = session.frames(head_name)
+    head = session.rig.heads[head_name]
+    bounds = list(starts) + [np.iinfo(np.int64).max]
+    out = []
+    for k in range(len(starts)):
+        inside = [w for w in windows if timestamps[min(w.lit + (w.dark,))] >= bounds[k]
+                  and timestamps[w.newest] < bounds[k + 1]]
+        # non-overlapping cycles only: each frame counted once
+        chosen, last = [], -1
+        for w in inside:
+            if min(w.lit + (w.dark,)) > last:
+                chosen.append(w)
+                last = w.newest
+        if not chosen:
+            raise CalibrationError(f"{session.path}: placement {k + 1} holds no complete light cycle")
+        total = np.zeros((4, head.height, head.width))
+        for w in chosen:
+            dark = frames[w.dark].astype(np.float64)
+            for light in range(4):
+                total[light] += frames[w.lit[light]].astype(np.float64) - dark
+        out.append(PlacementImages(k, total / len(chosen), float(head.max_value) - 1.0))
+    return out
+
+
+@dataclass
+class PlacementResult:
+    index: int
+    sphere: SphereFit
+    highlights: dict[int, Highlight] = field(default_factory=dict)
+    problems: list[str] = field(default_factory=list)
+
+
+def _specular_head(session: SessionFile, head_name: str, radius_mm: float) -> list[PlacementResult]:
+    head = session.rig.heads[head_name]
+    results = []
+    for placement in placement_images(session, head_name):
+        sphere = detect_sphere(placement.signal.sum(0), head, radius_mm)
+        result = PlacementResult(placement.index, sphere)
+        for light in range(4):
+            try:
+                result.highlights[light] = detect_highlight(placement.signal[light], sphere, head, radius_mm,
+                                                            placement.saturation)
+            except CalibrationError as exc:
+                result.problems.append(f"placement {placement.index + 1}, light {light}: {exc}")
+        results.append(result)
+    return results
+
+
+def _matte_observations(session: SessionFile, head_name: str, radius_mm: float):
+    """Per placement: sphere points, normals and each light's signal on the sphere."""
+    head = session.rig.heads[head_name]
+    out = []
+    for placement in placement_images(session, head_name):
+        sphere = detect_sphere(placement.signal.sum(0), head, radius_mm)
+        rows, cols = np.nonzero(sphere.mask)
+        rays = pixel_rays(head, np.column_stack([cols, rows]))
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        c = sphere.centre_mm
+        b = rays @ c
+        disc = b * b - (c @ c - radius_mm**2)
+        keep = disc > 0
+        t = b[keep] - np.sqrt(disc[keep])
+        points = rays[keep] * t[:, None]
+        normals = (points - c) / radius_mm
+        signal = placement.signal[:, rows[keep], cols[keep]]
+        out.append((points, normals, signal))
+    return out
+
+
+@dataclass
+class HeadReport:
+    head: str
+    placements: int
+    thesis_pair_error_mm: np.ndarray  # eq. 4.5 with the first two placements, per light
+    triangulated_mm: np.ndarray
+    refined: bool
+    problems: list[str]
+
+
+def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte: list[tuple[SessionFile, float]],
+                   prior_sigma_mm: float = DEFAULT_PRIOR_SIGMA_MM,
+                   max_residual_mm: float = DEFAULT_MAX_RESIDUAL_MM) -> tuple[HeadCalibration, HeadReport]:
+    results: list[PlacementResult] = []
+    for session, radius in specular:
+        results += _specular_head(session, head.name, radius)
+    problems = [p for r in results for p in r.problems]
+    if not results:
+        raise CalibrationError(f"head {head.name}: no specular-sphere placements to triangulate the lights from")
+    # Pseudo light vectors: the placement nearest the centre of the view (thesis step 1.7).
+    centre = np.array([head.cx, head.cy])
+    central = min(results, key=lambda r: np.linalg.norm(r.sphere.centre_px - centre))
+    if len(central.highlights) < 4:
+        raise CalibrationError(f"head {head.name}: the central placement lacks highlights: " + "; ".join(problems))
+    pseudo = np.array([central.highlights[k].light_vector for k in range(4)])
+
+    positions = np.zeros((4, 3))
+    sigma = np.zeros((4, 3))
+    residual = np.zeros(4)
+    pair_error = np.full(4, np.nan)
+    for light in range(4):
+        seen = [r.highlights[light] for r in results if light in r.highlights]
+        if len(seen) < 2:
+            raise CalibrationError(f"head {head.name}, light {light}: highlights in {len(seen)} placement(s), "
+                                   "two or more are needed; " + "; ".join(problems))
+        _, pair_error[light] = closest_points(seen[0].point_mm, seen[0].light_vector, seen[1].point_mm,
+                                              seen[1].light_vector)
+        fit = triangulate(np.array([h.point_mm for h in seen]), np.array([h.light_vector for h in seen]),
+                          prior_mm=head.light_positions_mm[light], prior_sigma_mm=prior_sigma_mm)
+        positions[light], sigma[light], residual[light] = fit.position_mm, fit.sigma_mm, fit.residual_mm
+        if fit.residual_mm > max_residual_mm:
+            raise CalibrationError(f"head {head.name}, light {light}: the highlight rays miss each other by "
+                                   f"{fit.residual_mm:.1f} mm rms (threshold {max_residual_mm:g} mm): "
+                                   "was the sphere moved during a placement, or is the radius wrong?")
+    triangulated = positions.copy()
+    intensity = np.ones(4)
+    extra: dict[str, object] = {"triangulated_positions_mm": np.round(triangulated, 4).tolist(),
+                                "thesis_pair_error_mm": np.round(pair_error, 4).tolist()}
+    refined = False
+    if matte:
+        observations = []
+        for session, radius in matte:
+            observations += _matte_observations(session, head.name, radius)
+        scales = np.zeros(4)
+        fit_rms = np.zeros(4)
+        for light in range(4):
+            obs = [(p, n, s[light]) for p, n, s in observations]
+            positions[light], scales[light], fit_rms[light] = refine_on_matte(obs, triangulated[light])
+        intensity = scales / scales.mean()
+        refined = True
+        extra["matte_fit_rms"] = np.round(fit_rms, 6).tolist()
+    calibration = HeadCalibration(positions, intensity, sigma, residual, pseudo, extra)
+    report = HeadReport(head.name, len(results), pair_error, triangulated, refined, problems)
+    return calibration, report
+
+
+def calibrate_lights(paths: list[str | os.PathLike], prior_sigma_mm: float = DEFAULT_PRIOR_SIGMA_MM,
+                     max_residual_mm: float = DEFAULT_MAX_RESIDUAL_MM) -> tuple[RigCalibration, list[HeadReport]]:
+    """Calibrate every head from specular-sphere sessions (and matte ones, when given)."""
+    specular: list[tuple[SessionFile, float]] = []
+    matte: list[tuple[SessionFile, float]] = []
+    opened = []
+    try:
+        for path in paths:
+            session = SessionFile(path)
+            opened.append(session)
+            if session.kind != "sphere-calibration":
+                raise CalibrationError(f"{path} is a {session.kind} session, not a sphere-calibration session")
+            radius = float(session.attrs["sphere_radius_mm"])
+            finish = str(session.attrs["sphere_finish"])
+            (specular if finish == "specular" else matte).append((session, radius))
+        if not specular:
+            raise CalibrationError("no specular-sphere session among the inputs: the highlights give the lights")
+        rig = specular[0][0].rig
+        for session, _ in specular + matte:
+            for name, head in session.rig.heads.items():
+                ref = rig.heads.get(name)
+                if ref is None or (ref.width, ref.height) != (head.width, head.height):
+                    raise CalibrationError(f"{session.path}: head {name} does not match the first session's rig")
+        heads, reports = {}, []
+        for name, head in rig.heads.items():
+            heads[name], report = calibrate_head(head, specular, matte, prior_sigma_mm, max_residual_mm)
+            reports.append(report)
+        calibration = RigCalibration(now_iso(), [Path(p).name for p in paths], heads,
+                                     {"prior_sigma_mm": prior_sigma_mm, "max_residual_mm": max_residual_mm})
+        return calibration, reports
+    finally:
+        for session in opened:
+            session.close()

@@ -1,0 +1,264 @@
+"""Light calibration from spheres (thesis section 4.3.1, and past it).
+
+Specular sphere: find the sphere and each LED's highlight, reflect the view ray at the
+highlight (eq. 4.1) and triangulate each light from all placements at once. Matte sphere:
+refine positions and relative intensities photometrically (the shading of a sphere whose
+normals are known), which the thesis' homogeneous-light assumption left out.
+
+All positions are in the head's camera frame (OpenCV), millimetres; unit vectors from the
+surface towards the light.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+from scipy.optimize import least_squares
+
+from core.rig import Head
+
+
+class CalibrationError(Exception):
+    """A calibration input that cannot give a trustworthy answer; the message says which and why."""
+
+
+def pixel_rays(head: Head, uv: np.ndarray) -> np.ndarray:
+    """Rays (N, 3) with z = 1 through pixel positions uv (N, 2), undistorted when the head has distortion."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if np.any(head.dist_coeffs != 0):
+        xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), head.camera_matrix, head.dist_coeffs).reshape(-1, 2)
+    else:
+        xy = np.column_stack([(uv[:, 0] - head.cx) / head.fx, (uv[:, 1] - head.cy) / head.fy])
+    return np.column_stack([xy, np.ones(len(xy))])
+
+
+@dataclass(frozen=True)
+class SphereFit:
+    centre_mm: np.ndarray  # camera frame
+    centre_px: np.ndarray  # (u, v) of the outline's centre
+    radius_px: float
+    thesis_centre_mm: np.ndarray  # eqs 4.6 and 4.7, for comparison
+    outline_rms_px: float
+    mask: np.ndarray  # pixels on the sphere, eroded away from the outline
+
+
+def _outline_points(image: np.ndarray, centre: np.ndarray, radius: float, background: float, noise: float,
+                    n_angles: int = 360) -> np.ndarray:
+    """Sub-pixel outline along radial profiles, at half the local step from background to sphere.
+
+    A sphere darkens towards its limb (the light grazes it there), so the level is taken just
+    inside the edge on each profile, not from the middle of the disc.
+    """
+    angles = np.linspace(0, 2 * np.pi, n_angles, endpoint=False)
+    step = 0.25
+    steps = np.arange(radius * 0.5, radius * 1.5, step)
+    points = []
+    for a in angles:
+        xs = centre[0] + steps * np.cos(a)
+        ys = centre[1] + steps * np.sin(a)
+        profile = ndimage.map_coordinates(image, [ys, xs], order=1, mode="nearest")
+        above = np.nonzero(profile > background + 6.0 * noise)[0]
+        if len(above) == 0:
+            continue
+        outer = above[-1]  # the outermost sample clearly on the sphere
+        inner_index = outer - int(round(1.0 / step))  # the full pixel just inside the edge
+        if inner_index < 0:
+            continue
+        level = background + 0.5 * (profile[inner_index] - background)
+        k = outer
+        while k + 1 < len(profile) and profile[k + 1] >= level:
+            k += 1
+        while k > 0 and profile[k] < level:
+            k -= 1
+        if k + 1 >= len(profile) or profile[k] == profile[k + 1]:
+            continue
+        f = (profile[k] - level) / (profile[k] - profile[k + 1])
+        s = steps[k] + f * step
+        points.append((centre[0] + s * np.cos(a), centre[1] + s * np.sin(a)))
+    return np.array(points)
+
+
+def detect_sphere(image: np.ndarray, head: Head, radius_mm: float) -> SphereFit:
+    """The sphere in an image (lit minus dark, all lights): centre in mm, outline in pixels.
+
+    The outline is found to sub-pixel precision and fitted with the exact projection of a
+    sphere of known radius (a cone of rays tangent to it), not a circle: off the axis a sphere
+    projects to an ellipse. Eqs 4.7 and 4.6 (the thesis' on-axis estimate) start the fit.
+    """
+    image = np.asarray(image, dtype=np.float64)
+    smooth = ndimage.gaussian_filter(image, 1.0)
+    background = float(np.median(smooth))
+    threshold = background + 0.5 * (np.percentile(smooth, 99.5) - background)
+    labels, n = ndimage.label(smooth > threshold)
+    if n == 0:
+        raise CalibrationError("no sphere found: nothing stands out of the background")
+    sizes = ndimage.sum(np.ones_like(smooth), labels, range(1, n + 1))
+    blob = labels == (1 + int(np.argmax(sizes)))
+    if blob.sum() < 50:
+        raise CalibrationError(f"no sphere found: the brightest region has only {int(blob.sum())} pixels")
+    filled = ndimage.binary_fill_holes(blob)
+    rows, cols = np.nonzero(filled)
+    rough_centre = np.array([cols.mean(), rows.mean()])
+    rough_radius = float(np.sqrt(filled.sum() / np.pi))
+    if (rows.min() <= 1 or cols.min() <= 1 or rows.max() >= image.shape[0] - 2
+            or cols.max() >= image.shape[1] - 2):
+        raise CalibrationError("the sphere touches the edge of the image: place it fully in view")
+    outside = ~ndimage.binary_dilation(filled, iterations=max(3, int(rough_radius / 3)))
+    background = float(np.median(image[outside]))
+    noise = float(1.4826 * np.median(np.abs(image[outside] - background)))
+    edge_points = _outline_points(image, rough_centre, rough_radius, background, max(noise, 1e-6))
+    if len(edge_points) < 30:
+        raise CalibrationError("the sphere's outline could not be traced (too little contrast)")
+    # Thesis eq. 4.7 (distance from the pixel radius) and 4.6 (centre from the pixel position).
+    pixel_radius = float(np.mean(np.linalg.norm(edge_points - edge_points.mean(0), axis=1)))
+    z_thesis = head.focal_length_mm * radius_mm / (head.pixel_size_mm * pixel_radius)
+    ray0 = pixel_rays(head, edge_points.mean(0)[None])[0]
+    thesis_centre = ray0 * z_thesis
+
+    rays = pixel_rays(head, edge_points)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+
+    def cone(c: np.ndarray) -> np.ndarray:
+        distance = np.linalg.norm(c)
+        # angle between each outline ray and the centre direction minus the tangent angle
+        return np.arccos(np.clip(rays @ (c / distance), -1, 1)) - np.arcsin(min(radius_mm / distance, 1.0))
+
+    fit = least_squares(cone, thesis_centre, loss="soft_l1", f_scale=1e-3)
+    centre = fit.x
+    residual_px = np.sqrt(np.mean(fit.fun**2)) * head.fx
+    centre_px = np.array([head.fx * centre[0] / centre[2] + head.cx, head.fy * centre[1] / centre[2] + head.cy])
+    mask = ndimage.binary_erosion(filled, iterations=2)
+    return SphereFit(centre, centre_px, pixel_radius, thesis_centre, float(residual_px), mask)
+
+
+@dataclass(frozen=True)
+class Highlight:
+    uv: np.ndarray  # sub-pixel position
+    peak: float
+    point_mm: np.ndarray  # on the sphere (eq. 4.12: P = C + R n)
+    normal: np.ndarray  # sphere normal at the highlight (towards the camera side)
+    light_vector: np.ndarray  # unit, from the highlight towards the light (eq. 4.1)
+
+
+def detect_highlight(signal: np.ndarray, sphere: SphereFit, head: Head, radius_mm: float,
+                     saturation: float) -> Highlight:
+    """The highlight of one LED on a specular sphere, to sub-pixel precision.
+
+    The peak's position is refined by a Gaussian fit of the 3 x 3 neighbourhood (a parabola
+    through the log-intensities along each axis) after removing the diffuse level around it.
+    """
+    on_sphere = ndimage.binary_erosion(sphere.mask, iterations=1)
+    if not on_sphere.any():
+        raise CalibrationError("the sphere is too small in the image to find highlights")
+    values = np.where(on_sphere, signal, -np.inf)
+    row, col = np.unravel_index(int(np.argmax(values)), values.shape)
+    peak = float(signal[row, col])
+    if peak >= saturation:
+        raise CalibrationError(f"highlight clipped at pixel ({col}, {row}): {peak:.0f} >= {saturation:.0f}; "
+                               "lower the exposure or the LED current")
+    diffuse = float(np.median(signal[on_sphere]))
+    if peak - diffuse < 8 * max(1.0, float(np.std(signal[on_sphere & (signal < np.percentile(signal[on_sphere], 90))]))):
+        raise CalibrationError("no highlight stands out of the sphere: is the sphere specular and the LED on?")
+    if not (1 <= row < signal.shape[0] - 1 and 1 <= col < signal.shape[1] - 1):
+        raise CalibrationError("the highlight sits on the edge of the image")
+    window = np.clip(signal[row - 1:row + 2, col - 1:col + 2] - diffuse, 1e-3, None)
+    log = np.log(window)
+    du = 0.5 * (log[1, 0] - log[1, 2]) / (log[1, 0] - 2 * log[1, 1] + log[1, 2])
+    dv = 0.5 * (log[0, 1] - log[2, 1]) / (log[0, 1] - 2 * log[1, 1] + log[2, 1])
+    uv = np.array([col + np.clip(du, -0.5, 0.5), row + np.clip(dv, -0.5, 0.5)])
+    ray = pixel_rays(head, uv[None])[0]
+    ray /= np.linalg.norm(ray)
+    c = sphere.centre_mm
+    b = ray @ c
+    disc = b * b - (c @ c - radius_mm**2)
+    t = b - np.sqrt(max(disc, 0.0))
+    point = ray * t
+    normal = (point - c) / radius_mm
+    view = -ray  # from the surface towards the camera
+    light = 2 * (normal @ view) * normal - view  # eq. 4.1 in the camera frame
+    return Highlight(uv, peak, point, normal, light / np.linalg.norm(light))
+
+
+def closest_points(p1: np.ndarray, l1: np.ndarray, p2: np.ndarray, l2: np.ndarray) -> tuple[np.ndarray, float]:
+    """Thesis eqs 4.2-4.5: the midpoint of the closest points of two rays, and their distance E."""
+    cross = np.cross(l1, l2)
+    denominator = cross @ cross
+    if denominator < 1e-12:
+        raise CalibrationError("two highlight rays are parallel: move the sphere further between placements")
+    lp1 = p1 + (np.cross(l2, p1 - p2) @ cross) / denominator * l1  # eq. 4.2 (sign as in the thesis)
+    lp2 = p2 + (np.cross(l1, p1 - p2) @ cross) / denominator * l2  # eq. 4.3
+    return (lp1 + lp2) / 2, float(np.linalg.norm(lp1 - lp2))  # eqs 4.4, 4.5
+
+
+@dataclass(frozen=True)
+class Triangulation:
+    position_mm: np.ndarray
+    sigma_mm: np.ndarray
+    residual_mm: float  # rms distance of the rays from the position
+    ray_distances_mm: np.ndarray
+
+
+def triangulate(points: np.ndarray, directions: np.ndarray, prior_mm: np.ndarray | None = None,
+                prior_sigma_mm: float = 15.0, ray_sigma_mm: float | None = None) -> Triangulation:
+    """The point nearest to all rays in least squares, optionally pulled towards a drawn position.
+
+    Each ray contributes (I - d d^T)(X - p) = 0. With a prior the drawing counts as one more
+    observation with its tolerance; the ray noise is taken from the rays' own scatter.
+    """
+    points = np.asarray(points, float)
+    directions = np.asarray(directions, float)
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    projectors = np.eye(3)[None] - directions[:, :, None] * directions[:, None, :]
+    a = projectors.sum(0)
+    b = np.einsum("nij,nj->i", projectors, points)
+    free = np.linalg.lstsq(a, b, rcond=None)[0]
+
+    def distances(x: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(np.einsum("nij,nj->ni", projectors, x - points), axis=1)
+
+    n = len(points)
+    sigma_ray = ray_sigma_mm
+    if sigma_ray is None:
+        sigma_ray = float(np.sqrt(np.sum(distances(free) ** 2) / max(1, 2 * n - 3))) if n > 2 else 2.0
+        sigma_ray = max(sigma_ray, 0.5)
+    weight_a = a / sigma_ray**2
+    weight_b = b / sigma_ray**2
+    if prior_mm is not None:
+        weight_a = weight_a + np.eye(3) / prior_sigma_mm**2
+        weight_b = weight_b + np.asarray(prior_mm, float) / prior_sigma_mm**2
+    position = np.linalg.solve(weight_a, weight_b)
+    covariance = np.linalg.inv(weight_a)
+    d = distances(position)
+    return Triangulation(position, np.sqrt(np.diag(covariance)), float(np.sqrt(np.mean(d**2))), d)
+
+
+def refine_on_matte(observations: list[tuple[np.ndarray, np.ndarray, np.ndarray]], initial_mm: np.ndarray,
+                    ) -> tuple[np.ndarray, float, float]:
+    """Position and scale of one light from a matte sphere's shading.
+
+    observations: per placement (points (N, 3) mm, normals (N, 3), signal (N,) lit minus dark).
+    Model: signal = s * max(0, n . (P - X)) / |P - X|^3 (Lambertian, inverse square). Returns
+    (position, scale s, relative rms residual).
+    """
+    points = np.concatenate([o[0] for o in observations])
+    normals = np.concatenate([o[1] for o in observations])
+    signal = np.concatenate([o[2] for o in observations])
+
+    def model(params: np.ndarray) -> np.ndarray:
+        d = params[:3] - points
+        r = np.linalg.norm(d, axis=1)
+        return params[3] * np.clip(np.sum(normals * d, axis=1), 0, None) / r**3
+
+    # Initial scale by linear least squares at the initial position.
+    shape = model(np.r_[initial_mm, 1.0])
+    scale0 = float(shape @ signal / (shape @ shape))
+    typical = float(np.median(signal[signal > 0])) if np.any(signal > 0) else 1.0
+
+    def residuals(params: np.ndarray) -> np.ndarray:
+        return (model(np.r_[params[:3], params[3] * scale0]) - signal) / typical
+
+    fit = least_squares(residuals, np.r_[initial_mm, 1.0], x_scale=np.array([10.0, 10.0, 10.0, 0.01]))
+    return fit.x[:3], float(fit.x[3] * scale0), float(np.sqrt(np.mean(fit.fun**2)))
