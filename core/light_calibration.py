@@ -25,7 +25,7 @@ class PlacementImages:
 
     index: int
     signal: np.ndarray  # (4, H, W)
-    saturation: float
+    saturated: np.ndarray  # (4, H, W) bool: full scale in any frame of the placement
 
 
 def placement_images(session: SessionFile, head_name: str) -> list[PlacementImages]:
@@ -51,11 +51,14 @@ def placement_images(session: SessionFile, head_name: str) -> list[PlacementImag
         if not chosen:
             raise CalibrationError(f"{session.path}: placement {k + 1} holds no complete light cycle")
         total = np.zeros((4, head.height, head.width))
+        saturated = np.zeros((4, head.height, head.width), dtype=bool)
         for w in chosen:
             dark = frames[w.dark].astype(np.float64)
             for light in range(4):
-                total[light] += frames[w.lit[light]].astype(np.float64) - dark
-        out.append(PlacementImages(k, total / len(chosen), float(head.max_value) - 1.0))
+                frame = frames[w.lit[light]]
+                saturated[light] |= frame >= head.max_value
+                total[light] += frame.astype(np.float64) - dark
+        out.append(PlacementImages(k, total / len(chosen), saturated))
     return out
 
 
@@ -76,7 +79,7 @@ def _specular_head(session: SessionFile, head_name: str, radius_mm: float) -> li
         for light in range(4):
             try:
                 result.highlights[light] = detect_highlight(placement.signal[light], sphere, head, radius_mm,
-                                                            placement.saturation)
+                                                            placement.saturated[light])
             except CalibrationError as exc:
                 result.problems.append(f"placement {placement.index + 1}, light {light}: {exc}")
         results.append(result)

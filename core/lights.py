@@ -109,6 +109,8 @@ def detect_sphere(image: np.ndarray, head: Head, radius_mm: float) -> SphereFit:
     outside = ~ndimage.binary_dilation(filled, iterations=max(3, int(rough_radius / 3)))
     background = float(np.median(image[outside]))
     noise = float(1.4826 * np.median(np.abs(image[outside] - background)))
+    if np.median(image[filled]) - background < 10.0 * max(noise, 1e-6):
+        raise CalibrationError("no sphere found: nothing stands out of the background")
     edge_points = _outline_points(image, rough_centre, rough_radius, background, max(noise, 1e-6))
     if len(edge_points) < 30:
         raise CalibrationError("the sphere's outline could not be traced (too little contrast)")
@@ -144,11 +146,12 @@ class Highlight:
 
 
 def detect_highlight(signal: np.ndarray, sphere: SphereFit, head: Head, radius_mm: float,
-                     saturation: float) -> Highlight:
+                     saturated: np.ndarray | None = None) -> Highlight:
     """The highlight of one LED on a specular sphere, to sub-pixel precision.
 
     The peak's position is refined by a Gaussian fit of the 3 x 3 neighbourhood (a parabola
     through the log-intensities along each axis) after removing the diffuse level around it.
+    `saturated` marks pixels whose raw frame reached full scale: a clipped peak has no centre.
     """
     on_sphere = ndimage.binary_erosion(sphere.mask, iterations=1)
     if not on_sphere.any():
@@ -156,8 +159,8 @@ def detect_highlight(signal: np.ndarray, sphere: SphereFit, head: Head, radius_m
     values = np.where(on_sphere, signal, -np.inf)
     row, col = np.unravel_index(int(np.argmax(values)), values.shape)
     peak = float(signal[row, col])
-    if peak >= saturation:
-        raise CalibrationError(f"highlight clipped at pixel ({col}, {row}): {peak:.0f} >= {saturation:.0f}; "
+    if saturated is not None and saturated[max(row - 1, 0):row + 2, max(col - 1, 0):col + 2].any():
+        raise CalibrationError(f"highlight clipped at pixel ({col}, {row}): the frame reached full scale; "
                                "lower the exposure or the LED current")
     diffuse = float(np.median(signal[on_sphere]))
     if peak - diffuse < 8 * max(1.0, float(np.std(signal[on_sphere & (signal < np.percentile(signal[on_sphere], 90))]))):

@@ -1,0 +1,157 @@
+"""The Reconstructor: light cycles in, normals, metric depth, distance and gradient volume out.
+
+The same object serves `photopft process` (offline, over a session file) and the live view
+(over the capture stream), so what the operator saw is what the report says.
+
+Per cycle (thesis Table 4.1, then past it):
+1. subject mask from the summed signal; saturated or shadowed lights left out per pixel;
+2. pseudo normals with the pseudo light vectors (distant-light photometric stereo, eq. 3.4-3.7);
+3. distance from the diffused maxima regions (eq. 4.13, core/distance.py);
+4. metric depth: the pseudo normals integrated in perspective and scaled so that the depth at
+   the regions' centres is the triangulated one;
+5. per-pixel light vectors from that depth, with inverse-square falloff and the LEDs'
+   relative intensities, normals solved again, integrated again; repeated until the depth
+   settles (`iterations`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from core.distance import DMR_THRESHOLD, DmrEstimate, dmr_distance
+from core.integrate import integrate_dct, integrate_masked, log_depth_gradients
+from core.photometric import distant_light_normals, gradients_from_normals, near_light_normals
+from core.rig import Head
+
+NOMINAL_DISTANCE_MM = 2000.0
+
+
+@dataclass(frozen=True)
+class ReconstructionSettings:
+    method: str = "near"  # near: per-pixel lights (this project); distant: traditional photometric stereo
+    integrator: str = "dct"  # dct: fast (live); masked: accurate (offline)
+    iterations: int = 2
+    mask_fraction: float = 0.1  # subject: summed signal above this fraction of its 99th percentile
+    shadow_fraction: float = 0.01  # a light below this fraction of full scale counts as shadowed
+    dmr_threshold: float = DMR_THRESHOLD
+    max_depth_change_mm: float = 0.05  # stop iterating when the depth moves less than this (median)
+
+    def __post_init__(self) -> None:
+        if self.method not in ("near", "distant"):
+            raise ValueError(f"method must be 'near' or 'distant', got {self.method!r}")
+        if self.integrator not in ("dct", "masked"):
+            raise ValueError(f"integrator must be 'dct' or 'masked', got {self.integrator!r}")
+
+
+@dataclass
+class HeadMap:
+    normals: np.ndarray  # (H, W, 3), NaN off the mask
+    depth_mm: np.ndarray  # (H, W), NaN off the mask
+    albedo: np.ndarray
+    mask: np.ndarray
+    distance_mm: float
+    dmr: DmrEstimate
+    gradient_volume: float
+    iterations_done: int = 0
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+def default_pseudo_light_vectors(head: Head, distance_mm: float = NOMINAL_DISTANCE_MM) -> np.ndarray:
+    """Unit vectors from the point on the optical axis at `distance_mm` towards each light."""
+    d = head.light_positions_mm - np.array([0.0, 0.0, distance_mm])
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def gradient_volume(normals: np.ndarray, mask: np.ndarray) -> float:
+    """Thesis eq. 3.26 for one head: (1/k) sum(|p| + |q|) over the k valid pixels."""
+    p, q = gradients_from_normals(normals)
+    valid = mask & np.isfinite(p) & np.isfinite(q)
+    k = int(valid.sum())
+    return float(np.sum(np.abs(p[valid]) + np.abs(q[valid])) / k) if k else float("nan")
+
+
+def subject_mask(signal: np.ndarray, fraction: float) -> np.ndarray:
+    total = np.sum(np.clip(signal, 0, None), axis=0)
+    level = fraction * np.percentile(total, 99)
+    mask = ndimage.binary_fill_holes(total > level)
+    return ndimage.binary_erosion(mask, iterations=1)
+
+
+class HeadReconstructor:
+    """Reconstructs one head's cycles. Holds the head's calibration; no state between cycles."""
+
+    def __init__(self, head: Head, pseudo_light_vectors: np.ndarray | None = None,
+                 settings: ReconstructionSettings | None = None) -> None:
+        self.head = head
+        self.settings = settings or ReconstructionSettings()
+        pseudo = default_pseudo_light_vectors(head) if pseudo_light_vectors is None else pseudo_light_vectors
+        self.pseudo_light_vectors = np.asarray(pseudo, dtype=np.float64)
+        u = (np.arange(head.width) - head.cx) / head.fx
+        v = (np.arange(head.height) - head.cy) / head.fy
+        self._rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((head.height, 1))), -1)
+        axis = head.light_axis if head.light_axis is not None else np.tile([0.0, 0.0, 1.0], (4, 1))
+        mu = head.light_mu if head.light_mu is not None else np.zeros(4)
+        self._axis = np.ascontiguousarray(axis, dtype=np.float64)
+        self._mu = np.ascontiguousarray(mu, dtype=np.float64)
+
+    def _integrate(self, normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        h = self.head
+        gu, gv = log_depth_gradients(normals, h.fx, h.fy, h.cx, h.cy)
+        valid = mask & np.isfinite(gu) & np.isfinite(gv)
+        if self.settings.integrator == "masked":
+            return integrate_masked(gu, gv, valid)
+        return np.where(valid, integrate_dct(np.where(valid, gu, 0.0), np.where(valid, gv, 0.0)), np.nan)
+
+    @staticmethod
+    def _anchor(log_depth: np.ndarray, dmr: DmrEstimate) -> float:
+        """Scale of exp(log depth) that puts the regions' centres at their triangulated depths."""
+        scales = []
+        for (u, v), z in zip(dmr.centres_px, dmr.depths_mm):
+            if not np.isfinite(z):
+                continue
+            value = ndimage.map_coordinates(log_depth, [[v], [u]], order=1, mode="nearest", cval=np.nan)[0]
+            if np.isfinite(value):
+                scales.append(z / np.exp(value))
+        if scales:
+            return float(np.mean(scales))
+        median = np.nanmedian(log_depth)
+        return NOMINAL_DISTANCE_MM / float(np.exp(median)) if np.isfinite(median) else NOMINAL_DISTANCE_MM
+
+    def reconstruct(self, signal: np.ndarray, saturated: np.ndarray | None = None) -> HeadMap:
+        """signal (4, H, W): each light's frame minus the dark frame; saturated (4, H, W) bool."""
+        h, s = self.head, self.settings
+        signal = np.ascontiguousarray(signal, dtype=np.float64)
+        if saturated is None:
+            saturated = np.zeros(signal.shape, dtype=np.bool_)
+        mask = subject_mask(signal, s.mask_fraction)
+        pseudo_normals, albedo = distant_light_normals(signal, np.zeros(h.shape), self.pseudo_light_vectors)
+        pseudo_normals[~mask] = np.nan
+        dmr = dmr_distance(pseudo_normals, mask, h.fx, h.fy, h.cx, h.cy, h.light_positions_mm,
+                           self.pseudo_light_vectors, s.dmr_threshold)
+        normals = pseudo_normals
+        log_depth = self._integrate(normals, mask)
+        depth = self._anchor(log_depth, dmr) * np.exp(log_depth)
+        done = 0
+        if s.method == "near":
+            min_signal = s.shadow_fraction * h.max_value
+            normals = np.full(h.shape + (3,), np.nan)
+            albedo = np.full(h.shape, np.nan)
+            used = np.zeros(h.shape, dtype=np.int64)
+            for done in range(1, s.iterations + 1):
+                points = np.ascontiguousarray(self._rays * depth[..., None])
+                near_light_normals(signal, points, h.light_positions_mm, h.light_intensity, self._axis, self._mu,
+                                   saturated, min_signal, normals, albedo, used)
+                normals[~mask] = np.nan
+                log_depth = self._integrate(normals, mask)
+                new_depth = self._anchor(log_depth, dmr) * np.exp(log_depth)
+                change = np.nanmedian(np.abs(new_depth - depth))
+                depth = new_depth
+                if change < s.max_depth_change_mm:
+                    break
+        valid = mask & np.isfinite(depth) & np.isfinite(normals[..., 2])
+        depth = np.where(valid, depth, np.nan)
+        normals = np.where(valid[..., None], normals, np.nan)
+        return HeadMap(normals, depth, albedo, valid, dmr.distance_mm, dmr, gradient_volume(normals, valid), done)

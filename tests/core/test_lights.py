@@ -1,0 +1,127 @@
+"""Light calibration: each equation on a case with a known answer, and the whole calibration."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.light_calibration import calibrate_lights
+from core.lights import CalibrationError, closest_points, detect_highlight, detect_sphere, triangulate
+from core.profile import ProfileError, load_profile
+from core.rig import thesis_head
+from core.sim.render import CameraModel
+from core.sim.scene import Digitiser, SpherePlacement, SphereScene
+from core.sim.simulate import SimConfig, simulate
+
+
+def test_closest_points_of_two_rays_eqs_4_2_to_4_5():
+    target = np.array([120.0, -80.0, 40.0])
+    p1, p2 = np.array([0.0, 0.0, 2000.0]), np.array([300.0, 100.0, 2100.0])
+    l1 = (target - p1) / np.linalg.norm(target - p1)
+    l2 = (target - p2) / np.linalg.norm(target - p2)
+    point, gap = closest_points(p1, l1, p2, l2)
+    np.testing.assert_allclose(point, target, atol=1e-9)
+    assert gap < 1e-9
+    skew, gap = closest_points(p1, l1, p2 + np.array([0, 0, 5.0]) * 0 + np.array([3.0, 0, 0]), l2)
+    assert gap > 0.1
+
+
+def test_triangulation_of_many_rays_and_prior():
+    rng = np.random.default_rng(0)
+    light = np.array([-500.0, 480.0, 5.0])
+    points = rng.uniform([-250, -180, 1900], [250, 180, 2300], (7, 3))
+    dirs = light - points
+    fit = triangulate(points, dirs)
+    np.testing.assert_allclose(fit.position_mm, light, atol=1e-6)
+    pulled = triangulate(points, dirs, prior_mm=light + 30.0, prior_sigma_mm=15.0, ray_sigma_mm=0.5)
+    assert np.linalg.norm(pulled.position_mm - light) < 5.0
+
+
+def _sphere_frame(centre, light, specular=1.5, scale=0.5, saturate=False):
+    head = thesis_head("front", scale=scale)
+    scene = SphereScene(75.0, [SpherePlacement(0.0, np.asarray(centre, float))], 4300.0, albedo=0.08,
+                        specular=specular, shininess=3000.0)
+    camera = CameraModel(white_level=3.0 if saturate else 0.6)
+    digitiser = Digitiser(camera, 12)
+    lit, _ = scene.render(head, 0.0, light, np.uint64(1), digitiser)
+    dark, _ = scene.render(head, 0.0, -1, np.uint64(2), digitiser)
+    return head, lit.astype(float) - dark.astype(float), lit >= digitiser.max_dn
+
+
+def test_sphere_at_a_known_place_gives_its_centre():
+    centre = np.array([150.0, -90.0, 2050.0])
+    head, _, _ = _sphere_frame(centre, 0)
+    total = sum(_sphere_frame(centre, k)[1] for k in range(4))
+    fit = detect_sphere(total, head, 75.0)
+    assert np.linalg.norm(fit.centre_mm[:2] - centre[:2]) < 1.5
+    assert abs(fit.centre_mm[2] - centre[2]) < 15.0  # the outline's residual bias, see docs
+    assert abs(fit.thesis_centre_mm[2] - centre[2]) < 40.0  # eq. 4.7 on its own
+
+
+def test_highlight_reflects_towards_the_light():
+    centre = np.array([-60.0, 40.0, 2100.0])
+    head, _, _ = _sphere_frame(centre, 0)
+    total = sum(_sphere_frame(centre, k)[1] for k in range(4))
+    fit = detect_sphere(total, head, 75.0)
+    for k in range(4):
+        _, signal, saturated = _sphere_frame(centre, k)
+        assert not saturated.any()
+        h = detect_highlight(signal, fit, head, 75.0, saturated)
+        to_light = head.light_positions_mm[k] - h.point_mm
+        angle = np.degrees(np.arccos(h.light_vector @ to_light / np.linalg.norm(to_light)))
+        assert angle < 0.5, (k, angle)
+
+
+def test_clipped_highlight_and_missing_sphere_are_refused():
+    centre = np.array([0.0, 0.0, 2100.0])
+    head, signal, saturated = _sphere_frame(centre, 1, saturate=True)
+    fit = detect_sphere(signal, head, 75.0)
+    with pytest.raises(CalibrationError, match="clipped"):
+        detect_highlight(signal, fit, head, 75.0, saturated)
+    with pytest.raises(CalibrationError, match="no sphere"):
+        detect_sphere(np.random.default_rng(0).normal(0, 2, head.shape), head, 75.0)
+
+
+@pytest.fixture(scope="module")
+def calibration_sessions(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("calibration")
+    paths = []
+    for scene in ("specular-sphere", "matte-sphere"):
+        path = folder / f"{scene}.h5"
+        simulate(path, SimConfig(scene=scene, scale=0.5, seed=3, led_offset_mm=12.0, led_intensity_spread=0.05,
+                                 heads=("front",)))
+        paths.append(path)
+    return paths
+
+
+def test_calibrated_lights_within_10mm_of_the_built_rig(calibration_sessions, tmp_path):
+    import h5py
+
+    calibration, reports = calibrate_lights(calibration_sessions)
+    with h5py.File(calibration_sessions[0]) as f:
+        true = f["truth/front/light_positions_mm"][:]
+        intensity = f["truth/front/light_intensity"][:]
+    got = calibration.heads["front"]
+    assert np.all(np.linalg.norm(got.light_positions_mm - true, axis=1) < 10.0)
+    np.testing.assert_allclose(got.light_intensity, intensity / intensity.mean(), atol=0.01)
+    assert np.all(np.linalg.norm(got.pseudo_light_vectors, axis=1) == pytest.approx(1.0))
+    path = tmp_path / "rig.json"
+    calibration.save(path)
+    again = load_profile(path)
+    np.testing.assert_allclose(again.heads["front"].light_positions_mm, got.light_positions_mm, atol=1e-3)
+
+
+def test_profile_with_a_wrong_field_is_rejected(tmp_path):
+    path = tmp_path / "bad.json"
+    path.write_text('{"format": "photopft-rig-calibration", "format_version": 1, "heads": '
+                    '{"front": {"light_positions_mm": [[0, 0, 0], [1, 1, 1]]}}}')
+    with pytest.raises(ProfileError, match="light_positions_mm must have shape"):
+        load_profile(path)
+    path.write_text("{not json")
+    with pytest.raises(ProfileError, match="not JSON"):
+        load_profile(path)
+
+
+def test_calibration_refuses_a_patient_session(small_session):
+    with pytest.raises(CalibrationError, match="not a sphere-calibration session"):
+        calibrate_lights([small_session])
