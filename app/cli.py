@@ -230,7 +230,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_info(sub)
     add_validate(sub)
     from app.demo import add_demo
+    from app.reconstruction_cli import add_calibrate, add_process
 
+    add_calibrate(sub)
+    add_process(sub)
     add_demo(sub, run_simulate, describe_session)
     return parser
 

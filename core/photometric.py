@@ -73,6 +73,23 @@ def gradients_from_normals(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]
         return -normals[..., 0] / normals[..., 2], -normals[..., 1] / normals[..., 2]
 
 
+@njit(inline="always", fastmath=True)
+def solve_symmetric3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
+    """x = A^-1 b for a symmetric 3 x 3 A by its adjugate; NaN when A is singular."""
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if abs(det) < 1e-300:
+        return np.nan, np.nan, np.nan
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    inv = 1.0 / det
+    return ((c00 * b0 + c01 * b1 + c02 * b2) * inv, (c01 * b0 + c11 * b1 + c12 * b2) * inv,
+            (c02 * b0 + c12 * b1 + c22 * b2) * inv)
+
+
 @njit(parallel=True, fastmath=True, cache=True, nogil=True)
 def near_light_normals(signal, points, light_positions, light_intensity, light_axis, light_mu, saturated,
                        min_signal, normals, albedo, n_lights_used):
@@ -89,8 +106,8 @@ def near_light_normals(signal, points, light_positions, light_intensity, light_a
             px = points[i, j, 0]
             py = points[i, j, 1]
             pz = points[i, j, 2]
-            ata = np.zeros((3, 3))
-            atb = np.zeros(3)
+            a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+            b0 = b1 = b2 = 0.0
             used = 0
             if np.isfinite(pz):
                 for k in range(4):
@@ -112,18 +129,15 @@ def near_light_normals(signal, points, light_positions, light_intensity, light_a
                         continue
                     # I_k / scale = rho * n . l_k: one row of the per-pixel system
                     b = signal[k, i, j] / scale
-                    row0 = lx
-                    row1 = ly
-                    row2 = lz
-                    ata[0, 0] += row0 * row0
-                    ata[0, 1] += row0 * row1
-                    ata[0, 2] += row0 * row2
-                    ata[1, 1] += row1 * row1
-                    ata[1, 2] += row1 * row2
-                    ata[2, 2] += row2 * row2
-                    atb[0] += row0 * b
-                    atb[1] += row1 * b
-                    atb[2] += row2 * b
+                    a00 += lx * lx
+                    a01 += lx * ly
+                    a02 += lx * lz
+                    a11 += ly * ly
+                    a12 += ly * lz
+                    a22 += lz * lz
+                    b0 += lx * b
+                    b1 += ly * b
+                    b2 += lz * b
                     used += 1
             n_lights_used[i, j] = used
             if used < 3:
@@ -132,16 +146,13 @@ def near_light_normals(signal, points, light_positions, light_intensity, light_a
                 normals[i, j, 2] = np.nan
                 albedo[i, j] = np.nan
                 continue
-            ata[1, 0] = ata[0, 1]
-            ata[2, 0] = ata[0, 2]
-            ata[2, 1] = ata[1, 2]
-            m = np.linalg.solve(ata, atb)
-            rho = np.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
+            m0, m1, m2 = solve_symmetric3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+            rho = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
             albedo[i, j] = rho
             if rho > 0.0:
-                normals[i, j, 0] = m[0] / rho
-                normals[i, j, 1] = m[1] / rho
-                normals[i, j, 2] = m[2] / rho
+                normals[i, j, 0] = m0 / rho
+                normals[i, j, 1] = m1 / rho
+                normals[i, j, 2] = m2 / rho
             else:
                 normals[i, j, 0] = np.nan
                 normals[i, j, 1] = np.nan

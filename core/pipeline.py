@@ -6,12 +6,19 @@ The same object serves `photopft process` (offline, over a session file) and the
 Per cycle (thesis Table 4.1, then past it):
 1. subject mask from the summed signal; saturated or shadowed lights left out per pixel;
 2. pseudo normals with the pseudo light vectors (distant-light photometric stereo, eq. 3.4-3.7);
-3. distance from the diffused maxima regions (eq. 4.13, core/distance.py);
+3. distance from the diffused maxima regions (eq. 4.13, core/distance.py), the thesis' way;
 4. metric depth: the pseudo normals integrated in perspective and scaled so that the depth at
    the regions' centres is the triangulated one;
 5. per-pixel light vectors from that depth, with inverse-square falloff and the LEDs'
    relative intensities, normals solved again, integrated again; repeated until the depth
    settles (`iterations`).
+
+Past the thesis (distance="photometric", the default): on a curved subject the diffused maxima
+regions do not lie on the lines the thesis triangulates with, so their distance follows the
+subject's shape more than its place (measured: about 1800 mm for a torso anywhere between 1800
+and 2200 mm). Each iteration instead scales the integrated shape to the distance at which the
+near-light model explains all four lights best (core/distance.py). With `track`, a
+reconstructor remembers the last distance and only searches near it.
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from core.distance import DMR_THRESHOLD, DmrEstimate, dmr_distance
+from core.distance import DMR_THRESHOLD, DmrEstimate, dmr_distance, photometric_distance_scale
 from core.integrate import integrate_dct, integrate_masked, log_depth_gradients
 from core.photometric import distant_light_normals, gradients_from_normals, near_light_normals
 from core.rig import Head
@@ -38,8 +45,12 @@ class ReconstructionSettings:
     shadow_fraction: float = 0.01  # a light below this fraction of full scale counts as shadowed
     dmr_threshold: float = DMR_THRESHOLD
     max_depth_change_mm: float = 0.05  # stop iterating when the depth moves less than this (median)
+    distance: str = "photometric"  # photometric (this project) or dmr (thesis eq. 4.13 only)
+    track: bool = False  # search the distance near the previous cycle's (streams of one subject)
 
     def __post_init__(self) -> None:
+        if self.distance not in ("photometric", "dmr"):
+            raise ValueError(f"distance must be 'photometric' or 'dmr', got {self.distance!r}")
         if self.method not in ("near", "distant"):
             raise ValueError(f"method must be 'near' or 'distant', got {self.method!r}")
         if self.integrator not in ("dct", "masked"):
@@ -52,7 +63,7 @@ class HeadMap:
     depth_mm: np.ndarray  # (H, W), NaN off the mask
     albedo: np.ndarray
     mask: np.ndarray
-    distance_mm: float
+    distance_mm: float  # median depth of the subject
     dmr: DmrEstimate
     gradient_volume: float
     iterations_done: int = 0
@@ -96,6 +107,7 @@ class HeadReconstructor:
         mu = head.light_mu if head.light_mu is not None else np.zeros(4)
         self._axis = np.ascontiguousarray(axis, dtype=np.float64)
         self._mu = np.ascontiguousarray(mu, dtype=np.float64)
+        self.last_distance_mm: float | None = None
 
     def _integrate(self, normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
         h = self.head
@@ -120,6 +132,21 @@ class HeadReconstructor:
         median = np.nanmedian(log_depth)
         return NOMINAL_DISTANCE_MM / float(np.exp(median)) if np.isfinite(median) else NOMINAL_DISTANCE_MM
 
+    def _scaled(self, log_depth: np.ndarray, dmr: DmrEstimate, signal: np.ndarray, mask: np.ndarray,
+                guess_mm: float, wide: bool) -> tuple[np.ndarray, float]:
+        """Depth from integrated log-depth: scaled by the DMR anchor or the photometric search."""
+        relative = np.exp(log_depth - np.nanmedian(log_depth))
+        if self.settings.distance == "dmr" or self.settings.method == "distant":
+            depth = self._anchor(log_depth, dmr) * np.exp(log_depth)
+            return depth, float(np.nanmedian(depth))
+        h = self.head
+        span = (0.75, 1.35) if wide else (0.97, 1.03)
+        scale = photometric_distance_scale(signal, self._rays, relative, mask, h.light_positions_mm,
+                                           h.light_intensity, (guess_mm * span[0], guess_mm * span[1]))
+        if not np.isfinite(scale):
+            scale = guess_mm
+        return scale * relative, float(scale)
+
     def reconstruct(self, signal: np.ndarray, saturated: np.ndarray | None = None) -> HeadMap:
         """signal (4, H, W): each light's frame minus the dark frame; saturated (4, H, W) bool."""
         h, s = self.head, self.settings
@@ -131,9 +158,15 @@ class HeadReconstructor:
         pseudo_normals[~mask] = np.nan
         dmr = dmr_distance(pseudo_normals, mask, h.fx, h.fy, h.cx, h.cy, h.light_positions_mm,
                            self.pseudo_light_vectors, s.dmr_threshold)
+        tracked = s.track and self.last_distance_mm is not None
+        guess = self.last_distance_mm if tracked else (dmr.distance_mm if np.isfinite(dmr.distance_mm)
+                                                       else NOMINAL_DISTANCE_MM)
         normals = pseudo_normals
         log_depth = self._integrate(normals, mask)
-        depth = self._anchor(log_depth, dmr) * np.exp(log_depth)
+        if s.method == "distant":
+            depth, distance = self._scaled(log_depth, dmr, signal, mask, guess, True)
+        else:
+            depth, distance = self._scaled(log_depth, dmr, signal, mask, guess, not tracked)
         done = 0
         if s.method == "near":
             min_signal = s.shadow_fraction * h.max_value
@@ -141,12 +174,12 @@ class HeadReconstructor:
             albedo = np.full(h.shape, np.nan)
             used = np.zeros(h.shape, dtype=np.int64)
             for done in range(1, s.iterations + 1):
-                points = np.ascontiguousarray(self._rays * depth[..., None])
+                points = np.ascontiguousarray(self._rays * np.nan_to_num(depth, nan=distance)[..., None])
                 near_light_normals(signal, points, h.light_positions_mm, h.light_intensity, self._axis, self._mu,
                                    saturated, min_signal, normals, albedo, used)
                 normals[~mask] = np.nan
                 log_depth = self._integrate(normals, mask)
-                new_depth = self._anchor(log_depth, dmr) * np.exp(log_depth)
+                new_depth, distance = self._scaled(log_depth, dmr, signal, mask, distance, False)
                 change = np.nanmedian(np.abs(new_depth - depth))
                 depth = new_depth
                 if change < s.max_depth_change_mm:
@@ -154,4 +187,5 @@ class HeadReconstructor:
         valid = mask & np.isfinite(depth) & np.isfinite(normals[..., 2])
         depth = np.where(valid, depth, np.nan)
         normals = np.where(valid[..., None], normals, np.nan)
-        return HeadMap(normals, depth, albedo, valid, dmr.distance_mm, dmr, gradient_volume(normals, valid), done)
+        self.last_distance_mm = distance
+        return HeadMap(normals, depth, albedo, valid, distance, dmr, gradient_volume(normals, valid), done)

@@ -166,7 +166,7 @@ def build_scene(config: SimConfig, rig: Rig) -> tuple[Scene, Waveform | None]:
     shininess = 2.0 * np.log(2.0) / (footprint_rad / 2.0) ** 2
     scene = SphereScene(radius, sphere_placements(config, baseline, cycle_s), baseline,
                         albedo=0.08 if finish == "specular" else 0.8,
-                        specular=1.6 if finish == "specular" else 0.0, shininess=float(shininess),
+                        specular=1.3 if finish == "specular" else 0.0, shininess=float(shininess),
                         kind="sphere-calibration")
     scene.root_attrs = {"sphere_radius_mm": float(radius), "sphere_finish": finish,
                         "simulated_scene": config.scene}

@@ -1,0 +1,155 @@
+"""`photopft process`: a session file in, a results file out (shared/spec/session-format.md)."""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import h5py
+import numpy as np
+
+from core import __version__
+from core.photometric import complete_cycles
+from core.pipeline import HeadReconstructor, ReconstructionSettings
+from core.profile import ProfileError, RigCalibration
+from core.session import SessionError, SessionFile
+
+RESULTS_FORMAT = "photopft-results"
+
+
+@dataclass
+class ProcessSummary:
+    path: Path
+    maps: dict[str, int]
+    elapsed_s: float
+    mean_distance_mm: dict[str, float]
+
+
+def _cycle_signal(frames: h5py.Dataset, lit: tuple[int, ...], dark: int, max_value: int,
+                  cache: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    def frame(i: int) -> np.ndarray:
+        if i not in cache:
+            cache[i] = frames[i]
+        return cache[i]
+
+    dark_frame = frame(dark).astype(np.float64)
+    raw = [frame(i) for i in lit]
+    signal = np.stack([r.astype(np.float64) - dark_frame for r in raw])
+    saturated = np.stack([r >= max_value for r in raw])
+    return signal, saturated
+
+
+def process_session(session_path: str | os.PathLike, output: str | os.PathLike, *,
+                    calibration: RigCalibration | None = None, maps_at: list[int] | None = None,
+                    settings: ReconstructionSettings | None = None, heads: list[str] | None = None,
+                    every: int = 1, progress: Callable[[float], None] | None = None) -> ProcessSummary:
+    """Reconstruct every complete light cycle (sliding by `every` frames) of each head.
+
+    Maps "at frame i" come from the newest complete cycle ending at frame i; frames asked for
+    in `maps_at` that end no complete cycle are reported as an error.
+    """
+    started = time.perf_counter()
+    settings = settings or ReconstructionSettings()
+    if every < 1:
+        raise ValueError("every must be 1 or more")
+    with SessionFile(session_path) as session:
+        rig = session.rig
+        if calibration is not None:
+            try:
+                rig = calibration.apply(rig)
+            except ProfileError as exc:
+                raise SessionError(f"{session_path}: {exc}") from exc
+            for name, head in rig.heads.items():
+                cal = calibration.heads[name]
+                if cal.extra.get("width") and (cal.extra["width"], cal.extra["height"]) != (head.width, head.height):
+                    raise SessionError(f"the calibration profile is for a {cal.extra['width']} x "
+                                       f"{cal.extra['height']} sensor, head {name} is {head.width} x {head.height}")
+        names = heads or session.heads
+        for name in names:
+            if name not in rig.heads:
+                raise SessionError(f"{session_path} has no head {name!r} (heads: {', '.join(session.heads)})")
+        maps_at = sorted(set(maps_at or []))
+        counts, distances = {}, {}
+        with h5py.File(output, "w") as out:
+            out.attrs["format"] = RESULTS_FORMAT
+            out.attrs["format_version"] = np.int64(1)
+            out.attrs["session"] = str(session_path)
+            out.attrs["software"] = f"photopft {__version__}"
+            out.attrs["method"] = settings.method
+            out.attrs["integrator"] = settings.integrator
+            out.attrs["calibration"] = calibration.created if calibration is not None else "session /rig"
+            total_windows = 0
+            plans = {}
+            for name in names:
+                windows = complete_cycles(session.light_index(name), session.frame_id(name), rig.cycle_length)
+                by_end = {w.newest: w for w in windows}
+                missing = [i for i in maps_at if i not in by_end]
+                if missing:
+                    raise SessionError(f"head {name}: no complete light cycle ends at frame(s) {missing}")
+                chosen = windows[::every]
+                chosen_ends = {w.newest for w in chosen}
+                chosen += [by_end[i] for i in maps_at if i not in chosen_ends]
+                chosen.sort(key=lambda w: w.newest)
+                plans[name] = chosen
+                total_windows += len(chosen)
+            done = 0
+            for name in names:
+                head = rig.heads[name]
+                pseudo = calibration.heads[name].pseudo_light_vectors if calibration is not None else None
+                if pseudo is not None and not np.any(pseudo):
+                    pseudo = None
+                reconstructor = HeadReconstructor(head, pseudo, settings)
+                frames = session.frames(name)
+                stamps = session.timestamp_ns(name)
+                rows = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": []}
+                saved_normals, saved_depth, saved_index = [], [], []
+                cache: dict[int, np.ndarray] = {}
+                for window in plans[name]:
+                    for stale in [k for k in cache if k < window.newest - 2 * rig.cycle_length]:
+                        del cache[stale]
+                    signal, saturated = _cycle_signal(frames, window.lit, window.dark, head.max_value, cache)
+                    result = reconstructor.reconstruct(signal, saturated)
+                    rows["timestamp_ns"].append(stamps[window.newest])
+                    rows["frame_index"].append(window.newest)
+                    rows["distance_mm"].append(result.distance_mm)
+                    rows["gradient_volume"].append(result.gradient_volume)
+                    if window.newest in maps_at:
+                        saved_index.append(window.newest)
+                        saved_normals.append(result.normals.astype(np.float32))
+                        saved_depth.append(result.depth_mm.astype(np.float32))
+                    done += 1
+                    if progress is not None and done % 50 == 0:
+                        progress(done / total_windows)
+                g = out.create_group(f"heads/{name}")
+                g.create_dataset("timestamp_ns", data=np.asarray(rows["timestamp_ns"], dtype=np.int64))
+                g.create_dataset("frame_index", data=np.asarray(rows["frame_index"], dtype=np.int64))
+                g.create_dataset("distance_mm", data=np.asarray(rows["distance_mm"], dtype=np.float64))
+                g.create_dataset("gradient_volume", data=np.asarray(rows["gradient_volume"], dtype=np.float64))
+                m = g.create_group("maps")
+                m.create_dataset("frame_index", data=np.asarray(saved_index, dtype=np.int64))
+                shape = (0, head.height, head.width)
+                m.create_dataset("normals", data=np.stack(saved_normals) if saved_normals
+                                 else np.zeros(shape + (3,), np.float32), compression="gzip")
+                m.create_dataset("depth_mm", data=np.stack(saved_depth) if saved_depth
+                                 else np.zeros(shape, np.float32), compression="gzip")
+                counts[name] = len(rows["frame_index"])
+                distances[name] = float(np.nanmean(rows["distance_mm"])) if rows["distance_mm"] else float("nan")
+            out.create_group("parameters")
+    return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances)
+
+
+def with_true_lights(session: SessionFile) -> RigCalibration:
+    """A calibration profile holding the simulation's true lights (for benchmarks: the noise floor)."""
+    from core.profile import HeadCalibration
+
+    truth = session.truth()
+    heads = {}
+    for name in session.heads:
+        positions = np.asarray(truth[f"{name}/light_positions_mm"])
+        intensity = (np.asarray(truth[f"{name}/light_intensity"]) if f"{name}/light_intensity" in truth
+                     else np.ones(4))
+        heads[name] = HeadCalibration(positions, intensity, np.zeros((4, 3)), np.zeros(4), np.zeros((4, 3)))
+    return RigCalibration("truth", [session.path.name], heads)
