@@ -232,8 +232,11 @@ def build_parser() -> argparse.ArgumentParser:
     from app.demo import add_demo
     from app.reconstruction_cli import add_calibrate, add_process
 
+    from app.bench import add_bench
+
     add_calibrate(sub)
     add_process(sub)
+    add_bench(sub)
     add_demo(sub, run_simulate, describe_session)
     return parser
 

@@ -13,7 +13,10 @@ least squares over the mask's own pixel edges (accurate, no artefacts at the mas
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
+from numba import njit, prange
 from scipy import sparse
 from scipy.fft import dctn, idctn
 from scipy.sparse.linalg import spsolve
@@ -30,29 +33,50 @@ def log_depth_gradients(normals: np.ndarray, fx: float, fy: float, cx: float, cy
         return -normals[..., 0] / (fx * denominator), -normals[..., 1] / (fy * denominator)
 
 
-def integrate_dct(gu: np.ndarray, gv: np.ndarray) -> np.ndarray:
+@njit(parallel=True, fastmath=True, cache=True, nogil=True)
+def _divergence(gu, gv, out):
+    """Divergence of the (NaN as zero) gradient field with the DCT-II Neumann boundary handling."""
+    height, width = gu.shape
+    for i in prange(height):
+        for j in range(width):
+            total = 0.0
+            if j + 1 < width:
+                a, b = gu[i, j], gu[i, j + 1]
+                total += 0.5 * ((a if a == a else 0.0) + (b if b == b else 0.0))
+            if j > 0:
+                a, b = gu[i, j - 1], gu[i, j]
+                total -= 0.5 * ((a if a == a else 0.0) + (b if b == b else 0.0))
+            if i + 1 < height:
+                a, b = gv[i, j], gv[i + 1, j]
+                total += 0.5 * ((a if a == a else 0.0) + (b if b == b else 0.0))
+            if i > 0:
+                a, b = gv[i - 1, j], gv[i, j]
+                total -= 0.5 * ((a if a == a else 0.0) + (b if b == b else 0.0))
+            out[i, j] = -total
+
+
+@lru_cache(maxsize=8)
+def _dct_eigenvalues(height: int, width: int) -> np.ndarray:
+    wu = 2 * np.cos(np.pi * np.arange(width) / width) - 2
+    wv = 2 * np.cos(np.pi * np.arange(height) / height) - 2
+    denominator = (wv[:, None] + wu[None, :]).astype(np.float32)
+    denominator[0, 0] = 1.0
+    return -1.0 / denominator
+
+
+def integrate_dct(gu: np.ndarray, gv: np.ndarray, workers: int = -1) -> np.ndarray:
     """Least-squares surface from its gradients on the whole rectangle (DCT Poisson, Neumann boundary).
 
     gu, gv: derivatives along columns and rows (per pixel); NaN counts as zero. The result has
-    zero mean.
+    zero mean. Single precision: the live view's fast path.
     """
-    gu = np.nan_to_num(gu)
-    gv = np.nan_to_num(gv)
     height, width = gu.shape
-    # Divergence with the boundary handling of the DCT-II Neumann problem.
-    div = np.zeros_like(gu)
-    div[:, :-1] += (gu[:, :-1] + gu[:, 1:]) / 2
-    div[:, 1:] -= (gu[:, :-1] + gu[:, 1:]) / 2
-    div[:-1, :] += (gv[:-1, :] + gv[1:, :]) / 2
-    div[1:, :] -= (gv[:-1, :] + gv[1:, :]) / 2
-    transformed = dctn(-div, type=2, norm="ortho")
-    wu = 2 * np.cos(np.pi * np.arange(width) / width) - 2
-    wv = 2 * np.cos(np.pi * np.arange(height) / height) - 2
-    denominator = wv[:, None] + wu[None, :]
-    denominator[0, 0] = 1.0
-    transformed = transformed / -denominator
+    div = np.empty((height, width), dtype=np.float32)
+    _divergence(np.asarray(gu, dtype=np.float32), np.asarray(gv, dtype=np.float32), div)
+    transformed = dctn(div, type=2, norm="ortho", workers=workers)
+    transformed *= _dct_eigenvalues(height, width)
     transformed[0, 0] = 0.0
-    return idctn(transformed, type=2, norm="ortho")
+    return idctn(transformed, type=2, norm="ortho", workers=workers)
 
 
 def _edge_system(mask: np.ndarray, gu: np.ndarray, gv: np.ndarray):
