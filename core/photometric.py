@@ -13,6 +13,8 @@ from numba import njit, prange
 
 from core.rig import DARK
 
+_FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}  # no 'nnan': NaN marks "no point here"
+
 
 @dataclass(frozen=True)
 class CycleWindow:
@@ -90,7 +92,7 @@ def solve_symmetric3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
             (c02 * b0 + c12 * b1 + c22 * b2) * inv)
 
 
-@njit(parallel=True, fastmath=True, cache=True, nogil=True)
+@njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def near_light_normals(signal, points, light_positions, light_intensity, light_axis, light_mu, saturated,
                        min_signal, normals, albedo, n_lights_used):
     """Per-pixel light vectors from each pixel's 3D point, with inverse-square falloff and LED anisotropy.
