@@ -153,7 +153,8 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
                                    "was the sphere moved during a placement, or is the radius wrong?")
     triangulated = positions.copy()
     intensity = np.ones(4)
-    extra: dict[str, object] = {"triangulated_positions_mm": np.round(triangulated, 4).tolist(),
+    extra: dict[str, object] = {"width": int(head.width), "height": int(head.height),
+                                "triangulated_positions_mm": np.round(triangulated, 4).tolist(),
                                 "thesis_pair_error_mm": np.round(pair_error, 4).tolist()}
     refined = False
     if matte:

@@ -1,0 +1,140 @@
+"""Reconstruction: known answers on simulated scenes, the results file, bad inputs."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import h5py
+import numpy as np
+import pytest
+
+from core.lightfield import light_field, normals_from_field
+from core.photometric import complete_cycles, distant_light_normals, near_light_normals
+from core.pipeline import HeadReconstructor, ReconstructionSettings
+from core.process import process_session, with_true_lights
+from core.profile import HeadCalibration, RigCalibration
+from core.session import SessionError, SessionFile
+from core.sim.breathing import Sway
+from core.sim.simulate import SimConfig, simulate
+
+
+def test_plane_gives_its_normal_with_distant_lights():
+    normal = np.array([0.2, -0.1, -1.0])
+    normal /= np.linalg.norm(normal)
+    lights = np.array([[-0.3, -0.3, -0.9], [0.3, -0.3, -0.9], [0.3, 0.3, -0.9], [-0.3, 0.3, -0.9]])
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    images = 0.7 * np.clip(lights @ normal, 0, None)[:, None, None] * np.ones((4, 5, 6)) + 0.1
+    normals, albedo = distant_light_normals(images, np.full((5, 6), 0.1), lights)
+    np.testing.assert_allclose(normals[2, 3], normal, atol=1e-12)
+    np.testing.assert_allclose(albedo, 0.7)
+
+
+def test_sliding_windows_skip_lost_frames():
+    ids = np.array([0, 1, 2, 3, 4, 5, 6, 8, 9, 10, 11, 12, 13])
+    lights = np.array([0, 1, 2, 3, -1, 0, 1, 3, -1, 0, 1, 2, 3])
+    windows = complete_cycles(lights, ids, 5)
+    assert [w.newest for w in windows] == [4, 5, 6, 11, 12]  # none spans the gap at frame id 7
+    assert windows[-1].lit == (9, 10, 11, 12) and windows[-1].dark == 8
+
+
+@pytest.fixture(scope="module")
+def sphere_session(tmp_path_factory):
+    path = tmp_path_factory.mktemp("rec") / "sphere.h5"
+    simulate(path, SimConfig(scene="sphere", protocol="static", seconds=10 / 110, scale=0.25, heads=("front",),
+                             sway=Sway(0, 0, 0), truth_maps_at=[4, 9], distance_mm=2050.0))
+    return path
+
+
+def _cycle(s: SessionFile, frame: int):
+    window = {w.newest: w for w in complete_cycles(s.light_index("front"), s.frame_id("front"), 5)}[frame]
+    frames = s.frames("front")
+    dark = frames[window.dark].astype(float)
+    return np.stack([frames[i].astype(float) - dark for i in window.lit]), np.stack(
+        [frames[i] for i in window.lit]), frames[window.dark]
+
+
+def test_near_light_reconstruction_of_a_sphere(sphere_session):
+    with SessionFile(sphere_session) as s:
+        head = with_true_lights(s).apply(s.rig).heads["front"]
+        signal, lit, dark = _cycle(s, 4)
+        truth_n = s.truth()["front/normals"][0].astype(float)
+        truth_d = s.truth()["front/depth_mm"][0].astype(float)
+    result = HeadReconstructor(head, settings=ReconstructionSettings(integrator="masked", iterations=3)).reconstruct(
+        signal)
+    ok = result.mask & np.isfinite(truth_n[..., 2])
+    angle = np.degrees(np.arccos(np.clip(np.sum(result.normals[ok] * truth_n[ok], -1), -1, 1)))
+    floor = np.full(head.shape + (3,), np.nan)
+    points = np.ascontiguousarray(HeadReconstructor(head)._rays * np.nan_to_num(truth_d, nan=2000.0)[..., None])
+    near_light_normals(signal, points, head.light_positions_mm, head.light_intensity, np.tile([0, 0, 1.0], (4, 1)),
+                       np.zeros(4), np.zeros(signal.shape, bool), 40.0, floor, np.empty(head.shape),
+                       np.zeros(head.shape, np.int64))
+    floor_angle = np.degrees(np.arccos(np.clip(np.sum(floor[ok] * truth_n[ok], -1), -1, 1)))
+    assert angle.mean() < floor_angle.mean() + 0.3
+    assert abs(np.median(result.depth_mm[ok]) - np.median(truth_d[ok])) < 60.0  # one cycle at scale 0.25
+    error = result.depth_mm[ok] - truth_d[ok]
+    assert np.mean(np.abs(error - error.mean())) < 2.0
+    # The coarse light field gives the same normals as the per-pixel solve, against the truth.
+    field = light_field(head, truth_d)
+    fast, _ = normals_from_field(lit, dark, field, 40.0, float(head.max_value))
+    fast_angle = np.degrees(np.arccos(np.clip(np.sum(fast[ok] * truth_n[ok], -1), -1, 1)))
+    assert abs(fast_angle.mean() - floor_angle.mean()) < 0.05
+
+
+def test_process_writes_the_results_file(sphere_session, tmp_path):
+    out = tmp_path / "r.h5"
+    summary = process_session(sphere_session, out, maps_at=[9])
+    assert summary.maps["front"] == 6
+    with h5py.File(out) as f:
+        assert f.attrs["format"] == "photopft-results" and f.attrs["format_version"] == 1
+        assert f.attrs["session"] == str(sphere_session)
+        g = f["heads/front"]
+        for name in ("timestamp_ns", "frame_index", "distance_mm", "gradient_volume"):
+            assert g[name].shape == (6,)
+        assert list(g["frame_index"][:]) == [4, 5, 6, 7, 8, 9]
+        assert list(g["maps/frame_index"][:]) == [9]
+        assert g["maps/normals"].shape == (1, 256, 350, 3) and g["maps/depth_mm"].shape == (1, 256, 350)
+        assert np.all(np.isfinite(g["distance_mm"][:])) and np.all(g["gradient_volume"][:] > 0)
+        assert "parameters" in f
+
+
+def test_process_refuses_bad_inputs(sphere_session, tmp_path):
+    with pytest.raises(SessionError, match="no head 'back'"):
+        process_session(sphere_session, tmp_path / "x.h5", heads=["back"])
+    with pytest.raises(SessionError, match="no complete light cycle ends at frame"):
+        process_session(sphere_session, tmp_path / "x.h5", maps_at=[2])
+    with SessionFile(sphere_session) as s:
+        head = s.rig.heads["front"]
+    wrong = RigCalibration("2026-01-01T00:00:00+00:00", [], {"front": HeadCalibration(
+        head.light_positions_mm, np.ones(4), np.zeros((4, 3)), np.zeros(4), np.zeros((4, 3)),
+        {"width": 1400, "height": 1024})})
+    with pytest.raises(SessionError, match="1400 x 1024 sensor"):
+        process_session(sphere_session, tmp_path / "x.h5", calibration=wrong)
+    other = RigCalibration("x", [], {"back": HeadCalibration(head.light_positions_mm, np.ones(4), np.zeros((4, 3)),
+                                                             np.zeros(4), np.zeros((4, 3)))})
+    with pytest.raises(SessionError, match="no head 'front'"):
+        process_session(sphere_session, tmp_path / "x.h5", calibration=other)
+
+
+def test_settings_are_checked():
+    with pytest.raises(ValueError, match="method"):
+        ReconstructionSettings(method="magic")
+    with pytest.raises(ValueError, match="distance"):
+        ReconstructionSettings(distance="guess")
+
+
+def test_intensity_falloff_matters(sphere_session):
+    """Ignoring the LEDs' relative intensities (the thesis' homogeneous light) costs accuracy."""
+    with SessionFile(sphere_session) as s:
+        head = with_true_lights(s).apply(s.rig).heads["front"]
+        signal, _, _ = _cycle(s, 4)
+        truth_n = s.truth()["front/normals"][0].astype(float)
+    unequal = replace(head, light_intensity=np.array([1.0, 1.1, 0.9, 1.05]))
+    scaled = signal * unequal.light_intensity[:, None, None]
+    right = HeadReconstructor(unequal).reconstruct(scaled)
+    wrong = HeadReconstructor(head).reconstruct(scaled)
+    ok = right.mask & wrong.mask & np.isfinite(truth_n[..., 2])
+
+    def error(n):
+        return np.degrees(np.arccos(np.clip(np.sum(n[ok] * truth_n[ok], -1), -1, 1))).mean()
+
+    assert error(right.normals) + 0.5 < error(wrong.normals)
