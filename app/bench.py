@@ -119,7 +119,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                 results = {}
                 for name, (h, settings) in methods.items():
                     reconstructor = HeadReconstructor(h, cal.pseudo_light_vectors, settings)
-                    results[name] = reconstructor.reconstruct(signal, saturated)
+                    results[name] = reconstructor.reconstruct(signal, saturated, dark)
                 valid = results["ours"].mask & np.isfinite(true_normals[..., 2])
                 for name, result in results.items():
                     ok = valid & np.isfinite(result.normals[..., 2]) & np.isfinite(result.depth_mm)

@@ -73,6 +73,10 @@ def add_process(sub: argparse._SubParsersAction) -> None:
                    help="dct: fast; masked: accurate least squares on the subject only")
     p.add_argument("--every", type=int, default=1, help="reconstruct every n-th cycle window (default 1: all)")
     p.add_argument("--heads", choices=("front", "back", "both"), default="both")
+    p.add_argument("--no-motion-compensation", action="store_true",
+                   help="use each light's frame as captured (the thesis' static assumption)")
+    p.add_argument("--no-tracking", action="store_true",
+                   help="search the subject distance afresh in every cycle (slower)")
     p.set_defaults(run=run_process)
 
 
@@ -95,9 +99,10 @@ def run_process(args: argparse.Namespace) -> int:
 
     heads = None if args.heads == "both" else [args.heads]
     try:
+        settings = ReconstructionSettings(method=args.method, integrator=args.integrator, track=not args.no_tracking)
         summary = process_session(args.session, args.output, calibration=calibration, maps_at=args.maps_at,
-                                  settings=ReconstructionSettings(method=args.method, integrator=args.integrator),
-                                  heads=heads, every=args.every, progress=progress)
+                                  settings=settings, heads=heads, every=args.every,
+                                  motion_compensation=not args.no_motion_compensation, progress=progress)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     if show:

@@ -123,48 +123,60 @@ def four_light_residual(signal: np.ndarray, points_mm: np.ndarray, light_positio
                              np.ascontiguousarray(light_intensity, np.float64)))
 
 
-def photometric_distance_scale(signal: np.ndarray, rays: np.ndarray, relative_depth: np.ndarray, mask: np.ndarray,
-                               light_positions_mm: np.ndarray, light_intensity: np.ndarray,
-                               scale_range: tuple[float, float], max_pixels: int = 40000,
-                               dark: np.ndarray | None = None, dn_per_electron: float = 4095.0 / 18000.0,
-                               read_noise_dn: float = 2.7) -> float:
-    """The scale s of `relative_depth` (depth = s * relative) that best explains all four lights.
+class PhotometricDistance:
+    """The distance at which the near-light model explains all four lights best, for one cycle.
 
     Beyond the thesis: the diffused maxima regions tell where the surface faces a light, which on a
     curved subject is biased by its shape; the photometric residual of the near-light model at
-    every pixel is not. Golden-section search over s within scale_range.
+    every pixel is not. Pixels are chosen and weighted once per cycle, on smoothed images:
+    choosing on the noisy values would keep pixels whose noise happens to be positive, and wrong
+    weights pull the minimum. The noise of lit minus dark is the shot noise of both frames plus
+    their read noise.
     """
-    inner = ndimage.binary_erosion(mask, iterations=3)
-    # Pixels are chosen, and weighted, on smoothed images: choosing on the noisy values would keep
-    # the pixels whose noise happens to be positive.
-    smooth_all = np.stack([ndimage.gaussian_filter(channel, 2.0) for channel in signal])
-    weakest = np.min(smooth_all, axis=0)
-    lit = weakest > 0.1 * np.percentile(weakest[inner], 95) if inner.any() else inner
-    rows, cols = np.nonzero(inner & lit & np.isfinite(relative_depth))
-    if len(rows) < 100:
-        return float("nan")
-    step = max(1, len(rows) // max_pixels)
-    rows, cols = rows[::step], cols[::step]
-    s = signal[:, rows, cols]
-    base = rays[rows, cols] * relative_depth[rows, cols, None]
-    # Noise of lit minus dark: shot noise of both frames and read noise of both; wrong weights
-    # pull the minimum.
-    smooth = smooth_all[:, rows, cols]
-    dark_level = ndimage.gaussian_filter(dark, 2.0)[rows, cols] if dark is not None else 0.0
-    variance = dn_per_electron * (np.maximum(smooth, 0.0) + 2.0 * dark_level) + 2.0 * read_noise_dn**2
-    weight = np.ascontiguousarray(1.0 / np.sqrt(variance))
-    s = np.ascontiguousarray(s, np.float64)
-    base = np.ascontiguousarray(base, np.float64)
-    lights = np.ascontiguousarray(light_positions_mm, np.float64)
-    intensity = np.ascontiguousarray(light_intensity, np.float64)
 
-    def cost(scale: float) -> float:
-        return _chi_square(s, weight, base, scale, lights, intensity)
+    def __init__(self, signal: np.ndarray, mask: np.ndarray, light_positions_mm: np.ndarray,
+                 light_intensity: np.ndarray, dark: np.ndarray | None = None, max_pixels: int = 40000,
+                 dn_per_electron: float = 4095.0 / 18000.0, read_noise_dn: float = 2.7) -> None:
+        inner = ndimage.binary_erosion(mask, iterations=3)
+        smooth = np.stack([ndimage.gaussian_filter(channel, 2.0) for channel in signal])
+        weakest = np.min(smooth, axis=0)
+        lit = weakest > 0.1 * np.percentile(weakest[inner], 95) if inner.any() else inner
+        rows, cols = np.nonzero(inner & lit)
+        step = max(1, len(rows) // max_pixels)
+        self.rows, self.cols = rows[::step], cols[::step]
+        dark_level = ndimage.gaussian_filter(dark, 2.0)[self.rows, self.cols] if dark is not None else 0.0
+        variance = (dn_per_electron * (np.maximum(smooth[:, self.rows, self.cols], 0.0) + 2.0 * dark_level)
+                    + 2.0 * read_noise_dn**2)
+        self.weight = np.ascontiguousarray(1.0 / np.sqrt(variance))
+        self.signal = np.ascontiguousarray(signal[:, self.rows, self.cols], np.float64)
+        self.lights = np.ascontiguousarray(light_positions_mm, np.float64)
+        self.intensity = np.ascontiguousarray(light_intensity, np.float64)
 
-    lo, hi = scale_range
-    grid = np.linspace(lo, hi, 9)
-    values = [cost(g) for g in grid]
-    k = int(np.argmin(values))
-    bracket = (grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)])
-    result = minimize_scalar(cost, bounds=bracket, method="bounded", options={"xatol": 0.05})
-    return float(result.x)
+    def scale(self, rays: np.ndarray, relative_depth: np.ndarray, scale_range: tuple[float, float],
+              grid_points: int = 9) -> float:
+        """The scale s of `relative_depth` (depth = s * relative) within scale_range; NaN when too few pixels."""
+        relative = relative_depth[self.rows, self.cols]
+        keep = np.isfinite(relative)
+        if keep.sum() < 100:
+            return float("nan")
+        base = np.ascontiguousarray(rays[self.rows[keep], self.cols[keep]] * relative[keep, None])
+        signal = np.ascontiguousarray(self.signal[:, keep])
+        weight = np.ascontiguousarray(self.weight[:, keep])
+
+        def cost(scale: float) -> float:
+            return _chi_square(signal, weight, base, scale, self.lights, self.intensity)
+
+        lo, hi = scale_range
+        grid = np.linspace(lo, hi, grid_points)
+        values = [cost(g) for g in grid]
+        k = int(np.argmin(values))
+        bracket = (grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)])
+        return float(minimize_scalar(cost, bounds=bracket, method="bounded", options={"xatol": 0.05}).x)
+
+
+def photometric_distance_scale(signal: np.ndarray, rays: np.ndarray, relative_depth: np.ndarray, mask: np.ndarray,
+                               light_positions_mm: np.ndarray, light_intensity: np.ndarray,
+                               scale_range: tuple[float, float], dark: np.ndarray | None = None) -> float:
+    """One-off form of `PhotometricDistance(...).scale(...)`."""
+    problem = PhotometricDistance(signal, mask, light_positions_mm, light_intensity, dark)
+    return problem.scale(rays, relative_depth, scale_range)

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from core.distance import DMR_THRESHOLD, DmrEstimate, dmr_distance, photometric_distance_scale
+from core.distance import DMR_THRESHOLD, DmrEstimate, PhotometricDistance, dmr_distance
 from core.integrate import integrate_dct, integrate_masked, log_depth_gradients
 from core.photometric import distant_light_normals, gradients_from_normals, near_light_normals
 from core.rig import Head
@@ -132,23 +132,27 @@ class HeadReconstructor:
         median = np.nanmedian(log_depth)
         return NOMINAL_DISTANCE_MM / float(np.exp(median)) if np.isfinite(median) else NOMINAL_DISTANCE_MM
 
-    def _scaled(self, log_depth: np.ndarray, dmr: DmrEstimate, signal: np.ndarray, mask: np.ndarray,
-                guess_mm: float, wide: bool) -> tuple[np.ndarray, float]:
-        """Depth from integrated log-depth: scaled by the DMR anchor or the photometric search."""
+    def _scaled(self, log_depth: np.ndarray, dmr: DmrEstimate, problem: PhotometricDistance | None,
+                guess_mm: float, search: str) -> tuple[np.ndarray, float]:
+        """Depth from integrated log-depth: the DMR anchor, or the photometric distance searched
+        widely (search="wide"), near the guess ("near"), or not at all ("keep")."""
         relative = np.exp(log_depth - np.nanmedian(log_depth))
-        if self.settings.distance == "dmr" or self.settings.method == "distant":
+        if problem is None:
             depth = self._anchor(log_depth, dmr) * np.exp(log_depth)
             return depth, float(np.nanmedian(depth))
-        h = self.head
-        span = (0.75, 1.35) if wide else (0.97, 1.03)
-        scale = photometric_distance_scale(signal, self._rays, relative, mask, h.light_positions_mm,
-                                           h.light_intensity, (guess_mm * span[0], guess_mm * span[1]))
-        if not np.isfinite(scale):
-            scale = guess_mm
+        scale = guess_mm
+        if search != "keep":
+            span = (0.75, 1.35) if search == "wide" else (0.97, 1.03)
+            scale = problem.scale(self._rays, relative, (guess_mm * span[0], guess_mm * span[1]),
+                                  grid_points=9 if search == "wide" else 5)
+            if not np.isfinite(scale):
+                scale = guess_mm
         return scale * relative, float(scale)
 
-    def reconstruct(self, signal: np.ndarray, saturated: np.ndarray | None = None) -> HeadMap:
-        """signal (4, H, W): each light's frame minus the dark frame; saturated (4, H, W) bool."""
+    def reconstruct(self, signal: np.ndarray, saturated: np.ndarray | None = None,
+                    dark: np.ndarray | None = None) -> HeadMap:
+        """signal (4, H, W): each light's frame minus the dark frame; saturated (4, H, W) bool;
+        dark (H, W), the dark frame, for the noise model of the distance search."""
         h, s = self.head, self.settings
         signal = np.ascontiguousarray(signal, dtype=np.float64)
         if saturated is None:
@@ -161,12 +165,12 @@ class HeadReconstructor:
         tracked = s.track and self.last_distance_mm is not None
         guess = self.last_distance_mm if tracked else (dmr.distance_mm if np.isfinite(dmr.distance_mm)
                                                        else NOMINAL_DISTANCE_MM)
+        photometric = s.distance == "photometric" and s.method == "near"
+        problem = (PhotometricDistance(signal, mask, h.light_positions_mm, h.light_intensity, dark)
+                   if photometric else None)
         normals = pseudo_normals
         log_depth = self._integrate(normals, mask)
-        if s.method == "distant":
-            depth, distance = self._scaled(log_depth, dmr, signal, mask, guess, True)
-        else:
-            depth, distance = self._scaled(log_depth, dmr, signal, mask, guess, not tracked)
+        depth, distance = self._scaled(log_depth, dmr, problem, guess, "keep" if tracked else "wide")
         done = 0
         if s.method == "near":
             min_signal = s.shadow_fraction * h.max_value
@@ -179,10 +183,15 @@ class HeadReconstructor:
                                    saturated, min_signal, normals, albedo, used)
                 normals[~mask] = np.nan
                 log_depth = self._integrate(normals, mask)
-                new_depth, distance = self._scaled(log_depth, dmr, signal, mask, distance, False)
+                last = done == s.iterations
+                searched = last or not tracked
+                new_depth, distance = self._scaled(log_depth, dmr, problem, distance,
+                                                   "near" if searched else "keep")
                 change = np.nanmedian(np.abs(new_depth - depth))
                 depth = new_depth
                 if change < s.max_depth_change_mm:
+                    if not searched:  # settled: one search near the tracked distance, then stop
+                        depth, distance = self._scaled(log_depth, dmr, problem, distance, "near")
                     break
         valid = mask & np.isfinite(depth) & np.isfinite(normals[..., 2])
         depth = np.where(valid, depth, np.nan)

@@ -31,7 +31,8 @@ class ProcessSummary:
 
 
 def _cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindow | None, max_value: int,
-                  cache: dict[int, np.ndarray], frame_id: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                  cache: dict[int, np.ndarray], frame_id: np.ndarray,
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each light's frame minus the dark frame; with `previous` (the cycle one period earlier),
     each light is first brought to the newest frame's instant by linear extrapolation along
     frame_id: the subject moves within a cycle (a forced expiration moves the chest millimetres
@@ -56,7 +57,7 @@ def _cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWind
             # is per pixel and would be amplified by the extrapolation.
             change = ndimage.gaussian_filter(signal[k] - old.astype(np.float64), MOTION_SMOOTHING_PX)
             signal[k] += ahead * change
-    return signal - dark_frame[None], saturated
+    return signal - dark_frame[None], saturated, dark_frame
 
 
 def process_session(session_path: str | os.PathLike, output: str | os.PathLike, *,
@@ -134,8 +135,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                         del cache[stale]
                     previous = (all_windows.get(int(ids[window.newest]) - rig.cycle_length)
                                 if motion_compensation else None)
-                    signal, saturated = _cycle_signal(frames, window, previous, head.max_value, cache, ids)
-                    result = reconstructor.reconstruct(signal, saturated)
+                    signal, saturated, dark = _cycle_signal(frames, window, previous, head.max_value, cache, ids)
+                    result = reconstructor.reconstruct(signal, saturated, dark)
                     rows["timestamp_ns"].append(stamps[window.newest])
                     rows["frame_index"].append(window.newest)
                     rows["distance_mm"].append(result.distance_mm)
