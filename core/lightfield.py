@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from core.photometric import solve_symmetric3
+from core.photometric import solve_symmetric3, store_missing, store_normal
 from core.rig import Head
 
 
@@ -124,23 +124,10 @@ def _normals_from_field(lit, dark, rows, pinv, step, min_signal, full_scale, nor
                     b2 += r2 * sk
                     used += 1
                 if used < 3:
-                    normals[i, j, 0] = np.nan
-                    normals[i, j, 1] = np.nan
-                    normals[i, j, 2] = np.nan
-                    albedo[i, j] = np.nan
+                    store_missing(normals, albedo, i, j)
                     continue
                 m0, m1, m2 = solve_symmetric3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
-            rho = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
-            albedo[i, j] = rho
-            if rho > 0.0:
-                inv = 1.0 / rho
-                normals[i, j, 0] = m0 * inv
-                normals[i, j, 1] = m1 * inv
-                normals[i, j, 2] = m2 * inv
-            else:
-                normals[i, j, 0] = np.nan
-                normals[i, j, 1] = np.nan
-                normals[i, j, 2] = np.nan
+            store_normal(normals, albedo, i, j, m0, m1, m2)
 
 
 def normals_from_field(lit: np.ndarray, dark: np.ndarray, field: LightField, min_signal: float, full_scale: float,

@@ -92,6 +92,28 @@ def solve_symmetric3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
             (c02 * b0 + c12 * b1 + c22 * b2) * inv)
 
 
+@njit(inline="always")
+def store_normal(normals, albedo, i, j, m0, m1, m2):
+    """Write albedo |m| and normal m / |m| at pixel (i, j); NaN when m vanishes (eqs 3.6, 3.7)."""
+    rho = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    if rho > 0.0:
+        inv = 1.0 / rho
+        albedo[i, j] = rho
+        normals[i, j, 0] = m0 * inv
+        normals[i, j, 1] = m1 * inv
+        normals[i, j, 2] = m2 * inv
+    else:
+        store_missing(normals, albedo, i, j)
+
+
+@njit(inline="always")
+def store_missing(normals, albedo, i, j):
+    albedo[i, j] = np.nan
+    normals[i, j, 0] = np.nan
+    normals[i, j, 1] = np.nan
+    normals[i, j, 2] = np.nan
+
+
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def near_light_normals(signal, points, light_positions, light_intensity, light_axis, light_mu, saturated,
                        min_signal, normals, albedo, n_lights_used):
@@ -143,19 +165,7 @@ def near_light_normals(signal, points, light_positions, light_intensity, light_a
                     used += 1
             n_lights_used[i, j] = used
             if used < 3:
-                normals[i, j, 0] = np.nan
-                normals[i, j, 1] = np.nan
-                normals[i, j, 2] = np.nan
-                albedo[i, j] = np.nan
+                store_missing(normals, albedo, i, j)
                 continue
             m0, m1, m2 = solve_symmetric3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
-            rho = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
-            albedo[i, j] = rho
-            if rho > 0.0:
-                normals[i, j, 0] = m0 / rho
-                normals[i, j, 1] = m1 / rho
-                normals[i, j, 2] = m2 / rho
-            else:
-                normals[i, j, 0] = np.nan
-                normals[i, j, 1] = np.nan
-                normals[i, j, 2] = np.nan
+            store_normal(normals, albedo, i, j, m0, m1, m2)

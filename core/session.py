@@ -107,7 +107,23 @@ def write_rig(parent: h5py.Group, rig: Rig) -> None:
         _write_head_attrs(group.require_group(name), head)
 
 
-class SessionWriter:
+class _OwnsFile:
+    """Closes its HDF5 file once; a context manager."""
+
+    _file: h5py.File
+
+    def close(self) -> None:
+        if self._file.id.valid:
+            self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SessionWriter(_OwnsFile):
     """Writes one session file, frame by frame. Use from one thread (h5py serialises every call)."""
 
     def __init__(self, path: str | os.PathLike, *, kind: str, rig: Rig, subject: SubjectRecord | None = None,
@@ -249,16 +265,6 @@ class SessionWriter:
     def flush(self) -> None:
         self._file.flush()
 
-    def close(self) -> None:
-        if self._file.id.valid:
-            self._file.close()
-
-    def __enter__(self) -> "SessionWriter":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
 
 # --------------------------------------------------------------------------- reading
 
@@ -300,7 +306,7 @@ def read_rig(f: h5py.File) -> Rig:
     return Rig(name=_str(g.attrs.get("name", "")), heads=heads, frame_rate_hz=rate, sequence=sequence)
 
 
-class SessionFile:
+class SessionFile(_OwnsFile):
     """A session file opened for reading. Frames stay on disk until asked for."""
 
     def __init__(self, path: str | os.PathLike, *, check: bool = True) -> None:
@@ -386,16 +392,6 @@ class SessionFile:
         if not self.has_truth:
             raise SessionError(f"{self.path} has no /truth (only simulations carry it)")
         return self._file["truth"]
-
-    def close(self) -> None:
-        if self._file.id.valid:
-            self._file.close()
-
-    def __enter__(self) -> "SessionFile":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 # --------------------------------------------------------------------------- validation
