@@ -135,7 +135,7 @@ class PhotometricDistance:
     """
 
     def __init__(self, signal: np.ndarray, mask: np.ndarray, light_positions_mm: np.ndarray,
-                 light_intensity: np.ndarray, dark: np.ndarray | None = None, max_pixels: int = 40000,
+                 light_intensity: np.ndarray, dark: np.ndarray | None = None, max_pixels: int = 250000,
                  dn_per_electron: float = 4095.0 / 18000.0, read_noise_dn: float = 2.7) -> None:
         inner = ndimage.binary_erosion(mask, iterations=3)
         smooth = np.stack([ndimage.gaussian_filter(channel, 2.0) for channel in signal])

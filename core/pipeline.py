@@ -47,6 +47,7 @@ class ReconstructionSettings:
     max_depth_change_mm: float = 0.05  # stop iterating when the depth moves less than this (median)
     distance: str = "photometric"  # photometric (this project) or dmr (thesis eq. 4.13 only)
     track: bool = False  # search the distance near the previous cycle's (streams of one subject)
+    distance_pixels: int = 250000  # pixels the photometric distance uses (its noise falls as 1/sqrt)
 
     def __post_init__(self) -> None:
         if self.distance not in ("photometric", "dmr"):
@@ -166,8 +167,8 @@ class HeadReconstructor:
         guess = self.last_distance_mm if tracked else (dmr.distance_mm if np.isfinite(dmr.distance_mm)
                                                        else NOMINAL_DISTANCE_MM)
         photometric = s.distance == "photometric" and s.method == "near"
-        problem = (PhotometricDistance(signal, mask, h.light_positions_mm, h.light_intensity, dark)
-                   if photometric else None)
+        problem = (PhotometricDistance(signal, mask, h.light_positions_mm, h.light_intensity, dark,
+                                       max_pixels=s.distance_pixels) if photometric else None)
         normals = pseudo_normals
         log_depth = self._integrate(normals, mask)
         depth, distance = self._scaled(log_depth, dmr, problem, guess, "keep" if tracked else "wide")
