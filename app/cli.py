@@ -232,10 +232,12 @@ def build_parser() -> argparse.ArgumentParser:
     from app.demo import add_demo
     from app.reconstruction_cli import add_calibrate, add_process
 
+    from app.analyze_cli import add_analyze
     from app.bench import add_bench
 
     add_calibrate(sub)
     add_process(sub)
+    add_analyze(sub)
     add_bench(sub)
     add_demo(sub, run_simulate, describe_session)
     return parser

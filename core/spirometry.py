@@ -1,0 +1,254 @@
+"""Forced spirometry per the ATS/ERS 2019 standard (Graham et al., AJRCCM 200:e70).
+
+A manoeuvre is the exhaled volume (litres, rising during the blow) against time, sampled
+evenly. Values are measured from back-extrapolated time zero; quality follows the 2019
+acceptability, usability, repeatability and grading rules.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+PEF_WINDOW_S = 0.08  # ATS/ERS: the steepest slope for back-extrapolation over an 80 ms window
+PLATEAU_L = 0.025  # end of forced expiration: less than this in the last second
+REPEATABILITY_L = 0.150
+
+
+@dataclass
+class ForcedValues:
+    """One forced expiration."""
+
+    fvc_l: float
+    fev1_l: float
+    fev075_l: float
+    fev6_l: float  # the volume 6 s after time zero; a blow over by then has exhaled its FVC
+    pef_lps: float
+    fef2575_lps: float
+    fet_s: float
+    bev_l: float  # back-extrapolated volume
+    time_zero_s: float
+    plateau_l: float  # volume exhaled in the last second
+    cough_in_first_second: bool
+    eofe: bool = False  # end of forced expiration reached (set with the other manoeuvres in mind)
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def fev1_fvc(self) -> float:
+        return self.fev1_l / self.fvc_l if self.fvc_l > 0 else float("nan")
+
+    @property
+    def bev_limit_l(self) -> float:
+        return max(0.05 * self.fvc_l, 0.100)
+
+    @property
+    def bev_ok(self) -> bool:
+        return self.bev_l <= self.bev_limit_l
+
+    @property
+    def fev1_acceptable(self) -> bool:
+        return self.bev_ok and not self.cough_in_first_second
+
+    @property
+    def fvc_acceptable(self) -> bool:
+        return self.fev1_acceptable and self.eofe
+
+    @property
+    def fev1_usable(self) -> bool:
+        return self.bev_ok
+
+    @property
+    def fvc_usable(self) -> bool:
+        return self.bev_ok
+
+
+def _at(t: np.ndarray, values: np.ndarray, when: float) -> float:
+    return float(np.interp(when, t, values))
+
+
+def forced_values(volume_l: np.ndarray, rate_hz: float) -> ForcedValues:
+    """Values of one forced expiration from its exhaled volume-time curve."""
+    v = np.asarray(volume_l, dtype=float)
+    if v.ndim != 1 or len(v) < int(rate_hz):
+        raise ValueError("a forced expiration needs at least one second of volume samples")
+    v = v - v[0]
+    t = np.arange(len(v)) / rate_hz
+    flow = np.gradient(v, 1.0 / rate_hz)
+    # Back extrapolation: the tangent at the steepest part of the curve (over 80 ms, ATS/ERS).
+    n = max(1, int(round(PEF_WINDOW_S * rate_hz)))
+    slopes = (v[n:] - v[:-n]) / (n / rate_hz)
+    k = int(np.argmax(slopes))
+    slope = float(slopes[k])
+    t_mid = t[k] + n / (2 * rate_hz)
+    v_mid = 0.5 * (v[k] + v[k + n])
+    time_zero = t_mid - v_mid / slope
+    bev = _at(t, v, time_zero) if time_zero > 0 else 0.0
+    fvc = float(v.max())
+    end_index = int(np.argmax(v >= fvc - 1e-9))
+    t_end = t[end_index]
+    fet = t_end - time_zero
+    last = t >= t_end - 1.0
+    plateau = float(fvc - _at(t, v, max(t_end - 1.0, 0.0))) if last.any() else fvc
+    fev1 = _at(t, v, time_zero + 1.0)
+    fev075 = _at(t, v, time_zero + 0.75)
+    fev6 = _at(t, v, time_zero + 6.0) if time_zero + 6.0 <= t[-1] else fvc
+    t25 = float(np.interp(0.25 * fvc, np.maximum.accumulate(v), t))
+    t75 = float(np.interp(0.75 * fvc, np.maximum.accumulate(v), t))
+    fef2575 = 0.5 * fvc / (t75 - t25) if t75 > t25 else float("nan")
+    pef = float(flow.max())
+    first = (t >= time_zero + 0.05) & (t <= time_zero + 1.0) & (t > t[int(np.argmax(flow))])
+    cough = False
+    if first.any():
+        # A cough or glottic closure: flow falls to a tenth of peak and rises again within the first second.
+        f = flow[first]
+        low = np.nonzero(f < 0.1 * pef)[0]
+        cough = bool(len(low) and np.any(f[low[0]:] > 0.3 * pef))
+    values = ForcedValues(fvc, fev1, fev075, fev6, pef, fef2575, fet, bev, time_zero, plateau, cough)
+    values.eofe = plateau < PLATEAU_L or fet >= 15.0
+    if not values.bev_ok:
+        values.problems.append(f"back-extrapolated volume {bev:.3f} L over the limit {values.bev_limit_l:.3f} L "
+                               "(hesitant start)")
+    if cough:
+        values.problems.append("cough or glottic closure in the first second")
+    if not values.eofe:
+        values.problems.append(f"no plateau: {plateau:.3f} L in the last second, FET {fet:.1f} s (early stop?)")
+    return values
+
+
+@dataclass
+class SessionGrade:
+    manoeuvres: list[ForcedValues]
+    fev1_grade: str
+    fvc_grade: str
+    fev1_l: float
+    fvc_l: float
+    fev1_fvc: float
+    fef2575_lps: float
+    pef_lps: float
+    fev1_repeatability_l: float
+    fvc_repeatability_l: float
+    acceptable_fev1: int
+    acceptable_fvc: int
+
+    @property
+    def grade(self) -> str:
+        """The worse of the FEV1 and FVC grades."""
+        order = "ABCDEUF"
+        return max(self.fev1_grade, self.fvc_grade, key=order.index)
+
+
+def _grade(values: list[float], usable: int, age_years: float | None) -> tuple[str, float]:
+    """ATS/ERS 2019 grade from the acceptable values and the count of usable ones."""
+    values = sorted(values, reverse=True)
+    if not values:
+        return ("U" if usable else "F"), float("nan")
+    if len(values) == 1:
+        return "E", float("nan")
+    spread = values[0] - values[1]
+    tolerance = REPEATABILITY_L
+    if age_years is not None and age_years <= 6:
+        tolerance = max(0.100, 0.10 * values[0])
+    if len(values) >= 3 and spread <= tolerance:
+        return "A", spread
+    if spread <= tolerance:
+        return "B", spread
+    if spread <= tolerance + 0.050:
+        return "C", spread
+    if spread <= tolerance + 0.100:
+        return "D", spread
+    return "E", spread
+
+
+def grade_session(manoeuvres: list[ForcedValues], age_years: float | None = None) -> SessionGrade:
+    """Acceptability with the other blows in mind, repeatability, grades, and the values reported.
+
+    The end of forced expiration is also reached when the FVC is within the repeatability
+    tolerance of, or greater than, the largest FVC before it. The largest FEV1 and the largest FVC
+    are reported (each from any acceptable blow, else usable ones); FEF25-75 and PEF come from the
+    acceptable blow with the largest FEV1 + FVC.
+    """
+    if not manoeuvres:
+        raise ValueError("no forced expirations to grade")
+    largest = -np.inf
+    for m in manoeuvres:
+        if not m.eofe and m.fvc_l >= largest - REPEATABILITY_L:
+            m.eofe = True
+            m.problems = [p for p in m.problems if not p.startswith("no plateau")]
+        largest = max(largest, m.fvc_l)
+    fev1_ok = [m for m in manoeuvres if m.fev1_acceptable]
+    fvc_ok = [m for m in manoeuvres if m.fvc_acceptable]
+    fev1_grade, fev1_spread = _grade([m.fev1_l for m in fev1_ok], sum(m.fev1_usable for m in manoeuvres), age_years)
+    fvc_grade, fvc_spread = _grade([m.fvc_l for m in fvc_ok], sum(m.fvc_usable for m in manoeuvres), age_years)
+    fev1_from = fev1_ok or [m for m in manoeuvres if m.fev1_usable] or manoeuvres
+    fvc_from = fvc_ok or [m for m in manoeuvres if m.fvc_usable] or manoeuvres
+    fev1 = max(m.fev1_l for m in fev1_from)
+    fvc = max(m.fvc_l for m in fvc_from)
+    best = max(fvc_ok or fev1_ok or manoeuvres, key=lambda m: m.fev1_l + m.fvc_l)
+    return SessionGrade(manoeuvres, fev1_grade, fvc_grade, fev1, fvc, fev1 / fvc, best.fef2575_lps, best.pef_lps,
+                        fev1_spread, fvc_spread, len(fev1_ok), len(fvc_ok))
+
+
+@dataclass
+class Waveform:
+    """A spirometer test waveform file (`.wf`)."""
+
+    group: str
+    name: str
+    kind: str  # VT: volume-time (L); FT: flow-time (L/s)
+    rate_hz: float
+    samples: np.ndarray
+    expected: dict[str, float]
+
+    @property
+    def volume_l(self) -> np.ndarray:
+        if self.kind == "VT":
+            return self.samples
+        return np.concatenate([[0.0], np.cumsum(0.5 * (self.samples[1:] + self.samples[:-1])) / self.rate_hz])
+
+
+def read_waveform(path: str | os.PathLike) -> Waveform:
+    """Parse a `.wf` file ([Header], [Parameters], [Data]; an optional trailing 0x1A byte)."""
+    path = Path(path)
+    try:
+        text = path.read_bytes().replace(b"\x1a", b"").decode("latin-1")
+    except OSError as exc:
+        raise ValueError(f"cannot read waveform {path}: {exc}") from exc
+    section = None
+    header: dict[str, str] = {}
+    expected: dict[str, float] = {}
+    data: list[float] = []
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        if line.startswith("[") and line.endswith("]"):
+            section = line[1:-1].strip().lower()
+            continue
+        if section in ("header", "parameters"):
+            if "=" not in line:
+                raise ValueError(f"{path}:{number}: expected KEY=VALUE in [{section}], found {line!r}")
+            key, value = (part.strip() for part in line.split("=", 1))
+            if section == "header":
+                header[key.lower()] = value
+            else:
+                try:
+                    expected[key.upper()] = float(value)
+                except ValueError as exc:
+                    raise ValueError(f"{path}:{number}: parameter {key} is not a number: {value!r}") from exc
+        elif section == "data":
+            try:
+                data.append(float(line))
+            except ValueError as exc:
+                raise ValueError(f"{path}:{number}: data sample is not a number: {line!r}") from exc
+    if "freq" not in header:
+        raise ValueError(f"{path}: [Header] has no Freq")
+    kind = header.get("type", "VT").upper()
+    if kind not in ("VT", "FT"):
+        raise ValueError(f"{path}: Type {kind!r} is neither VT (volume-time) nor FT (flow-time)")
+    if len(data) < 10:
+        raise ValueError(f"{path}: [Data] holds {len(data)} samples")
+    return Waveform(header.get("group", ""), header.get("name", path.stem), kind, float(header["freq"]),
+                    np.asarray(data), expected)
