@@ -11,7 +11,7 @@ import numpy as np
 from core.pipeline import ReconstructionSettings
 from core.process import process_session
 from core.session import SessionFile, validate_session
-from core.sim.flowsensor import btps_factor
+from core.flow import btps_factor
 
 
 def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) -> None:

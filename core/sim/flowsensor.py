@@ -12,21 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-BODY_TEMPERATURE_C = 37.0
-WATER_VAPOUR_AT_BODY_KPA = 6.275
-
-
-def saturated_vapour_pressure_kpa(temperature_c: float) -> float:
-    """Magnus formula (Alduchov and Eskridge, 1996), over water."""
-    return 0.61094 * float(np.exp(17.625 * temperature_c / (temperature_c + 243.04)))
-
-
-def btps_factor(temperature_c: float, pressure_hpa: float, humidity_pct: float) -> float:
-    """Volume at BTPS over volume at ATPS (ATS/ERS): (310.15 / T) * (PB - PH2O) / (PB - 6.275 kPa)."""
-    pb_kpa = pressure_hpa / 10.0
-    ph2o = humidity_pct / 100.0 * saturated_vapour_pressure_kpa(temperature_c)
-    return (273.15 + BODY_TEMPERATURE_C) / (273.15 + temperature_c) * (pb_kpa - ph2o) / (pb_kpa - WATER_VAPOUR_AT_BODY_KPA)
-
+from core.flow import btps_factor
 
 @dataclass(frozen=True)
 class FlowSensorModel:

@@ -8,7 +8,7 @@ import pytest
 
 from core.session import SessionFile, validate_session
 from core.sim.breathing import Subject, Sway
-from core.sim.flowsensor import btps_factor
+from core.flow import btps_factor
 from core.sim.simulate import SimConfig, simulate
 
 

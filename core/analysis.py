@@ -1,0 +1,201 @@
+"""Pulmonary function values of a session from a volume curve (optical or flow sensor).
+
+The protocol's events cut the curve: tidal breathing, slow vital capacity (`vc-start` ...
+`maneuver-end`) and forced expirations (`forced-start` ... `maneuver-end`). Volumes are litres
+(BTPS), positive = inhaled.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import find_peaks
+
+from core.spirometry import ForcedValues, SessionGrade, forced_values, grade_session
+
+ANALYSIS_RATE_HZ = 200.0
+
+
+@dataclass
+class TidalValues:
+    breaths: int
+    tidal_volume_l: float
+    respiratory_rate_bpm: float
+    minute_ventilation_lpm: float
+    inspiratory_time_s: float
+    expiratory_time_s: float
+    ie_ratio: float  # inspiratory over expiratory time
+    tptef_te: float  # time to peak tidal expiratory flow over expiratory time
+    ie50: float  # inspiratory over expiratory flow at half the tidal volume
+    end_expiratory_level_l: float
+
+
+@dataclass
+class VitalCapacity:
+    vc_l: float
+    ic_l: float
+    erv_l: float
+    irv_l: float
+
+
+@dataclass
+class SessionValues:
+    tidal: TidalValues | None = None
+    vital_capacity: VitalCapacity | None = None
+    forced: SessionGrade | None = None
+    problems: list[str] = field(default_factory=list)
+
+    def parameters(self) -> dict[str, float | str | int]:
+        """Flat values for the results file's /parameters attributes."""
+        out: dict[str, float | str | int] = {}
+        if self.tidal is not None:
+            t = self.tidal
+            out.update(TV_l=t.tidal_volume_l, RR_bpm=t.respiratory_rate_bpm, VE_lpm=t.minute_ventilation_lpm,
+                       Ti_s=t.inspiratory_time_s, Te_s=t.expiratory_time_s, IE_ratio=t.ie_ratio,
+                       tPTEF_tE=t.tptef_te, IE50=t.ie50, breaths=t.breaths)
+        if self.vital_capacity is not None:
+            v = self.vital_capacity
+            out.update(VC_l=v.vc_l, IC_l=v.ic_l, ERV_l=v.erv_l, IRV_l=v.irv_l)
+        if self.forced is not None:
+            f = self.forced
+            out.update(FVC_l=f.fvc_l, FEV1_l=f.fev1_l, FEV1_FVC=f.fev1_fvc, PEF_lps=f.pef_lps,
+                       FEF2575_lps=f.fef2575_lps, grade=f.grade, grade_FEV1=f.fev1_grade, grade_FVC=f.fvc_grade,
+                       acceptable_FEV1=f.acceptable_fev1, acceptable_FVC=f.acceptable_fvc,
+                       manoeuvres=len(f.manoeuvres))
+            usable = [m for m in f.manoeuvres if m.fev1_usable] or f.manoeuvres
+            fev6 = [m.fev6_l for m in usable]
+            out.update(FEV6_l=max(fev6), FEV075_l=max(m.fev075_l for m in usable),
+                       FET_s=float(max(m.fet_s for m in usable)))
+        return out
+
+
+def resample(t_s: np.ndarray, volume_l: np.ndarray, rate_hz: float = ANALYSIS_RATE_HZ) -> tuple[np.ndarray, np.ndarray]:
+    grid = np.arange(t_s[0], t_s[-1], 1.0 / rate_hz)
+    return grid, np.interp(grid, t_s, volume_l)
+
+
+def _breaths(t_s: np.ndarray, volume_l: np.ndarray, min_breath_s: float, min_tidal_l: float):
+    """(t, smoothed volume, flow, pairs of consecutive end-expiratory minima) of one stretch."""
+    t, v = resample(t_s, volume_l)
+    if len(t) < 2 * min_breath_s * ANALYSIS_RATE_HZ:
+        return t, v, v, []
+    width = max(1, int(0.15 * ANALYSIS_RATE_HZ))
+    pad = np.pad(v, width, mode="edge")
+    smooth = np.convolve(pad, np.ones(width) / width, mode="same")[width:-width]
+    # The stretch's own ends count as minima when the volume rises from (or falls to) them.
+    minima, _ = find_peaks(-np.pad(smooth, 1, constant_values=np.inf), distance=int(min_breath_s * ANALYSIS_RATE_HZ),
+                           prominence=min_tidal_l)
+    minima = np.clip(minima - 1, 0, len(smooth) - 1)
+    flow = np.gradient(smooth, 1.0 / ANALYSIS_RATE_HZ)
+    return t, smooth, flow, list(zip(minima[:-1], minima[1:]))
+
+
+def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: int,
+                min_tidal_l: float) -> tuple[float, float, float, float, float, float] | None:
+    """(VT, Ti, Te, tPTEF/tE, IE50, end-expiratory level) of the breath between minima a and b."""
+    peak = a + int(np.argmax(smooth[a:b]))
+    vt = smooth[peak] - 0.5 * (smooth[a] + smooth[b])
+    if vt < min_tidal_l or peak in (a, b):
+        return None
+    ti, te = t[peak] - t[a], t[b] - t[peak]
+    tptef = int(np.argmin(flow[peak:b])) / ANALYSIS_RATE_HZ / te
+    half = smooth[a] + 0.5 * vt
+    i_half = a + int(np.argmin(np.abs(smooth[a:peak] - half)))
+    e_half = peak + int(np.argmin(np.abs(smooth[peak:b] - half)))
+    ie50 = flow[i_half] / -flow[e_half] if flow[e_half] < 0 else float("nan")
+    return vt, ti, te, tptef, ie50, smooth[a]
+
+
+def tidal_values(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: float = 1.2,
+                 min_tidal_l: float = 0.08) -> TidalValues | None:
+    """Breaths between consecutive end-expiratory minima, pooled over stretches of quiet breathing;
+    None with fewer than two breaths."""
+    breaths = []
+    for t_s, volume_l in stretches:
+        t, smooth, flow, pairs = _breaths(t_s, volume_l, min_breath_s, min_tidal_l)
+        breaths += [b for b in (_one_breath(t, smooth, flow, a, z, min_tidal_l) for a, z in pairs) if b is not None]
+    if len(breaths) < 2:
+        return None
+    vt, ti, te, tptef, ie50, levels = (np.array(column) for column in zip(*breaths))
+    period = float(np.mean(ti + te))
+    tv = float(np.mean(vt))
+    rr = 60.0 / period
+    return TidalValues(len(breaths), tv, rr, tv * rr, float(np.mean(ti)), float(np.mean(te)),
+                       float(np.mean(ti) / np.mean(te)), float(np.mean(tptef)), float(np.nanmean(ie50)),
+                       float(np.mean(levels)))
+
+
+def _windows(events: list[tuple[float, str]], start_label: str, end_s: float) -> list[tuple[float, float]]:
+    out = []
+    for k, (t, label) in enumerate(events):
+        if label != start_label:
+            continue
+        end = next((t2 for t2, l2 in events[k + 1:] if l2 == "maneuver-end"), end_s)
+        out.append((t, end))
+    return out
+
+
+def tidal_windows(events: list[tuple[float, str]], end_s: float) -> list[tuple[float, float]]:
+    """Stretches of quiet breathing: from `tidal-start`, and between a manoeuvre's end (plus 3 s
+    of recovery) and the next manoeuvre."""
+    out = []
+    ordered = sorted(events)
+    starts = [t for t, label in ordered if label in ("vc-start", "forced-start")]
+    for t, label in ordered:
+        if label == "tidal-start":
+            stop = next((t2 for t2, l2 in ordered if t2 > t and l2 in ("maneuver-end", "vc-start", "forced-start")),
+                        end_s)
+            out.append((t, stop))
+        elif label == "maneuver-end":
+            stop = next((s for s in starts if s >= t), end_s)
+            if stop - (t + 3.0) > 4.0:
+                out.append((t + 3.0, stop))
+    return out
+
+
+def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[float, str]],
+                   age_years: float | None = None) -> SessionValues:
+    """Tidal values, slow VC and graded forced expirations of one session's volume curve."""
+    t = np.asarray(t_s, dtype=float)
+    v = np.asarray(volume_l, dtype=float)
+    result = SessionValues()
+    end_s = float(t[-1])
+    ordered = sorted(events)
+    stretches = []
+    for a, b in tidal_windows(ordered, end_s):
+        inside = (t >= a) & (t <= b)
+        if inside.sum() > 10:
+            stretches.append((t[inside], v[inside]))
+    result.tidal = tidal_values(stretches)
+    if result.tidal is None:
+        result.problems.append("no stretch of tidal breathing with two or more breaths")
+    frc = result.tidal.end_expiratory_level_l if result.tidal is not None else 0.0
+    for a, b in _windows(ordered, "vc-start", end_s):
+        inside = (t >= a) & (t <= b + 0.5)
+        if inside.sum() < 10:
+            continue
+        top, bottom = float(v[inside].max()), float(v[inside].min())
+        ic, erv = top - frc, frc - bottom
+        tv = result.tidal.tidal_volume_l if result.tidal is not None else float("nan")
+        result.vital_capacity = VitalCapacity(top - bottom, ic, erv, ic - tv)
+    blows: list[ForcedValues] = []
+    for a, b in _windows(ordered, "forced-start", end_s):
+        before = (t >= a - 2.0) & (t <= a + 0.3)
+        if before.sum() < 10:
+            continue
+        i_top = int(np.nonzero(before)[0][np.argmax(v[before])])
+        stop = min(b + 0.5, end_s)
+        blow = (t >= t[i_top]) & (t <= stop)
+        if blow.sum() < 20:
+            continue
+        tb, vb = resample(t[blow], v[blow])
+        exhaled = vb[0] - vb
+        i_low = int(np.argmax(exhaled))
+        try:
+            blows.append(forced_values(exhaled[: i_low + 1], ANALYSIS_RATE_HZ))
+        except ValueError as exc:
+            result.problems.append(f"forced expiration at {a:.1f} s: {exc}")
+    if blows:
+        result.forced = grade_session(blows, age_years)
+    return result
