@@ -9,14 +9,22 @@ from app.cli import UserError
 
 
 def add_analyze(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("analyze", help="spirometric values of a waveform file",
-                       description="Forced-expiration values (ATS/ERS 2019) of a volume-time or flow-time waveform "
-                                   "file (.wf, see shared/data/spirometry-waveforms/README.md).")
-    p.add_argument("--waveform", type=Path, required=True, help="a .wf file")
+    p = sub.add_parser("analyze", help="pulmonary function values of a session or a waveform file",
+                       description="Tidal, slow VC and forced-expiration values (ATS/ERS 2019, graded, with GLI "
+                                   "predicted values) of a session file, or the forced-expiration values of a "
+                                   "waveform file (.wf, see shared/data/spirometry-waveforms/README.md).")
+    p.add_argument("session", type=Path, nargs="?", help="a session file (.h5)")
+    p.add_argument("--waveform", type=Path, help="a .wf file instead of a session")
+    p.add_argument("--equations", choices=("gli-global", "gli-2012"), default="gli-global",
+                   help="reference equations (default GLI Global 2022)")
     p.set_defaults(run=run_analyze)
 
 
 def run_analyze(args: argparse.Namespace) -> int:
+    if args.waveform is None and args.session is None:
+        raise UserError("give a session file or --waveform FILE.wf")
+    if args.waveform is None:
+        return run_analyze_session(args)
     from core.spirometry import forced_values, read_waveform
 
     try:
@@ -38,4 +46,58 @@ def run_analyze(args: argparse.Namespace) -> int:
         print(f"  {name:<9} {got:10.3f} {shown} {unit}")
     quality = "acceptable" if v.fvc_acceptable else ("FEV1 acceptable" if v.fev1_acceptable else "not acceptable")
     print(f"  ATS/ERS 2019: {quality}" + ("" if not v.problems else ": " + "; ".join(v.problems)))
+    return 0
+
+
+ROWS = (("TV_l", "TV", "L"), ("RR_bpm", "RR", "/min"), ("VE_lpm", "VE", "L/min"), ("Ti_s", "Ti", "s"),
+        ("Te_s", "Te", "s"), ("IE_ratio", "Ti/Te", ""), ("tPTEF_tE", "tPTEF/tE", ""), ("IE50", "IE50", ""),
+        ("VC_l", "VC", "L"), ("IC_l", "IC", "L"), ("ERV_l", "ERV", "L"), ("IRV_l", "IRV", "L"),
+        ("FVC_l", "FVC", "L"), ("FEV1_l", "FEV1", "L"), ("FEV1_FVC", "FEV1/FVC", ""), ("FEV6_l", "FEV6", "L"),
+        ("FEV075_l", "FEV0.75", "L"), ("PEF_lps", "PEF", "L/s"), ("FEF2575_lps", "FEF25-75", "L/s"),
+        ("FET_s", "FET", "s"))
+REFERENCE_OF = {"FVC_l": "FVC", "FEV1_l": "FEV1", "FEV1_FVC": "FEV1_FVC", "FEF2575_lps": "FEF2575"}
+
+
+def run_analyze_session(args: argparse.Namespace) -> int:
+    from core.session import SessionError
+    from core.session_analysis import analyse_session
+
+    try:
+        report = analyse_session(args.session, args.equations)
+    except (SessionError, ValueError) as exc:
+        raise UserError(str(exc)) from exc
+    sources = [(name, values.parameters()) for name, values in (("flow sensor", report.flow_sensor),
+                                                                ("truth (simulation)", report.truth)) if values]
+    if not sources:
+        raise UserError(f"{args.session} has neither a flow sensor recording nor a simulation truth to analyse; "
+                        "the optical volume comes with `photopft process`")
+    main = sources[0][1]
+    header = f"  {'value':<9} {'unit':<6}" + "".join(f"{name:>20}" for name, _ in sources)
+    header += f"{'predicted':>11}{'LLN':>8}{'z':>7}{'% pred':>8}"
+    print(f"{args.session}: values from the {sources[0][0]}; reference {args.equations}")
+    print(header)
+    for key, label, unit in ROWS:
+        if not any(key in values for _, values in sources):
+            continue
+        cells = "".join(f"{values[key]:>20.3f}" if key in values else f"{'':>20}" for _, values in sources)
+        ref = report.references.get(REFERENCE_OF.get(key, ""))
+        extra = ""
+        if ref is not None and key in main:
+            extra = f"{ref.predicted:>11.3f}{ref.lln:>8.3f}{ref.zscore(main[key]):>7.2f}{ref.percent(main[key]):>8.0f}"
+        print(f"  {label:<9} {unit:<6}{cells}{extra}")
+    for name, values in sources:
+        if "grade" in values:
+            print(f"  {name}: grade {values['grade']} (FEV1 {values['grade_FEV1']}, FVC {values['grade_FVC']}), "
+                  f"{values['acceptable_FEV1']} acceptable FEV1 and {values['acceptable_FVC']} acceptable FVC of "
+                  f"{values['manoeuvres']} blows")
+    if report.reference_problem:
+        print(f"  no predicted values: {report.reference_problem}")
+    for name, values in (("flow sensor", report.flow_sensor), ("truth", report.truth)):
+        if values is not None:
+            for problem in values.problems:
+                print(f"  {name}: {problem}")
+            if values.forced is not None:
+                for k, m in enumerate(values.forced.manoeuvres, start=1):
+                    if m.problems:
+                        print(f"  {name}, blow {k}: " + "; ".join(m.problems))
     return 0

@@ -162,7 +162,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                                  else np.zeros(shape, np.float32), compression="gzip")
                 counts[name] = len(rows["frame_index"])
                 distances[name] = float(np.nanmean(rows["distance_mm"])) if rows["distance_mm"] else float("nan")
-            out.create_group("parameters")
+            parameters = out.create_group("parameters")
+            _write_parameters(session_path, parameters, out)
     return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances)
 
 
@@ -178,3 +179,21 @@ def with_true_lights(session: SessionFile) -> RigCalibration:
                      else np.ones(4))
         heads[name] = HeadCalibration(positions, intensity, np.zeros((4, 3)), np.zeros(4), np.zeros((4, 3)))
     return RigCalibration("truth", [session.path.name], heads)
+
+
+def _write_parameters(session_path: str | os.PathLike, parameters: h5py.Group, out: h5py.File) -> None:
+    """Pulmonary function values. Until the optical volume in litres lands they come from the flow
+    sensor, and the `source` attribute says so; a session without one gets an empty group."""
+    from core.session_analysis import analyse_session
+
+    report = analyse_session(session_path)
+    if report.flow_sensor is None:
+        parameters.attrs["source"] = "none: no flow sensor, and no optical volume in litres yet"
+        return
+    parameters.attrs["source"] = "flow sensor"
+    for key, value in report.flow_sensor.parameters().items():
+        parameters.attrs[key] = value
+    t, volume = report.flow_volume
+    g = out.create_group("flow_sensor")
+    g.create_dataset("time_s", data=t)
+    g.create_dataset("volume_l", data=volume)

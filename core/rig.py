@@ -90,6 +90,7 @@ class Rig:
     heads: dict[str, Head]
     frame_rate_hz: float = 110.0
     sequence: tuple[int, ...] = DEFAULT_SEQUENCE
+    baseline_mm: float | None = None  # front to back camera centre along the shared axis, when known
 
     def __post_init__(self) -> None:
         if "front" not in self.heads:

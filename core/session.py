@@ -5,7 +5,8 @@
 with a file, naming the item.
 
 Additions to the spec (allowed: "the project may add groups and attributes"): `/rig`
-attribute `frame_rate_hz`; `/flow` attributes `positive` (`inspiration`), `room_temperature_c`,
+attributes `frame_rate_hz` and `head_baseline_mm` (front to back camera centre along the shared
+optical axis, the back head looking back along it; written when known); `/flow` attributes `positive` (`inspiration`), `room_temperature_c`,
 `room_pressure_hpa`, `room_humidity_pct`; `/truth` datasets `sway_mm`, `flow_lps` and the
 compartment volumes `compartment_volume_l` with attribute `compartments`.
 """
@@ -103,6 +104,8 @@ def write_rig(parent: h5py.Group, rig: Rig) -> None:
     group.attrs["name"] = rig.name
     group.attrs["sequence"] = np.asarray(rig.sequence, dtype=np.int64)
     group.attrs["frame_rate_hz"] = float(rig.frame_rate_hz)
+    if rig.baseline_mm is not None:
+        group.attrs["head_baseline_mm"] = float(rig.baseline_mm)
     for name, head in rig.heads.items():
         _write_head_attrs(group.require_group(name), head)
 
@@ -303,7 +306,9 @@ def read_rig(f: h5py.File) -> Rig:
     heads = {name: read_head(name, g[name].attrs) for name in HEAD_NAMES if name in g}
     rate = float(g.attrs["frame_rate_hz"]) if "frame_rate_hz" in g.attrs else _frame_rate_from_timestamps(f)
     sequence = tuple(int(i) for i in np.asarray(g.attrs.get("sequence", [0, 1, 2, 3, -1])))
-    return Rig(name=_str(g.attrs.get("name", "")), heads=heads, frame_rate_hz=rate, sequence=sequence)
+    baseline = float(g.attrs["head_baseline_mm"]) if "head_baseline_mm" in g.attrs else None
+    return Rig(name=_str(g.attrs.get("name", "")), heads=heads, frame_rate_hz=rate, sequence=sequence,
+               baseline_mm=baseline)
 
 
 class SessionFile(_OwnsFile):

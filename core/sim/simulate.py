@@ -195,6 +195,8 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
     started = time.perf_counter()
     rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
     scene, waveform = build_scene(config, rig)
+    if len(rig.heads) == 2:
+        rig = replace(rig, baseline_mm=float(scene.baseline_mm))
     true_heads = as_built_heads(rig, config)
     duration = session_length_s(config, rig, waveform, scene)
     n_frames = int(round(duration * rig.frame_rate_hz))

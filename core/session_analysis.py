@@ -1,0 +1,73 @@
+"""The pulmonary function values of a recorded session, from its flow sensor (and its truth)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.analysis import SessionValues, analyse_volume, tidal_windows
+from core.flow import btps_factor, flow_sensor_volume
+from core.reference import Reference, ReferenceUnavailable, reference
+from core.session import SessionError, SessionFile
+
+
+@dataclass
+class SessionReport:
+    flow_sensor: SessionValues | None
+    truth: SessionValues | None
+    references: dict[str, Reference]
+    reference_problem: str | None
+    flow_volume: tuple[np.ndarray, np.ndarray] | None  # (seconds from the first frame, litres)
+
+
+def _events(session: SessionFile, start_ns: int) -> list[tuple[float, str]]:
+    return sorted(((t - start_ns) / 1e9, label) for t, label in session.events())
+
+
+def analyse_session(path: str | os.PathLike, equations: str = "gli-global") -> SessionReport:
+    with SessionFile(path) as s:
+        start = int(min(s.timestamp_ns(h)[0] for h in s.heads if s.n_frames(h)))
+        events = _events(s, start)
+        age = s.subject.age_years if s.subject is not None else None
+        flow_values = None
+        flow_volume = None
+        if s.flow is not None:
+            info = s.flow
+            if info.gain_lps is None:
+                raise SessionError(f"{path}: the flow sensor has no calibration in force (flow_gain_lps)")
+            adc, stamps = s.flow_samples()
+            factor = 1.0
+            if info.conditions == "ATPS":
+                a = info.attrs
+                try:
+                    factor = btps_factor(float(a.get("room_temperature_c", 23.0)),
+                                         float(a.get("room_pressure_hpa", 1013.0)),
+                                         float(a.get("room_humidity_pct", 50.0)))
+                except ValueError as exc:
+                    raise SessionError(f"{path}: /flow room conditions: {exc}") from exc
+            end_s = (int(stamps[-1]) - start) / 1e9
+            volume = flow_sensor_volume(adc, stamps, info.gain_lps, info.offset_lps, factor,
+                                        tidal_windows(events, end_s))
+            t = (volume.timestamp_ns - start) / 1e9
+            flow_values = analyse_volume(t, volume.volume_l, events, age)
+            flow_volume = (t, volume.volume_l)
+        truth_values = None
+        if s.has_truth:
+            truth = s.truth()
+            t = (np.asarray(truth["timestamp_ns"]) - start) / 1e9
+            truth_values = analyse_volume(t, np.asarray(truth["volume_l"]), events, age)
+        references: dict[str, Reference] = {}
+        problem = None
+        if s.subject is not None:
+            try:
+                for parameter in ("FEV1", "FVC", "FEV1_FVC"):
+                    references[parameter] = reference(parameter, s.subject.sex, s.subject.age_years,
+                                                      s.subject.height_cm, equations)
+                if equations == "gli-2012":
+                    references["FEF2575"] = reference("FEF2575", s.subject.sex, s.subject.age_years,
+                                                      s.subject.height_cm, equations)
+            except ReferenceUnavailable as exc:
+                problem = str(exc)
+    return SessionReport(flow_values, truth_values, references, problem, flow_volume)

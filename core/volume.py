@@ -1,0 +1,98 @@
+"""Volumes from height maps: the thesis' gradient volume and the metric volume in litres.
+
+Metric volume of one head ("cap volume"): the volume between the torso's surface and the plane
+through its lateral silhouette edges, each pixel weighted by its footprint (Z / fx)(Z / fy).
+The plane moves with the body, so a rigid shift of the whole torso (sway, along the axis or
+sideways) leaves the cap volume as it is, while breathing, which lifts the chest and abdomen
+off their sides, changes it. The front and back caps add up to the volume change of the trunk
+(what moves the sides themselves, lateral expansion of the ribs, is not seen by either head).
+
+The cap volume scales as the cube of the depth map's scale, so its distance must be right from
+frame to frame to a millimetre or so (about 30 mL per mm for an adult at 2 m). With both
+heads, the distance comes from the silhouettes: both heads see the same lateral edges, so
+their widths in pixels stand in the inverse ratio of the distances, D_f / D_b = W_b / W_f, and
+D_f + D_b is the baseline between the heads: a triangulation across the subject that lateral
+expansion cannot disturb (it widens both silhouettes alike).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.rig import Head
+
+
+@dataclass(frozen=True)
+class CapMeasure:
+    volume_l: float  # cap volume at the map's own scale
+    side_depth_mm: float  # depth of the silhouette plane on the optical axis
+    width_px: float  # mean silhouette width over the torso rows
+    rows: int
+
+
+def torso_rows(mask: np.ndarray, min_width_fraction: float = 0.6) -> np.ndarray:
+    """Rows of the trunk: as wide as 60 % of the widest row or more (the neck and head are narrower)."""
+    widths = mask.sum(axis=1)
+    return np.nonzero(widths >= min_width_fraction * widths.max())[0] if widths.max() > 0 else np.zeros(0, int)
+
+
+def cap_measure(depth_mm: np.ndarray, mask: np.ndarray, head: Head, edge_px: int = 2) -> CapMeasure:
+    """Cap volume, silhouette plane and width of one height map."""
+    valid = mask & np.isfinite(depth_mm)
+    rows = torso_rows(valid)
+    if len(rows) < 5:
+        return CapMeasure(float("nan"), float("nan"), float("nan"), 0)
+    xs, ys, zs, widths = [], [], [], []
+    for r in rows:
+        cols = np.nonzero(valid[r])[0]
+        left, right = cols[0], cols[-1]
+        widths.append(right - left + 1)
+        for c in np.unique(np.concatenate([cols[:edge_px], cols[-edge_px:]])):
+            xs.append(c)
+            ys.append(r)
+            zs.append(depth_mm[r, c])
+    a = np.column_stack([np.ones(len(xs)), xs, ys])
+    z = np.asarray(zs)
+    coefficients = np.linalg.lstsq(a, z, rcond=None)[0]
+    for _ in range(2):  # robust: drop edge points far from the plane (a hand, a fold)
+        residual = z - a @ coefficients
+        keep = np.abs(residual) < 3.0 * max(1.4826 * np.median(np.abs(residual)), 1.0)
+        coefficients = np.linalg.lstsq(a[keep], z[keep], rcond=None)[0]
+    region = np.zeros_like(valid)
+    region[rows] = valid[rows]
+    r_idx, c_idx = np.nonzero(region)
+    plane = coefficients[0] + coefficients[1] * c_idx + coefficients[2] * r_idx
+    z_px = depth_mm[r_idx, c_idx]
+    footprint = (z_px / head.fx) * (z_px / head.fy)
+    volume = float(np.sum((plane - z_px) * footprint)) * 1e-6
+    side_depth = float(coefficients[0] + coefficients[1] * head.cx + coefficients[2] * head.cy)
+    return CapMeasure(volume, side_depth, float(np.mean(widths)), len(rows))
+
+
+def two_head_distances(width_front_px: np.ndarray, width_back_px: np.ndarray, baseline_mm: float,
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Silhouette-plane depths of front and back from the two silhouette widths and the baseline."""
+    ratio = np.asarray(width_front_px) / np.asarray(width_back_px)
+    front = baseline_mm / (1.0 + ratio)
+    return front, baseline_mm - front
+
+
+def rescaled_cap(volume_l: np.ndarray, side_depth_mm: np.ndarray, distance_mm: np.ndarray) -> np.ndarray:
+    """Cap volume after scaling the map so its silhouette plane lies at `distance_mm` (volume ~ scale^3)."""
+    return np.asarray(volume_l) * (np.asarray(distance_mm) / np.asarray(side_depth_mm)) ** 3
+
+
+def smooth_series(t_s: np.ndarray, values: np.ndarray, window_s: float) -> np.ndarray:
+    """Centred moving average over `window_s` (for distances, which change slowly)."""
+    values = np.asarray(values, dtype=float)
+    if len(values) < 3 or window_s <= 0:
+        return values
+    dt = float(np.median(np.diff(t_s)))
+    n = max(1, int(round(window_s / dt)))
+    if n <= 1:
+        return values
+    kernel = np.ones(n) / n
+    padded = np.pad(values, (n // 2, n - 1 - n // 2), mode="edge")
+    return np.convolve(padded, kernel, mode="valid")

@@ -1,0 +1,86 @@
+"""Session analysis: flow-sensor volume with drift, tidal values, VC, graded blows, the results file."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from core.analysis import analyse_volume, tidal_values
+from core.flow import btps_factor, flow_sensor_volume
+from core.process import process_session
+from core.session_analysis import analyse_session
+from core.sim.breathing import ForcedBlow, Subject, Sway
+from core.sim.flowsensor import FlowSensorModel
+from core.sim.simulate import SimConfig, simulate
+
+
+def test_btps_factor_is_the_standard_one():
+    # ATS/ERS tables: 1.102 at 20 C, 1.075 at 25 C (saturated, 760 mmHg)
+    assert btps_factor(20.0, 1013.25, 100.0) == pytest.approx(1.102, abs=0.002)
+    assert btps_factor(25.0, 1013.25, 100.0) == pytest.approx(1.075, abs=0.002)
+    with pytest.raises(ValueError, match="humidity"):
+        btps_factor(20.0, 1013.0, 120.0)
+
+
+def test_drift_is_removed_from_integrated_flow():
+    rate = 1000.0
+    t = np.arange(0, 60, 1 / rate)
+    volume = 0.25 * (1 - np.cos(2 * np.pi * t / 4.0))  # breaths of 0.5 L from a stable level
+    flow = np.gradient(volume, 1 / rate)
+    drift = 0.02 + 0.0005 * t  # a zero that wanders
+    adc = np.round((flow + drift + 15.36) / 0.0075)
+    stamps = (t * 1e9).astype(np.int64)
+    result = flow_sensor_volume(adc, stamps, 0.0075, -15.36)
+    assert np.max(np.abs(result.volume_l - volume)) < 0.02
+    plain = np.cumsum(0.0075 * adc - 15.36) / rate
+    assert np.max(np.abs(plain - volume)) > 1.0  # what the drift does untreated
+
+
+def test_tidal_values_of_a_known_curve():
+    t = np.arange(0, 30, 0.005)
+    period, ti = 4.0, 1.6
+    phase = np.mod(t, period)
+    v = np.where(phase < ti, 0.5 * (1 - np.cos(np.pi * phase / ti)) / 2 * 2 * 0.5,
+                 0.5 * (1 + np.cos(np.pi * (phase - ti) / (period - ti))) / 2 * 2 * 0.5)
+    values = tidal_values([(t, v)])
+    assert values.tidal_volume_l == pytest.approx(0.5, abs=0.01)
+    assert values.respiratory_rate_bpm == pytest.approx(15.0, abs=0.2)
+    assert values.inspiratory_time_s == pytest.approx(ti, abs=0.05)
+    assert values.ie_ratio == pytest.approx(ti / (period - ti), abs=0.03)
+
+
+@pytest.fixture(scope="module")
+def full_session(tmp_path_factory):
+    path = tmp_path_factory.mktemp("analysis") / "full.h5"
+    blows = [ForcedBlow(), ForcedBlow(effort=0.98), ForcedBlow(rise_time_s=0.4)]
+    simulate(path, SimConfig(protocol="full", scale=0.04, seed=9, blows=blows, sway=Sway(0, 0, 0),
+                             flow_sensor=FlowSensorModel(drift_counts_per_min=4.0)))
+    return path
+
+
+def test_flow_sensor_values_match_the_truth(full_session):
+    report = analyse_session(full_session)
+    flow, truth = report.flow_sensor.parameters(), report.truth.parameters()
+    for key in ("TV_l", "VC_l", "FVC_l", "FEV1_l"):
+        assert flow[key] == pytest.approx(truth[key], abs=max(0.05, 0.03 * truth[key])), key
+    assert flow["manoeuvres"] == 3
+    assert flow["acceptable_FEV1"] == 2  # the slow start fails back-extrapolation
+    assert report.references["FEV1"].predicted == pytest.approx(4.065, abs=0.002)
+
+
+def test_process_writes_parameters(full_session, tmp_path):
+    out = tmp_path / "r.h5"
+    process_session(full_session, out, every=500)
+    with h5py.File(out) as f:
+        p = f["parameters"].attrs
+        assert p["source"] == "flow sensor"
+        for key in ("TV_l", "RR_bpm", "VC_l", "FVC_l", "FEV1_l", "FEV1_FVC", "PEF_lps", "grade"):
+            assert key in p, key
+        assert f["flow_sensor/volume_l"].shape == f["flow_sensor/time_s"].shape
+
+
+def test_session_without_tidal_breathing_says_so():
+    t = np.arange(0, 10, 0.01)
+    values = analyse_volume(t, np.zeros_like(t), [])
+    assert values.tidal is None and "no stretch of tidal breathing" in values.problems[0]
