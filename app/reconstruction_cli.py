@@ -31,6 +31,19 @@ def add_calibrate(sub: argparse._SubParsersAction) -> None:
     lights.add_argument("--max-residual-mm", type=float, default=25.0,
                         help="reject a light whose highlight rays miss each other by more (rms, default 25)")
     lights.set_defaults(run=run_calibrate_lights)
+    flow = what.add_parser("flow", help="the flow sensor's gain and offset from steady flows (thesis eq. 5.4)",
+                           description="Fit flow (L/s) = C1 * adc + C0 to steady flows read off a reference "
+                                       "flowmeter: a CSV with columns reference_lps, adc_mean, or a flow-calibration "
+                                       "session whose events are labelled flow=<L/s> (each lasting to the next event).")
+    flow.add_argument("source", type=Path, help="pairs.csv or a flow-calibration session (.h5)")
+    flow.add_argument("-o", "--output", type=Path, required=True, help="flow calibration profile (.json)")
+    flow.set_defaults(run=run_calibrate_flow)
+    volume = what.add_parser("volume", help="the thesis' volume regression from training sessions (eqs 5.1-5.3)",
+                             description="Fit phi = (X^T X)^-1 X^T pv, X = [gradient volume, valid pixels, distance], "
+                                         "pv the flow-sensor volume, from results files of processed sessions.")
+    volume.add_argument("results", nargs="+", type=Path, help="results files (their sessions need a flow sensor)")
+    volume.add_argument("-o", "--output", type=Path, required=True, help="volume calibration profile (.json)")
+    volume.set_defaults(run=run_calibrate_volume)
     p.set_defaults(run=lambda args: p.print_help() or 2)
 
 
@@ -75,6 +88,9 @@ def add_process(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--heads", choices=("front", "back", "both"), default="both")
     p.add_argument("--no-motion-compensation", action="store_true",
                    help="use each light's frame as captured (the thesis' static assumption)")
+    p.add_argument("--volume-calibration", type=Path,
+                   help="a volume calibration profile (photopft calibrate volume): write /volume from the thesis' "
+                        "regression")
     p.add_argument("--no-tracking", action="store_true",
                    help="search the subject distance afresh in every cycle (slower)")
     p.set_defaults(run=run_process)
@@ -85,6 +101,17 @@ def run_process(args: argparse.Namespace) -> int:
     from core.process import process_session
     from core.profile import ProfileError, load_profile
 
+    volume_calibration = None
+    if args.volume_calibration is not None:
+        from core.calibration import CalibrationProfileError, VolumeCalibration
+        from core.calibration import load_profile as load_calibration
+
+        try:
+            volume_calibration = load_calibration(args.volume_calibration)
+        except CalibrationProfileError as exc:
+            raise UserError(str(exc)) from exc
+        if not isinstance(volume_calibration, VolumeCalibration):
+            raise UserError(f"{args.volume_calibration} is a flow calibration, not a volume calibration")
     calibration = None
     if args.rig is not None:
         try:
@@ -102,7 +129,8 @@ def run_process(args: argparse.Namespace) -> int:
         settings = ReconstructionSettings(method=args.method, integrator=args.integrator, track=not args.no_tracking)
         summary = process_session(args.session, args.output, calibration=calibration, maps_at=args.maps_at,
                                   settings=settings, heads=heads, every=args.every,
-                                  motion_compensation=not args.no_motion_compensation, progress=progress)
+                                  motion_compensation=not args.no_motion_compensation,
+                                  volume_calibration=volume_calibration, progress=progress)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     if show:
@@ -110,4 +138,109 @@ def run_process(args: argparse.Namespace) -> int:
     for name, n in summary.maps.items():
         print(f"{name}: {n} maps, mean subject distance {summary.mean_distance_mm[name]:.1f} mm")
     print(f"wrote {summary.path} in {summary.elapsed_s:.1f} s")
+    return 0
+
+
+def steady_flows(source: Path) -> tuple[list[float], list[float]]:
+    """(mean ADC, reference flow) pairs from a CSV or from a flow-calibration session's events."""
+    import csv
+
+    import numpy as np
+
+    if source.suffix.lower() == ".csv":
+        with open(source, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        try:
+            return [float(r["adc_mean"]) for r in rows], [float(r["reference_lps"]) for r in rows]
+        except (KeyError, ValueError) as exc:
+            raise UserError(f"{source}: needs numeric columns reference_lps and adc_mean ({exc})") from exc
+    from core.session import SessionFile
+
+    with SessionFile(source) as s:
+        adc, stamps = s.flow_samples()
+        events = s.events()
+    marks = [(t, label) for t, label in events if label.startswith("flow=")]
+    if len(marks) < 3:
+        raise UserError(f"{source}: needs three or more events labelled flow=<L/s>, found {len(marks)}")
+    means, flows = [], []
+    for k, (t, label) in enumerate(marks):
+        end = marks[k + 1][0] if k + 1 < len(marks) else stamps[-1] + 1
+        inside = (stamps >= t) & (stamps < end)
+        settled = np.nonzero(inside)[0][int(0.2 * inside.sum()):]  # skip the first fifth: the flow settling
+        if len(settled) < 10:
+            raise UserError(f"{source}: the step {label} holds too few samples")
+        try:
+            flows.append(float(label.split("=", 1)[1]))
+        except ValueError as exc:
+            raise UserError(f"{source}: event {label!r} is not flow=<number>") from exc
+        means.append(float(np.mean(adc[settled])))
+    return means, flows
+
+
+def run_calibrate_flow(args: argparse.Namespace) -> int:
+    from core.calibration import CalibrationProfileError, fit_flow, save_profile
+    from core.session import now_iso
+
+    means, flows = steady_flows(args.source)
+    try:
+        profile = fit_flow(means, flows, created=now_iso(), sources=[args.source.name])
+    except CalibrationProfileError as exc:
+        raise UserError(str(exc)) from exc
+    save_profile(profile, args.output)
+    print(f"flow (L/s) = {profile.gain_lps:.6g} * adc {profile.offset_lps:+.6g}; R^2 {profile.r_squared:.5f}; "
+          f"{profile.points} steady flows from {profile.range_lps[0]:g} to {profile.range_lps[1]:g} L/s; "
+          f"largest residual {max(abs(r) for r in profile.residuals_lps):.4f} L/s")
+    print(f"wrote {args.output}")
+    return 0
+
+
+def regression_samples(results_path: Path):
+    """Features [gradient volume, valid pixels, distance] and flow-sensor volume at the map times."""
+    import h5py
+    import numpy as np
+
+    from core.session_analysis import analyse_session
+
+    with h5py.File(results_path, "r") as r:
+        heads = [h for h in ("front", "back") if h in r.get("heads", {})]
+        if not heads:
+            raise UserError(f"{results_path} is not a results file with heads")
+        session = Path(str(r.attrs["session"]))
+        t = r[f"heads/{heads[0]}/timestamp_ns"][:]
+        gv = sum(np.interp(t, r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/gradient_volume"][:]) for h in heads)
+        if "valid_pixels" not in r[f"heads/{heads[0]}"]:
+            raise UserError(f"{results_path} predates the pixel counts: process the session again")
+        pixels = sum(np.interp(t, r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/valid_pixels"][:]) for h in heads)
+        distance = np.mean([np.interp(t, r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/distance_mm"][:])
+                            for h in heads], axis=0)
+    report = analyse_session(session)
+    if report.flow_volume is None:
+        raise UserError(f"{session} has no flow sensor recording to train the volume regression on")
+    with h5py.File(session, "r") as s:
+        start = int(min(s[f"heads/{h}/timestamp_ns"][0] for h in heads))
+    flow_t, flow_v = report.flow_volume
+    pv = np.interp((t - start) / 1e9, flow_t, flow_v)
+    return np.column_stack([gv, pixels, distance]), pv, session.name
+
+
+def run_calibrate_volume(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from core.calibration import CalibrationProfileError, fit_volume, save_profile
+    from core.session import now_iso
+
+    features, volumes, names = [], [], []
+    for path in args.results:
+        x, pv, name = regression_samples(path)
+        features.append(x)
+        volumes.append(pv)
+        names.append(name)
+    try:
+        profile = fit_volume(np.vstack(features), np.concatenate(volumes), created=now_iso(), sessions=names)
+    except CalibrationProfileError as exc:
+        raise UserError(str(exc)) from exc
+    save_profile(profile, args.output)
+    print(f"phi = {np.array2string(profile.phi, precision=6)}; r = {profile.correlation:.4f}, "
+          f"R^2 = {profile.r_squared:.4f} over {profile.samples} samples from {len(names)} session(s)")
+    print(f"wrote {args.output}")
     return 0

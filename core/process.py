@@ -63,7 +63,7 @@ def _cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWind
 def process_session(session_path: str | os.PathLike, output: str | os.PathLike, *,
                     calibration: RigCalibration | None = None, maps_at: list[int] | None = None,
                     settings: ReconstructionSettings | None = None, heads: list[str] | None = None,
-                    every: int = 1, motion_compensation: bool = True,
+                    every: int = 1, motion_compensation: bool = True, volume_calibration=None,
                     progress: Callable[[float], None] | None = None) -> ProcessSummary:
     """Reconstruct every complete light cycle (sliding by `every` frames) of each head.
 
@@ -127,7 +127,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 ids = session.frame_id(name)
                 all_windows = {int(ids[w.newest]): w for w in complete_cycles(
                     session.light_index(name), ids, rig.cycle_length)}
-                rows = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": []}
+                rows = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": [],
+                        "valid_pixels": []}
                 saved_normals, saved_depth, saved_index = [], [], []
                 cache: dict[int, np.ndarray] = {}
                 for window in plans[name]:
@@ -141,6 +142,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                     rows["frame_index"].append(window.newest)
                     rows["distance_mm"].append(result.distance_mm)
                     rows["gradient_volume"].append(result.gradient_volume)
+                    rows["valid_pixels"].append(int(result.mask.sum()))
                     if window.newest in maps_at:
                         saved_index.append(window.newest)
                         saved_normals.append(result.normals.astype(np.float32))
@@ -153,6 +155,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 g.create_dataset("frame_index", data=np.asarray(rows["frame_index"], dtype=np.int64))
                 g.create_dataset("distance_mm", data=np.asarray(rows["distance_mm"], dtype=np.float64))
                 g.create_dataset("gradient_volume", data=np.asarray(rows["gradient_volume"], dtype=np.float64))
+                g.create_dataset("valid_pixels", data=np.asarray(rows["valid_pixels"], dtype=np.int64))
                 m = g.create_group("maps")
                 m.create_dataset("frame_index", data=np.asarray(saved_index, dtype=np.int64))
                 shape = (0, head.height, head.width)
@@ -162,6 +165,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                                  else np.zeros(shape, np.float32), compression="gzip")
                 counts[name] = len(rows["frame_index"])
                 distances[name] = float(np.nanmean(rows["distance_mm"])) if rows["distance_mm"] else float("nan")
+            if volume_calibration is not None:
+                _write_regression_volume(out, names, volume_calibration)
             parameters = out.create_group("parameters")
             _write_parameters(session_path, parameters, out)
     return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances)
@@ -197,3 +202,21 @@ def _write_parameters(session_path: str | os.PathLike, parameters: h5py.Group, o
     g = out.create_group("flow_sensor")
     g.create_dataset("time_s", data=t)
     g.create_dataset("volume_l", data=volume)
+
+
+def _write_regression_volume(out: h5py.File, heads: list[str], calibration) -> None:
+    """/volume from the thesis' regression (eqs 5.1-5.3) on the gradient volume, pixels and distance."""
+    t = out[f"heads/{heads[0]}/timestamp_ns"][:]
+
+    def series(name: str) -> list[np.ndarray]:
+        return [np.interp(t, out[f"heads/{h}/timestamp_ns"][:], out[f"heads/{h}/{name}"][:]) for h in heads]
+
+    features = np.column_stack([sum(series("gradient_volume")), sum(series("valid_pixels")),
+                                np.mean(series("distance_mm"), axis=0)])
+    volume = calibration.volume_l(features)
+    g = out.create_group("volume")
+    g.create_dataset("timestamp_ns", data=t)
+    g.create_dataset("volume_l", data=volume - volume[0])
+    g.attrs["method"] = "thesis regression (eqs 5.1-5.3) on gradient volume, valid pixels and distance"
+    g.attrs["calibration_created"] = calibration.created
+    g.attrs["calibration_sessions"] = ",".join(calibration.sessions)
