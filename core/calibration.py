@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from core.jsonfile import read_json_object
+
 FLOW_FORMAT = "photopft-flow-calibration"
 VOLUME_FORMAT = "photopft-volume-calibration"
 
@@ -134,13 +136,8 @@ def _number(data: dict, key: str, path: Path) -> float:
 
 def load_profile(path: str | os.PathLike) -> FlowCalibration | VolumeCalibration:
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except OSError as exc:
-        raise CalibrationProfileError(f"cannot read {path}: {exc}") from exc
-    except json.JSONDecodeError as exc:
-        raise CalibrationProfileError(f"{path} is not JSON: {exc}") from exc
-    kind = data.get("format") if isinstance(data, dict) else None
+    data = read_json_object(path, CalibrationProfileError, "calibration profile")
+    kind = data.get("format")
     if kind not in (FLOW_FORMAT, VOLUME_FORMAT):
         raise CalibrationProfileError(f"{path}: 'format' must be {FLOW_FORMAT!r} or {VOLUME_FORMAT!r}, found {kind!r}")
     if data.get("format_version") != 1:

@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from core.jsonfile import read_json_object
+
 from core.rig import Head, Rig
 
 PROFILE_FORMAT = "photopft-rig-calibration"
@@ -78,13 +80,8 @@ def _array(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
 
 def load_profile(path: str | os.PathLike) -> RigCalibration:
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except OSError as exc:
-        raise ProfileError(f"cannot read calibration profile {path}: {exc}") from exc
-    except json.JSONDecodeError as exc:
-        raise ProfileError(f"{path} is not JSON: {exc}") from exc
-    if not isinstance(data, dict) or data.get("format") != PROFILE_FORMAT:
+    data = read_json_object(path, ProfileError, "calibration profile")
+    if data.get("format") != PROFILE_FORMAT:
         raise ProfileError(f"{path}: 'format' must be {PROFILE_FORMAT!r}")
     if data.get("format_version") != 1:
         raise ProfileError(f"{path}: format_version {data.get('format_version')!r}, this reader knows 1")

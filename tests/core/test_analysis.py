@@ -10,7 +10,7 @@ from core.analysis import analyse_volume, tidal_values
 from core.flow import btps_factor, flow_sensor_volume
 from core.process import process_session
 from core.session_analysis import analyse_session
-from core.sim.breathing import ForcedBlow, Subject, Sway
+from core.sim.breathing import ForcedBlow, Sway
 from core.sim.flowsensor import FlowSensorModel
 from core.sim.simulate import SimConfig, simulate
 
