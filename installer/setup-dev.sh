@@ -4,7 +4,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-SYSTEM_PACKAGES=(python3 python3-venv python3-dev gcc pkg-config git)
+# Aravis 0.8 (GigE Vision) through PyGObject, built against Debian 12's GLib; iproute2 for the
+# tests' second loopback address.
+SYSTEM_PACKAGES=(python3 python3-venv python3-dev gcc pkg-config git iproute2
+                 aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev)
 
 as_root() {
     if [ "$(id -u)" -eq 0 ]; then "$@"; elif command -v sudo >/dev/null; then sudo "$@"; else return 1; fi

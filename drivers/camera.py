@@ -1,0 +1,257 @@
+"""Cameras: a small protocol, GigE Vision cameras through Aravis 0.8, and the simulated twin.
+
+Aravis lessons (shared/design/STYLE.md): buffers are popped from our own thread (no Python
+stream callback), every popped buffer is pushed back, incomplete or failed buffers are counted
+and never passed on as images; frame ids and timestamps are kept, so a lost frame is a gap.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+GIGABIT_MB_S = 115.0  # what one gigabit link carries in practice
+
+
+class CameraError(Exception):
+    """A camera that cannot be found, configured, or that stopped answering; the message names it."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    image: np.ndarray  # (H, W) uint8 or uint16
+    frame_id: int
+    timestamp_ns: int
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    width: int | None = None  # None: the whole sensor (after binning)
+    height: int | None = None
+    offset_x: int = 0
+    offset_y: int = 0
+    binning: int = 1
+    pixel_format: str = "Mono8"  # Mono8 or Mono12 (delivered as uint16)
+    exposure_us: float = 1000.0
+    gain_db: float = 0.0
+    frame_rate_hz: float = 110.0
+    trigger: str = "free"  # free (internal rate), software, or line (hardware trigger from the sequencer)
+
+
+@dataclass
+class CameraStats:
+    delivered: int = 0
+    failed: int = 0  # incomplete, timed-out or otherwise bad buffers: counted, never delivered
+    lost: int = 0  # gaps in the frame ids of delivered frames
+    last_frame_id: int | None = None
+
+    def count(self, frame_id: int) -> None:
+        if self.last_frame_id is not None and frame_id > self.last_frame_id + 1:
+            self.lost += frame_id - self.last_frame_id - 1
+        self.last_frame_id = frame_id
+        self.delivered += 1
+
+
+class Camera(Protocol):
+    name: str
+    stats: CameraStats
+
+    def configure(self, settings: CameraSettings) -> None: ...
+    def start(self) -> None: ...
+    def grab(self, timeout_s: float = 0.5) -> Frame | None: ...
+    def stop(self) -> None: ...
+    def close(self) -> None: ...
+
+
+def bandwidth_mb_s(width: int, height: int, bits: int, frame_rate_hz: float) -> float:
+    """Payload bandwidth in MB/s (1e6 bytes): Mono8 takes one byte a pixel, Mono12 and Mono16 two."""
+    return width * height * (1 if bits <= 8 else 2) * frame_rate_hz / 1e6
+
+
+def bandwidth_advice(width: int, height: int, bits: int, frame_rate_hz: float,
+                     link_mb_s: float = GIGABIT_MB_S) -> str | None:
+    """None when the settings fit the link; otherwise what does not fit and which settings would."""
+    need = bandwidth_mb_s(width, height, bits, frame_rate_hz)
+    if need <= link_mb_s:
+        return None
+    options = []
+    for binning in (2, 4):
+        if bandwidth_mb_s(width // binning, height // binning, bits, frame_rate_hz) <= link_mb_s:
+            options.append(f"binning {binning} x {binning} ({width // binning} x {height // binning}, "
+                           f"{bandwidth_mb_s(width // binning, height // binning, bits, frame_rate_hz):.0f} MB/s)")
+            break
+    rows = int(link_mb_s * 1e6 / (width * (1 if bits <= 8 else 2) * frame_rate_hz))
+    if rows >= 64:
+        options.append(f"a region of {width} x {rows // 8 * 8} pixels")
+    rate = link_mb_s * 1e6 / (width * height * (1 if bits <= 8 else 2))
+    options.append(f"{rate:.0f} frames/s at full size")
+    if bits > 8:
+        options.append(f"Mono8 ({bandwidth_mb_s(width, height, 8, frame_rate_hz):.0f} MB/s)")
+    return (f"{width} x {height} {'Mono8' if bits <= 8 else f'Mono{bits}'} at {frame_rate_hz:g} frames/s needs "
+            f"{need:.0f} MB/s, more than a gigabit link's {link_mb_s:.0f} MB/s; these would fit: "
+            + "; ".join(options))
+
+
+def _aravis():
+    try:
+        import gi
+
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis
+    except (ImportError, ValueError) as exc:
+        raise CameraError("Aravis 0.8 is not available (Debian: gir1.2-aravis-0.8, and PyGObject < 3.51): "
+                          f"{exc}") from exc
+    return Aravis
+
+
+def find_aravis_device(identifier: str, interfaces: tuple[str, ...] = ()) -> str:
+    """The Aravis device id of a camera named by device id, serial number or IP address."""
+    aravis = _aravis()
+    for interface in interfaces:
+        aravis.enable_interface(interface)
+    aravis.update_device_list()
+    devices = [(aravis.get_device_id(i), aravis.get_device_serial_nbr(i), aravis.get_device_address(i))
+               for i in range(aravis.get_n_devices())]
+    for device_id, serial, address in devices:
+        if identifier in (device_id, serial, address):
+            return device_id
+    found = ", ".join(f"{d} (serial {s}, {a})" for d, s, a in devices) or "none"
+    raise CameraError(f"no camera {identifier!r} found; cameras seen: {found}")
+
+
+@dataclass
+class AravisCamera:
+    """A GigE Vision (or Aravis Fake) camera; frames popped from the caller's thread."""
+
+    identifier: str
+    buffers: int = 16
+    interfaces: tuple[str, ...] = ()
+    name: str = ""
+    stats: CameraStats = field(default_factory=CameraStats)
+
+    def __post_init__(self) -> None:
+        self._aravis = _aravis()
+        self._last_raw_id: int | None = None
+        self._wraps = 0
+        self.device_id = find_aravis_device(self.identifier, self.interfaces)
+        self.name = self.name or self.device_id
+        self._lost_control = threading.Event()
+        self._open()
+
+    def _open(self) -> None:
+        try:
+            self._camera = self._aravis.Camera.new(self.device_id)
+        except Exception as exc:  # GLib.Error and friends
+            raise CameraError(f"cannot open camera {self.device_id}: {exc}") from exc
+        device = self._camera.get_device()
+        if hasattr(device, "connect"):
+            try:
+                device.connect("control-lost", lambda *_: self._lost_control.set())
+            except TypeError:
+                pass
+        self._stream = None
+        self.bits = 8
+
+    @property
+    def sensor_size(self) -> tuple[int, int]:
+        return tuple(self._camera.get_sensor_size())
+
+    def configure(self, settings: CameraSettings) -> None:
+        camera = self._camera
+        try:
+            formats = camera.dup_available_pixel_formats_as_strings()
+            wanted = settings.pixel_format
+            if wanted == "Mono12" and "Mono12" not in formats:
+                if "Mono16" not in formats:
+                    raise CameraError(f"{self.name} offers neither Mono12 nor Mono16 ({', '.join(formats)})")
+                wanted = "Mono16"  # the same 16-bit container
+            if wanted not in formats:
+                raise CameraError(f"{self.name} does not offer {wanted} ({', '.join(formats)})")
+            camera.set_pixel_format_from_string(wanted)
+            self.bits = 8 if wanted == "Mono8" else (12 if settings.pixel_format == "Mono12" else 16)
+            if settings.binning > 1:
+                if not camera.is_binning_available():
+                    raise CameraError(f"{self.name} has no binning")
+                camera.set_binning(settings.binning, settings.binning)
+            full_w, full_h = self.sensor_size
+            width = settings.width or full_w // settings.binning
+            height = settings.height or full_h // settings.binning
+            camera.set_region(settings.offset_x, settings.offset_y, width, height)
+            camera.set_exposure_time(settings.exposure_us)
+            if camera.is_gain_available():
+                camera.set_gain(settings.gain_db)
+            if settings.trigger == "line":
+                camera.set_trigger("Line1")
+            elif settings.trigger == "software":
+                camera.set_trigger("Software")
+            else:
+                camera.set_frame_rate(settings.frame_rate_hz)
+        except CameraError:
+            raise
+        except Exception as exc:
+            raise CameraError(f"cannot configure {self.name}: {exc}") from exc
+
+    def region(self) -> tuple[int, int, int, int]:
+        return tuple(self._camera.get_region())
+
+    def start(self) -> None:
+        try:
+            self._stream = self._camera.create_stream(None, None)
+            size = self._camera.get_payload()
+            for _ in range(self.buffers):
+                self._stream.push_buffer(self._aravis.Buffer.new_allocate(size))
+            self._camera.start_acquisition()
+        except Exception as exc:
+            raise CameraError(f"cannot start {self.name}: {exc}") from exc
+
+    def software_trigger(self) -> None:
+        self._camera.software_trigger()
+
+    def grab(self, timeout_s: float = 0.5) -> Frame | None:
+        """The next complete frame, or None on timeout; bad buffers are counted and skipped."""
+        if self._stream is None:
+            raise CameraError(f"{self.name} is not started")
+        if self._lost_control.is_set():
+            raise CameraError(f"camera {self.name} disconnected (lost control): stopped cleanly; "
+                              "check its cable and power")
+        buffer = self._stream.timeout_pop_buffer(int(timeout_s * 1e6))
+        if buffer is None:
+            return None
+        try:
+            if buffer.get_status() != self._aravis.BufferStatus.SUCCESS:
+                self.stats.failed += 1
+                return None
+            dtype = np.uint8 if self.bits == 8 else np.uint16
+            image = np.frombuffer(buffer.get_data(), dtype=dtype).reshape(
+                buffer.get_image_height(), buffer.get_image_width()).copy()
+            frame = Frame(image, self._unwrap(int(buffer.get_frame_id())), int(buffer.get_system_timestamp()))
+            self.stats.count(frame.frame_id)
+            return frame
+        finally:
+            self._stream.push_buffer(buffer)
+
+    def _unwrap(self, raw: int) -> int:
+        """GigE Vision 1.x block ids are 16-bit and wrap from 65535 to 1 (0 is reserved): count the wraps."""
+        if self._last_raw_id is not None and raw < self._last_raw_id - 32768:
+            self._wraps += 1
+        self._last_raw_id = raw
+        return raw + self._wraps * 65535
+
+    def stop(self) -> None:
+        if self._stream is not None:
+            try:
+                self._camera.stop_acquisition()
+            except Exception:  # a camera that is gone cannot be stopped; the stream is dropped anyway
+                pass
+            self._stream = None
+
+    def close(self) -> None:
+        self.stop()
+        self._camera = None
+
+    @property
+    def disconnected(self) -> bool:
+        return self._lost_control.is_set()
