@@ -46,6 +46,8 @@ class CameraStats:
     delivered: int = 0
     failed: int = 0  # incomplete, timed-out or otherwise bad buffers: counted, never delivered
     lost: int = 0  # gaps in the frame ids of delivered frames
+    resent_packets: int = 0  # GigE Vision: packets lost on the wire and recovered by resend requests
+    missing_packets: int = 0  # GigE Vision: packets lost for good (their frames fail)
     last_frame_id: int | None = None
 
     def count(self, frame_id: int) -> None:
@@ -129,6 +131,7 @@ class AravisCamera:
     identifier: str
     buffers: int = 16
     interfaces: tuple[str, ...] = ()
+    packet_resend: bool = True  # GigE Vision: ask the camera again for lost packets
     name: str = ""
     stats: CameraStats = field(default_factory=CameraStats)
 
@@ -200,6 +203,9 @@ class AravisCamera:
     def start(self) -> None:
         try:
             self._stream = self._camera.create_stream(None, None)
+            if isinstance(self._stream, self._aravis.GvStream):
+                resend = self._aravis.GvStreamPacketResend
+                self._stream.set_property("packet-resend", resend.ALWAYS if self.packet_resend else resend.NEVER)
             size = self._camera.get_payload()
             for _ in range(self.buffers):
                 self._stream.push_buffer(self._aravis.Buffer.new_allocate(size))
@@ -240,8 +246,14 @@ class AravisCamera:
         self._last_raw_id = raw
         return raw + self._wraps * 65535
 
+    def _packet_statistics(self) -> None:
+        if self._stream is not None and isinstance(self._stream, self._aravis.GvStream):
+            resent, missing = self._stream.get_statistics()
+            self.stats.resent_packets, self.stats.missing_packets = int(resent), int(missing)
+
     def stop(self) -> None:
         if self._stream is not None:
+            self._packet_statistics()
             try:
                 self._camera.stop_acquisition()
             except Exception:  # a camera that is gone cannot be stopped; the stream is dropped anyway
