@@ -235,12 +235,14 @@ def build_parser() -> argparse.ArgumentParser:
     from app.analyze_cli import add_analyze
     from app.bench import add_bench
     from app.emulate_cli import add_emulate
+    from app.record_cli import add_record
 
     add_calibrate(sub)
     add_process(sub)
     add_analyze(sub)
     add_bench(sub)
     add_emulate(sub)
+    add_record(sub)
     add_demo(sub, run_simulate, describe_session)
     return parser
 

@@ -1,0 +1,199 @@
+"""`photopft record` and `photopft devices`: the rig from its configuration."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from contextlib import ExitStack
+from pathlib import Path
+
+from app.cli import UserError
+
+
+def add_record(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("record", help="record a session from a rig (the simulated rig by default)",
+                       description="Record both heads and the flow sensor into a session file, with a progress "
+                                   "line; capture is never blocked by the writer.")
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--rig", type=Path, help="rig configuration (default resources/rigs/simulated.toml)")
+    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--subject", default="ANON-0001", help="pseudonymous subject id")
+    p.add_argument("--sex", choices=("male", "female"), default="male")
+    p.add_argument("--age", type=float, default=30.0)
+    p.add_argument("--height", type=float, default=175.0)
+    p.add_argument("--weight", type=float, default=75.0)
+    p.set_defaults(run=run_record)
+    d = sub.add_parser("devices", help="list cameras and serial ports, check the rig's devices",
+                       description="List the GigE Vision cameras and serial ports this machine sees, and check "
+                                   "each device the rig configuration names.")
+    d.add_argument("--rig", type=Path)
+    d.set_defaults(run=run_devices)
+
+
+def _simulated(config, seconds: float, stack: ExitStack):
+    from core.sim.breathing import Subject, Sway
+    from core.sim.simulate import SimConfig
+    from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
+
+    sim = config.simulation
+    sim_config = SimConfig(scene="torso", protocol=sim.get("protocol", "tidal"), seconds=seconds + 5.0,
+                           scale=float(sim.get("scale", 0.25)), seed=int(sim.get("seed", 1)),
+                           heads=tuple(config.cameras), frame_rate_hz=float(config.camera.get("frame_rate_hz", 110.0)),
+                           sway=Sway(seed=int(sim.get("seed", 1))), subject=Subject())
+    state = SimulatedRigState.build(sim_config)
+    cameras = {h: SimCamera(state, h) for h in config.cameras}
+    flow = SimFlowSensor(state) if config.flow_port is not None else None
+    calibration = (sim_config.flow_sensor.gain_lps, sim_config.flow_sensor.offset_lps)
+    return state.rig, cameras, flow, calibration
+
+
+def _hardware(config, stack: ExitStack):
+    from core.rig import Rig, thesis_head
+    from drivers.camera import AravisCamera, CameraSettings, bandwidth_advice
+    from drivers.flowsensor import FlowSensor, FlowSensorEmulator
+    from drivers.sequencer import Sequencer, SequencerEmulator
+
+    cam = config.camera
+    settings = CameraSettings(width=cam.get("width"), height=cam.get("height"), binning=int(cam.get("binning", 1)),
+                              pixel_format=cam.get("pixel_format", "Mono12"),
+                              exposure_us=float(cam.get("exposure_us", 1000.0)),
+                              frame_rate_hz=float(cam.get("frame_rate_hz", 110.0)), trigger=cam.get("trigger", "free"))
+    cameras, heads = {}, {}
+    for head, identifier in config.cameras.items():
+        camera = AravisCamera(identifier, name=f"{head} ({identifier})")
+        stack.callback(camera.close)
+        camera.configure(settings)
+        _, _, width, height = camera.region()
+        advice = bandwidth_advice(width, height, 8 if settings.pixel_format == "Mono8" else 12, settings.frame_rate_hz)
+        if advice:
+            print(f"warning: {head} camera: {advice}", file=sys.stderr)
+        cameras[head] = camera
+        template = thesis_head(head)
+        heads[head] = template.__class__(**{**template.__dict__, "width": width, "height": height,
+                                            "cx": (width - 1) / 2, "cy": (height - 1) / 2,
+                                            "bit_depth": 8 if settings.pixel_format == "Mono8" else 12})
+    rig = Rig(config.name, heads, frame_rate_hz=settings.frame_rate_hz)
+    port = config.sequencer_port
+    if port != "sim":
+        if port == "emulator":
+            emulator = stack.enter_context(SequencerEmulator())
+            port = emulator.port
+        sequencer = Sequencer(port)
+        stack.callback(sequencer.close)
+        sequencer.configure(rig.sequence, int(settings.exposure_us), settings.frame_rate_hz)
+        sequencer.arm()
+        sequencer.start()
+        stack.callback(sequencer.stop)
+    flow = None
+    if config.flow_port is not None:
+        port = config.flow_port
+        if port == "emulator":
+            emulator = stack.enter_context(FlowSensorEmulator())
+            port = emulator.port
+        flow = FlowSensor(port)
+        stack.callback(flow.close)
+    calibration = (config.flow_gain_lps, config.flow_offset_lps) if config.flow_gain_lps is not None else None
+    return rig, cameras, flow, calibration
+
+
+def run_record(args: argparse.Namespace) -> int:
+    from core.profile import ProfileError, load_profile
+    from core.session import SubjectRecord
+    from drivers.camera import CameraError
+    from drivers.flowsensor import FlowSensorError
+    from drivers.recorder import Recorder, sequence_light_of
+    from drivers.rig import RigConfigError, load_rig_config
+    from drivers.sequencer import SequencerError
+
+    if args.seconds <= 0:
+        raise UserError("--seconds must be positive")
+    try:
+        config = load_rig_config(args.rig)
+        subject = SubjectRecord(args.subject, args.sex, args.age, args.height, args.weight)
+    except (RigConfigError, ValueError) as exc:
+        raise UserError(str(exc)) from exc
+    with ExitStack() as stack:
+        try:
+            if config.simulated:
+                rig, cameras, flow, flow_calibration = _simulated(config, args.seconds, stack)
+            else:
+                rig, cameras, flow, flow_calibration = _hardware(config, stack)
+            if config.calibration is not None:
+                rig = load_profile(config.calibration).apply(rig)
+        except (CameraError, SequencerError, FlowSensorError, ProfileError) as exc:
+            raise UserError(str(exc)) from exc
+        first_ids: dict[str, int] = {}
+
+        def light_of(head: str, frame_id: int) -> int:
+            first_ids.setdefault(head, frame_id - frame_id % rig.cycle_length if config.simulated else frame_id)
+            return sequence_light_of(rig, first_ids)(head, frame_id)
+
+        show = sys.stderr.isatty()
+
+        def progress(elapsed: float, counts: dict) -> None:
+            if show:
+                frames = ", ".join(f"{h} {n}" for h, n in counts.items())
+                print(f"\rrecording {args.output.name}: {elapsed:5.1f} / {args.seconds:g} s, frames {frames}",
+                      end="", file=sys.stderr, flush=True)
+
+        recorder = Recorder(args.output, rig, cameras, light_of, flow, flow_calibration, subject,
+                            kind="simulation" if config.simulated else "patient")
+        summary = recorder.run(args.seconds, progress)
+    if show:
+        print(file=sys.stderr)
+    frames = ", ".join(f"{h} {n}" for h, n in summary.frames.items())
+    camera = ", ".join(f"{h} {summary.camera_failed[h]} failed / {summary.camera_lost[h]} lost"
+                       for h in summary.frames)
+    print(f"wrote {summary.path}: {summary.elapsed_s:.1f} s, frames {frames} ({camera} at the cameras), "
+          f"{summary.flow_samples} flow samples ({summary.flow_lost} lost), dropped by the software "
+          f"{summary.dropped_by_software}, queue at most {100 * summary.max_queue_fill:.0f} % full, "
+          f"{summary.written_mb / summary.elapsed_s:.1f} MB/s written")
+    for problem in summary.problems:
+        print(f"stopped: {problem}", file=sys.stderr)
+    return 1 if summary.problems else 0
+
+
+def run_devices(args: argparse.Namespace) -> int:
+    from serial.tools import list_ports
+
+    from drivers.camera import CameraError, find_aravis_device
+    from drivers.rig import RigConfigError, load_rig_config
+
+    try:
+        config = load_rig_config(args.rig)
+    except RigConfigError as exc:
+        raise UserError(str(exc)) from exc
+    try:
+        import gi
+
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis
+
+        Aravis.update_device_list()
+        cameras = [f"{Aravis.get_device_id(i)} (serial {Aravis.get_device_serial_nbr(i)}, "
+                   f"{Aravis.get_device_address(i)})" for i in range(Aravis.get_n_devices())]
+    except (ImportError, ValueError) as exc:
+        cameras = [f"Aravis unavailable: {exc}"]
+    print("cameras: " + ("; ".join(cameras) if cameras else "none"))
+    ports = [p.device for p in list_ports.comports()]
+    print("serial ports: " + (", ".join(ports) if ports else "none"))
+    print(f"rig {config.name!r} ({config.path}):")
+    ok = True
+    for head, identifier in config.cameras.items():
+        if identifier == "sim":
+            print(f"  {head} camera: simulated")
+            continue
+        try:
+            print(f"  {head} camera {identifier}: found as {find_aravis_device(identifier)}")
+        except CameraError as exc:
+            ok = False
+            print(f"  {head} camera {identifier}: MISSING: {exc}")
+    for name, port in (("sequencer", config.sequencer_port), ("flow sensor", config.flow_port)):
+        if port in (None, "sim", "emulator"):
+            print(f"  {name}: {port or 'none'}")
+        elif Path(port).exists():
+            print(f"  {name}: {port} present")
+        else:
+            ok = False
+            print(f"  {name}: {port} MISSING")
+    return 0 if ok else 1

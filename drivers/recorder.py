@@ -1,0 +1,183 @@
+"""The recorder: both heads and the flow sensor into one session file, never dropping a frame.
+
+Capture threads (one per camera, one for the flow sensor) put what arrives on a bounded queue;
+one writer thread owns the session file (h5py serialises every call). A capture thread never
+waits on the disk: when the queue is nearly full the recorder reports back-pressure, and if it
+fills it stops cleanly, keeping everything written so far, and says the disk does not keep up.
+The file is flushed about once a second, so a crash loses at most the last second.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from core.rig import Rig
+from core.session import SessionWriter, SubjectRecord
+from drivers.camera import Camera, CameraError
+
+
+class RecordingError(Exception):
+    """The recording stopped before its end; the message says why. The file keeps what was written."""
+
+
+@dataclass
+class RecordSummary:
+    path: Path
+    frames: dict[str, int]
+    camera_failed: dict[str, int]
+    camera_lost: dict[str, int]
+    flow_samples: int
+    flow_lost: int
+    dropped_by_software: int
+    max_queue_fill: float
+    elapsed_s: float
+    written_mb: float
+    problems: list[str] = field(default_factory=list)
+
+
+class Recorder:
+    def __init__(self, path: str | Path, rig: Rig, cameras: dict[str, Camera],
+                 light_of: Callable[[str, int], int], flow=None, flow_calibration: tuple[float, float] | None = None,
+                 subject: SubjectRecord | None = None, kind: str = "patient", queue_items: int = 2000,
+                 flow_sensor_name: str = "pneumotachometer (12-bit ADC)") -> None:
+        self.path = Path(path)
+        self.rig = rig
+        self.cameras = cameras
+        self.light_of = light_of
+        self.flow = flow
+        self._queue: queue.Queue = queue.Queue(maxsize=queue_items)
+        self._stop = threading.Event()
+        self._errors: list[str] = []
+        self._lock = threading.Lock()
+        self._max_fill = 0.0
+        self._dropped = 0
+        self._counts = {h: 0 for h in cameras}
+        self._flow_samples = 0
+        self._written_bytes = 0
+        self.writer = SessionWriter(self.path, kind=kind, rig=rig, subject=subject)
+        if flow is not None:
+            gain, offset = flow_calibration if flow_calibration else (None, None)
+            self.writer.configure_flow(sample_rate_hz=flow.sample_rate_hz, adc_bits=12, sensor=flow_sensor_name,
+                                       conditions="ATPS", gain_lps=gain, offset_lps=offset)
+
+    def _put(self, item) -> None:
+        """Never blocks the capture thread; a full queue stops the recording (the disk cannot keep up)."""
+        fill = self._queue.qsize() / self._queue.maxsize
+        self._max_fill = max(self._max_fill, fill)
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            with self._lock:
+                self._dropped += 1
+                if not self._errors:
+                    self._errors.append("the disk does not keep up with the cameras: the recording stopped, "
+                                        "everything before is in the file")
+            self._stop.set()
+
+    def _capture(self, head: str, camera: Camera) -> None:
+        try:
+            while not self._stop.is_set():
+                frame = camera.grab(0.2)
+                if frame is not None:
+                    self._put(("frame", head, frame))
+        except CameraError as exc:
+            with self._lock:
+                self._errors.append(str(exc))
+            self._stop.set()
+
+    def _capture_flow(self) -> None:
+        try:
+            while not self._stop.is_set():
+                block = self.flow.read()
+                if len(block.adc):
+                    self._put(("flow", block))
+                time.sleep(0.01)
+        except Exception as exc:  # a flow sensor that fails stops the recording with its message
+            with self._lock:
+                self._errors.append(str(exc))
+            self._stop.set()
+
+    def _write(self) -> None:
+        last_flush = time.monotonic()
+        while not (self._stop.is_set() and self._queue.empty()):
+            try:
+                item = self._queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                if item[0] == "frame":
+                    _, head, frame = item
+                    self.writer.append_frames(head, frame.image, [self.light_of(head, frame.frame_id)],
+                                              [frame.timestamp_ns], [frame.frame_id])
+                    self._counts[head] += 1
+                    self._written_bytes += frame.image.nbytes
+                else:
+                    block = item[1]
+                    self.writer.append_flow(block.adc, block.timestamp_ns)
+                    self._flow_samples += len(block.adc)
+                if time.monotonic() - last_flush > 1.0:
+                    self.writer.flush()
+                    last_flush = time.monotonic()
+            except OSError as exc:  # a full disk or a permission error
+                with self._lock:
+                    self._errors.append(f"cannot write {self.path}: {exc}; the recording stopped, what was "
+                                        "written before is kept")
+                self._stop.set()
+                return
+
+    def run(self, seconds: float, progress: Callable[[float, dict], None] | None = None,
+            events: list[tuple[int, str]] | None = None) -> RecordSummary:
+        started = time.monotonic()
+        for head, camera in self.cameras.items():
+            camera.start()
+        if self.flow is not None:
+            self.flow.start()
+        for t, label in events or []:
+            self.writer.add_event(t, label)
+        threads = [threading.Thread(target=self._capture, args=(h, c), name=f"capture-{h}", daemon=True)
+                   for h, c in self.cameras.items()]
+        if self.flow is not None:
+            threads.append(threading.Thread(target=self._capture_flow, name="capture-flow", daemon=True))
+        writer = threading.Thread(target=self._write, name="writer", daemon=True)
+        writer.start()
+        for t in threads:
+            t.start()
+        try:
+            while time.monotonic() - started < seconds and not self._stop.is_set():
+                time.sleep(0.1)
+                if progress is not None:
+                    progress(time.monotonic() - started, dict(self._counts))
+        finally:
+            self._stop.set()
+            for t in threads:
+                t.join(timeout=5)
+            for camera in self.cameras.values():
+                camera.stop()
+            if self.flow is not None:
+                self.flow.stop()
+            writer.join(timeout=30)
+            self.writer.close()
+        stats = {h: c.stats for h, c in self.cameras.items()}
+        return RecordSummary(self.path, dict(self._counts), {h: s.failed for h, s in stats.items()},
+                             {h: s.lost for h, s in stats.items()}, self._flow_samples,
+                             int(getattr(self.flow, "lost_samples", 0)) if self.flow is not None else 0,
+                             self._dropped, self._max_fill, time.monotonic() - started, self._written_bytes / 1e6,
+                             list(self._errors))
+
+
+def sequence_light_of(rig: Rig, first_ids: dict[str, int] | None = None) -> Callable[[str, int], int]:
+    """Light of a frame when frame id 0 (or the head's first id) was the cycle's first trigger."""
+    sequence = np.asarray(rig.sequence)
+    first = first_ids or {}
+
+    def light_of(head: str, frame_id: int) -> int:
+        return int(sequence[(frame_id - first.get(head, 0)) % len(sequence)])
+
+    return light_of

@@ -1,0 +1,133 @@
+"""The simulated rig's devices: cameras that render the simulated subject, and its flow sensor.
+
+They behave like the real ones in time: frames and samples come at their rate on the session
+clock (paced in real time by default), with frame ids and sample counters.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.camera import CameraSettings, CameraStats, Frame
+from drivers.flowsensor import FlowBlock
+
+
+@dataclass
+class SimulatedRigState:
+    """What the simulated devices share: the scene, the heads as built, the clock's start."""
+
+    config: object  # core.sim.simulate.SimConfig
+    rig: object  # core.rig.Rig
+    scene: object
+    heads: dict
+    digitisers: dict
+    start_ns: int
+
+    @classmethod
+    def build(cls, config, realtime_start_ns: int | None = None) -> "SimulatedRigState":
+        from dataclasses import replace
+
+        from core.rig import thesis_rig
+        from core.sim.scene import Digitiser
+        from core.sim.simulate import as_built_heads, build_scene
+
+        rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
+        scene, _ = build_scene(config, rig)
+        if len(rig.heads) == 2:
+            rig = replace(rig, baseline_mm=float(scene.baseline_mm))
+        heads = as_built_heads(rig, config)
+        digitisers = {h: Digitiser(config.camera, config.bit_depth) for h in rig.heads}
+        return cls(config, rig, scene, heads, digitisers, realtime_start_ns or time.monotonic_ns())
+
+
+@dataclass
+class SimCamera:
+    """A head of the simulated rig behind the Camera protocol."""
+
+    state: SimulatedRigState
+    head: str
+    realtime: bool = True
+    name: str = ""
+    stats: CameraStats = field(default_factory=CameraStats)
+
+    def __post_init__(self) -> None:
+        self.name = self.name or f"sim-{self.head}"
+        self._next = 0
+        self._running = False
+
+    def configure(self, settings: CameraSettings) -> None:
+        """The simulated sensor keeps the rig's size and rate; settings are accepted as given."""
+
+    def start(self) -> None:
+        self._running = True
+
+    def grab(self, timeout_s: float = 0.5) -> Frame | None:
+        from core.sim.scene import noise_key
+
+        if not self._running:
+            return None
+        s = self.state
+        period_ns = 1e9 / s.rig.frame_rate_hz
+        due = s.start_ns + int(round(self._next * period_ns))
+        if self.realtime:
+            wait = (due - time.monotonic_ns()) / 1e9
+            if wait > timeout_s:
+                time.sleep(timeout_s)
+                return None
+            if wait > 0:
+                time.sleep(wait)
+        i = self._next
+        head = s.heads[self.head]
+        light = s.rig.sequence[i % s.rig.cycle_length]
+        image, _ = s.scene.render(head, i / s.rig.frame_rate_hz, light,
+                                  noise_key(s.config.seed, self.head, i, head.width * head.height), s.digitisers[self.head])
+        self._next += 1
+        frame = Frame(image, i, due)
+        self.stats.count(i)
+        return frame
+
+    def stop(self) -> None:
+        self._running = False
+
+    def close(self) -> None:
+        self.stop()
+
+
+@dataclass
+class SimFlowSensor:
+    """The simulated pneumotachometer: the subject's true flow through the sensor model, 1000 samples/s."""
+
+    state: SimulatedRigState
+    realtime: bool = True
+
+    def __post_init__(self) -> None:
+        self.model = self.state.config.flow_sensor
+        self._next = 0
+        self.lost_samples = 0
+
+    @property
+    def sample_rate_hz(self) -> float:
+        return self.model.sample_rate_hz
+
+    def start(self) -> None:
+        self._next = 0
+
+    def read(self) -> FlowBlock:
+        now = time.monotonic_ns()
+        rate = self.model.sample_rate_hz
+        due = int((now - self.state.start_ns) * rate / 1e9) if self.realtime else self._next + 100
+        counter = np.arange(self._next, max(self._next, due), dtype=np.int64)
+        self._next = int(counter[-1]) + 1 if len(counter) else self._next
+        t = counter / rate
+        adc = self.model.adc_counts(self.state.scene.truth_flow_lps(t), t, self.state.config.seed + int(self._next))
+        stamps = self.state.start_ns + np.round(counter * 1e9 / rate).astype(np.int64)
+        return FlowBlock(adc, counter, stamps, 0)
+
+    def stop(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass

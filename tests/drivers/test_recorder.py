@@ -1,0 +1,57 @@
+"""Recording from the simulated rig into a session file; rig configurations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from core.session import SessionFile, validate_session
+from drivers.rig import DEFAULT_RIG, RigConfigError, load_rig_config
+
+
+def test_shipped_rig_configs_load():
+    sim = load_rig_config(DEFAULT_RIG)
+    assert sim.simulated and sim.cameras == {"front": "sim", "back": "sim"} and sim.flow_gain_lps == 0.0075
+    fake = load_rig_config(DEFAULT_RIG.parent / "fake-gige.toml")
+    assert fake.cameras == {"front": "FRONT01", "back": "BACK01"} and fake.sequencer_port == "emulator"
+    template = load_rig_config(DEFAULT_RIG.parent / "template.toml")
+    assert template.camera["trigger"] == "line"
+
+
+@pytest.mark.parametrize("text, message", [
+    ("name='x'\n", "[heads.front] is required"),
+    ("[heads.front]\ncamera='sim'\n[heads.side]\ncamera='sim'\n", "unknown head [heads.side]"),
+    ("[heads.front]\ncamera='sim'\n[heads.back]\ncamera='FRONT01'\n", "mixing simulated and real"),
+    ("[heads.front]\ncamera='sim'\n[camera]\nframe_rate_hz=1000\n", "frame_rate_hz must be between"),
+    ("[heads.front]\ncamera='sim'\n[flowsensor]\nport='sim'\ngain_lps=0.1\n", "go together"),
+    ("[heads.front\n", "not valid TOML"),
+])
+def test_bad_rig_configs_name_the_problem(tmp_path, text, message):
+    path = tmp_path / "rig.toml"
+    path.write_text(text)
+    with pytest.raises(RigConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        load_rig_config(path)
+
+
+def test_record_the_simulated_rig(tmp_path, capsys):
+    out = tmp_path / "rec.h5"
+    assert main(["record", "-o", str(out), "--seconds", "1.5", "--subject", "P-9"]) == 0
+    printed = capsys.readouterr().out
+    assert "dropped by the software 0" in printed
+    assert validate_session(out) == []
+    with SessionFile(out) as s:
+        assert s.subject.id == "P-9" and s.flow is not None and s.rig.baseline_mm is not None
+        for head in ("front", "back"):
+            n = s.n_frames(head)
+            assert 150 <= n <= 180, n  # 110 frames/s for 1.5 s
+            ids = s.frame_id(head).astype(int)
+            np.testing.assert_array_equal(ids, np.arange(ids[0], ids[0] + n))  # every frame reached the file
+            np.testing.assert_array_equal(s.light_index(head), np.array(s.rig.sequence)[ids % 5])
+        adc, stamps = s.flow_samples()
+        assert 1300 <= len(adc) <= 1700 and np.all(np.diff(stamps) == 1_000_000)
+
+
+def test_record_refuses_a_missing_rig_file(tmp_path, capsys):
+    assert main(["record", "-o", str(tmp_path / "x.h5"), "--rig", str(tmp_path / "none.toml")]) == 2
+    assert "cannot read rig configuration" in capsys.readouterr().err
