@@ -218,6 +218,11 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     mo = what.add_parser("motion", help="maps during a forced expiration, with and without motion compensation")
     mo.add_argument("--no-write", action="store_true", help="print only")
     mo.set_defaults(run=lambda args: print(run_motion(not args.no_write)) or 0)
+    rec = what.add_parser("record", help="record from two fake GigE cameras and the simulated rig")
+    rec.add_argument("--seconds", type=float, default=60.0)
+    rec.add_argument("--rate", type=float, default=110.0, help="frames/s asked of the fake cameras")
+    rec.add_argument("--no-write", action="store_true", help="print only")
+    rec.set_defaults(run=lambda args: print(run_record(args.seconds, not args.no_write, args.rate)) or 0)
     p.set_defaults(run=lambda args: p.print_help() or 2)
 
 
@@ -393,4 +398,91 @@ def run_motion(write: bool, scale: float = 0.25) -> str:
     text = "\n".join(lines)
     if write:
         write_section("motion", text)
+    return text
+
+
+def run_record(seconds: float, write: bool, rate_hz: float = 110.0) -> str:
+    """Two fake GigE cameras at 1400 x 1024 with the flow emulator, then the simulated rig at 700 x 512."""
+    import resource
+    import shutil
+    import subprocess
+
+    from core.rig import Rig, thesis_head
+    from core.session import SubjectRecord
+    from drivers.camera import AravisCamera, CameraSettings, find_aravis_device
+    from drivers.flowsensor import FlowSensor, FlowSensorEmulator
+    from drivers.recorder import Recorder, sequence_light_of
+
+    def cpu_s() -> float:
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        return usage.ru_utime + usage.ru_stime
+
+    lines = [f"## Recording (`photopft bench record --seconds {seconds:g}`)", ""]
+    fake = shutil.which("arv-fake-gv-camera-0.8")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        if fake is not None:
+            subprocess.run(["ip", "addr", "add", "127.0.0.2/8", "dev", "lo"], capture_output=True)
+            processes = [subprocess.Popen([fake, "-i", a, "-s", s], stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.DEVNULL)
+                         for a, s in (("127.0.0.1", "BENCHF"), ("127.0.0.2", "BENCHB"))]
+            try:
+                for serial in ("BENCHF", "BENCHB"):
+                    for _ in range(50):
+                        try:
+                            find_aravis_device(serial)
+                            break
+                        except Exception:
+                            time.sleep(0.2)
+                cameras = {}
+                for head, serial in (("front", "BENCHF"), ("back", "BENCHB")):
+                    camera = AravisCamera(serial, buffers=64)
+                    camera.configure(CameraSettings(width=1400, height=1024, pixel_format="Mono8", frame_rate_hz=rate_hz))
+                    cameras[head] = camera
+                heads = {h: thesis_head(h, bit_depth=8) for h in cameras}
+                rig = Rig("bench-fake-gige", heads, frame_rate_hz=rate_hz)
+                with FlowSensorEmulator() as emulator:
+                    flow = FlowSensor(emulator.port)
+                    recorder = Recorder(folder / "fake.h5", rig, cameras, sequence_light_of(rig), flow, (0.0075, -15.36),
+                                        SubjectRecord("BENCH", "male", 30, 175, 75), queue_items=4000)
+                    cpu0 = cpu_s()
+                    summary = recorder.run(seconds)
+                    cpu = (cpu_s() - cpu0) / summary.elapsed_s
+                    flow.close()
+                for camera in cameras.values():
+                    camera.close()
+                rows.append(("two fake GigE cameras, 1400 x 1024 Mono8, flow emulator", summary, cpu))
+            finally:
+                for process in processes:
+                    process.kill()
+                    process.wait()
+        from core.sim.breathing import Sway
+        from core.sim.simulate import SimConfig
+        from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
+
+        state = SimulatedRigState.build(SimConfig(protocol="tidal", seconds=seconds + 5, scale=0.5, sway=Sway()))
+        cameras = {h: SimCamera(state, h) for h in state.rig.heads}
+        recorder = Recorder(folder / "sim.h5", state.rig, cameras, sequence_light_of(state.rig),
+                            SimFlowSensor(state), (0.0075, -15.36), SubjectRecord("BENCH", "male", 30, 175, 75),
+                            kind="simulation", queue_items=4000)
+        cpu0 = cpu_s()
+        summary = recorder.run(seconds)
+        rows.append(("simulated rig, 700 x 512 (binned size for a gigabit link), 12-bit, flow sensor", summary,
+                     (cpu_s() - cpu0) / summary.elapsed_s))
+    lines += [f"Each for {seconds:g} s at {rate_hz:g} frames/s asked; 2 cores.", "",
+              "| source | frames per head (rate) | lost at the cameras | dropped by the software | flow samples (lost) "
+              "| queue peak | CPU (cores) | written |", "|---|---|---|---|---|---|---|---|"]
+    for name, s, cpu in rows:
+        per_head = ", ".join(f"{h} {n} ({n / s.elapsed_s:.1f}/s)" for h, n in s.frames.items())
+        lost = ", ".join(f"{h} {s.camera_failed[h]} failed, {s.camera_lost[h]} gaps" for h in s.frames)
+        lines.append(f"| {name} | {per_head} | {lost} | {s.dropped_by_software} | {s.flow_samples} ({s.flow_lost}) | "
+                     f"{100 * s.max_queue_fill:.0f} % | {cpu:.2f} | {s.written_mb / s.elapsed_s:.0f} MB/s |")
+        for problem in s.problems:
+            lines.append(f"| | stopped: {problem} | | | | | | |")
+    if fake is None:
+        lines.append("(arv-fake-gv-camera-0.8 not installed: the GigE row is missing)")
+    text = "\n".join(lines)
+    if write:
+        write_section("record", text)
     return text
