@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import struct
-import threading
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -19,6 +18,7 @@ import numpy as np
 import serial
 
 from drivers.framing import FrameReader, encode
+from drivers.pty_device import PtyDevice
 
 IDENTIFY, GO, HALT, SAMPLE = b"I", b"G", b"H", b"S"
 
@@ -109,7 +109,7 @@ class FlowSensor:
         self._port.close()
 
 
-class FlowSensorEmulator:
+class FlowSensorEmulator(PtyDevice):
     """The sensor's firmware on a pseudo-terminal, streaming a flow signal through its ADC transfer.
 
     `corrupt_rate` flips a random byte of that share of the frames, `drop_rate` loses that share
@@ -119,9 +119,7 @@ class FlowSensorEmulator:
     def __init__(self, flow_lps: Callable[[float], float] | None = None, gain_lps: float = 0.0075,
                  offset_lps: float = -15.36, sample_rate_hz: float = 1000.0, corrupt_rate: float = 0.0,
                  drop_rate: float = 0.0, seed: int = 0) -> None:
-        self.master, slave = os.openpty()
-        self.port = os.ttyname(slave)
-        self._slave = slave
+        super().__init__()
         self.flow_lps = flow_lps or (lambda t: 0.5 * np.sin(2 * np.pi * t / 4.0))
         self.gain_lps, self.offset_lps = gain_lps, offset_lps
         self.sample_rate_hz = sample_rate_hz
@@ -130,12 +128,6 @@ class FlowSensorEmulator:
         self.counter = 0
         self.sent = 0
         self.streaming = False
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="flowsensor-emulator", daemon=True)
-
-    def start(self) -> "FlowSensorEmulator":
-        self._thread.start()
-        return self
 
     def adc_for(self, flow_lps: float) -> int:
         return int(np.clip(round((flow_lps - self.offset_lps) / self.gain_lps), 0, 4095))
@@ -182,18 +174,3 @@ class FlowSensorEmulator:
                 if chunk:
                     self._write(bytes(chunk))
             time.sleep(0.002)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=1)
-        for fd in (self.master, self._slave):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-
-    def __enter__(self) -> "FlowSensorEmulator":
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

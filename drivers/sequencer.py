@@ -16,6 +16,7 @@ import numpy as np
 import serial
 
 from drivers.framing import FrameReader, encode
+from drivers.pty_device import PtyDevice
 
 IDENTIFY, CONFIGURE, ARM, START, STOP, STATUS = b"I", b"C", b"A", b"S", b"P", b"T"
 ACK, ERROR = b"K", b"E"
@@ -97,27 +98,19 @@ class Sequencer:
         self._port.close()
 
 
-class SequencerEmulator:
+class SequencerEmulator(PtyDevice):
     """The sequencer's firmware, serving its protocol on a pseudo-terminal (or any file descriptor)."""
 
     def __init__(self, serial_number: str = "EMU-0001") -> None:
+        super().__init__()
         self.serial_number = serial_number
-        self.master, slave = os.openpty()
-        self.port = os.ttyname(slave)
-        self._slave = slave
         self.state = 0
         self.sequence: tuple[int, ...] = (0, 1, 2, 3, -1)
         self.exposure_us = 0
         self.rate_hz = 0.0
         self.errors = 0
         self._started_at: float | None = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="sequencer-emulator", daemon=True)
         self.silent = False  # True: stops answering, as a device that hangs
-
-    def start(self) -> "SequencerEmulator":
-        self._thread.start()
-        return self
 
     def trigger_count(self) -> int:
         if self._started_at is None:
@@ -182,18 +175,3 @@ class SequencerEmulator:
             for body in reader.feed(data):
                 if len(body) >= 2:
                     self._handle(body)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=1)
-        for fd in (self.master, self._slave):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-
-    def __enter__(self) -> "SequencerEmulator":
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
