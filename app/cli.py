@@ -220,6 +220,26 @@ def run_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_recover(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("recover", help="recover a recording that was cut off (crash, power loss)",
+                       description="Copy what every dataset of a cut-off recording reached into a consistent "
+                                   "session file under the same name; the original is kept as NAME.crashed.h5.")
+    p.add_argument("session", type=Path)
+    p.set_defaults(run=run_recover)
+
+
+def run_recover(args: argparse.Namespace) -> int:
+    from core.session import recover_session
+
+    kept = recover_session(args.session)
+    print(f"recovered {args.session}: " + ", ".join(f"{k} {v}" for k, v in kept.items())
+          + f"; the original is kept as {args.session.with_name(args.session.stem + '.crashed.h5')}")
+    problems = validate_session(args.session)
+    for problem in problems:
+        print(f"  still wrong: {problem}")
+    return 1 if problems else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="photopft", description="Non-contact lung function testing by "
                                      "near-light photometric stereo. Every verb has --help.")
@@ -229,6 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_simulate(sub)
     add_info(sub)
     add_validate(sub)
+    add_recover(sub)
     from app.demo import add_demo
     from app.reconstruction_cli import add_calibrate, add_process
 

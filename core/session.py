@@ -265,6 +265,11 @@ class SessionWriter(_OwnsFile):
     def set_root_attr(self, key: str, value: Any) -> None:
         self._file.attrs[key] = value
 
+    def start_swmr(self) -> None:
+        """Single-writer/multiple-reader mode: from here on, appends and flushes keep the file readable
+        even if the writer dies (HDF5 SWMR). Every dataset must exist before; attributes are final."""
+        self._file.swmr_mode = True
+
     def flush(self) -> None:
         self._file.flush()
 
@@ -688,6 +693,9 @@ def validate_session(path: str | os.PathLike) -> list[str]:
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
+        if "already open for write" in str(exc):
+            return [f"{path} was being recorded and was never closed (the recorder stopped or the machine "
+                    f"crashed): recover it with `photopft recover {path}`"]
         return [f"{path} cannot be opened as HDF5 (truncated, corrupt or not a session file): {exc}"]
     c = _Checker()
     try:
@@ -721,3 +729,64 @@ def validate_session(path: str | os.PathLike) -> list[str]:
     except (OSError, RuntimeError, KeyError) as exc:
         c.add(f"{path} could not be read to the end (truncated or corrupt?): {exc}")
     return c.problems
+
+
+def recover_session(path: str | os.PathLike) -> dict[str, int]:
+    """Recover a session cut off mid-recording (crash, SIGKILL, power loss).
+
+    The file is read in SWMR mode (a killed writer leaves its "open for writing" flags set), and
+    the part every dataset reached is copied into a fresh file that takes the original's name;
+    the original is kept beside it as `<name>.crashed.h5`. Returns the frames (and flow samples)
+    kept per head. The root attribute `recovered` says when.
+    """
+    path = Path(path)
+    try:
+        src = h5py.File(path, "r", swmr=True)
+    except OSError as exc:
+        raise SessionError(f"cannot open {path} to recover it: {exc}") from exc
+    tmp = path.with_name(path.stem + ".recovering.h5")
+    kept: dict[str, int] = {}
+    with src, h5py.File(tmp, "w", libver="latest") as dst:
+        for key, value in src.attrs.items():
+            dst.attrs[key] = value
+        dst.attrs["recovered"] = now_iso()
+        for name in ("rig", "subject"):
+            if name in src:
+                src.copy(src[name], dst, name)
+
+        def trimmed(group: h5py.Group, keys: tuple[str, ...], n: int, block: int = 64) -> None:
+            out = dst.require_group(group.name)
+            for key in keys:
+                d = group[key]
+                new = out.create_dataset(key, shape=(n,) + d.shape[1:], dtype=d.dtype, maxshape=(None,) + d.shape[1:],
+                                         chunks=d.chunks)
+                for start in range(0, n, block):
+                    new[start:min(start + block, n)] = d[start:min(start + block, n)]
+
+        head_keys = ("frames", "light_index", "timestamp_ns", "frame_id")
+        for name in src.get("heads", {}):
+            g = src["heads"][name]
+            n = min(g[k].shape[0] for k in head_keys if k in g)
+            while n > 0:  # the last frame may have been half written: keep the frames that read back
+                try:
+                    g["frames"][n - 1]
+                    break
+                except (OSError, RuntimeError):
+                    n -= 1
+            trimmed(g, head_keys, n)
+            kept[name] = n
+        for group, keys in (("flow", ("adc", "timestamp_ns")), ("events", ("timestamp_ns", "label"))):
+            if group in src:
+                g = src[group]
+                n = min(g[k].shape[0] for k in keys)
+                trimmed(g, keys, n)
+                for key, value in g.attrs.items():
+                    dst[group].attrs[key] = value
+                if group == "flow":
+                    kept["flow"] = n
+        for name in ("truth",):
+            if name in src:
+                src.copy(src[name], dst, name)
+    os.replace(path, path.with_name(path.stem + ".crashed.h5"))
+    os.replace(tmp, path)
+    return kept

@@ -4,7 +4,9 @@ Capture threads (one per camera, one for the flow sensor) put what arrives on a 
 one writer thread owns the session file (h5py serialises every call). A capture thread never
 waits on the disk: when the queue is nearly full the recorder reports back-pressure, and if it
 fills it stops cleanly, keeping everything written so far, and says the disk does not keep up.
-The file is flushed about once a second, so a crash loses at most the last second.
+The file is written in HDF5 single-writer/multiple-reader mode and flushed about once a second, so
+a crash (or SIGKILL) loses at most the last second; core.session.recover_session trims a file cut
+off mid-frame to what all its datasets reached.
 """
 
 from __future__ import annotations
@@ -141,6 +143,7 @@ class Recorder:
             self.flow.start()
         for t, label in events or []:
             self.writer.add_event(t, label)
+        self.writer.start_swmr()  # from here a crash keeps everything up to the last flush (about 1 s)
         threads = [threading.Thread(target=self._capture, args=(h, c), name=f"capture-{h}", daemon=True)
                    for h, c in self.cameras.items()]
         if self.flow is not None:

@@ -1,0 +1,55 @@
+"""A recording killed with SIGKILL at a random moment: the file opens and holds all but the last second."""
+
+from __future__ import annotations
+
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+
+from core.session import SessionFile, recover_session, validate_session
+
+
+def test_sigkill_mid_recording_keeps_the_data(tmp_path):
+    out = tmp_path / "killed.h5"
+    process = subprocess.Popen([sys.executable, "-m", "app", "record", "-o", str(out), "--seconds", "30"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # wait until recording has begun (the file exists and holds frames), then kill at a random moment
+    deadline = time.monotonic() + 60
+    seen = {}
+    while time.monotonic() < deadline:
+        if out.exists():
+            try:
+                with h5py.File(out, "r", swmr=True) as f:
+                    seen = {h: f[f"heads/{h}/frames"].shape[0] for h in ("front", "back")}
+                    if min(seen.values()) > 20:
+                        break
+            except (OSError, KeyError):
+                pass
+        time.sleep(0.2)
+    recorded_s = random.uniform(1.0, 3.0)
+    time.sleep(recorded_s)
+    killed_at = time.monotonic()
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert "photopft recover" in validate_session(out)[0]  # the cut-off file says what to do
+    kept = recover_session(out)
+    assert out.with_name("killed.crashed.h5").exists()  # the original is kept
+    assert validate_session(out) == [], validate_session(out)
+    with SessionFile(out) as s:
+        for head in ("front", "back"):
+            n = s.n_frames(head)
+            # everything that was in the file before the kill is kept, and at most about a second is lost
+            assert n == kept[head] and n >= seen[head] + 110 * (recorded_s - 1.5), (head, n, seen, recorded_s)
+            ids = s.frame_id(head).astype(int)
+            np.testing.assert_array_equal(np.diff(ids), 1)
+            last = s.frames(head)[n - 1]
+            assert last.shape == s.rig.heads[head].shape and last.max() > 0
+        adc, stamps = s.flow_samples()
+        assert len(adc) > 500
+        assert "recovered" in s.attrs
+    assert time.monotonic() - killed_at < 60
