@@ -11,7 +11,7 @@ import numpy as np
 from core.pipeline import ReconstructionSettings
 from core.process import process_session
 from core.session import SessionFile, validate_session
-from core.flow import btps_factor
+from core.session_analysis import analyse_session
 
 
 def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) -> None:
@@ -36,6 +36,7 @@ def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) ->
         if problems:
             print("the session file does not follow the spec:\n  " + "\n  ".join(problems))
             return 1
+        print(f"{session}: valid photopft session (format version 1)")
         print(describe_session(session))
         results = args.output_dir / "results.h5"
         print(f"reconstructing every 11th light cycle window (10 maps/s per head) into {results} ...")
@@ -46,21 +47,6 @@ def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) ->
         return 0
 
     p.set_defaults(run=run)
-
-
-def flow_sensor_volume_l(s: SessionFile) -> tuple[np.ndarray, np.ndarray]:
-    """(timestamp_ns, volume_l at BTPS) from the flow sensor's calibration in force, plain integration."""
-    adc, t = s.flow_samples()
-    flow = s.flow
-    if flow.gain_lps is None:
-        raise ValueError("the flow sensor is uncalibrated")
-    attrs = flow.attrs
-    factor = 1.0
-    if flow.conditions == "ATPS" and "room_temperature_c" in attrs:
-        factor = btps_factor(float(attrs["room_temperature_c"]), float(attrs["room_pressure_hpa"]),
-                             float(attrs["room_humidity_pct"]))
-    lps = (flow.gain_lps * adc + flow.offset_lps) * factor
-    return t, np.cumsum(lps) / flow.sample_rate_hz
 
 
 def _normalised(values: np.ndarray) -> np.ndarray:
@@ -92,13 +78,28 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
                 r_gv = np.corrcoef(combined, np.interp(t, t_truth, volume))[0, 1]
                 lines.append(f"  gradient volume (thesis eqs 3.26-3.27, {' and '.join(heads)} combined) against the "
                              f"true volume: r = {r_gv:.3f} (thesis Table 5.2: 0.98)")
-        if s.flow is not None and s.flow.gain_lps is not None:
-            t_flow, v_flow = flow_sensor_volume_l(s)
-            lines.append(f"  flow sensor (BTPS, plain integration, zero drift not yet removed): range "
-                         f"{v_flow.min():+.3f} to {v_flow.max():+.3f} L")
-            if s.has_truth:
-                v = np.interp(t_truth, t_flow, v_flow)
-                r = np.corrcoef(v, volume)[0, 1]
-                lines.append(f"  flow sensor against truth: r = {r:.4f}, largest difference "
-                             f"{np.max(np.abs(v - volume)):.3f} L")
+    report = analyse_session(path)
+    if report.flow_volume is not None:
+        t_flow, v_flow = report.flow_volume
+        lines.append(f"  flow sensor (BTPS, zero drift removed): range {v_flow.min():+.3f} to {v_flow.max():+.3f} L")
+        if report.truth is not None:
+            with SessionFile(path) as s:
+                start = int(min(s.timestamp_ns(h)[0] for h in s.heads))
+            v = np.interp((t_truth - start) / 1e9, t_flow, v_flow)
+            lines.append(f"  flow sensor against the true volume: r = {np.corrcoef(v, volume)[0, 1]:.4f}, largest "
+                         f"difference {np.max(np.abs(v - volume)):.3f} L")
+        values = report.flow_sensor.parameters()
+        lines.append("key values (flow sensor; the optical values in litres come with the metric volume):")
+        shown = [("TV", "TV_l", "L"), ("RR", "RR_bpm", "/min"), ("VC", "VC_l", "L"), ("FVC", "FVC_l", "L"),
+                 ("FEV1", "FEV1_l", "L"), ("FEV1/FVC", "FEV1_FVC", ""), ("PEF", "PEF_lps", "L/s")]
+        for label, key, unit in shown:
+            if key in values:
+                ref = report.references.get({"FVC_l": "FVC", "FEV1_l": "FEV1", "FEV1_FVC": "FEV1_FVC"}.get(key, ""))
+                extra = (f"  (predicted {ref.predicted:.2f}, LLN {ref.lln:.2f}, z {ref.zscore(values[key]):+.2f})"
+                         if ref is not None else "")
+                lines.append(f"  {label:<9} {values[key]:7.3f} {unit}{extra}")
+        if "grade" in values:
+            lines.append(f"  forced expirations: grade {values['grade']}, {values['acceptable_FVC']} of "
+                         f"{values['manoeuvres']} acceptable")
+        lines += [f"  note: {problem}" for problem in report.flow_sensor.problems]
     return "\n".join(lines)

@@ -126,14 +126,19 @@ def tidal_values(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: f
                        float(np.mean(levels)))
 
 
-def _windows(events: list[tuple[float, str]], start_label: str, end_s: float) -> list[tuple[float, float]]:
-    out = []
+def _windows(events: list[tuple[float, str]], start_label: str,
+             end_s: float) -> tuple[list[tuple[float, float]], list[float]]:
+    """(start, end) of each manoeuvre that ended within the recording; the starts of those that did not."""
+    out, unfinished = [], []
     for k, (t, label) in enumerate(events):
         if label != start_label:
             continue
-        end = next((t2 for t2, l2 in events[k + 1:] if l2 == "maneuver-end"), end_s)
-        out.append((t, end))
-    return out
+        end = next((t2 for t2, l2 in events[k + 1:] if l2 == "maneuver-end"), None)
+        if end is None or end > end_s:
+            unfinished.append(t)
+        else:
+            out.append((t, end))
+    return out, unfinished
 
 
 def tidal_windows(events: list[tuple[float, str]], end_s: float) -> list[tuple[float, float]]:
@@ -171,7 +176,10 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
     if result.tidal is None:
         result.problems.append("no stretch of tidal breathing with two or more breaths")
     frc = result.tidal.end_expiratory_level_l if result.tidal is not None else 0.0
-    for a, b in _windows(ordered, "vc-start", end_s):
+    vc_windows, vc_unfinished = _windows(ordered, "vc-start", end_s)
+    result.problems += [f"slow VC from {t:.1f} s not finished before the recording ended: left out"
+                        for t in vc_unfinished]
+    for a, b in vc_windows:
         inside = (t >= a) & (t <= b + 0.5)
         if inside.sum() < 10:
             continue
@@ -180,7 +188,10 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         tv = result.tidal.tidal_volume_l if result.tidal is not None else float("nan")
         result.vital_capacity = VitalCapacity(top - bottom, ic, erv, ic - tv)
     blows: list[ForcedValues] = []
-    for a, b in _windows(ordered, "forced-start", end_s):
+    forced_windows, forced_unfinished = _windows(ordered, "forced-start", end_s)
+    result.problems += [f"forced expiration from {t:.1f} s not finished before the recording ended: left out"
+                        for t in forced_unfinished]
+    for a, b in forced_windows:
         before = (t >= a - 2.0) & (t <= a + 0.3)
         if before.sum() < 10:
             continue

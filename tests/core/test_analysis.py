@@ -84,3 +84,11 @@ def test_session_without_tidal_breathing_says_so():
     t = np.arange(0, 10, 0.01)
     values = analyse_volume(t, np.zeros_like(t), [])
     assert values.tidal is None and "no stretch of tidal breathing" in values.problems[0]
+
+
+def test_an_unfinished_manoeuvre_is_left_out_and_named():
+    t = np.arange(0, 12, 0.01)
+    v = np.where(t > 8, (t - 8) * 0.8, 0.0)  # inhaling towards TLC when the recording stops
+    values = analyse_volume(t, v, [(0.0, "tidal-start"), (8.0, "maneuver-end"), (8.0, "vc-start")])
+    assert values.vital_capacity is None
+    assert any("slow VC from 8.0 s not finished" in p for p in values.problems)
