@@ -105,24 +105,6 @@ def _chi_square(signal, weight, points, scale, light_positions, light_intensity)
     return partial.sum()
 
 
-def four_light_residual(signal: np.ndarray, points_mm: np.ndarray, light_positions_mm: np.ndarray,
-                        light_intensity: np.ndarray, variance: np.ndarray | None = None) -> float:
-    """Chi-square of the near-light Lambertian model at N pixels: with four lights and three
-    unknowns (albedo times normal) per pixel, one combination of the lights must vanish when the
-    geometry is right.
-
-    signal (4, N) lit minus dark, points_mm (N, 3), variance (4, N) of each signal (default: the
-    signal itself, shot noise). Weighting by the noise keeps the noise's share of the sum the same
-    at every trial distance, so that it cannot pull the minimum.
-    """
-    if variance is None:
-        variance = np.maximum(signal, 1.0)
-    return float(_chi_square(np.ascontiguousarray(signal, np.float64), 1.0 / np.sqrt(variance),
-                             np.ascontiguousarray(points_mm, np.float64), 1.0,
-                             np.ascontiguousarray(light_positions_mm, np.float64),
-                             np.ascontiguousarray(light_intensity, np.float64)))
-
-
 class PhotometricDistance:
     """The distance at which the near-light model explains all four lights best, for one cycle.
 
@@ -172,11 +154,3 @@ class PhotometricDistance:
         k = int(np.argmin(values))
         bracket = (grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)])
         return float(minimize_scalar(cost, bounds=bracket, method="bounded", options={"xatol": 0.05}).x)
-
-
-def photometric_distance_scale(signal: np.ndarray, rays: np.ndarray, relative_depth: np.ndarray, mask: np.ndarray,
-                               light_positions_mm: np.ndarray, light_intensity: np.ndarray,
-                               scale_range: tuple[float, float], dark: np.ndarray | None = None) -> float:
-    """One-off form of `PhotometricDistance(...).scale(...)`."""
-    problem = PhotometricDistance(signal, mask, light_positions_mm, light_intensity, dark)
-    return problem.scale(rays, relative_depth, scale_range)

@@ -12,7 +12,7 @@ import numpy as np
 
 from core.jsonfile import read_json_object
 
-from core.rig import Head, Rig
+from core.rig import Rig
 
 PROFILE_FORMAT = "photopft-rig-calibration"
 
@@ -110,10 +110,3 @@ def load_profile(path: str | os.PathLike) -> RigCalibration:
     return RigCalibration(str(data.get("created", "")), list(data.get("sessions", [])), heads,
                           {k: v for k, v in data.items() if k not in ("format", "format_version", "created",
                                                                        "sessions", "heads")})
-
-
-def head_lights(head: Head, calibration: HeadCalibration | None) -> Head:
-    if calibration is None:
-        return head
-    return replace(head, light_positions_mm=calibration.light_positions_mm,
-                   light_intensity=calibration.light_intensity)

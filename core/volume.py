@@ -82,17 +82,3 @@ def two_head_distances(width_front_px: np.ndarray, width_back_px: np.ndarray, ba
 def rescaled_cap(volume_l: np.ndarray, side_depth_mm: np.ndarray, distance_mm: np.ndarray) -> np.ndarray:
     """Cap volume after scaling the map so its silhouette plane lies at `distance_mm` (volume ~ scale^3)."""
     return np.asarray(volume_l) * (np.asarray(distance_mm) / np.asarray(side_depth_mm)) ** 3
-
-
-def smooth_series(t_s: np.ndarray, values: np.ndarray, window_s: float) -> np.ndarray:
-    """Centred moving average over `window_s` (for distances, which change slowly)."""
-    values = np.asarray(values, dtype=float)
-    if len(values) < 3 or window_s <= 0:
-        return values
-    dt = float(np.median(np.diff(t_s)))
-    n = max(1, int(round(window_s / dt)))
-    if n <= 1:
-        return values
-    kernel = np.ones(n) / n
-    padded = np.pad(values, (n // 2, n - 1 - n // 2), mode="edge")
-    return np.convolve(padded, kernel, mode="valid")

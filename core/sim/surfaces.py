@@ -9,7 +9,7 @@ volume swept by the surfaces is exact to the grid's quadrature (see `mode_volume
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -110,11 +110,3 @@ class Sphere:
     def as_row(self) -> np.ndarray:
         return np.array([*np.asarray(self.centre_mm, float), self.radius_mm, self.albedo, self.specular,
                          self.shininess])
-
-
-@dataclass
-class Placement:
-    """A still object for an interval of the recording (spheres per head)."""
-
-    start_s: float
-    spheres: dict[str, list[Sphere]] = field(default_factory=dict)
