@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from contextlib import ExitStack
 from pathlib import Path
 
 from app.cli import UserError
+from core.session import file_write_failed
 
 
 def add_record(sub: argparse._SubParsersAction) -> None:
@@ -150,6 +152,10 @@ def run_record(args: argparse.Namespace) -> int:
           f"{summary.written_mb / summary.elapsed_s:.1f} MB/s written")
     for problem in summary.problems:
         print(f"stopped: {problem}", file=sys.stderr)
+    if file_write_failed():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(1)  # HDF5 crashes tearing down a file it could not close; what is on disk is kept
     return 1 if summary.problems else 0
 
 

@@ -110,14 +110,29 @@ def write_rig(parent: h5py.Group, rig: Rig) -> None:
         _write_head_attrs(group.require_group(name), head)
 
 
+# Files whose close failed (a full disk). HDF5 crashes when such a file object is freed, so these
+# are kept for the life of the process; `file_write_failed()` tells a command line to leave with
+# os._exit, past HDF5's own teardown. The data on disk is what a recovery reads.
+_UNCLOSABLE: list[h5py.File] = []
+
+
+def file_write_failed() -> bool:
+    return bool(_UNCLOSABLE)
+
+
 class _OwnsFile:
     """Closes its HDF5 file once; a context manager."""
 
     _file: h5py.File
 
     def close(self) -> None:
-        if self._file.id.valid:
+        if self._file in _UNCLOSABLE or not self._file.id.valid:
+            return
+        try:
             self._file.close()
+        except (OSError, RuntimeError):
+            _UNCLOSABLE.append(self._file)
+            raise
 
     def __enter__(self):
         return self
@@ -731,6 +746,16 @@ def validate_session(path: str | os.PathLike) -> list[str]:
     return c.problems
 
 
+def _written_prefix(timestamp_ns: h5py.Dataset, n: int) -> int:
+    """How many leading entries were really written: a dataset's extent can reach the file before
+    its data does (a full disk), and unwritten entries read back as zeros, so the times stop rising."""
+    stamps = timestamp_ns[:n]
+    if n == 0:
+        return 0
+    bad = np.nonzero((np.diff(stamps) <= 0) | (stamps[1:] == 0))[0]
+    return int(bad[0]) + 1 if len(bad) else n
+
+
 def recover_session(path: str | os.PathLike) -> dict[str, int]:
     """Recover a session cut off mid-recording (crash, SIGKILL, power loss).
 
@@ -766,19 +791,20 @@ def recover_session(path: str | os.PathLike) -> dict[str, int]:
         head_keys = ("frames", "light_index", "timestamp_ns", "frame_id")
         for name in src.get("heads", {}):
             g = src["heads"][name]
-            n = min(g[k].shape[0] for k in head_keys if k in g)
-            while n > 0:  # the last frame may have been half written: keep the frames that read back
+            n = _written_prefix(g["timestamp_ns"], min(g[k].shape[0] for k in head_keys if k in g))
+            while n > 0:  # the last frames may have been half written: keep the frames that read back
                 try:
-                    g["frames"][n - 1]
-                    break
+                    if g["frames"][n - 1].any():
+                        break
                 except (OSError, RuntimeError):
-                    n -= 1
+                    pass
+                n -= 1
             trimmed(g, head_keys, n)
             kept[name] = n
         for group, keys in (("flow", ("adc", "timestamp_ns")), ("events", ("timestamp_ns", "label"))):
             if group in src:
                 g = src[group]
-                n = min(g[k].shape[0] for k in keys)
+                n = _written_prefix(g["timestamp_ns"], min(g[k].shape[0] for k in keys))
                 trimmed(g, keys, n)
                 for key, value in g.attrs.items():
                     dst[group].attrs[key] = value

@@ -127,10 +127,11 @@ class Recorder:
                 if time.monotonic() - last_flush > 1.0:
                     self.writer.flush()
                     last_flush = time.monotonic()
-            except OSError as exc:  # a full disk or a permission error
+            except (OSError, RuntimeError) as exc:  # a full disk or a permission error (h5py raises either)
                 with self._lock:
-                    self._errors.append(f"cannot write {self.path}: {exc}; the recording stopped, what was "
-                                        "written before is kept")
+                    self._errors.append(f"cannot write {self.path} ({write_failure_reason(exc)}): the recording stopped; "
+                                        f"what was written before is kept: free space, then run "
+                                        f"`photopft recover {self.path}`")
                 self._stop.set()
                 return
 
@@ -166,13 +167,29 @@ class Recorder:
             if self.flow is not None:
                 self.flow.stop()
             writer.join(timeout=30)
-            self.writer.close()
+            try:
+                self.writer.close()
+            except (OSError, RuntimeError) as exc:
+                with self._lock:
+                    if not any("cannot write" in e for e in self._errors):
+                        self._errors.append(f"cannot close {self.path} ({write_failure_reason(exc)}); what was written "
+                                            f"before is kept: run `photopft recover {self.path}`")
         stats = {h: c.stats for h, c in self.cameras.items()}
         return RecordSummary(self.path, dict(self._counts), {h: s.failed for h, s in stats.items()},
                              {h: s.lost for h, s in stats.items()}, self._flow_samples,
                              int(getattr(self.flow, "lost_samples", 0)) if self.flow is not None else 0,
                              self._dropped, self._max_fill, time.monotonic() - started, self._written_bytes / 1e6,
                              list(self._errors))
+
+
+def write_failure_reason(exc: Exception) -> str:
+    """The operating system's words for a failed write (h5py wraps them in a long message)."""
+    text = str(exc)
+    for known in ("No space left on device", "File too large", "Permission denied", "Read-only file system",
+                  "Disk quota exceeded", "Not a directory", "No such file or directory"):
+        if known in text:
+            return "the disk is full" if known in ("No space left on device", "Disk quota exceeded") else known.lower()
+    return text.splitlines()[0][:200]
 
 
 def sequence_light_of(rig: Rig, first_ids: dict[str, int] | None = None) -> Callable[[str, int], int]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import random
+import resource
 import signal
 import subprocess
 import sys
@@ -53,3 +54,28 @@ def test_sigkill_mid_recording_keeps_the_data(tmp_path):
         assert len(adc) > 500
         assert "recovered" in s.attrs
     assert time.monotonic() - killed_at < 60
+
+
+def _file_size_limit(limit_bytes: int):
+    def apply() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+    return apply
+
+
+def test_a_full_disk_stops_the_recording_cleanly_and_keeps_the_data(tmp_path):
+    """The file-size limit makes every write past 40 MB fail as a full disk does."""
+    out = tmp_path / "full.h5"
+    run = subprocess.run([sys.executable, "-m", "app", "record", "-o", str(out), "--seconds", "20"],
+                         preexec_fn=_file_size_limit(40_000_000), capture_output=True, text=True, timeout=120)
+    assert run.returncode == 1, run.stderr
+    assert "the recording stopped" in run.stderr and f"photopft recover {out}" in run.stderr
+    assert "Traceback" not in run.stderr
+    kept = recover_session(out)
+    assert validate_session(out) == []
+    with SessionFile(out) as s:
+        for head in ("front", "back"):
+            assert kept[head] > 80 and s.frames(head)[kept[head] - 1].max() > 0
+            np.testing.assert_array_equal(np.diff(s.frame_id(head).astype(int)), 1)
+        assert kept["flow"] > 500

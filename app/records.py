@@ -1,0 +1,312 @@
+"""Patient records: patients and their sessions in an SQLite database.
+
+Names and other direct identifiers live only here; a session file carries the patient's
+pseudonym (`/subject@id`). A session row points at its session file (and results file) and keeps
+its summary values, so a patient's history and trends need no session file opened.
+
+The database uses write-ahead logging and `synchronous=FULL`, so a committed transaction survives
+a crash of the application or the machine, and one cut off half way leaves no trace. The schema
+is versioned with `PRAGMA user_version`; `MIGRATIONS[k]` takes version k to k + 1.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import sqlite3
+from dataclasses import dataclass
+from datetime import date, datetime, timezone
+from pathlib import Path
+
+from app.paths import data_dir
+
+SEXES = ("male", "female")
+
+MIGRATIONS: tuple[str, ...] = (
+    # 0 -> 1: patients and sessions.
+    """
+    CREATE TABLE patients (
+        id INTEGER PRIMARY KEY,
+        pseudonym TEXT NOT NULL UNIQUE,
+        patient_number TEXT UNIQUE,
+        family_name TEXT NOT NULL,
+        given_name TEXT NOT NULL DEFAULT '',
+        sex TEXT NOT NULL CHECK (sex IN ('male', 'female')),
+        birth_date TEXT NOT NULL,
+        height_cm REAL NOT NULL CHECK (height_cm BETWEEN 40 AND 250),
+        weight_kg REAL NOT NULL CHECK (weight_kg BETWEEN 2 AND 400),
+        created TEXT NOT NULL
+    );
+    CREATE TABLE sessions (
+        id INTEGER PRIMARY KEY,
+        patient_id INTEGER NOT NULL REFERENCES patients(id) ON DELETE RESTRICT,
+        session_path TEXT NOT NULL UNIQUE,
+        results_path TEXT,
+        recorded TEXT NOT NULL,
+        operator TEXT NOT NULL DEFAULT '',
+        rig TEXT NOT NULL DEFAULT '',
+        calibration TEXT NOT NULL DEFAULT '',
+        status TEXT NOT NULL DEFAULT 'recorded',
+        summary TEXT NOT NULL DEFAULT '{}'
+    );
+    CREATE INDEX sessions_by_patient ON sessions(patient_id, recorded);
+    """,
+    # 1 -> 2: one row per summary value, for trends across sessions.
+    """
+    CREATE TABLE session_values (
+        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
+        name TEXT NOT NULL,
+        source TEXT NOT NULL,
+        value REAL NOT NULL,
+        PRIMARY KEY (session_id, name, source)
+    );
+    """,
+)
+SCHEMA_VERSION = len(MIGRATIONS)
+
+
+class RecordsError(ValueError):
+    """A record that cannot be stored or found; the message names the field or the row."""
+
+
+@dataclass(frozen=True)
+class Patient:
+    id: int
+    pseudonym: str
+    patient_number: str | None
+    family_name: str
+    given_name: str
+    sex: str
+    birth_date: date
+    height_cm: float
+    weight_kg: float
+
+    @property
+    def display_name(self) -> str:
+        return f"{self.family_name}, {self.given_name}" if self.given_name else self.family_name
+
+    def age_years(self, on: date | datetime) -> float:
+        day = on.date() if isinstance(on, datetime) else on
+        return (day - self.birth_date).days / 365.25
+
+    def subject_attrs(self, on: date | datetime) -> dict[str, str | float]:
+        """The session file's /subject attributes: the pseudonym, never the name."""
+        return {"id": self.pseudonym, "sex": self.sex, "age_years": round(self.age_years(on), 2),
+                "height_cm": float(self.height_cm), "weight_kg": float(self.weight_kg)}
+
+
+@dataclass(frozen=True)
+class SessionRecord:
+    id: int
+    patient_id: int
+    session_path: Path
+    results_path: Path | None
+    recorded: datetime
+    operator: str
+    rig: str
+    calibration: str
+    status: str
+    summary: dict
+
+
+def default_path() -> Path:
+    return data_dir() / "records.sqlite3"
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _check_patient(family_name: str, sex: str, birth_date: date, height_cm: float, weight_kg: float) -> None:
+    if not family_name.strip():
+        raise RecordsError("family name: required")
+    if sex not in SEXES:
+        raise RecordsError(f"sex: must be male or female, got {sex!r}")
+    if not isinstance(birth_date, date):
+        raise RecordsError(f"birth date: expected a date, got {birth_date!r}")
+    today = date.today()
+    if birth_date > today or (today - birth_date).days > 120 * 366:
+        raise RecordsError(f"birth date: {birth_date.isoformat()} is not a plausible birth date")
+    if not 40.0 <= height_cm <= 250.0:
+        raise RecordsError(f"height: {height_cm:g} cm is outside 40-250 cm")
+    if not 2.0 <= weight_kg <= 400.0:
+        raise RecordsError(f"weight: {weight_kg:g} kg is outside 2-400 kg")
+
+
+class Records:
+    """The records database. One connection per thread: open a Records where it is used."""
+
+    def __init__(self, path: str | os.PathLike | None = None):
+        self.path = Path(path) if path is not None else default_path()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self._db = sqlite3.connect(self.path, isolation_level=None, timeout=10.0)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            self._db.create_function("fold", 1, lambda text: text.casefold() if text else "", deterministic=True)
+            self._migrate()
+        except sqlite3.DatabaseError as exc:
+            raise RecordsError(f"{self.path}: not a usable records database ({exc})") from exc
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> Records:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def schema_version(self) -> int:
+        return int(self._db.execute("PRAGMA user_version").fetchone()[0])
+
+    def _migrate(self) -> None:
+        version = self.schema_version
+        if version > SCHEMA_VERSION:
+            raise RecordsError(f"{self.path}: schema version {version} is newer than this photopft "
+                               f"({SCHEMA_VERSION}); update photopft")
+        for step in range(version, SCHEMA_VERSION):
+            with self.transaction():
+                for statement in MIGRATIONS[step].split(";"):
+                    if statement.strip():
+                        self._db.execute(statement)
+                self._db.execute(f"PRAGMA user_version = {step + 1}")
+
+    def transaction(self):
+        return _Transaction(self._db)
+
+    def integrity(self) -> str:
+        return str(self._db.execute("PRAGMA integrity_check").fetchone()[0])
+
+    # Patients
+    def add_patient(self, family_name: str, given_name: str, sex: str, birth_date: date, height_cm: float,
+                    weight_kg: float, patient_number: str | None = None) -> Patient:
+        _check_patient(family_name, sex, birth_date, height_cm, weight_kg)
+        number = patient_number.strip() if patient_number and patient_number.strip() else None
+        with self.transaction():
+            if number is not None and self._db.execute("SELECT 1 FROM patients WHERE patient_number = ?",
+                                                       (number,)).fetchone():
+                raise RecordsError(f"patient number {number} is already on record")
+            while True:
+                pseudonym = f"P-{secrets.token_hex(4).upper()}"
+                if not self._db.execute("SELECT 1 FROM patients WHERE pseudonym = ?", (pseudonym,)).fetchone():
+                    break
+            cursor = self._db.execute(
+                "INSERT INTO patients (pseudonym, patient_number, family_name, given_name, sex, birth_date, "
+                "height_cm, weight_kg, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (pseudonym, number, family_name.strip(), given_name.strip(), sex, birth_date.isoformat(),
+                 float(height_cm), float(weight_kg), _now()))
+        return self.patient(cursor.lastrowid)
+
+    def update_patient(self, patient_id: int, *, height_cm: float | None = None,
+                       weight_kg: float | None = None) -> Patient:
+        p = self.patient(patient_id)
+        height = p.height_cm if height_cm is None else height_cm
+        weight = p.weight_kg if weight_kg is None else weight_kg
+        _check_patient(p.family_name, p.sex, p.birth_date, height, weight)
+        with self.transaction():
+            self._db.execute("UPDATE patients SET height_cm = ?, weight_kg = ? WHERE id = ?",
+                             (float(height), float(weight), patient_id))
+        return self.patient(patient_id)
+
+    _PATIENT_COLUMNS = ("id, pseudonym, patient_number, family_name, given_name, sex, birth_date, height_cm, "
+                        "weight_kg")
+
+    @staticmethod
+    def _patient(row) -> Patient:
+        return Patient(row[0], row[1], row[2], row[3], row[4], row[5], date.fromisoformat(row[6]), row[7], row[8])
+
+    def patient(self, patient_id: int) -> Patient:
+        row = self._db.execute(f"SELECT {self._PATIENT_COLUMNS} FROM patients WHERE id = ?",
+                               (patient_id,)).fetchone()
+        if row is None:
+            raise RecordsError(f"no patient with record id {patient_id}")
+        return self._patient(row)
+
+    def patient_by_pseudonym(self, pseudonym: str) -> Patient | None:
+        row = self._db.execute(f"SELECT {self._PATIENT_COLUMNS} FROM patients WHERE pseudonym = ?",
+                               (pseudonym,)).fetchone()
+        return self._patient(row) if row else None
+
+    def find_patients(self, text: str = "") -> list[Patient]:
+        """Patients whose name, patient number or pseudonym contains `text`, in any case (all with
+        an empty text)."""
+        needle = text.strip().casefold()
+        rows = self._db.execute(
+            f"SELECT {self._PATIENT_COLUMNS} FROM patients WHERE instr(fold(family_name || ' ' || given_name "
+            "|| ' ' || ifnull(patient_number, '') || ' ' || pseudonym), ?) > 0 ORDER BY family_name, given_name, id",
+            (needle,)).fetchall()
+        return [self._patient(r) for r in rows]
+
+    # Sessions
+    def add_session(self, patient_id: int, session_path: str | os.PathLike, recorded: datetime, *,
+                    operator: str = "", rig: str = "", calibration: str = "", status: str = "recorded") -> int:
+        self.patient(patient_id)
+        path = str(Path(session_path).resolve())
+        with self.transaction():
+            if self._db.execute("SELECT 1 FROM sessions WHERE session_path = ?", (path,)).fetchone():
+                raise RecordsError(f"{path} is already on record")
+            cursor = self._db.execute(
+                "INSERT INTO sessions (patient_id, session_path, recorded, operator, rig, calibration, status) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (patient_id, path, recorded.isoformat(), operator, rig, calibration, status))
+        return int(cursor.lastrowid)
+
+    def set_results(self, session_id: int, results_path: str | os.PathLike | None,
+                    values: dict[str, dict[str, float | str | int]], status: str = "processed") -> None:
+        """Store the summary values of a session: {source: {name: value}}, e.g. {"flow sensor": {"FEV1_l": 4.1}}."""
+        summary = {source: {k: (v.item() if hasattr(v, "item") else v) for k, v in named.items()}
+                   for source, named in values.items()}
+        with self.transaction():
+            updated = self._db.execute(
+                "UPDATE sessions SET results_path = ?, summary = ?, status = ? WHERE id = ?",
+                (str(Path(results_path).resolve()) if results_path else None, json.dumps(summary), status,
+                 session_id)).rowcount
+            if not updated:
+                raise RecordsError(f"no session with record id {session_id}")
+            self._db.execute("DELETE FROM session_values WHERE session_id = ?", (session_id,))
+            self._db.executemany(
+                "INSERT INTO session_values (session_id, name, source, value) VALUES (?, ?, ?, ?)",
+                [(session_id, name, source, float(value)) for source, named in summary.items()
+                 for name, value in named.items() if isinstance(value, (int, float)) and not isinstance(value, bool)])
+
+    _SESSION_COLUMNS = ("id, patient_id, session_path, results_path, recorded, operator, rig, calibration, status, "
+                        "summary")
+
+    @staticmethod
+    def _session(row) -> SessionRecord:
+        return SessionRecord(row[0], row[1], Path(row[2]), Path(row[3]) if row[3] else None,
+                             datetime.fromisoformat(row[4]), row[5], row[6], row[7], row[8], json.loads(row[9]))
+
+    def history(self, patient_id: int) -> list[SessionRecord]:
+        rows = self._db.execute(f"SELECT {self._SESSION_COLUMNS} FROM sessions WHERE patient_id = ? "
+                                "ORDER BY recorded, id", (patient_id,)).fetchall()
+        return [self._session(r) for r in rows]
+
+    def session_by_path(self, session_path: str | os.PathLike) -> SessionRecord | None:
+        row = self._db.execute(f"SELECT {self._SESSION_COLUMNS} FROM sessions WHERE session_path = ?",
+                               (str(Path(session_path).resolve()),)).fetchone()
+        return self._session(row) if row else None
+
+    def trend(self, patient_id: int, name: str, source: str) -> list[tuple[datetime, float]]:
+        rows = self._db.execute(
+            "SELECT s.recorded, v.value FROM session_values v JOIN sessions s ON s.id = v.session_id "
+            "WHERE s.patient_id = ? AND v.name = ? AND v.source = ? ORDER BY s.recorded", (patient_id, name, source))
+        return [(datetime.fromisoformat(t), float(v)) for t, v in rows]
+
+
+class _Transaction:
+    """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK when the block raises."""
+
+    def __init__(self, db: sqlite3.Connection):
+        self._db = db
+
+    def __enter__(self):
+        self._db.execute("BEGIN IMMEDIATE")
+        return self._db
+
+    def __exit__(self, kind, exc, tb) -> None:
+        self._db.execute("COMMIT" if kind is None else "ROLLBACK")
