@@ -12,6 +12,7 @@ from core.pipeline import ReconstructionSettings
 from core.process import process_session
 from core.session import SessionFile, validate_session
 from core.session_analysis import analyse_session
+from core.volume import normalised_gradient_volume
 
 
 def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) -> None:
@@ -49,12 +50,6 @@ def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) ->
     p.set_defaults(run=run)
 
 
-def _normalised(values: np.ndarray) -> np.ndarray:
-    """Thesis eq. 3.27: (V - mean V) / max |V - mean V|."""
-    centred = values - np.nanmean(values)
-    return centred / np.nanmax(np.abs(centred))
-
-
 def volume_summary(path: Path, results: Path | None = None) -> str:
     lines = ["volume summary:"]
     if results is not None:
@@ -66,7 +61,7 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
             lines.append(f"  {head}: subject distance {np.nanmedian(distance):.0f} mm (from "
                          f"{np.nanpercentile(distance, 2):.0f} to {np.nanpercentile(distance, 98):.0f} mm)")
         t = series[heads[0]][0]
-        combined = sum(_normalised(np.interp(t, series[h][0], series[h][2])) for h in heads)
+        combined = sum(normalised_gradient_volume(np.interp(t, series[h][0], series[h][2])) for h in heads)
     with SessionFile(path) as s:
         if s.has_truth:
             truth = s.truth()

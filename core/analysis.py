@@ -45,6 +45,9 @@ class SessionValues:
     vital_capacity: VitalCapacity | None = None
     forced: SessionGrade | None = None
     problems: list[str] = field(default_factory=list)
+    # exhaled volume (L) of each forced manoeuvre, sampled at ANALYSIS_RATE_HZ from the blow's
+    # start (its ForcedValues.time_zero_s is on this clock), in the order of forced.manoeuvres
+    forced_curves: list[np.ndarray] = field(default_factory=list)
 
     def parameters(self) -> dict[str, float | str | int]:
         """Flat values for the results file's /parameters attributes."""
@@ -92,8 +95,9 @@ def _breaths(t_s: np.ndarray, volume_l: np.ndarray, min_breath_s: float, min_tid
 
 
 def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: int,
-                min_tidal_l: float) -> tuple[float, float, float, float, float, float] | None:
-    """(VT, Ti, Te, tPTEF/tE, IE50, end-expiratory level) of the breath between minima a and b."""
+                min_tidal_l: float) -> tuple[float, float, float, float, float, float, float, float] | None:
+    """(VT, Ti, Te, tPTEF/tE, IE50, end-expiratory level, end-inspiration time, end-expiration time)
+    of the breath between minima a and b."""
     peak = a + int(np.argmax(smooth[a:b]))
     vt = smooth[peak] - 0.5 * (smooth[a] + smooth[b])
     if vt < min_tidal_l or peak in (a, b):
@@ -104,20 +108,39 @@ def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: 
     i_half = a + int(np.argmin(np.abs(smooth[a:peak] - half)))
     e_half = peak + int(np.argmin(np.abs(smooth[peak:b] - half)))
     ie50 = flow[i_half] / -flow[e_half] if flow[e_half] < 0 else float("nan")
-    return vt, ti, te, tptef, ie50, smooth[a]
+    return vt, ti, te, tptef, ie50, smooth[a], t[peak], t[b]
+
+
+def tidal_breaths(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: float = 1.2,
+                  min_tidal_l: float = 0.08) -> list[tuple[float, float, float, float, float, float, float, float]]:
+    """Every breath of the stretches: (VT, Ti, Te, tPTEF/tE, IE50, end-expiratory level,
+    end-inspiration time, end-expiration time)."""
+    breaths = []
+    for t_s, volume_l in stretches:
+        t, smooth, flow, pairs = _breaths(t_s, volume_l, min_breath_s, min_tidal_l)
+        breaths += [b for b in (_one_breath(t, smooth, flow, a, z, min_tidal_l) for a, z in pairs) if b is not None]
+    return breaths
+
+
+def tidal_stretches(t_s: np.ndarray, volume_l: np.ndarray,
+                    events: list[tuple[float, str]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The curve's stretches of quiet breathing (see tidal_windows)."""
+    out = []
+    for a, b in tidal_windows(sorted(events), float(t_s[-1])):
+        inside = (t_s >= a) & (t_s <= b)
+        if inside.sum() > 10:
+            out.append((t_s[inside], volume_l[inside]))
+    return out
 
 
 def tidal_values(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: float = 1.2,
                  min_tidal_l: float = 0.08) -> TidalValues | None:
     """Breaths between consecutive end-expiratory minima, pooled over stretches of quiet breathing;
     None with fewer than two breaths."""
-    breaths = []
-    for t_s, volume_l in stretches:
-        t, smooth, flow, pairs = _breaths(t_s, volume_l, min_breath_s, min_tidal_l)
-        breaths += [b for b in (_one_breath(t, smooth, flow, a, z, min_tidal_l) for a, z in pairs) if b is not None]
+    breaths = tidal_breaths(stretches, min_breath_s, min_tidal_l)
     if len(breaths) < 2:
         return None
-    vt, ti, te, tptef, ie50, levels = (np.array(column) for column in zip(*breaths))
+    vt, ti, te, tptef, ie50, levels, _, _ = (np.array(column) for column in zip(*breaths))
     period = float(np.mean(ti + te))
     tv = float(np.mean(vt))
     rr = 60.0 / period
@@ -167,12 +190,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
     result = SessionValues()
     end_s = float(t[-1])
     ordered = sorted(events)
-    stretches = []
-    for a, b in tidal_windows(ordered, end_s):
-        inside = (t >= a) & (t <= b)
-        if inside.sum() > 10:
-            stretches.append((t[inside], v[inside]))
-    result.tidal = tidal_values(stretches)
+    result.tidal = tidal_values(tidal_stretches(t, v, ordered))
     if result.tidal is None:
         result.problems.append("no stretch of tidal breathing with two or more breaths")
     frc = result.tidal.end_expiratory_level_l if result.tidal is not None else 0.0
@@ -205,6 +223,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         i_low = int(np.argmax(exhaled))
         try:
             blows.append(forced_values(exhaled[: i_low + 1], ANALYSIS_RATE_HZ))
+            result.forced_curves.append(exhaled[: i_low + 1])
         except ValueError as exc:
             result.problems.append(f"forced expiration at {a:.1f} s: {exc}")
     if blows:

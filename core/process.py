@@ -14,7 +14,7 @@ from scipy import ndimage
 
 from core import __version__
 from core.photometric import CycleWindow, complete_cycles
-from core.pipeline import HeadReconstructor, ReconstructionSettings
+from core.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.profile import ProfileError, RigCalibration
 from core.session import SessionError, SessionFile
 
@@ -170,6 +170,34 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             parameters = out.create_group("parameters")
             _write_parameters(session_path, parameters, out)
     return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances)
+
+
+def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list[int], *,
+            settings: ReconstructionSettings | None = None, motion_compensation: bool = True,
+            ) -> list[HeadMap]:
+    """Maps of one head at the given frames (each the newest complete cycle ending at or before
+    it), by the same reconstruction `process_session` runs, for reports and reviews."""
+    settings = settings or ReconstructionSettings()
+    with SessionFile(session_path) as session:
+        rig = session.rig
+        if head_name not in rig.heads:
+            raise SessionError(f"{session_path} has no head {head_name!r}")
+        head = rig.heads[head_name]
+        ids = session.frame_id(head_name)
+        windows = complete_cycles(session.light_index(head_name), ids, rig.cycle_length)
+        if not windows:
+            raise SessionError(f"head {head_name}: no complete light cycle in {session_path}")
+        ends = np.array([w.newest for w in windows])
+        by_id = {int(ids[w.newest]): w for w in windows}
+        frames = session.frames(head_name)
+        reconstructor = HeadReconstructor(head, None, settings)
+        out = []
+        for index in frame_indices:
+            window = windows[max(0, int(np.searchsorted(ends, index, side="right")) - 1)]
+            previous = by_id.get(int(ids[window.newest]) - rig.cycle_length) if motion_compensation else None
+            signal, saturated, dark = _cycle_signal(frames, window, previous, head.max_value, {}, ids)
+            out.append(reconstructor.reconstruct(signal, saturated, dark))
+    return out
 
 
 def with_true_lights(session: SessionFile) -> RigCalibration:

@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from core.rig import Head
 
@@ -38,12 +39,10 @@ def torso_rows(mask: np.ndarray, min_width_fraction: float = 0.6) -> np.ndarray:
     return np.nonzero(widths >= min_width_fraction * widths.max())[0] if widths.max() > 0 else np.zeros(0, int)
 
 
-def cap_measure(depth_mm: np.ndarray, mask: np.ndarray, head: Head, edge_px: int = 2) -> CapMeasure:
-    """Cap volume, silhouette plane and width of one height map."""
-    valid = mask & np.isfinite(depth_mm)
-    rows = torso_rows(valid)
-    if len(rows) < 5:
-        return CapMeasure(float("nan"), float("nan"), float("nan"), 0)
+def _silhouette_plane(depth_mm: np.ndarray, valid: np.ndarray, rows: np.ndarray,
+                      edge_px: int) -> tuple[np.ndarray, list[int]]:
+    """Plane z = c0 + c1 u + c2 v through the lateral silhouette edges of the trunk rows, and the
+    width of each row."""
     xs, ys, zs, widths = [], [], [], []
     for r in rows:
         cols = np.nonzero(valid[r])[0]
@@ -60,6 +59,16 @@ def cap_measure(depth_mm: np.ndarray, mask: np.ndarray, head: Head, edge_px: int
         residual = z - a @ coefficients
         keep = np.abs(residual) < 3.0 * max(1.4826 * np.median(np.abs(residual)), 1.0)
         coefficients = np.linalg.lstsq(a[keep], z[keep], rcond=None)[0]
+    return coefficients, widths
+
+
+def cap_measure(depth_mm: np.ndarray, mask: np.ndarray, head: Head, edge_px: int = 2) -> CapMeasure:
+    """Cap volume, silhouette plane and width of one height map."""
+    valid = mask & np.isfinite(depth_mm)
+    rows = torso_rows(valid)
+    if len(rows) < 5:
+        return CapMeasure(float("nan"), float("nan"), float("nan"), 0)
+    coefficients, widths = _silhouette_plane(depth_mm, valid, rows, edge_px)
     region = np.zeros_like(valid)
     region[rows] = valid[rows]
     r_idx, c_idx = np.nonzero(region)
@@ -69,6 +78,54 @@ def cap_measure(depth_mm: np.ndarray, mask: np.ndarray, head: Head, edge_px: int
     volume = float(np.sum((plane - z_px) * footprint)) * 1e-6
     side_depth = float(coefficients[0] + coefficients[1] * head.cx + coefficients[2] * head.cy)
     return CapMeasure(volume, side_depth, float(np.mean(widths)), len(rows))
+
+
+def side_depth_mm(depth_mm: np.ndarray, mask: np.ndarray, edge_px: int = 2) -> float:
+    """Median depth of the trunk's lateral silhouette edges (the sides, which breathing barely moves)."""
+    valid = mask & np.isfinite(depth_mm)
+    z = []
+    for r in torso_rows(valid):
+        cols = np.nonzero(valid[r])[0]
+        z.append(depth_mm[r, cols[:edge_px]])
+        z.append(depth_mm[r, cols[-edge_px:]])
+    return float(np.median(np.concatenate(z))) if z else float("nan")
+
+
+def _silhouette_centre_px(mask: np.ndarray) -> tuple[float, float]:
+    rows = torso_rows(mask)
+    if len(rows) == 0:
+        return float("nan"), float("nan")
+    centres = [0.5 * (cols[0] + cols[-1]) for cols in (np.nonzero(mask[r])[0] for r in rows)]
+    return float(np.mean(centres)), 0.5 * float(rows[0] + rows[-1])
+
+
+def body_aligned_displacement(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: np.ndarray, mask_b: np.ndarray,
+                              head: Head) -> np.ndarray:
+    """How far each point of the trunk moved towards the camera from map b to map a, on map b's
+    pixels, with the subject's sway between the maps removed.
+
+    A body that sways farther from the camera looks smaller, and sideways it shifts in the image:
+    differencing two maps pixel by pixel would see a sloped surface slide past the pixel and call
+    it breathing. Map a is resampled through the similarity (scale about the principal point and
+    shift) that carries b's trunk silhouette onto a's, and brought to b's distance by the depth of
+    the sides (side_depth_mm).
+    """
+    side_a, side_b = side_depth_mm(depth_a, mask_a), side_depth_mm(depth_b, mask_b)
+    (ua, va), (ub, vb) = _silhouette_centre_px(mask_a), _silhouette_centre_px(mask_b)
+    out = np.full(depth_b.shape, np.nan)
+    if not all(np.isfinite([side_a, side_b, ua, ub])):
+        return out
+    ratio = side_b / side_a  # image size goes as 1 / distance
+    v, u = np.mgrid[0:depth_b.shape[0], 0:depth_b.shape[1]].astype(float)
+    u_a = head.cx + (u - head.cx) * ratio + (ua - head.cx - (ub - head.cx) * ratio)
+    v_a = head.cy + (v - head.cy) * ratio + (va - head.cy - (vb - head.cy) * ratio)
+    valid = mask_a & np.isfinite(depth_a)
+    z = ndimage.map_coordinates(np.where(valid, depth_a, 0.0), [v_a, u_a], order=1, cval=0.0)
+    weight = ndimage.map_coordinates(valid.astype(float), [v_a, u_a], order=1, cval=0.0)
+    z_a = np.where(weight > 0.99, z / np.maximum(weight, 1e-9), np.nan) + (side_b - side_a)
+    inside = mask_b & np.isfinite(depth_b)
+    out[inside] = depth_b[inside] - z_a[inside]
+    return out
 
 
 def two_head_distances(width_front_px: np.ndarray, width_back_px: np.ndarray, baseline_mm: float,
@@ -82,3 +139,9 @@ def two_head_distances(width_front_px: np.ndarray, width_back_px: np.ndarray, ba
 def rescaled_cap(volume_l: np.ndarray, side_depth_mm: np.ndarray, distance_mm: np.ndarray) -> np.ndarray:
     """Cap volume after scaling the map so its silhouette plane lies at `distance_mm` (volume ~ scale^3)."""
     return np.asarray(volume_l) * (np.asarray(distance_mm) / np.asarray(side_depth_mm)) ** 3
+
+
+def normalised_gradient_volume(values: np.ndarray) -> np.ndarray:
+    """Thesis eq. 3.27: (V - mean V) / max |V - mean V|."""
+    centred = values - np.nanmean(values)
+    return centred / np.nanmax(np.abs(centred))

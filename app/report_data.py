@@ -1,0 +1,335 @@
+"""What a report shows, gathered from a session (and its results file) by the same processing as
+`photopft process` and the live view: core.session_analysis for the values, core.process.maps_at
+for the height maps. The PDF (app.report_pdf) and the CSV export (app.export) only lay it out.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from app.records import Patient, Records
+from core.analysis import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
+from core.pipeline import ReconstructionSettings
+from core.process import RESULTS_FORMAT, maps_at
+from core.reference import Reference
+from core.session import SessionError, SessionFile
+from core.session_analysis import analyse_session
+from core.volume import body_aligned_displacement, normalised_gradient_volume, torso_rows
+
+OPTICAL = "optical"
+FLOW_SENSOR = "flow sensor"
+
+# (key in SessionValues.parameters(), label, unit, reference parameter); FEV1/FVC is a ratio.
+MAIN_ROWS = (("TV_l", "Tidal volume", "L", None), ("RR_bpm", "Respiratory rate", "/min", None),
+             ("VE_lpm", "Minute ventilation", "L/min", None), ("VC_l", "VC", "L", None),
+             ("FVC_l", "FVC", "L", "FVC"), ("FEV1_l", "FEV1", "L", "FEV1"), ("FEV1_FVC", "FEV1/FVC", "", "FEV1_FVC"),
+             ("PEF_lps", "PEF", "L/s", None), ("FEF2575_lps", "FEF25-75", "L/s", "FEF2575"))
+TIDAL_ROWS = (("Ti_s", "Inspiratory time Ti", "s"), ("Te_s", "Expiratory time Te", "s"), ("IE_ratio", "Ti/Te", ""),
+              ("tPTEF_tE", "tPTEF/tE", ""), ("IE50", "IE50 (insp./exp. flow at half VT)", ""),
+              ("breaths", "Breaths analysed", ""), ("IC_l", "IC", "L"), ("ERV_l", "ERV", "L"), ("IRV_l", "IRV", "L"),
+              ("FEV6_l", "FEV6", "L"), ("FEV075_l", "FEV0.75", "L"), ("FET_s", "FET", "s"))
+
+
+@dataclass
+class ValueRow:
+    key: str
+    label: str
+    unit: str
+    values: dict[str, float]  # by source
+    reference: Reference | None
+
+    def z(self, source: str) -> float | None:
+        value = self.values.get(source)
+        return self.reference.zscore(value) if self.reference is not None and value is not None else None
+
+    def percent(self, source: str) -> float | None:
+        value = self.values.get(source)
+        return self.reference.percent(value) if self.reference is not None and value is not None else None
+
+
+@dataclass
+class Manoeuvre:
+    number: int  # 1-based, in the order blown
+    time_s: np.ndarray  # from back-extrapolated time zero
+    volume_l: np.ndarray  # exhaled
+    flow_lps: np.ndarray
+    fev1_l: float
+    fvc_l: float
+    acceptable: bool
+    problems: list[str]
+
+
+@dataclass
+class HeadMaps:
+    head: str
+    inspiration_mm: np.ndarray  # height above the subject's mean surface at end inspiration (NaN off)
+    expiration_mm: np.ndarray
+    displacement_mm: np.ndarray  # towards the camera from end expiration to end inspiration
+    regions: dict[str, float]  # share of the displacement volume, per region (0..1)
+    distance_mm: float
+
+
+@dataclass
+class Comparison:
+    """The optical method against the flow sensor."""
+    curve_r: float | None  # volume curves (litres) on a common time base
+    tidal_pairs: list[tuple[float, float]]  # per breath (optical VT, flow-sensor VT), for Bland-Altman
+    gradient_r: dict[str, float]  # normalised gradient volume (thesis eq. 3.27) per head and combined
+    note: str = ""
+
+    def bland_altman(self) -> tuple[float, float, float] | None:
+        """(mean difference, lower and upper limits of agreement) of optical minus flow sensor."""
+        if len(self.tidal_pairs) < 3:
+            return None
+        diff = np.array([a - b for a, b in self.tidal_pairs])
+        bias, sd = float(diff.mean()), float(diff.std(ddof=1))
+        return bias, bias - 1.96 * sd, bias + 1.96 * sd
+
+
+@dataclass
+class ReportData:
+    session_path: Path
+    results_path: Path | None
+    kind: str
+    recorded: str
+    operator: str
+    rig: str
+    calibration: list[str]
+    subject: dict[str, str | float] | None
+    patient: Patient | None
+    equations: str
+    sources: dict[str, SessionValues]
+    curves: dict[str, tuple[np.ndarray, np.ndarray]]  # seconds from the first frame, litres
+    main_source: str | None
+    rows: list[ValueRow]
+    tidal_rows: list[ValueRow]
+    manoeuvres: list[Manoeuvre]
+    comparison: Comparison | None
+    maps: list[HeadMaps]
+    breath_times_s: tuple[float, float] | None  # end inspiration, end expiration of the mapped breath
+    notes: list[str] = field(default_factory=list)
+
+    def parameters(self, source: str) -> dict[str, float | str | int]:
+        return self.sources[source].parameters() if source in self.sources else {}
+
+
+def _results_session(results: Path) -> Path:
+    with h5py.File(results, "r") as f:
+        named = Path(str(f.attrs.get("session", "")))
+    for candidate in (named, results.parent / named.name):
+        if candidate.name and candidate.exists():
+            return candidate
+    raise SessionError(f"{results}: its session file {named} is not there (nor beside the results file); "
+                       "the report needs the session's events and subject")
+
+
+def open_inputs(path: str | os.PathLike) -> tuple[Path, Path | None]:
+    """(session, results or None) for a session file or a results file."""
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as f:
+            is_results = str(f.attrs.get("format", "")) == RESULTS_FORMAT
+    except OSError as exc:
+        raise SessionError(f"cannot open {path}: {exc}") from exc
+    return (_results_session(path), path) if is_results else (path, None)
+
+
+def _optical_curve(results: Path, start_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+    with h5py.File(results, "r") as f:
+        if "volume" not in f:
+            return None
+        t = (f["volume/timestamp_ns"][:] - start_ns) / 1e9
+        return t, f["volume/volume_l"][:].astype(float)
+
+
+def _gradient_correlation(results: Path, start_ns: int, t_flow: np.ndarray, v_flow: np.ndarray) -> dict[str, float]:
+    out: dict[str, float] = {}
+    with h5py.File(results, "r") as f:
+        heads = list(f.get("heads", {}))
+        series = {h: ((f[f"heads/{h}/timestamp_ns"][:] - start_ns) / 1e9, f[f"heads/{h}/gradient_volume"][:])
+                  for h in heads}
+    if not heads:
+        return out
+    t = series[heads[0]][0]
+    flow = np.interp(t, t_flow, v_flow)
+    normalised = {h: normalised_gradient_volume(np.interp(t, *series[h])) for h in heads}
+    for h, values in normalised.items():
+        out[h] = float(np.corrcoef(values, flow)[0, 1])
+    if len(heads) > 1:
+        out["combined"] = float(np.corrcoef(sum(normalised.values()), flow)[0, 1])
+    return out
+
+
+def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tuple[float, str]],
+             results: Path | None, start_ns: int) -> Comparison | None:
+    if FLOW_SENSOR not in curves:
+        return None
+    t_flow, v_flow = curves[FLOW_SENSOR]
+    gradient = _gradient_correlation(results, start_ns, t_flow, v_flow) if results is not None else {}
+    if OPTICAL not in curves:
+        note = ("no optical volume in litres in this results file (it needs a volume calibration profile); the "
+                "normalised gradient volume is compared instead") if results is not None else \
+            "the session has not been processed: run `photopft process` to compare the optical method"
+        return Comparison(None, [], gradient, note)
+    t_opt, v_opt = curves[OPTICAL]
+    lo, hi = max(t_opt[0], t_flow[0]), min(t_opt[-1], t_flow[-1])
+    grid = np.arange(lo, hi, 0.05)
+    r = float(np.corrcoef(np.interp(grid, t_opt, v_opt), np.interp(grid, t_flow, v_flow))[0, 1])
+    optical = tidal_breaths(tidal_stretches(t_opt, v_opt, events))
+    flow = tidal_breaths(tidal_stretches(t_flow, v_flow, events))
+    pairs = []
+    for b in optical:
+        match = min(flow, key=lambda f: abs(f[6] - b[6]), default=None)
+        if match is not None and abs(match[6] - b[6]) < 1.0:
+            pairs.append((float(b[0]), float(match[0])))
+    return Comparison(r, pairs, gradient)
+
+
+def _manoeuvres(values: SessionValues) -> list[Manoeuvre]:
+    from core.analysis import ANALYSIS_RATE_HZ
+
+    if values.forced is None:
+        return []
+    out = []
+    for k, (m, curve) in enumerate(zip(values.forced.manoeuvres, values.forced_curves), start=1):
+        t = np.arange(len(curve)) / ANALYSIS_RATE_HZ - m.time_zero_s
+        flow = np.gradient(curve, 1.0 / ANALYSIS_RATE_HZ)
+        out.append(Manoeuvre(k, t, curve, flow, m.fev1_l, m.fvc_l, m.fvc_acceptable, list(m.problems)))
+    return out
+
+
+def best_manoeuvres(manoeuvres: list[Manoeuvre], count: int = 3) -> list[Manoeuvre]:
+    """The blows with the largest FEV1 + FVC, acceptable ones first."""
+    return sorted(manoeuvres, key=lambda m: (not m.acceptable, -(m.fev1_l + m.fvc_l)))[:count]
+
+
+def _regions(head: str, displacement: np.ndarray, depth: np.ndarray, fx: float, fy: float) -> dict[str, float]:
+    """Share of the displacement volume by quadrant of the trunk (upper/lower half of the trunk
+    rows, split at the subject's midline). The front head sees the patient's left on the image's
+    right; the back head their right."""
+    mask = np.isfinite(displacement) & np.isfinite(depth)
+    rows = torso_rows(mask)
+    if len(rows) < 4:
+        return {}
+    footprint = (depth / fx) * (depth / fy)  # mm^2 per pixel
+    volume = np.where(mask, displacement * footprint, 0.0)
+    mid_row = int(rows[len(rows) // 2])
+    cols = np.nonzero(mask[rows].any(axis=0))[0]
+    mid_col = int(np.round(np.average(np.nonzero(mask[rows])[1]))) if len(cols) else mask.shape[1] // 2
+    right_side = "left" if head == "front" else "right"
+    left_side = "right" if head == "front" else "left"
+    upper = np.zeros(mask.shape, bool)
+    upper[rows[0]:mid_row] = True
+    lower = np.zeros(mask.shape, bool)
+    lower[mid_row:rows[-1] + 1] = True
+    image_left = np.zeros(mask.shape, bool)
+    image_left[:, :mid_col] = True
+    parts = {f"upper {left_side}": upper & image_left, f"upper {right_side}": upper & ~image_left,
+             f"lower {left_side}": lower & image_left, f"lower {right_side}": lower & ~image_left}
+    sums = {name: float(volume[region].sum()) for name, region in parts.items()}
+    total = sum(sums.values())
+    if not np.isfinite(total) or total <= 0.0:  # no net outward movement: within the alignment's error
+        return {}
+    return {name: value / total for name, value in sums.items()}
+
+
+def _head_maps(session_path: Path, session: SessionFile, times_s: tuple[float, float], start_ns: int,
+               settings: ReconstructionSettings) -> list[HeadMaps]:
+    out = []
+    for name in session.heads:
+        stamps = (session.timestamp_ns(name) - start_ns) / 1e9
+        frames = [int(np.clip(np.searchsorted(stamps, t), 0, len(stamps) - 1)) for t in times_s]
+        inspiration, expiration = maps_at(session_path, name, frames, settings=settings)
+        head = session.rig.heads[name]
+        depth_in = np.where(inspiration.mask, inspiration.depth_mm, np.nan)
+        depth_ex = np.where(expiration.mask, expiration.depth_mm, np.nan)
+        displacement = body_aligned_displacement(inspiration.depth_mm, inspiration.mask, expiration.depth_mm,
+                                                 expiration.mask, head)
+        # heights above each map's own mean surface: sway does not show as an offset
+        out.append(HeadMaps(name, np.nanmean(depth_in) - depth_in, np.nanmean(depth_ex) - depth_ex, displacement,
+                            _regions(name, displacement, depth_ex, head.fx, head.fy), inspiration.distance_mm))
+    return out
+
+
+def _patient(records: Records | None, subject) -> Patient | None:
+    if records is None or subject is None:
+        return None
+    return records.patient_by_pseudonym(subject.id)
+
+
+def build_report(path: str | os.PathLike, *, records: Records | None = None, equations: str = "gli-global",
+                 with_maps: bool = True, settings: ReconstructionSettings | None = None) -> ReportData:
+    """Everything the report shows, for a session file or a results file."""
+    session_path, results_path = open_inputs(path)
+    analysed = analyse_session(session_path, equations)
+    notes: list[str] = []
+    with SessionFile(session_path) as s:
+        start = int(min(s.timestamp_ns(h)[0] for h in s.heads if s.n_frames(h)))
+        events = sorted(((t - start) / 1e9, label) for t, label in s.events())
+        subject = s.subject
+        sources: dict[str, SessionValues] = {}
+        curves: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        optical = _optical_curve(results_path, start) if results_path is not None else None
+        if optical is not None:
+            curves[OPTICAL] = optical
+            sources[OPTICAL] = analyse_volume(*optical, events, subject.age_years if subject else None)
+        else:
+            notes.append("Optical volume in litres: not available for this session (no volume calibration "
+                         "profile was applied when it was processed)." if results_path is not None else
+                         "Optical volume in litres: the session has not been processed.")
+        if analysed.flow_sensor is not None:
+            sources[FLOW_SENSOR] = analysed.flow_sensor
+            curves[FLOW_SENSOR] = analysed.flow_volume
+        else:
+            notes.append("No flow sensor was recorded in this session.")
+        main = OPTICAL if OPTICAL in sources else (FLOW_SENSOR if FLOW_SENSOR in sources else None)
+        if main is None:
+            notes.append("No volume curve in litres: no pulmonary function values can be reported.")
+        if subject is None:
+            notes.append("The session has no subject data: no predicted values.")
+        elif analysed.reference_problem:
+            notes.append(f"No predicted values: {analysed.reference_problem}")
+        rows = [ValueRow(key, label, unit, {src: float(v.parameters()[key]) for src, v in sources.items()
+                                            if key in v.parameters()},
+                         analysed.references.get(ref) if ref else None) for key, label, unit, ref in MAIN_ROWS]
+        tidal_rows = [ValueRow(key, label, unit, {src: float(v.parameters()[key]) for src, v in sources.items()
+                                                  if key in v.parameters()}, None) for key, label, unit in TIDAL_ROWS]
+        for src, values in sources.items():
+            notes += [f"{src}: {problem}" for problem in values.problems]
+        manoeuvres = _manoeuvres(sources[main]) if main is not None else []
+        if main is not None and sources[main].forced is None:
+            notes.append(f"{main}: no forced expiration was recorded or analysable.")
+        breath = None
+        maps: list[HeadMaps] = []
+        timing = FLOW_SENSOR if FLOW_SENSOR in curves else main  # the reference curve places the breath best
+        if timing is not None:
+            breaths = tidal_breaths(tidal_stretches(*curves[timing], events))
+            if breaths:
+                chosen = sorted(breaths, key=lambda b: b[0])[len(breaths) // 2]  # the median tidal breath
+                breath = (float(chosen[6]), float(chosen[7]))
+        if with_maps and breath is not None:
+            maps = _head_maps(session_path, s, breath, start, settings or ReconstructionSettings())
+        elif with_maps:
+            notes.append("Height maps: no tidal breath found to place end inspiration and end expiration.")
+        calibration = [f"lights of the {h} head calibrated {s.rig.heads[h].calibrated}" for h in s.heads]
+        if s.flow is not None and s.flow.gain_lps is not None:
+            calibration.append(f"flow sensor: {s.flow.gain_lps:.6g} L/s per count, offset "
+                               f"{s.flow.offset_lps:+.4g} L/s ({s.flow.conditions})")
+        if results_path is not None:
+            with h5py.File(results_path, "r") as f:
+                if "volume" in f and "calibration_created" in f["volume"].attrs:
+                    calibration.append(f"volume calibration of {f['volume'].attrs['calibration_created']}")
+        data = ReportData(
+            session_path=session_path, results_path=results_path, kind=s.kind, recorded=s.created,
+            operator=str(s.attrs.get("operator", "")), rig=s.rig.name, calibration=calibration,
+            subject=None if subject is None else {"id": subject.id, "sex": subject.sex, "age_years": subject.age_years,
+                                                  "height_cm": subject.height_cm, "weight_kg": subject.weight_kg},
+            patient=_patient(records, subject), equations=equations, sources=sources, curves=curves,
+            main_source=main, rows=rows, tidal_rows=tidal_rows, manoeuvres=manoeuvres,
+            comparison=_compare(curves, events, results_path, start), maps=maps, breath_times_s=breath, notes=notes)
+    return data
