@@ -257,6 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
     from app.bench import add_bench
     from app.emulate_cli import add_emulate
     from app.record_cli import add_record
+    from app.records_cli import add_records_verbs
 
     add_calibrate(sub)
     add_process(sub)
@@ -264,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench(sub)
     add_emulate(sub)
     add_record(sub)
+    add_records_verbs(sub)
     add_demo(sub, run_simulate, describe_session)
     return parser
 

@@ -25,3 +25,11 @@ def config_dir() -> Path:
 def state_dir() -> Path:
     """Logs: $XDG_STATE_HOME/photopft (~/.local/state/photopft)."""
     return _xdg("XDG_STATE_HOME", ".local/state")
+
+
+def resources_dir() -> Path:
+    """The shipped resources: beside the packages in a checkout, inside the bundle when frozen."""
+    import sys
+
+    bundle = getattr(sys, "_MEIPASS", None)
+    return Path(bundle) / "resources" if bundle else Path(__file__).resolve().parents[1] / "resources"

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import secrets
 import sqlite3
 from dataclasses import dataclass
@@ -183,17 +184,24 @@ class Records:
 
     # Patients
     def add_patient(self, family_name: str, given_name: str, sex: str, birth_date: date, height_cm: float,
-                    weight_kg: float, patient_number: str | None = None) -> Patient:
+                    weight_kg: float, patient_number: str | None = None, pseudonym: str | None = None) -> Patient:
+        """A new patient, with a new random pseudonym unless one is given (a patient whose sessions
+        were recorded elsewhere under that pseudonym)."""
         _check_patient(family_name, sex, birth_date, height_cm, weight_kg)
         number = patient_number.strip() if patient_number and patient_number.strip() else None
+        if pseudonym is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{2,39}", pseudonym):
+            raise RecordsError(f"pseudonym: 3-40 letters, digits, '-', '_' or '.', got {pseudonym!r}")
         with self.transaction():
             if number is not None and self._db.execute("SELECT 1 FROM patients WHERE patient_number = ?",
                                                        (number,)).fetchone():
                 raise RecordsError(f"patient number {number} is already on record")
-            while True:
-                pseudonym = f"P-{secrets.token_hex(4).upper()}"
-                if not self._db.execute("SELECT 1 FROM patients WHERE pseudonym = ?", (pseudonym,)).fetchone():
-                    break
+            if pseudonym is not None and self._db.execute("SELECT 1 FROM patients WHERE pseudonym = ?",
+                                                          (pseudonym,)).fetchone():
+                raise RecordsError(f"pseudonym {pseudonym} is already on record")
+            while pseudonym is None:
+                candidate = f"P-{secrets.token_hex(4).upper()}"
+                if not self._db.execute("SELECT 1 FROM patients WHERE pseudonym = ?", (candidate,)).fetchone():
+                    pseudonym = candidate
             cursor = self._db.execute(
                 "INSERT INTO patients (pseudonym, patient_number, family_name, given_name, sex, birth_date, "
                 "height_cm, weight_kg, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",

@@ -250,6 +250,9 @@ def _head_maps(session_path: Path, session: SessionFile, times_s: tuple[float, f
         depth_ex = np.where(expiration.mask, expiration.depth_mm, np.nan)
         displacement = body_aligned_displacement(inspiration.depth_mm, inspiration.mask, expiration.depth_mm,
                                                  expiration.mask, head)
+        trunk = np.zeros(displacement.shape, bool)
+        trunk[torso_rows(expiration.mask)] = True
+        displacement[~trunk] = np.nan  # the neck and head are not the trunk
         # heights above each map's own mean surface: sway does not show as an offset
         out.append(HeadMaps(name, np.nanmean(depth_in) - depth_in, np.nanmean(depth_ex) - depth_ex, displacement,
                             _regions(name, displacement, depth_ex, head.fx, head.fy), inspiration.distance_mm))

@@ -172,12 +172,12 @@ def grade_session(manoeuvres: list[ForcedValues], age_years: float | None = None
     """
     if not manoeuvres:
         raise ValueError("no forced expirations to grade")
-    largest = -np.inf
+    largest = None  # the largest FVC before the manoeuvre: the first has none to be within
     for m in manoeuvres:
-        if not m.eofe and m.fvc_l >= largest - REPEATABILITY_L:
+        if not m.eofe and largest is not None and m.fvc_l >= largest - REPEATABILITY_L:
             m.eofe = True
             m.problems = [p for p in m.problems if not p.startswith("no plateau")]
-        largest = max(largest, m.fvc_l)
+        largest = m.fvc_l if largest is None else max(largest, m.fvc_l)
     fev1_ok = [m for m in manoeuvres if m.fev1_acceptable]
     fvc_ok = [m for m in manoeuvres if m.fvc_acceptable]
     fev1_grade, fev1_spread = _grade([m.fev1_l for m in fev1_ok], sum(m.fev1_usable for m in manoeuvres), age_years)

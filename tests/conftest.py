@@ -28,3 +28,41 @@ def small_session(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("sessions") / "small.h5"
     simulate(path, SimConfig(protocol="tidal", seconds=1.0, scale=0.1, seed=3))
     return path
+
+
+def _built_once(tmp_path_factory, name: str, build) -> Path:
+    """A file made once per test run and shared by the xdist workers (a lock file serialises them)."""
+    import fcntl
+
+    run_id = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    base = tmp_path_factory.getbasetemp()
+    folder = (base.parent / f"shared-{run_id}") if run_id else (base / "shared")
+    folder.mkdir(parents=True, exist_ok=True)
+    target = folder / name
+    with open(folder / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not target.exists():
+            partial = folder / f"partial-{name}"
+            partial.mkdir(exist_ok=True)
+            build(partial)
+            partial.rename(target)
+    return target
+
+
+@pytest.fixture(scope="session")
+def processed_full_session(tmp_path_factory) -> tuple[Path, Path]:
+    """(session, results with an optical /volume): the full protocol at scale 0.1 with the flow
+    sensor, processed every 11th cycle window, with a volume regression fitted on its own results."""
+    from app.cli import main
+
+    def build(folder: Path) -> None:
+        from core.sim.simulate import SimConfig, simulate
+
+        simulate(folder / "full.h5", SimConfig(protocol="full", scale=0.1, seed=5))
+        assert main(["process", str(folder / "full.h5"), "-o", str(folder / "plain.h5"), "--every", "11"]) == 0
+        assert main(["calibrate", "volume", str(folder / "plain.h5"), "-o", str(folder / "volume.json")]) == 0
+        assert main(["process", str(folder / "full.h5"), "-o", str(folder / "results.h5"), "--every", "11",
+                     "--volume-calibration", str(folder / "volume.json")]) == 0
+
+    folder = _built_once(tmp_path_factory, "processed-full", build)
+    return folder / "full.h5", folder / "results.h5"

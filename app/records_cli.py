@@ -1,0 +1,178 @@
+"""`photopft report`, `photopft export` and `photopft patients`: what clinicians keep and hand on."""
+
+from __future__ import annotations
+
+import argparse
+from datetime import date, datetime
+from pathlib import Path
+
+from app.cli import UserError
+
+
+def _records_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--records", type=Path, help="patient records database (default: the user's data folder)")
+
+
+def add_records_verbs(sub: argparse._SubParsersAction) -> None:
+    r = sub.add_parser("report", help="the PDF report of a session or a results file",
+                       description="Two pages: patient, values with predicted values, grade, curves and the "
+                                   "optical method against the flow sensor; height maps, regional contributions "
+                                   "and tidal indices. The patient's name comes from the records database.")
+    r.add_argument("input", type=Path, help="a session file or a results file (photopft process)")
+    r.add_argument("-o", "--output", type=Path, required=True, help="the PDF to write")
+    r.add_argument("--page-size", choices=("a4", "letter"), default="a4")
+    r.add_argument("--equations", choices=("gli-global", "gli-2012"), default="gli-global")
+    _records_arg(r)
+    r.set_defaults(run=run_report)
+
+    e = sub.add_parser("export", help="a pseudonymised research copy, or CSV of the volume curves and values",
+                       description="--research writes a copy of the session with a study pseudonym; --csv writes "
+                                   "volume.csv and values.csv into a folder.")
+    e.add_argument("input", type=Path, help="a session file (--research) or a session or results file (--csv)")
+    what = e.add_mutually_exclusive_group(required=True)
+    what.add_argument("--research", type=Path, metavar="COPY.h5", help="write the pseudonymised copy here")
+    what.add_argument("--csv", type=Path, metavar="FOLDER", help="write volume.csv and values.csv here")
+    e.add_argument("--study-key-file", type=Path, help="the study's secret key (16 bytes or more; --research)")
+    e.add_argument("--study", default="", help="study name stored in the copy")
+    e.set_defaults(run=run_export)
+
+    p = sub.add_parser("patients", help="patient records: add, list, history, register a session",
+                       description="Names live only in the records database; sessions carry the pseudonym.")
+    _records_arg(p)
+    verbs = p.add_subparsers(dest="patients_verb", metavar="ACTION", required=True)
+    add = verbs.add_parser("add", help="a new patient; prints the pseudonym for the session")
+    add.add_argument("--family-name", required=True)
+    add.add_argument("--given-name", default="")
+    add.add_argument("--sex", choices=("male", "female"), required=True)
+    add.add_argument("--birth-date", required=True, help="YYYY-MM-DD")
+    add.add_argument("--height", type=float, required=True, help="cm")
+    add.add_argument("--weight", type=float, required=True, help="kg")
+    add.add_argument("--number", help="the hospital's patient number")
+    add.add_argument("--pseudonym", help="keep this pseudonym (sessions recorded elsewhere); default: a new one")
+    find = verbs.add_parser("list", help="patients whose name, number or pseudonym contains TEXT")
+    find.add_argument("text", nargs="?", default="")
+    history = verbs.add_parser("history", help="a patient's sessions and key values")
+    history.add_argument("pseudonym")
+    register = verbs.add_parser("register", help="put a recorded session (and its results) on record")
+    register.add_argument("session", type=Path)
+    register.add_argument("--results", type=Path)
+    register.add_argument("--operator", default="")
+    p.set_defaults(run=run_patients)
+
+
+def _open_records(path: Path | None, create: bool):
+    from app.records import Records, RecordsError, default_path
+
+    target = path or default_path()
+    if not create and not target.exists():
+        return None
+    try:
+        return Records(target)
+    except RecordsError as exc:
+        raise UserError(str(exc)) from exc
+
+
+def run_report(args: argparse.Namespace) -> int:
+    from app.report_data import build_report
+    from app.report_pdf import write_report
+
+    records = _open_records(args.records, create=False)
+    try:
+        data = build_report(args.input, records=records, equations=args.equations)
+    finally:
+        if records is not None:
+            records.close()
+    write_report(data, args.output, args.page_size)
+    print(f"wrote {args.output}: {data.main_source or 'no'} values"
+          + (f", {len(data.maps)} head(s) mapped" if data.maps else ", no height maps"))
+    for note in data.notes:
+        print(f"  note: {note}")
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from app.export import research_copy, values_csv, volume_csv
+    from app.report_data import build_report
+
+    if args.research is not None:
+        if args.study_key_file is None:
+            raise UserError("--research needs --study-key-file (the study's secret key)")
+        try:
+            key = args.study_key_file.read_bytes().strip()
+            out = research_copy(args.input, args.research, key, args.study)
+        except ValueError as exc:
+            raise UserError(str(exc)) from exc
+        print(f"wrote {out}: pseudonymised research copy")
+        return 0
+    args.csv.mkdir(parents=True, exist_ok=True)
+    data = build_report(args.input, with_maps=False)
+    try:
+        volume = volume_csv(data, args.csv / "volume.csv")
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
+    values = values_csv(data, args.csv / "values.csv")
+    print(f"wrote {volume} and {values}")
+    return 0
+
+
+def _parse_date(text: str) -> date:
+    try:
+        return date.fromisoformat(text)
+    except ValueError as exc:
+        raise UserError(f"birth date: expected YYYY-MM-DD, got {text!r}") from exc
+
+
+def run_patients(args: argparse.Namespace) -> int:
+    from app.records import RecordsError
+
+    records = _open_records(args.records, create=True)
+    try:
+        with records:
+            return _patients(records, args)
+    except RecordsError as exc:
+        raise UserError(str(exc)) from exc
+
+
+def _patients(records, args: argparse.Namespace) -> int:
+    if args.patients_verb == "add":
+        p = records.add_patient(args.family_name, args.given_name, args.sex, _parse_date(args.birth_date),
+                                args.height, args.weight, args.number, args.pseudonym)
+        print(p.pseudonym)
+        return 0
+    if args.patients_verb == "list":
+        for p in records.find_patients(args.text):
+            print(f"{p.pseudonym}  {p.display_name}  {p.patient_number or '-'}  {p.sex}  born "
+                  f"{p.birth_date.isoformat()}  {p.height_cm:g} cm  {p.weight_kg:g} kg")
+        return 0
+    if args.patients_verb == "history":
+        patient = records.patient_by_pseudonym(args.pseudonym)
+        if patient is None:
+            raise UserError(f"no patient with pseudonym {args.pseudonym}")
+        print(f"{patient.display_name} ({patient.pseudonym})")
+        for s in records.history(patient.id):
+            values = next(iter(s.summary.values()), {}) if s.summary else {}
+            shown = ", ".join(f"{k} {values[k]:.2f}" for k in ("FEV1_l", "FVC_l", "TV_l") if k in values)
+            print(f"  {s.recorded:%Y-%m-%d %H:%M}  {s.status:<9} {shown or 'no values'}  {s.session_path}")
+        return 0
+    return _register(records, args)
+
+
+def _register(records, args: argparse.Namespace) -> int:
+    from app.report_data import build_report
+    from core.session import SessionFile
+
+    with SessionFile(args.session) as s:
+        if s.subject is None:
+            raise UserError(f"{args.session} has no /subject: it cannot be put on a patient's record")
+        patient = records.patient_by_pseudonym(s.subject.id)
+        if patient is None:
+            raise UserError(f"{args.session}: no patient with pseudonym {s.subject.id} (add the patient first)")
+        recorded = datetime.fromisoformat(s.created)
+        rig = s.rig.name
+        operator = args.operator or str(s.attrs.get("operator", ""))
+    session_id = records.add_session(patient.id, args.session, recorded, operator=operator, rig=rig)
+    data = build_report(args.results or args.session, with_maps=False)
+    records.set_results(session_id, args.results, {source: data.parameters(source) for source in data.sources},
+                        status="processed" if args.results else "analysed")
+    print(f"registered {args.session} for {patient.pseudonym}")
+    return 0

@@ -1,0 +1,442 @@
+"""The PDF report (reportlab): page 1 for the clinician's values and curves, page 2 for the
+height maps, regional contributions and tidal indices. Curves are vector graphics; maps are
+images in a colour map whose lightness rises monotonically (viridis), so they read in grey too.
+Fonts are embedded (DejaVu Sans) so any Latin, Greek or Cyrillic name prints.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+from datetime import datetime
+from pathlib import Path
+
+import cv2
+import numpy as np
+from reportlab import rl_config
+from reportlab.graphics.charts.legends import LineLegend
+from reportlab.graphics.charts.lineplots import LinePlot
+from reportlab.graphics import shapes
+from reportlab.graphics.shapes import Drawing, Line, Rect, String
+from reportlab.lib import colors
+from reportlab.lib.pagesizes import A4, letter
+from reportlab.lib.styles import ParagraphStyle
+from reportlab.lib.units import mm
+from reportlab.pdfbase import pdfmetrics
+from reportlab.pdfbase.ttfonts import TTFont
+from reportlab.platypus import (Image, KeepTogether, PageBreak, Paragraph, SimpleDocTemplate, Spacer, Table,
+                                TableStyle)
+
+from app.paths import resources_dir
+from app.report_data import FLOW_SENSOR, OPTICAL, HeadMaps, ReportData, ValueRow, best_manoeuvres
+from core import __version__
+
+PAGE_SIZES = {"a4": A4, "letter": letter}
+FONT, BOLD = "DejaVuSans", "DejaVuSans-Bold"
+DASHES = (None, (4, 2), (1, 2))  # the best manoeuvre solid, then dashed, then dotted
+GREYS = (colors.black, colors.Color(0.3, 0.3, 0.3), colors.Color(0.45, 0.45, 0.45))
+
+
+def _register_fonts() -> None:
+    if FONT in pdfmetrics.getRegisteredFontNames():
+        return
+    fonts = resources_dir() / "fonts"
+    pdfmetrics.registerFont(TTFont(FONT, str(fonts / "DejaVuSans.ttf")))
+    pdfmetrics.registerFont(TTFont(BOLD, str(fonts / "DejaVuSans-Bold.ttf")))
+    pdfmetrics.registerFontFamily(FONT, normal=FONT, bold=BOLD, italic=FONT, boldItalic=BOLD)
+    rl_config.canvas_basefontname = FONT  # pages and drawings start in it: no font but the embedded ones
+    shapes.STATE_DEFAULTS["fontName"] = FONT
+
+
+def _styles() -> dict[str, ParagraphStyle]:
+    body = ParagraphStyle("body", fontName=FONT, fontSize=8.5, leading=11)
+    return {"body": body,
+            "small": ParagraphStyle("small", parent=body, fontSize=7.5, leading=9.5),
+            "title": ParagraphStyle("title", parent=body, fontName=BOLD, fontSize=14, leading=18),
+            "h2": ParagraphStyle("h2", parent=body, fontName=BOLD, fontSize=10, leading=13, spaceBefore=6,
+                                 spaceAfter=3)}
+
+
+def fmt(value: float | None, unit: str = "", digits: int | None = None) -> str:
+    """A value as the report prints it (and the tests read it back)."""
+    if value is None or not math.isfinite(value):
+        return "–"
+    if digits is None:
+        digits = 0 if unit in ("%", "/min") else (1 if unit in ("L/min", "s") else 2)
+    return f"{value:.{digits}f}"
+
+
+def _ratio_row(row: ValueRow) -> bool:
+    return row.key == "FEV1_FVC"
+
+
+def _grid(data, widths, header_rows=1, align_from=1) -> Table:
+    table = Table(data, colWidths=widths, repeatRows=header_rows)
+    table.setStyle(TableStyle([
+        ("FONT", (0, 0), (-1, -1), FONT, 8),
+        ("FONT", (0, 0), (-1, header_rows - 1), BOLD, 8),
+        ("ALIGN", (align_from, 0), (-1, -1), "RIGHT"),
+        ("LINEBELOW", (0, header_rows - 1), (-1, header_rows - 1), 0.6, colors.black),
+        ("LINEBELOW", (0, -1), (-1, -1), 0.3, colors.grey),
+        ("ROWBACKGROUNDS", (0, header_rows), (-1, -1), [colors.white, colors.Color(0.93, 0.93, 0.93)]),
+        ("TOPPADDING", (0, 0), (-1, -1), 1.5), ("BOTTOMPADDING", (0, 0), (-1, -1), 1.5),
+    ]))
+    return table
+
+
+def _patient_block(data: ReportData, styles) -> Table:
+    subject = data.subject or {}
+    patient = data.patient
+    name = patient.display_name if patient else "not on record here (pseudonymous session)"
+    recorded = data.recorded
+    try:
+        recorded = datetime.fromisoformat(data.recorded).strftime("%Y-%m-%d %H:%M %Z").strip()
+    except ValueError:
+        pass
+    left = [("Patient", name),
+            ("Patient number", patient.patient_number or "–" if patient else "–"),
+            ("Pseudonym", str(subject.get("id", "–"))),
+            ("Sex", str(subject.get("sex", "–"))),
+            ("Age", f"{subject['age_years']:.1f} years" if "age_years" in subject else "–"),
+            ("Height / weight", f"{subject['height_cm']:.0f} cm / {subject['weight_kg']:.1f} kg"
+             if "height_cm" in subject else "–")]
+    if patient is not None:
+        left.insert(2, ("Date of birth", patient.birth_date.isoformat()))
+    right = [("Recorded", recorded), ("Operator", data.operator or "not recorded"), ("Rig", data.rig),
+             ("Reference equations", {"gli-global": "GLI Global 2022", "gli-2012": "GLI-2012"}[data.equations]),
+             ("Session file", data.session_path.name)]
+    rows = []
+    for k in range(max(len(left), len(right))):
+        a = left[k] if k < len(left) else ("", "")
+        b = right[k] if k < len(right) else ("", "")
+        rows.append([Paragraph(f"<b>{a[0]}</b>", styles["small"]), Paragraph(_escape(a[1]), styles["small"]),
+                     Paragraph(f"<b>{b[0]}</b>", styles["small"]), Paragraph(_escape(b[1]), styles["small"])])
+    table = Table(rows, colWidths=[28 * mm, 55 * mm, 32 * mm, 60 * mm])
+    table.setStyle(TableStyle([("FONT", (0, 0), (-1, -1), FONT, 8), ("VALIGN", (0, 0), (-1, -1), "TOP"),
+                               ("TOPPADDING", (0, 0), (-1, -1), 0.5),
+                               ("BOTTOMPADDING", (0, 0), (-1, -1), 0.5),
+                               ("BOX", (0, 0), (-1, -1), 0.5, colors.black)]))
+    return table
+
+
+def _escape(text: str) -> str:
+    return str(text).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def _sources(data: ReportData) -> list[str]:
+    return [s for s in (OPTICAL, FLOW_SENSOR) if s in data.sources]
+
+
+def _values_table(data: ReportData) -> Table:
+    sources = _sources(data)
+    main = data.main_source
+    header = ["Parameter", "Unit"] + [s.capitalize() for s in sources] + ["Predicted", "LLN", f"z-score\n{main}",
+                                                                          f"% predicted\n{main}"]
+    body = []
+    for row in data.rows:
+        if not row.values and row.reference is None:
+            body.append([row.label, row.unit] + ["–"] * (len(sources) + 4))
+            continue
+        ratio = _ratio_row(row)
+        cells = [fmt(row.values.get(s), row.unit, 2 if ratio else None) for s in sources]
+        ref = row.reference
+        pred = [fmt(ref.predicted, row.unit, 2 if ratio else None), fmt(ref.lln, row.unit, 2 if ratio else None)] \
+            if ref else ["–", "–"]
+        z = fmt(row.z(main), digits=2) if main else "–"
+        pct = fmt(row.percent(main), digits=0) if main else "–"
+        body.append([row.label, row.unit] + cells + pred + [z, pct])
+    widths = [34 * mm, 13 * mm] + [22 * mm] * len(sources) + [19 * mm, 16 * mm, 20 * mm, 22 * mm]
+    return _grid([header] + body, widths, align_from=2)
+
+
+def _quality_lines(data: ReportData) -> list[str]:
+    lines = []
+    for source in _sources(data):
+        p = data.parameters(source)
+        if "grade" in p:
+            lines.append(f"<b>{source.capitalize()}</b>: ATS/ERS 2019 grade <b>{p['grade']}</b> (FEV1 "
+                         f"{p['grade_FEV1']}, FVC {p['grade_FVC']}); acceptable manoeuvres: {p['acceptable_FEV1']} "
+                         f"for FEV1 and {p['acceptable_FVC']} for FVC, of {p['manoeuvres']}.")
+        else:
+            lines.append(f"<b>{source.capitalize()}</b>: no forced expiration graded.")
+    return lines
+
+
+def _plot(width: float, height: float, series: list[list[tuple[float, float]]], x_label: str, y_label: str,
+          x_range: tuple[float, float] | None = None, y_range: tuple[float, float] | None = None,
+          legend: list[str] | None = None, markers: bool = False) -> Drawing:
+    drawing = Drawing(width, height)
+    plot = LinePlot()
+    plot.x, plot.y = 34, 26
+    plot.width, plot.height = width - 44, height - 36
+    plot.data = series
+    for k in range(len(series)):
+        line = plot.lines[k]
+        line.strokeColor = GREYS[k % len(GREYS)]
+        line.strokeWidth = 1.2 if k == 0 else 0.8
+        if DASHES[k % len(DASHES)] is not None:
+            line.strokeDashArray = DASHES[k % len(DASHES)]
+        if markers:
+            from reportlab.graphics.widgets.markers import makeMarker
+
+            line.symbol = makeMarker("Circle", size=2.5)
+            line.strokeWidth = 0
+    for axis in (plot.xValueAxis, plot.yValueAxis):
+        axis.labels.fontName = FONT
+        axis.labels.fontSize = 6.5
+        axis.strokeWidth = 0.5
+    if x_range:
+        plot.xValueAxis.valueMin, plot.xValueAxis.valueMax = x_range
+    if y_range:
+        plot.yValueAxis.valueMin, plot.yValueAxis.valueMax = y_range
+    plot.yValueAxis.visibleGrid = True
+    plot.yValueAxis.gridStrokeColor = colors.Color(0.85, 0.85, 0.85)
+    plot.yValueAxis.gridStrokeWidth = 0.3
+    drawing.add(plot)
+    drawing.add(String(plot.x + plot.width / 2, 4, x_label, fontName=FONT, fontSize=7, textAnchor="middle"))
+    label = String(0, 0, y_label, fontName=FONT, fontSize=7, textAnchor="middle")
+    from reportlab.graphics.shapes import Group
+
+    rotated = Group(label)
+    rotated.transform = (0, 1, -1, 0, 8, plot.y + plot.height / 2)
+    drawing.add(rotated)
+    if legend:
+        key = LineLegend()
+        key.x, key.y = plot.x + plot.width - 95, plot.y + 8 + 8 * (len(legend) - 1)
+        key.fontName, key.fontSize = FONT, 6.5
+        key.dx, key.dy, key.deltay = 14, 0, 8
+        key.columnMaximum = len(legend)
+        key.colorNamePairs = [(GREYS[k % len(GREYS)], name) for k, name in enumerate(legend)]
+        drawing.add(key)
+    return drawing
+
+
+def _decimate(x: np.ndarray, y: np.ndarray, points: int = 300) -> list[tuple[float, float]]:
+    step = max(1, len(x) // points)
+    return [(float(a), float(b)) for a, b in zip(x[::step], y[::step]) if math.isfinite(a) and math.isfinite(b)]
+
+
+def _curves(data: ReportData, width: float) -> Drawing | None:
+    best = best_manoeuvres(data.manoeuvres)
+    if not best:
+        return None
+    half = width / 2 - 4
+    t_max = max(6.0, min(15.0, max(float(m.time_s[-1]) for m in best)))
+    v_max = max(float(np.max(m.volume_l)) for m in best) * 1.1
+    f_max = max(float(np.max(m.flow_lps)) for m in best) * 1.1
+    names = [f"blow {m.number}" + ("" if m.acceptable else " (not acceptable)") for m in best]
+    volume_time = _plot(half, 150, [_decimate(m.time_s, m.volume_l) for m in best], "time from time zero (s)",
+                        "exhaled volume (L)", (-0.5, t_max), (0.0, v_max), names)
+    flow_volume = _plot(half, 150, [_decimate(m.volume_l, m.flow_lps) for m in best], "exhaled volume (L)",
+                        "expiratory flow (L/s)", (0.0, v_max), (min(0.0, -0.05 * f_max), f_max))
+    drawing = Drawing(width, 150)
+    volume_time.translate(0, 0)
+    drawing.add(volume_time)
+    flow_volume.translate(half + 8, 0)
+    drawing.add(flow_volume)
+    return drawing
+
+
+def _comparison(data: ReportData, styles, width: float) -> list:
+    c = data.comparison
+    out: list = [Paragraph("Optical method and flow sensor", styles["h2"])]
+    if c is None:
+        out.append(Paragraph("No flow sensor was recorded: no comparison.", styles["body"]))
+        return out
+    lines = []
+    if c.curve_r is not None:
+        lines.append(f"Volume curves (litres): r = {c.curve_r:.3f}.")
+    ba = c.bland_altman()
+    if ba is not None:
+        lines.append(f"Tidal volume per breath, optical minus flow sensor ({len(c.tidal_pairs)} breaths): mean "
+                     f"difference {ba[0]:+.3f} L, limits of agreement {ba[1]:+.3f} to {ba[2]:+.3f} L.")
+    elif c.curve_r is not None:
+        lines.append(f"Only {len(c.tidal_pairs)} tidal breaths paired: too few for limits of agreement.")
+    if c.gradient_r:
+        lines.append("Normalised gradient volume (thesis eq. 3.27) against the flow-sensor volume: "
+                     + ", ".join(f"{head} r = {r:.3f}" for head, r in c.gradient_r.items()) + ".")
+    if c.note:
+        lines.append(c.note[0].upper() + c.note[1:] + ".")
+    out += [Paragraph(line, styles["body"]) for line in lines]
+    if ba is not None:
+        means = [(a + b) / 2 for a, b in c.tidal_pairs]
+        diffs = [a - b for a, b in c.tidal_pairs]
+        lo, hi = min(means) - 0.05, max(means) + 0.05
+        span = max(abs(ba[1]), abs(ba[2]), max(abs(d) for d in diffs)) * 1.3
+        series = [list(zip(means, diffs)), [(lo, ba[0]), (hi, ba[0])], [(lo, ba[1]), (hi, ba[1])],
+                  [(lo, ba[2]), (hi, ba[2])]]
+        plot = _plot(width * 0.55, 120, series, "mean of the two tidal volumes (L)",
+                     "optical − flow sensor (L)", (lo, hi), (-span, span), markers=False)
+        scatter = plot.contents[0]
+        from reportlab.graphics.widgets.markers import makeMarker
+
+        scatter.lines[0].symbol = makeMarker("Circle", size=3)
+        scatter.lines[0].strokeWidth = 0
+        scatter.lines[0].strokeColor = None
+        for k in (1, 2, 3):
+            scatter.lines[k].strokeColor = colors.black
+            scatter.lines[k].strokeWidth = 0.6
+            scatter.lines[k].strokeDashArray = None if k == 1 else (3, 2)
+        out.append(plot)
+    return out
+
+
+def _colour_image(values: np.ndarray, lo: float, hi: float, width_pt: float) -> Image:
+    scaled = np.clip((values - lo) / (hi - lo) if hi > lo else np.zeros_like(values), 0.0, 1.0)
+    grey = np.nan_to_num(scaled * 255.0).astype(np.uint8)
+    rgb = cv2.cvtColor(cv2.applyColorMap(grey, cv2.COLORMAP_VIRIDIS), cv2.COLOR_BGR2RGB)
+    rgb[~np.isfinite(values)] = 255
+    ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    height_pt = width_pt * values.shape[0] / values.shape[1]
+    return Image(io.BytesIO(png.tobytes()), width=width_pt, height=height_pt)
+
+
+def _colour_bar(lo: float, hi: float, width: float, label: str) -> Drawing:
+    drawing = Drawing(width, 24)
+    steps = 64
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8).reshape(-1, 1), cv2.COLORMAP_VIRIDIS)[:, 0, ::-1]
+    for k in range(steps):
+        r, g, b = lut[int(k * 255 / (steps - 1))] / 255.0
+        drawing.add(Rect(k * width / steps, 12, width / steps + 0.3, 7, fillColor=colors.Color(r, g, b),
+                         strokeColor=None))
+    drawing.add(Rect(0, 12, width, 7, fillColor=None, strokeColor=colors.black, strokeWidth=0.3))
+    for value, anchor, x in ((lo, "start", 0), ((lo + hi) / 2, "middle", width / 2), (hi, "end", width)):
+        drawing.add(Line(x, 11, x, 12))
+        drawing.add(String(x, 4, f"{value:+.0f}" if abs(hi - lo) >= 6 else f"{value:+.1f}", fontName=FONT,
+                           fontSize=6, textAnchor=anchor))
+    drawing.add(String(width / 2, 20.5, label, fontName=FONT, fontSize=6, textAnchor="middle"))
+    return drawing
+
+
+def _symmetric_range(values: list[np.ndarray], percentile: float = 98.0) -> float:
+    finite = np.concatenate([v[np.isfinite(v)] for v in values]) if values else np.zeros(1)
+    if finite.size == 0:
+        return 1.0
+    return max(float(np.percentile(np.abs(finite), percentile)), 0.5)
+
+
+def _maps(data: ReportData, styles, width: float) -> list:
+    out: list = [Paragraph("Height maps", styles["h2"])]
+    if not data.maps:
+        out.append(Paragraph("No height maps: " + ("no tidal breath was found to place end inspiration and "
+                                                   "end expiration." if data.breath_times_s is None else
+                                                   "not computed."), styles["body"]))
+        return out
+    t_in, t_ex = data.breath_times_s
+    out.append(Paragraph(f"The median tidal breath: end inspiration at {t_in:.1f} s, end expiration at {t_ex:.1f} s. "
+                         "Height is above each map's mean surface (towards the camera); the movement map shows "
+                         "how far each point moved towards the camera from end expiration to end inspiration, "
+                         "after removing the subject's sway.", styles["small"]))
+    column = (width - 12) / 3
+    height_range = _symmetric_range([m.inspiration_mm for m in data.maps] + [m.expiration_mm for m in data.maps])
+    rows = [[Paragraph(f"<b>{m.head.capitalize()} head</b> ({m.distance_mm:.0f} mm)", styles["small"]), "", ""]
+            for m in data.maps]
+    table_rows = []
+    for m, title in zip(data.maps, rows):
+        moved = _symmetric_range([m.displacement_mm])
+        table_rows.append(title)
+        table_rows.append([_colour_image(m.inspiration_mm, -height_range, height_range, column - 6),
+                           _colour_image(m.expiration_mm, -height_range, height_range, column - 6),
+                           _colour_image(m.displacement_mm, -moved, moved, column - 6)])
+        table_rows.append([_colour_bar(-height_range, height_range, column - 10, "height at end inspiration (mm)"),
+                           _colour_bar(-height_range, height_range, column - 10, "height at end expiration (mm)"),
+                           _colour_bar(-moved, moved, column - 10, "movement on inspiration (mm)")])
+    table = Table(table_rows, colWidths=[column] * 3)
+    table.setStyle(TableStyle([("FONT", (0, 0), (-1, -1), FONT, 8), ("ALIGN", (0, 0), (-1, -1), "CENTER"),
+                               ("VALIGN", (0, 0), (-1, -1), "MIDDLE"),
+                               ("TOPPADDING", (0, 0), (-1, -1), 3), ("BOTTOMPADDING", (0, 0), (-1, -1), 3)]))
+    out.append(table)
+    return out
+
+
+def _regions(data: ReportData, styles) -> list:
+    out: list = [Paragraph("Regional contributions", styles["h2"])]
+    if not data.maps:
+        out.append(Paragraph("Not available without height maps.", styles["body"]))
+        return out
+    names = ("upper left", "upper right", "lower left", "lower right")
+    rows = [["Head", "Upper\nleft", "Upper\nright", "Lower\nleft", "Lower\nright", "Left", "Right",
+             "Upper\n(chest)", "Lower\n(abdomen)"]]
+    for m in data.maps:
+        if not m.regions:
+            rows.append([m.head.capitalize(), "not measurable: no net outward movement beyond the alignment's "
+                                              "uncertainty", "", "", "", "", "", "", ""])
+            continue
+        r = m.regions
+        share = [r.get(n, float("nan")) for n in names]
+        rows.append([m.head.capitalize()] + [f"{100 * s:.0f} %" for s in share]
+                    + [f"{100 * (share[0] + share[2]):.0f} %", f"{100 * (share[1] + share[3]):.0f} %",
+                       f"{100 * (share[0] + share[1]):.0f} %", f"{100 * (share[2] + share[3]):.0f} %"])
+    table = _grid(rows, [16 * mm] + [19 * mm] * 8)
+    spans = [("SPAN", (1, k), (-1, k)) for k, row in enumerate(rows) if row[2] == "" and k > 0]
+    if spans:
+        table.setStyle(TableStyle(spans + [("ALIGN", (1, k), (1, k), "LEFT") for (_, (_, k), _) in spans]))
+    out.append(table)
+    out.append(Paragraph("Share of the surface movement each quadrant of the trunk (upper and lower half of the "
+                         "trunk, left and right of the midline, as the patient's own sides) contributes to the "
+                         "mapped breath, weighted by each pixel's area on the body.", styles["small"]))
+    return out
+
+
+def _tidal(data: ReportData, styles) -> list:
+    sources = _sources(data)
+    out: list = [Paragraph("Tidal breathing indices and other values", styles["h2"])]
+    rows = [["Value", "Unit"] + [s.capitalize() for s in sources]]
+    for row in data.tidal_rows:
+        digits = 0 if row.key == "breaths" else (2 if row.unit in ("", "L", "s") else None)
+        rows.append([row.label, row.unit] + [fmt(row.values.get(s), row.unit, digits) for s in sources])
+    out.append(_grid(rows, [62 * mm, 14 * mm] + [26 * mm] * len(sources), align_from=2))
+    return out
+
+
+def write_report(data: ReportData, output: str | os.PathLike, page_size: str = "a4") -> Path:
+    """Write the two-page report; returns its path."""
+    _register_fonts()
+    styles = _styles()
+    size = PAGE_SIZES[page_size]
+    output = Path(output)
+    margin = 14 * mm
+    width = size[0] - 2 * margin
+
+    def footer(canvas, doc) -> None:
+        canvas.saveState()
+        canvas.setFont(FONT, 6.5)
+        canvas.drawString(margin, 8 * mm, f"photopft {__version__} · {data.session_path.name} · "
+                                           f"{'SIMULATED SESSION · ' if data.kind == 'simulation' else ''}"
+                                           f"page {doc.page}")
+        canvas.restoreState()
+
+    story: list = []
+    title = "Pulmonary function report"
+    if data.kind == "simulation":
+        title += " — simulated session, not a patient"
+    story.append(Paragraph(title, styles["title"]))
+    story.append(_patient_block(data, styles))
+    story.append(Paragraph("Calibration in force: " + _escape("; ".join(data.calibration)), styles["small"]))
+    story.append(Paragraph("Values", styles["h2"]))
+    if data.main_source is None:
+        story.append(Paragraph("No volume curve in litres was recorded (neither an optical volume nor a flow "
+                               "sensor): no pulmonary function values.", styles["body"]))
+    else:
+        story.append(_values_table(data))
+        story += [Paragraph(line, styles["small"]) for line in _quality_lines(data)]
+    curves = _curves(data, width)
+    story.append(Paragraph(f"Forced expirations ({data.main_source or 'none'}): the best manoeuvres",
+                           styles["h2"]))
+    story.append(curves if curves is not None else
+                 Paragraph("No forced expiration to show.", styles["body"]))
+    story += _comparison(data, styles, width)
+    if data.notes:
+        story.append(Paragraph("Notes", styles["h2"]))
+        story += [Paragraph(_escape(note), styles["small"]) for note in data.notes]
+    story.append(PageBreak())
+    story += _maps(data, styles, width)
+    story.append(KeepTogether(_regions(data, styles)))
+    story.append(Spacer(1, 4))
+    story.append(KeepTogether(_tidal(data, styles)))
+    doc = SimpleDocTemplate(str(output), pagesize=size, leftMargin=margin, rightMargin=margin, topMargin=12 * mm,
+                            bottomMargin=14 * mm, title="Pulmonary function report", author=f"photopft {__version__}",
+                            subject=data.session_path.name)
+    doc.build(story, onFirstPage=footer, onLaterPages=footer)
+    return output

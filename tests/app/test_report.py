@@ -1,0 +1,125 @@
+"""The PDF report, read back: its numbers are the results file's, and sessions with less in them
+(no flow sensor, front only, no acceptable blow) still give a complete, honest report."""
+
+from __future__ import annotations
+
+import re
+from datetime import date
+
+import h5py
+import pytest
+from pypdf import PdfReader
+
+from app.cli import main
+from app.records import Records
+from app.report_pdf import fmt
+from core.sim.breathing import ForcedBlow
+from core.sim.simulate import SimConfig, simulate
+
+
+def _text(pdf) -> list[str]:
+    """Each page's text with its table rows on one line and runs of spaces as one."""
+    pages = [page.extract_text(extraction_mode="layout") for page in PdfReader(pdf).pages]
+    return ["\n".join(" ".join(line.split()) for line in page.splitlines() if line.strip()) for page in pages]
+
+
+def _row(text: str, label: str, unit: str) -> list[str]:
+    """The cells after the unit of the values table's row."""
+    prefix = f"{label} {unit} " if unit else f"{label} "
+    line = next(line for line in text.splitlines() if line.startswith(prefix) and line[len(prefix):][:1] in
+                "0123456789–-")
+    return line[len(prefix):].split()
+
+
+def test_report_numbers_equal_the_results_file(processed_full_session, tmp_path):
+    session, results = processed_full_session
+    records_path = tmp_path / "records.sqlite3"
+    with Records(records_path) as records:
+        records.add_patient("Łukasiewicz-Дмитриев", "Zoë Ψ", "male", date(1996, 3, 1), 175.0, 75.0,
+                            patient_number="H-77", pseudonym="SIM-0001")
+    pdf = tmp_path / "report.pdf"
+    assert main(["report", str(results), "-o", str(pdf), "--records", str(records_path)]) == 0
+    page1, page2 = _text(pdf)
+    assert "Łukasiewicz-Дмитриев, Zoë Ψ" in page1 and "H-77" in page1  # the embedded font prints every name
+    assert "simulated session" in page1
+    with h5py.File(results, "r") as r:
+        p = dict(r["parameters"].attrs)
+        assert r["parameters"].attrs["source"] == "flow sensor"
+    for label, key, unit in (("Tidal volume", "TV_l", "L"), ("FVC", "FVC_l", "L"), ("FEV1", "FEV1_l", "L"),
+                             ("PEF", "PEF_lps", "L/s"), ("VC", "VC_l", "L"), ("Respiratory rate", "RR_bpm", "/min")):
+        cells = _row(page1, label, unit)
+        # columns: optical, flow sensor, predicted, ...
+        assert cells[1] == fmt(float(p[key]), unit), (label, cells, p[key])
+    assert _row(page1, "FEV1/FVC", "")[1] == fmt(float(p["FEV1_FVC"]), "", 2)
+    assert f"Flow sensor: ATS/ERS 2019 grade {p['grade']}" in page1
+    assert f"{p['acceptable_FVC']} for FVC, of {p['manoeuvres']}" in page1
+    assert re.search(r"Volume curves \(litres\): r = 0\.\d{3}", page1)
+    assert "Height maps" in page2 and "Front head" in page2 and "Back head" in page2
+    assert "Regional contributions" in page2 and "Tidal breathing indices" in page2
+    reader = PdfReader(pdf)
+    fonts = [f.get_object() for page in reader.pages for f in page["/Resources"]["/Font"].values()]
+    assert fonts and all("DejaVu" in str(f["/BaseFont"]) for f in fonts), [f["/BaseFont"] for f in fonts]
+    assert all("/FontFile2" in f["/FontDescriptor"] for f in fonts)  # embedded, every one
+
+
+def test_letter_and_a4(processed_full_session, tmp_path):
+    session, _ = processed_full_session
+    sizes = {}
+    for size in ("a4", "letter"):
+        pdf = tmp_path / f"{size}.pdf"
+        assert main(["report", str(session), "-o", str(pdf), "--page-size", size]) == 0
+        box = PdfReader(pdf).pages[0].mediabox
+        sizes[size] = (round(float(box.width)), round(float(box.height)))
+        assert len(PdfReader(pdf).pages) == 2
+    assert sizes == {"a4": (595, 842), "letter": (612, 792)}
+
+
+@pytest.fixture(scope="module")
+def small_sessions(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("report-sessions")
+    paths = {
+        "no-flow": SimConfig(protocol="tidal", seconds=12.0, scale=0.1, seed=7, flow_sensor=None),
+        "front-only": SimConfig(protocol="tidal", seconds=12.0, scale=0.1, seed=8, heads=("front",)),
+        "bad-blows": SimConfig(protocol="forced", scale=0.1, seed=9,
+                               blows=[ForcedBlow(rise_time_s=0.4), ForcedBlow(rise_time_s=0.4, stop_after_s=1.5)]),
+    }
+    for name, config in paths.items():
+        simulate(folder / f"{name}.h5", config)
+    return {name: folder / f"{name}.h5" for name in paths}
+
+
+def test_a_session_without_a_flow_sensor_says_so(small_sessions, tmp_path):
+    pdf = tmp_path / "r.pdf"
+    assert main(["report", str(small_sessions["no-flow"]), "-o", str(pdf)]) == 0
+    page1, page2 = _text(pdf)
+    assert "No flow sensor was recorded" in page1
+    assert "No volume curve in litres was recorded" in page1
+    assert "No forced expiration to show" in page1
+    assert "No height maps" in page2  # no breathing curve to place the breath on
+
+
+def test_a_front_only_session(small_sessions, tmp_path):
+    pdf = tmp_path / "r.pdf"
+    assert main(["report", str(small_sessions["front-only"]), "-o", str(pdf)]) == 0
+    page1, page2 = _text(pdf)
+    assert "Front head" in page2 and "Back head" not in page2
+    assert _row(page1, "Tidal volume", "L")[0] != "–"
+    assert "the session has not been processed" in page1.replace("\n", " ").lower()
+
+
+def test_no_acceptable_manoeuvre_is_graded_and_said(small_sessions, tmp_path):
+    pdf = tmp_path / "r.pdf"
+    assert main(["report", str(small_sessions["bad-blows"]), "-o", str(pdf)]) == 0
+    page1, _ = _text(pdf)
+    grade = re.search(r"Flow sensor: ATS/ERS 2019 grade (\w)", page1).group(1)
+    assert grade in ("E", "U", "F")
+    assert "acceptable manoeuvres: 0 for FEV1 and 0 for FVC, of 2" in page1
+    assert "(not acceptable)" in page1  # the curves' legend says which blows failed
+
+
+def test_a_missing_or_broken_input_is_named(tmp_path, capsys):
+    broken = tmp_path / "broken.h5"
+    broken.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\0" * 100)
+    assert main(["report", str(broken), "-o", str(tmp_path / "x.pdf")]) == 2
+    assert "broken.h5" in capsys.readouterr().err
+    assert not (tmp_path / "x.pdf").exists()
