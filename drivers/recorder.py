@@ -83,12 +83,36 @@ class Recorder:
                                         "everything before is in the file")
             self._stop.set()
 
+    def submit_frame(self, head: str, frame) -> None:
+        """From a capture thread: never blocks."""
+        self._put(("frame", head, frame))
+
+    def submit_flow(self, block) -> None:
+        self._put(("flow", block))
+
+    def submit_event(self, timestamp_ns: int, label: str) -> None:
+        """A protocol event, written by the writer thread in its turn."""
+        self._put(("event", int(timestamp_ns), label))
+
+    @property
+    def stopped(self) -> bool:
+        """True once the recording has stopped itself (a full disk, a device gone): see problems."""
+        return self._stop.is_set()
+
+    @property
+    def problems(self) -> list[str]:
+        with self._lock:
+            return list(self._errors)
+
+    def frames_written(self) -> dict[str, int]:
+        return dict(self._counts)
+
     def _capture(self, head: str, camera: Camera) -> None:
         try:
             while not self._stop.is_set():
                 frame = camera.grab(0.2)
                 if frame is not None:
-                    self._put(("frame", head, frame))
+                    self.submit_frame(head, frame)
         except CameraError as exc:
             with self._lock:
                 self._errors.append(str(exc))
@@ -99,7 +123,7 @@ class Recorder:
             while not self._stop.is_set():
                 block = self.flow.read()
                 if len(block.adc):
-                    self._put(("flow", block))
+                    self.submit_flow(block)
                 time.sleep(0.01)
         except Exception as exc:  # a flow sensor that fails stops the recording with its message
             with self._lock:
@@ -120,44 +144,68 @@ class Recorder:
                                               [frame.timestamp_ns], [frame.frame_id])
                     self._counts[head] += 1
                     self._written_bytes += frame.image.nbytes
-                else:
+                elif item[0] == "flow":
                     block = item[1]
                     self.writer.append_flow(block.adc, block.timestamp_ns)
                     self._flow_samples += len(block.adc)
+                else:
+                    self.writer.add_event(item[1], item[2])
                 if time.monotonic() - last_flush > 1.0:
                     self.writer.flush()
                     last_flush = time.monotonic()
             except (OSError, RuntimeError) as exc:  # a full disk or a permission error (h5py raises either)
                 with self._lock:
-                    self._errors.append(f"cannot write {self.path} ({write_failure_reason(exc)}): the recording stopped; "
-                                        f"what was written before is kept: free space, then run "
+                    self._errors.append(f"cannot write {self.path} ({write_failure_reason(exc)}): the recording "
+                                        f"stopped; what was written before is kept: free space, then run "
                                         f"`photopft recover {self.path}`")
                 self._stop.set()
                 return
 
+    def begin(self, events: list[tuple[int, str]] | None = None) -> None:
+        """Start the writer; from here frames, flow and events may be submitted from any thread."""
+        self._started = time.monotonic()
+        for t, label in events or []:
+            self.writer.add_event(t, label)
+        self.writer.start_swmr()  # from here a crash keeps everything up to the last flush (about 1 s)
+        self._writer_thread = threading.Thread(target=self._write, name="writer", daemon=True)
+        self._writer_thread.start()
+
+    def end(self, stats: dict | None = None, flow_lost: int = 0) -> RecordSummary:
+        """Write what is queued, close the file and sum up. `stats`: each camera's CameraStats."""
+        self._stop.set()
+        self._writer_thread.join(timeout=30)
+        try:
+            self.writer.close()
+        except (OSError, RuntimeError) as exc:
+            with self._lock:
+                if not any("cannot write" in e for e in self._errors):
+                    self._errors.append(f"cannot close {self.path} ({write_failure_reason(exc)}); what was "
+                                        f"written before is kept: run `photopft recover {self.path}`")
+        stats = stats or {}
+        elapsed = time.monotonic() - self._started
+        return RecordSummary(self.path, dict(self._counts), {h: s.failed for h, s in stats.items()},
+                             {h: s.lost for h, s in stats.items()}, self._flow_samples, flow_lost,
+                             self._dropped, self._max_fill, elapsed, self._written_bytes / 1e6, list(self._errors))
+
     def run(self, seconds: float, progress: Callable[[float, dict], None] | None = None,
             events: list[tuple[int, str]] | None = None) -> RecordSummary:
-        started = time.monotonic()
+        """Record from the recorder's own cameras and flow sensor for `seconds`."""
         for head, camera in self.cameras.items():
             camera.start()
         if self.flow is not None:
             self.flow.start()
-        for t, label in events or []:
-            self.writer.add_event(t, label)
-        self.writer.start_swmr()  # from here a crash keeps everything up to the last flush (about 1 s)
+        self.begin(events)
         threads = [threading.Thread(target=self._capture, args=(h, c), name=f"capture-{h}", daemon=True)
                    for h, c in self.cameras.items()]
         if self.flow is not None:
             threads.append(threading.Thread(target=self._capture_flow, name="capture-flow", daemon=True))
-        writer = threading.Thread(target=self._write, name="writer", daemon=True)
-        writer.start()
         for t in threads:
             t.start()
         try:
-            while time.monotonic() - started < seconds and not self._stop.is_set():
+            while time.monotonic() - self._started < seconds and not self._stop.is_set():
                 time.sleep(0.1)
                 if progress is not None:
-                    progress(time.monotonic() - started, dict(self._counts))
+                    progress(time.monotonic() - self._started, dict(self._counts))
         finally:
             self._stop.set()
             for t in threads:
@@ -166,20 +214,8 @@ class Recorder:
                 camera.stop()
             if self.flow is not None:
                 self.flow.stop()
-            writer.join(timeout=30)
-            try:
-                self.writer.close()
-            except (OSError, RuntimeError) as exc:
-                with self._lock:
-                    if not any("cannot write" in e for e in self._errors):
-                        self._errors.append(f"cannot close {self.path} ({write_failure_reason(exc)}); what was written "
-                                            f"before is kept: run `photopft recover {self.path}`")
-        stats = {h: c.stats for h, c in self.cameras.items()}
-        return RecordSummary(self.path, dict(self._counts), {h: s.failed for h, s in stats.items()},
-                             {h: s.lost for h, s in stats.items()}, self._flow_samples,
-                             int(getattr(self.flow, "lost_samples", 0)) if self.flow is not None else 0,
-                             self._dropped, self._max_fill, time.monotonic() - started, self._written_bytes / 1e6,
-                             list(self._errors))
+        return self.end({h: c.stats for h, c in self.cameras.items()},
+                        int(getattr(self.flow, "lost_samples", 0)) if self.flow is not None else 0)
 
 
 def write_failure_reason(exc: Exception) -> str:
