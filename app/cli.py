@@ -258,6 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
     from app.emulate_cli import add_emulate
     from app.record_cli import add_record
     from app.records_cli import add_records_verbs
+    from app.gui.app import add_gui
 
     add_calibrate(sub)
     add_process(sub)
@@ -266,6 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_emulate(sub)
     add_record(sub)
     add_records_verbs(sub)
+    add_gui(sub)
     add_demo(sub, run_simulate, describe_session)
     return parser
 

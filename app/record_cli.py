@@ -49,7 +49,7 @@ def _simulated(config, seconds: float, stack: ExitStack):
     return state.rig, cameras, flow, calibration
 
 
-def _hardware(config, stack: ExitStack):
+def open_hardware(config, stack: ExitStack):
     from core.rig import Rig, thesis_head
     from drivers.camera import AravisCamera, CameraSettings, bandwidth_advice
     from drivers.flowsensor import FlowSensor, FlowSensorEmulator
@@ -119,7 +119,7 @@ def run_record(args: argparse.Namespace) -> int:
             if config.simulated:
                 rig, cameras, flow, flow_calibration = _simulated(config, args.seconds, stack)
             else:
-                rig, cameras, flow, flow_calibration = _hardware(config, stack)
+                rig, cameras, flow, flow_calibration = open_hardware(config, stack)
             if config.calibration is not None:
                 rig = load_profile(config.calibration).apply(rig)
         except (CameraError, SequencerError, FlowSensorError, ProfileError) as exc:

@@ -25,6 +25,7 @@ class SimulatedRigState:
     heads: dict
     digitisers: dict
     start_ns: int
+    waveform: object = None  # core.sim.breathing.Waveform of a torso scene
 
     @classmethod
     def build(cls, config, realtime_start_ns: int | None = None) -> "SimulatedRigState":
@@ -35,12 +36,32 @@ class SimulatedRigState:
         from core.sim.simulate import as_built_heads, build_scene
 
         rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
-        scene, _ = build_scene(config, rig)
+        scene, waveform = build_scene(config, rig)
         if len(rig.heads) == 2:
             rig = replace(rig, baseline_mm=float(scene.baseline_mm))
         heads = as_built_heads(rig, config)
         digitisers = {h: Digitiser(config.camera, config.bit_depth) for h in rig.heads}
-        return cls(config, rig, scene, heads, digitisers, realtime_start_ns or time.monotonic_ns())
+        return cls(config, rig, scene, heads, digitisers, realtime_start_ns or time.monotonic_ns(), waveform)
+
+    def now_s(self) -> float:
+        return (time.monotonic_ns() - self.start_ns) / 1e9
+
+    def perform(self, manoeuvre: str, blow=None) -> None:
+        """The simulated subject does what the operator asks, from now: "vc" (slow vital capacity)
+        or "forced" (a forced expiration, `blow` a core.sim.breathing.ForcedBlow), then breathes quietly."""
+        from core.sim.breathing import ForcedBlow, forced, slow_vc, tidal
+
+        if self.waveform is None:
+            raise ValueError("this simulated scene does not breathe")
+        rng = np.random.default_rng(self.config.seed + int(self.now_s() * 1000))
+        subject = self.config.subject
+        if manoeuvre == "vc":
+            samples, _ = slow_vc(subject, rng, lead_breaths=0)
+        elif manoeuvre == "forced":
+            samples, _ = forced(subject, blow or ForcedBlow(), rng, lead_breaths=0)
+        else:
+            raise ValueError(f"unknown manoeuvre {manoeuvre!r}: vc or forced")
+        self.waveform.splice(self.now_s() + 0.3, samples, tidal(subject, 600.0, rng))
 
 
 @dataclass

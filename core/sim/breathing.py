@@ -110,15 +110,29 @@ class Waveform:
     def duration_s(self) -> float:
         return len(self.volume_l) / RATE_HZ
 
+    def __post_init__(self) -> None:
+        self._set(np.asarray(self.volume_l, dtype=float))
+
+    def _set(self, volume_l: np.ndarray) -> None:
+        """Replace the curve in one step (readers on other threads see the old or the new one)."""
+        self._curves = (np.arange(len(volume_l)) / RATE_HZ, volume_l, np.gradient(volume_l) * RATE_HZ)
+        self.volume_l = volume_l
+
     def at(self, t_s: np.ndarray | float) -> np.ndarray:
-        t = np.asarray(t_s, dtype=float)
-        grid = np.arange(len(self.volume_l)) / RATE_HZ
-        return np.interp(t, grid, self.volume_l)
+        grid, volume, _ = self._curves
+        return np.interp(np.asarray(t_s, dtype=float), grid, volume)
 
     def flow_at(self, t_s: np.ndarray | float) -> np.ndarray:
-        flow = np.gradient(self.volume_l) * RATE_HZ
-        grid = np.arange(len(self.volume_l)) / RATE_HZ
+        grid, _, flow = self._curves
         return np.interp(np.asarray(t_s, dtype=float), grid, flow)
+
+    def splice(self, t_s: float, samples: np.ndarray, after: np.ndarray) -> None:
+        """From `t_s` on: `samples` (a manoeuvre from the tidal level), eased from the volume at
+        `t_s` over half a second, then `after`; for a simulated subject that follows prompts."""
+        i = int(round(t_s * RATE_HZ))
+        start = float(self.at(t_s))
+        ease = (start - samples[0]) * np.exp(-np.arange(len(samples)) / (0.5 * RATE_HZ))
+        self._set(np.concatenate([self.volume_l[:i], samples + ease, after]))
 
 
 def _samples(duration_s: float) -> np.ndarray:

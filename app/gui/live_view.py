@@ -1,0 +1,152 @@
+"""The live view: front and back height maps on a fixed, labelled scale, the volume curve of the
+last 30 s, and the status of the rig. It only draws: `show(snapshot)` is called from the GUI's
+timer with what the engine (app.live) has ready."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtCore import Qt
+from PySide6.QtWidgets import QGridLayout, QGroupBox, QHBoxLayout, QLabel, QVBoxLayout, QWidget
+
+from app.live import WINDOW_S, Snapshot
+
+pg.setConfigOptions(imageAxisOrder="row-major", antialias=False)
+
+HEIGHT_RANGE_MM = 40.0  # the maps' fixed scale: +-40 mm about the subject's mean surface
+WORKING_RANGE_MM = (1500.0, 2500.0)  # subject distances the rig is calibrated for
+
+
+class HeadMapView(pg.GraphicsLayoutWidget):
+    """One head's height map with its colour bar (mm)."""
+
+    def __init__(self, head: str, parent=None) -> None:
+        super().__init__(parent)
+        self.head = head
+        self.setBackground("w")
+        plot = self.addPlot(title=f"{head.capitalize()} head: height (mm)")
+        plot.setAspectLocked(True)
+        plot.invertY(True)
+        plot.hideAxis("left")
+        plot.hideAxis("bottom")
+        plot.setMouseEnabled(False, False)
+        plot.setMenuEnabled(False)
+        self.image = pg.ImageItem()
+        plot.addItem(self.image)
+        self.placeholder = pg.TextItem("waiting for the first map …", color="k", anchor=(0.5, 0.5))
+        plot.addItem(self.placeholder)
+        colours = pg.colormap.get("viridis")
+        self.bar = pg.ColorBarItem(values=(-HEIGHT_RANGE_MM, HEIGHT_RANGE_MM), colorMap=colours, label="height (mm)",
+                                   interactive=False, width=14)
+        self.bar.setImageItem(self.image, insert_in=plot)
+        self.plot = plot
+
+    def show_map(self, height_mm: np.ndarray | None) -> None:
+        if height_mm is None:
+            return
+        if self.placeholder is not None:
+            self.plot.removeItem(self.placeholder)
+            self.placeholder = None
+        self.image.setImage(height_mm, autoLevels=False, levels=(-HEIGHT_RANGE_MM, HEIGHT_RANGE_MM))
+
+
+class VolumeView(pg.GraphicsLayoutWidget):
+    """The volume curve (litres, last 30 s): the flow sensor, and the optical trace under it."""
+
+    def __init__(self, parent=None) -> None:
+        super().__init__(parent)
+        self.setBackground("w")
+        self.litres = self.addPlot(title="Volume (L, BTPS), last 30 s")
+        self.litres.setLabel("left", "volume", units="L")
+        self.litres.showGrid(y=True, alpha=0.3)
+        self.litres.setMouseEnabled(False, False)
+        self.litres.addLegend(offset=(10, 5))
+        self.flow_curve = self.litres.plot(pen=pg.mkPen((20, 20, 20), width=2), name="flow sensor")
+        self.nextRow()
+        self.relative = self.addPlot(title="Optical: gradient volume (thesis eq. 3.27, relative)")
+        self.relative.setLabel("bottom", "time", units="s")
+        self.relative.setMouseEnabled(False, False)
+        self.relative.setXLink(self.litres)
+        self.relative.setYRange(-1.05, 1.05)
+        self.optical_curve = self.relative.plot(pen=pg.mkPen((40, 90, 200), width=2))
+        self.ci.layout.setRowStretchFactor(0, 3)
+        self.ci.layout.setRowStretchFactor(1, 2)
+
+    def show_curves(self, s: Snapshot) -> None:
+        end = max(s.flow_t_s[-1] if len(s.flow_t_s) else 0.0, s.optical_t_s[-1] if len(s.optical_t_s) else 0.0)
+        start = end - WINDOW_S
+        if len(s.flow_t_s):
+            keep = s.flow_t_s >= start
+            self.flow_curve.setData(s.flow_t_s[keep], s.flow_volume_l[keep])
+        if len(s.optical_t_s) > 2:
+            keep = s.optical_t_s >= start
+            values = s.optical[keep]
+            centred = values - values.mean()
+            scale = np.max(np.abs(centred)) or 1.0
+            self.optical_curve.setData(s.optical_t_s[keep], centred / scale)
+        self.litres.setXRange(max(0.0, start), max(WINDOW_S, end), padding=0)
+
+
+class StatusPanel(QGroupBox):
+    def __init__(self, heads: list[str], parent=None) -> None:
+        super().__init__("Status", parent)
+        grid = QGridLayout(self)
+        self.labels: dict[str, QLabel] = {}
+        rows = [(f"{h}_rate", f"{h.capitalize()} camera") for h in heads]
+        rows += [(f"{h}_distance", f"{h.capitalize()} distance") for h in heads]
+        rows += [("recording", "Recording"), ("calibration", "Calibration"), ("source", "Source")]
+        for k, (key, title) in enumerate(rows):
+            grid.addWidget(QLabel(f"<b>{title}</b>"), k, 0, Qt.AlignmentFlag.AlignTop)
+            label = QLabel("–")
+            label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+            label.setWordWrap(True)
+            grid.addWidget(label, k, 1)
+            self.labels[key] = label
+        grid.setRowStretch(len(rows), 1)
+
+    def set(self, key: str, text: str, warn: bool = False) -> None:
+        label = self.labels[key]
+        label.setText(text)
+        label.setStyleSheet("color: #b00020; font-weight: bold" if warn else "")
+
+
+class LiveView(QWidget):
+    def __init__(self, heads: list[str], parent=None) -> None:
+        super().__init__(parent)
+        self.heads = heads
+        self.maps = {h: HeadMapView(h) for h in heads}
+        self.volume = VolumeView()
+        self.status = StatusPanel(heads)
+        self.status.setMinimumWidth(260)
+        top = QHBoxLayout()
+        for h in heads:
+            top.addWidget(self.maps[h], 1)
+        top.addWidget(self.status)
+        layout = QVBoxLayout(self)
+        layout.addLayout(top, 3)
+        layout.addWidget(self.volume, 2)
+        self.updates = 0
+
+    def show(self, s: Snapshot, calibration: str, source: str) -> None:  # noqa: A003 - Qt naming
+        for h, view in s.heads.items():
+            if h in self.maps:
+                self.maps[h].show_map(view.height_mm)
+            self.status.set(f"{h}_rate", f"{view.fps:.0f} frames/s, {view.frames} frames, {view.lost} lost; "
+                                         f"{view.reconstructed} maps", warn=view.lost > 0)
+            low, high = WORKING_RANGE_MM
+            ok = low <= view.distance_mm <= high
+            text = (f"{view.distance_mm:.0f} mm (working range {low:.0f}–{high:.0f} mm)" if np.isfinite(view.distance_mm)
+                    else "no subject seen")
+            self.status.set(f"{h}_distance", text, warn=not ok)
+        if s.recording is not None:
+            frames = ", ".join(f"{h} {n}" for h, n in s.recorded_frames.items())
+            self.status.set("recording", f"{s.recording.name}: {frames} frames written, {s.dropped} dropped",
+                            warn=s.dropped > 0)
+        else:
+            self.status.set("recording", "not recording")
+        if s.problems:
+            self.status.set("recording", "; ".join(s.problems[-2:]), warn=True)
+        self.status.set("calibration", calibration)
+        self.status.set("source", source)
+        self.volume.show_curves(s)
+        self.updates += 1

@@ -1,0 +1,258 @@
+"""The main window: the live view, menus and toolbar, and the engine it draws from."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from PySide6.QtCore import QByteArray, QRunnable, QSettings, QThreadPool, QTimer, Signal, QObject
+from PySide6.QtGui import QAction, QKeySequence
+from PySide6.QtWidgets import QFileDialog, QLabel, QMainWindow, QMessageBox
+
+from app.gui.errors import show_error
+from app.gui.live_view import LiveView
+from app.live import LiveRig, Source, replay_source, rig_source
+
+log = logging.getLogger("photopft.gui")
+
+DISPLAY_INTERVAL_MS = 33  # about 30 display updates per second
+
+
+class StallMonitor:
+    """How late the GUI thread's event loop runs a 10 ms timer: its longest stall."""
+
+    def __init__(self, parent: QObject) -> None:
+        self.longest_ms = 0.0
+        self._last = time.perf_counter()
+        self._timer = QTimer(parent)
+        self._timer.setInterval(10)
+        self._timer.timeout.connect(self._tick)
+        self._timer.start()
+        self._skip = 5  # the first ticks include start-up
+
+    def _tick(self) -> None:
+        now = time.perf_counter()
+        if self._skip:
+            self._skip -= 1
+        else:
+            self.longest_ms = max(self.longest_ms, (now - self._last) * 1000.0 - 10.0)
+        self._last = now
+
+    def reset(self) -> None:
+        self.longest_ms = 0.0
+        self._skip = 5
+
+
+class _JobSignals(QObject):
+    done = Signal(object)
+    failed = Signal(str, str)
+
+
+class Job(QRunnable):
+    """A one-shot job on the thread pool (a report, a file to process); its result comes back as
+    a signal on the GUI thread."""
+
+    def __init__(self, work, what: str) -> None:
+        super().__init__()
+        self.work = work
+        self.what = what
+        self.signals = _JobSignals()
+
+    def run(self) -> None:
+        import traceback
+
+        try:
+            self.signals.done.emit(self.work())
+        except Exception as exc:  # every failure of a job reaches the user as a dialog
+            self.signals.failed.emit(f"{self.what} failed: {exc}", traceback.format_exc())
+
+
+class MainWindow(QMainWindow):
+    def __init__(self, source: Source, rig_config: Path | None = None) -> None:
+        super().__init__()
+        self.setWindowTitle("photopft")
+        self.rig_config = rig_config
+        self.settings = QSettings("photopft", "photopft")
+        self.engine: LiveRig | None = None
+        self.view: LiveView | None = None
+        self.calibration_text = "session /rig (as recorded or as simulated)"
+        self._jobs: list[Job] = []
+        self._build_actions()
+        self.status_label = QLabel()
+        self.statusBar().addPermanentWidget(self.status_label)
+        self.stalls = StallMonitor(self)
+        self.timer = QTimer(self)
+        self.timer.setInterval(DISPLAY_INTERVAL_MS)
+        self.timer.timeout.connect(self.refresh)
+        self.use_source(source)
+        self.timer.start()
+        geometry = self.settings.value("main/geometry")
+        if isinstance(geometry, QByteArray):
+            self.restoreGeometry(geometry)
+        else:
+            self.resize(1400, 860)
+        state = self.settings.value("main/state")
+        if isinstance(state, QByteArray):
+            self.restoreState(state)
+
+    # actions
+    def _action(self, text: str, slot, shortcut: str | QKeySequence.StandardKey | None = None,
+                tip: str = "") -> QAction:
+        action = QAction(text, self)
+        if shortcut is not None:
+            action.setShortcut(QKeySequence(shortcut))
+        action.setStatusTip(tip or text)
+        action.triggered.connect(slot)
+        return action
+
+    def _build_actions(self) -> None:
+        self.act_patient = self._action("&New patient session…", self.new_patient_session, "Ctrl+N",
+                                        "Choose or add the patient, position, and record the protocol")
+        self.act_open = self._action("&Open recorded session…", self.open_session, QKeySequence.StandardKey.Open,
+                                     "Replay a session file through the live view")
+        self.act_live = self._action("&Live rig", self.back_to_rig, "Ctrl+L", "Back to the rig's live view")
+        self.act_report = self._action("&Export report…", self.export_report, "Ctrl+E",
+                                       "Write the PDF report of a session or results file")
+        self.act_sphere = self._action("&Sphere calibration…", self.sphere_calibration, None,
+                                       "Light positions from a specular sphere (engineer)")
+        self.act_spiro = self._action("S&pirometer calibration…", self.spirometer_calibration, None,
+                                      "Flow sensor and volume calibration (engineer)")
+        self.act_settings = self._action("&Settings…", self.open_settings, "Ctrl+,")
+        self.act_quit = self._action("&Quit", self.close, QKeySequence.StandardKey.Quit)
+        menu = self.menuBar()
+        session = menu.addMenu("&Session")
+        for a in (self.act_patient, self.act_open, self.act_live, self.act_report):
+            session.addAction(a)
+        session.addSeparator()
+        session.addAction(self.act_quit)
+        calibrate = menu.addMenu("&Calibration")
+        calibrate.addAction(self.act_sphere)
+        calibrate.addAction(self.act_spiro)
+        menu.addMenu("&Tools").addAction(self.act_settings)
+        toolbar = self.addToolBar("Main")
+        toolbar.setObjectName("main-toolbar")
+        for a in (self.act_patient, self.act_open, self.act_live, self.act_report):
+            toolbar.addAction(a)
+
+    # the engine
+    def use_source(self, source: Source) -> None:
+        if self.engine is not None:
+            self.engine.stop()
+        self.source = source
+        heads = list(source.cameras)
+        if self.view is None or self.view.heads != heads:
+            self.view = LiveView(heads)
+            self.setCentralWidget(self.view)
+        self.engine = LiveRig(source)
+        self.engine.start()
+        self.statusBar().showMessage(f"Showing {source.name}", 5000)
+
+    def refresh(self) -> None:
+        if self.engine is None:
+            return
+        snapshot = self.engine.snapshot()
+        self.view.show(snapshot, self.calibration_text, self.source.name)
+        if self.engine.replay_finished:
+            self.status_label.setText("replay finished")
+        else:
+            self.status_label.setText(f"GUI longest stall {self.stalls.longest_ms:.0f} ms")
+
+    # menu actions
+    def new_patient_session(self) -> None:
+        from app.gui.wizards.patient_session import PatientSessionWizard
+
+        if self.source.replay:
+            self.back_to_rig()
+        wizard = PatientSessionWizard(self, self.engine)
+        wizard.exec()
+
+    def open_session(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Open a recorded session", str(Path.home()),
+                                              "Session files (*.h5)")
+        if path:
+            self.replay(Path(path))
+
+    def replay(self, path: Path, speed: float = 1.0) -> None:
+        from core.session import SessionError
+
+        try:
+            source = replay_source(path, speed)
+        except (SessionError, OSError) as exc:
+            show_error(self, f"Cannot open {path.name}.", f"{exc}. Choose a photopft session file (.h5); "
+                       "`photopft validate FILE` lists what is wrong with it.")
+            return
+        self.use_source(source)
+
+    def back_to_rig(self) -> None:
+        try:
+            self.use_source(rig_source(self.rig_config))
+        except Exception as exc:  # the rig cannot be opened: said, and the view keeps what it has
+            show_error(self, "The rig cannot be opened.", f"{exc}. Check the rig configuration in Settings.")
+
+    def export_report(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Report of which session or results file?", str(Path.home()),
+                                              "Session or results files (*.h5)")
+        if not path:
+            return
+        output, _ = QFileDialog.getSaveFileName(self, "Save the report as", str(Path(path).with_suffix(".pdf")),
+                                                "PDF (*.pdf)")
+        if output:
+            self.run_report(Path(path), Path(output))
+
+    def run_report(self, path: Path, output: Path) -> Job:
+        def work() -> Path:
+            from app.records import Records
+            from app.report_data import build_report
+            from app.report_pdf import write_report
+
+            with Records() as records:
+                data = build_report(path, records=records,
+                                    equations=str(self.settings.value("reference/equations", "gli-global")))
+            return write_report(data, output, str(self.settings.value("report/page_size", "a4")))
+
+        return self.start_job(work, f"The report of {path.name}",
+                              lambda out: self.statusBar().showMessage(f"Report written: {out}", 10000))
+
+    def start_job(self, work, what: str, done) -> Job:
+        job = Job(work, what)
+        job.signals.done.connect(done)
+        job.signals.failed.connect(lambda message, detail: show_error(
+            self, message, "Check the file and try again; the session file itself is unchanged.", detail))
+        self._jobs.append(job)
+        QThreadPool.globalInstance().start(job)
+        return job
+
+    def sphere_calibration(self) -> None:
+        from app.gui.wizards.sphere import SphereCalibrationWizard
+
+        SphereCalibrationWizard(self).exec()
+
+    def spirometer_calibration(self) -> None:
+        from app.gui.wizards.spirometer import SpirometerCalibrationWizard
+
+        SpirometerCalibrationWizard(self).exec()
+
+    def open_settings(self) -> None:
+        from app.gui.settings_dialog import SettingsDialog
+
+        dialog = SettingsDialog(self.settings, self)
+        if dialog.exec():
+            rig = self.settings.value("rig/config", "")
+            self.rig_config = Path(rig) if rig else None
+
+    def closeEvent(self, event) -> None:  # noqa: N802 - Qt naming
+        if self.engine is not None and self.engine.recording:
+            answer = QMessageBox.question(self, "photopft", "A recording is running. Stop it and quit? "
+                                          "Everything recorded so far is kept.")
+            if answer != QMessageBox.StandardButton.Yes:
+                event.ignore()
+                return
+        self.settings.setValue("main/geometry", self.saveGeometry())
+        self.settings.setValue("main/state", self.saveState())
+        self.timer.stop()
+        if self.engine is not None:
+            self.engine.stop()
+            self.engine = None
+        QThreadPool.globalInstance().waitForDone(30000)
+        super().closeEvent(event)

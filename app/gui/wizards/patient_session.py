@@ -1,0 +1,381 @@
+"""The patient session (operator): patient, positioning, tidal breathing, slow VC, forced
+expirations with ATS/ERS feedback after each blow, review, save.
+
+Recording starts when positioning passes and runs to the end; every manoeuvre is marked with the
+protocol's events (tidal-start, vc-start, forced-start, maneuver-end) so `photopft process` and
+the report cut the curve exactly where the operator did. On the simulated rig the simulated
+subject follows the prompts.
+"""
+
+from __future__ import annotations
+
+import time
+from datetime import date, datetime, timezone
+from pathlib import Path
+
+import numpy as np
+from PySide6.QtCore import QDate, Qt, QTimer
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QDateEdit, QDoubleSpinBox, QFormLayout, QGroupBox, QHBoxLayout,
+                               QLabel, QLineEdit, QListWidget, QListWidgetItem, QPushButton, QSpinBox, QTextEdit,
+                               QVBoxLayout, QWizard, QWizardPage)
+
+from app.gui.errors import show_error
+from app.live import LiveRig
+from app.paths import data_dir
+from app.records import Patient, Records, RecordsError
+from core.session import SubjectRecord
+
+MAX_BLOWS = 8
+MIN_BLOWS = 3
+CENTRED_FRACTION = 0.12  # the subject's centre within 12 % of the image width of its centre
+WORKING_RANGE_MM = (1500.0, 2500.0)
+
+
+def _instructions(text: str) -> QLabel:
+    label = QLabel(text)
+    label.setWordWrap(True)
+    label.setStyleSheet("font-size: 11pt")
+    return label
+
+
+class PatientPage(QWizardPage):
+    def __init__(self, records: Records) -> None:
+        super().__init__()
+        self.records = records
+        self.setTitle("Patient")
+        self.setSubTitle("Find the patient, or add a new one. Names stay in the records; the session file "
+                         "carries only the pseudonym.")
+        self.search = QLineEdit()
+        self.search.setPlaceholderText("name, patient number or pseudonym")
+        self.search.textChanged.connect(self._refresh)
+        self.list = QListWidget()
+        self.list.itemSelectionChanged.connect(self.completeChanged)
+        new = QGroupBox("New patient")
+        form = QFormLayout(new)
+        self.family = QLineEdit()
+        self.given = QLineEdit()
+        self.number = QLineEdit()
+        self.sex = QComboBox()
+        self.sex.addItems(["female", "male"])
+        self.birth = QDateEdit(QDate(1980, 1, 1))
+        self.birth.setDisplayFormat("yyyy-MM-dd")
+        self.birth.setCalendarPopup(True)
+        self.height = QDoubleSpinBox(minimum=40.0, maximum=250.0, value=170.0, suffix=" cm", decimals=1)
+        self.weight = QDoubleSpinBox(minimum=2.0, maximum=400.0, value=70.0, suffix=" kg", decimals=1)
+        for label, widget in (("Family name", self.family), ("Given name", self.given),
+                              ("Patient number", self.number), ("Sex (for the reference equations)", self.sex),
+                              ("Date of birth", self.birth), ("Height", self.height), ("Weight", self.weight)):
+            form.addRow(label, widget)
+        self.add = QPushButton("Add patient")
+        self.add.clicked.connect(self._add)
+        form.addRow(self.add)
+        self.front_only = QCheckBox("Front head only (the patient cannot stand in the rig)")
+        layout = QHBoxLayout(self)
+        left = QVBoxLayout()
+        left.addWidget(self.search)
+        left.addWidget(self.list)
+        left.addWidget(self.front_only)
+        layout.addLayout(left, 1)
+        layout.addWidget(new, 1)
+        self._refresh()
+
+    def _refresh(self) -> None:
+        self.list.clear()
+        for p in self.records.find_patients(self.search.text()):
+            item = QListWidgetItem(f"{p.display_name}  ·  {p.patient_number or 'no number'}  ·  born "
+                                   f"{p.birth_date.isoformat()}  ·  {p.pseudonym}")
+            item.setData(Qt.ItemDataRole.UserRole, p.id)
+            self.list.addItem(item)
+
+    def _add(self) -> None:
+        birth = self.birth.date()
+        try:
+            patient = self.records.add_patient(self.family.text(), self.given.text(), self.sex.currentText(),
+                                               date(birth.year(), birth.month(), birth.day()), self.height.value(),
+                                               self.weight.value(), self.number.text() or None)
+        except RecordsError as exc:
+            show_error(self, "The patient cannot be added.", f"{exc}. Correct it and add again.")
+            return
+        self.search.setText(patient.pseudonym)
+        self._refresh()
+        self.list.setCurrentRow(0)
+
+    def patient(self) -> Patient | None:
+        items = self.list.selectedItems()
+        return self.records.patient(items[0].data(Qt.ItemDataRole.UserRole)) if items else None
+
+    def isComplete(self) -> bool:  # noqa: N802 - Qt naming
+        return self.patient() is not None
+
+
+class PositioningPage(QWizardPage):
+    """The live view behind shows the maps; here, the checks that must pass before recording."""
+
+    def __init__(self, engine: LiveRig) -> None:
+        super().__init__()
+        self.engine = engine
+        self.setTitle("Positioning")
+        self.setSubTitle("Ask the patient to stand still between the heads, arms slightly away from the body, "
+                         "facing the front head. Recording starts when every check passes and you press Next.")
+        self.checks = QLabel()
+        self.checks.setTextFormat(Qt.TextFormat.RichText)
+        layout = QVBoxLayout(self)
+        layout.addWidget(_instructions("Move the patient until both lines read OK: the distance within the "
+                                       "working range and the body centred in the picture."))
+        layout.addWidget(self.checks)
+        layout.addStretch(1)
+        self.passed = False
+        self.timer = QTimer(self)
+        self.timer.timeout.connect(self._check)
+
+    def initializePage(self) -> None:  # noqa: N802
+        self.timer.start(200)
+
+    def cleanupPage(self) -> None:  # noqa: N802
+        self.timer.stop()
+
+    def _check(self) -> None:
+        snapshot = self.engine.snapshot()
+        lines, ok = [], True
+        heads = self.wizard().heads()
+        for head in heads:
+            view = snapshot.heads.get(head)
+            if view is None or view.height_mm is None:
+                lines.append(f"{head}: waiting for the first map")
+                ok = False
+                continue
+            low, high = WORKING_RANGE_MM
+            distance_ok = low <= view.distance_mm <= high
+            columns = np.nonzero(np.isfinite(view.height_mm).any(axis=0))[0]
+            width = view.height_mm.shape[1]
+            centre = 0.5 * (columns[0] + columns[-1]) if len(columns) else np.nan
+            centred = bool(len(columns)) and abs(centre - (width - 1) / 2) <= CENTRED_FRACTION * width
+            ok &= distance_ok and centred
+            lines.append(f"<b>{head.capitalize()}</b>: distance {view.distance_mm:.0f} mm "
+                         f"{'OK' if distance_ok else f'<span style=color:#b00020>outside {low:.0f}–{high:.0f} mm</span>'}"
+                         f"; centred {'OK' if centred else '<span style=color:#b00020>move the patient to the centre</span>'}")
+        self.checks.setText("<br>".join(lines))
+        if ok != self.passed:
+            self.passed = ok
+            self.completeChanged.emit()
+
+    def isComplete(self) -> bool:  # noqa: N802
+        return self.passed
+
+    def validatePage(self) -> bool:  # noqa: N802
+        self.timer.stop()
+        return self.wizard().start_recording()
+
+
+class TimedPage(QWizardPage):
+    """Tidal breathing: a set time of quiet breathing, counted down."""
+
+    def __init__(self, engine: LiveRig) -> None:
+        super().__init__()
+        self.engine = engine
+        self.setTitle("Tidal breathing")
+        self.setSubTitle("Ask the patient to breathe quietly and normally, mouth closed (or through the "
+                         "mouthpiece when a flow sensor is fitted).")
+        self.seconds = QSpinBox(minimum=10, maximum=600, value=60, suffix=" s")
+        self.start = QPushButton("Start tidal breathing")
+        self.start.clicked.connect(self._start)
+        self.remaining = QLabel("not started")
+        form = QFormLayout(self)
+        form.addRow("Duration", self.seconds)
+        form.addRow(self.start)
+        form.addRow("Remaining", self.remaining)
+        self.done = False
+        self.timer = QTimer(self)
+        self.timer.timeout.connect(self._tick)
+
+    def _start(self) -> None:
+        self.engine.mark("tidal-start")
+        self.ends_at = time.monotonic() + self.seconds.value()
+        self.start.setEnabled(False)
+        self.seconds.setEnabled(False)
+        self.timer.start(200)
+
+    def _tick(self) -> None:
+        left = self.ends_at - time.monotonic()
+        if left > 0:
+            self.remaining.setText(f"{left:.0f} s")
+            return
+        self.timer.stop()
+        self.engine.mark("maneuver-end")
+        self.remaining.setText("done")
+        self.done = True
+        self.completeChanged.emit()
+
+    def isComplete(self) -> bool:  # noqa: N802
+        return self.done
+
+
+class ManoeuvrePage(QWizardPage):
+    """One kind of manoeuvre, started and ended by the operator (the simulated subject follows)."""
+
+    def __init__(self, engine: LiveRig, kind: str) -> None:
+        super().__init__()
+        self.engine = engine
+        self.kind = kind
+        forced = kind == "forced"
+        self.setTitle("Forced expirations" if forced else "Slow vital capacity")
+        self.setSubTitle(
+            "Breathe quietly; then a full, fast inspiration to the top, and blast out as hard and fast as "
+            "possible, and keep going until nothing more comes out (at least 6 s). At least three blows."
+            if forced else
+            "Breathe quietly; then slowly breathe all the way in, then slowly all the way out until nothing "
+            "more comes out, then back to normal breathing.")
+        self.begin = QPushButton("Start blow" if forced else "Start slow VC")
+        self.begin.clicked.connect(self._begin)
+        self.end = QPushButton("End blow" if forced else "End manoeuvre")
+        self.end.setEnabled(False)
+        self.end.clicked.connect(self._end)
+        self.feedback = QTextEdit(readOnly=True)
+        buttons = QHBoxLayout()
+        buttons.addWidget(self.begin)
+        buttons.addWidget(self.end)
+        layout = QVBoxLayout(self)
+        layout.addLayout(buttons)
+        layout.addWidget(self.feedback)
+        self.count = 0
+        self.finished = False
+
+    def _begin(self) -> None:
+        self.engine.mark("forced-start" if self.kind == "forced" else "vc-start")
+        simulated = self.engine.source.simulated
+        if simulated is not None:
+            simulated.perform(self.kind)
+        self.begin.setEnabled(False)
+        self.end.setEnabled(True)
+
+    def _end(self) -> None:
+        self.engine.mark("maneuver-end")
+        self.count += 1
+        self.end.setEnabled(False)
+        self.begin.setEnabled(True)
+        self.feedback.append(self._assess())
+        if self.kind != "forced" or self.count >= MAX_BLOWS:
+            self.begin.setEnabled(self.kind == "forced" and self.count < MAX_BLOWS)
+        self.completeChanged.emit()
+
+    def _assess(self) -> str:
+        values = self.engine.recorded_values(self.wizard().age_years())
+        if values is None:
+            return f"{self.title()} {self.count}: recorded (no flow sensor: feedback comes with the report)."
+        if self.kind != "forced":
+            vc = values.vital_capacity
+            self.finished = True
+            return f"Slow VC recorded: VC {vc.vc_l:.2f} L." if vc else "Slow VC: not analysable; do it again."
+        grade = values.forced
+        if grade is None:
+            return f"Blow {self.count}: not analysable ({'; '.join(values.problems[-1:])}); do another."
+        last = grade.manoeuvres[-1]
+        verdict = "acceptable" if last.fvc_acceptable else ("FEV1 acceptable" if last.fev1_acceptable
+                                                            else "not acceptable")
+        text = (f"Blow {self.count}: FVC {last.fvc_l:.2f} L, FEV1 {last.fev1_l:.2f} L, PEF {last.pef_lps:.1f} L/s: "
+                f"{verdict}" + (f" ({'; '.join(last.problems)})" if last.problems else "") + ".")
+        repeatable = grade.fvc_repeatability_l <= 0.150 and grade.fev1_repeatability_l <= 0.150 \
+            and grade.acceptable_fvc >= 2
+        self.finished = self.count >= MAX_BLOWS or (self.count >= MIN_BLOWS and repeatable)
+        if self.finished:
+            text += f" Grade {grade.grade}: enough blows."
+        elif self.count >= MIN_BLOWS:
+            text += (f" Repeatability not met yet (FVC within {grade.fvc_repeatability_l:.3f} L, FEV1 within "
+                     f"{grade.fev1_repeatability_l:.3f} L; needs 0.150 L): another blow, please.")
+        return text
+
+    def isComplete(self) -> bool:  # noqa: N802
+        if self.kind == "forced":
+            return self.end.isEnabled() is False and (self.finished or self.count >= MAX_BLOWS)
+        return self.count >= 1 and not self.end.isEnabled()
+
+
+class ReviewPage(QWizardPage):
+    def __init__(self, engine: LiveRig) -> None:
+        super().__init__()
+        self.engine = engine
+        self.setTitle("Review and save")
+        self.setSubTitle("The recording stops when you press Finish; the session is put on the patient's record "
+                         "and its report can be exported from the Session menu.")
+        self.summary = QTextEdit(readOnly=True)
+        QVBoxLayout(self).addWidget(self.summary)
+
+    def initializePage(self) -> None:  # noqa: N802
+        values = self.engine.recorded_values(self.wizard().age_years())
+        lines = []
+        if values is None:
+            lines.append("No flow sensor: the values come with processing and the report.")
+        else:
+            for key, value in values.parameters().items():
+                lines.append(f"{key}: {value:.3f}" if isinstance(value, float) else f"{key}: {value}")
+            lines += [f"note: {p}" for p in values.problems]
+        self.summary.setPlainText("\n".join(lines))
+
+
+class PatientSessionWizard(QWizard):
+    def __init__(self, parent, engine: LiveRig, records: Records | None = None,
+                 sessions_dir: Path | None = None, operator: str = "") -> None:
+        super().__init__(parent)
+        self.setWindowTitle("Patient session")
+        self.engine = engine
+        self.records = records or Records()
+        self.sessions_dir = sessions_dir or data_dir() / "sessions"
+        self.operator = operator
+        self.session_path: Path | None = None
+        self.session_id: int | None = None
+        self.patient_page = PatientPage(self.records)
+        self.addPage(self.patient_page)
+        self.addPage(PositioningPage(engine))
+        self.addPage(TimedPage(engine))
+        self.addPage(ManoeuvrePage(engine, "vc"))
+        self.addPage(ManoeuvrePage(engine, "forced"))
+        self.addPage(ReviewPage(engine))
+        self.setOption(QWizard.WizardOption.NoBackButtonOnStartPage)
+        self.setMinimumSize(760, 520)
+
+    def heads(self) -> list[str]:
+        heads = list(self.engine.source.cameras)
+        return ["front"] if self.patient_page.front_only.isChecked() else heads
+
+    def age_years(self) -> float | None:
+        p = self.patient_page.patient()
+        return p.age_years(date.today()) if p else None
+
+    def start_recording(self) -> bool:
+        patient = self.patient_page.patient()
+        now = datetime.now(timezone.utc)
+        self.sessions_dir.mkdir(parents=True, exist_ok=True)
+        self.session_path = self.sessions_dir / f"{patient.pseudonym}-{now:%Y%m%d-%H%M%S}.h5"
+        subject = SubjectRecord(**patient.subject_attrs(now))
+        kind = "simulation" if self.engine.source.simulated is not None else "patient"
+        try:
+            self.engine.start_recording(self.session_path, subject, kind=kind, heads=self.heads(),
+                                        root_attrs={"operator": self.operator} if self.operator else None)
+            self.session_id = self.records.add_session(patient.id, self.session_path, now, operator=self.operator,
+                                                       rig=self.engine.rig.name, status="recording")
+        except (OSError, ValueError) as exc:
+            show_error(self, "The recording cannot start.", f"{exc}. Check the disk and the rig, then try again.")
+            return False
+        return True
+
+    def _stop(self, status: str) -> None:
+        if not self.engine.recording:
+            return
+        try:
+            values = self.engine.recorded_values(self.age_years())
+        except Exception:  # values are a convenience here; the recording is what matters
+            values = None
+        summary = self.engine.stop_recording()
+        if self.session_id is not None:
+            self.records.set_results(self.session_id, None, {"flow sensor": values.parameters()} if values else {},
+                                     status=status)
+        if summary.problems:
+            show_error(self, "The recording stopped with a problem.", "; ".join(summary.problems))
+
+    def accept(self) -> None:
+        self._stop("recorded")
+        super().accept()
+
+    def reject(self) -> None:
+        self._stop("cancelled")
+        super().reject()

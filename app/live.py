@@ -1,0 +1,500 @@
+"""The live session engine behind the GUI (no Qt here): capture, recording, reconstruction.
+
+One capture thread per camera and one for the flow sensor hand every frame and block to the
+recorder, when one is recording (it never drops), and to the display buffers, which keep only the
+newest light cycle (the display may skip). One reconstruction thread per head takes the newest
+complete cycle, runs the same HeadReconstructor as `photopft process`, and publishes the map and
+a volume sample. The GUI pulls `snapshot()` on its own timer; nothing here waits for it.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from core.flow import btps_factor
+from core.pipeline import HeadReconstructor, ReconstructionSettings
+from core.rig import Rig
+from core.session import SessionFile, SubjectRecord
+from drivers.camera import CameraError, CameraStats, Frame
+from drivers.flowsensor import FlowBlock
+from drivers.recorder import Recorder, RecordSummary
+
+log = logging.getLogger(__name__)
+
+WINDOW_S = 30.0  # what the volume curve shows
+
+
+@dataclass
+class Source:
+    """Where frames come from: the rig's cameras (simulated or real) or a recorded file."""
+    rig: Rig
+    cameras: dict
+    flow: object | None
+    light_of: Callable[[str, int], int]
+    flow_calibration: tuple[float, float] | None
+    name: str
+    conditions: str = "ATPS"
+    room: tuple[float, float, float] = (23.0, 1013.0, 50.0)  # temperature C, pressure hPa, humidity %
+    replay: bool = False
+    closers: list[Callable[[], None]] = field(default_factory=list)
+    simulated: object | None = None  # drivers.simulated.SimulatedRigState: a subject that follows prompts
+
+
+def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "back"), seed: int = 1,
+                     protocol: str = "tidal", seconds: float = 1800.0) -> Source:
+    """The simulated rig, breathing quietly (the default everywhere)."""
+    from core.sim.breathing import Subject, Sway
+    from core.sim.simulate import SimConfig
+    from drivers.recorder import sequence_light_of
+    from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
+
+    config = SimConfig(scene="torso", protocol=protocol, seconds=seconds, scale=scale, seed=seed, heads=heads,
+                       sway=Sway(seed=seed), subject=Subject())
+    state = SimulatedRigState.build(config)
+    cameras = {h: SimCamera(state, h) for h in heads}
+    flow = SimFlowSensor(state)
+    model = config.flow_sensor
+    return Source(state.rig, cameras, flow, sequence_light_of(state.rig), (model.gain_lps, model.offset_lps),
+                  f"simulated rig (scale {scale:g})", simulated=state)
+
+
+class _FileCamera:
+    """A recorded head played back at its own pace (times `speed`)."""
+
+    def __init__(self, session: SessionFile, head: str, clock: "_ReplayClock") -> None:
+        self.head = head
+        self._frames = session.frames(head)
+        self._ids = session.frame_id(head)
+        self._stamps = session.timestamp_ns(head)
+        self._clock = clock
+        self._next = 0
+        self.stats = CameraStats()
+        self.name = f"replay-{head}"
+
+    def start(self) -> None:
+        self._clock.start()
+
+    def grab(self, timeout_s: float = 0.5) -> Frame | None:
+        if self._next >= len(self._ids):
+            time.sleep(timeout_s)
+            return None
+        wait = self._clock.wait_s(int(self._stamps[self._next]))
+        if wait > timeout_s:
+            time.sleep(timeout_s)
+            return None
+        if wait > 0:
+            time.sleep(wait)
+        k = self._next
+        self._next += 1
+        self.stats.count(int(self._ids[k]))
+        return Frame(np.asarray(self._frames[k]), int(self._ids[k]), int(self._stamps[k]))
+
+    @property
+    def finished(self) -> bool:
+        return self._next >= len(self._ids)
+
+    def stop(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class _ReplayClock:
+    def __init__(self, first_ns: int, speed: float) -> None:
+        self.first_ns = first_ns
+        self.speed = speed
+        self._started: int | None = None
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        with self._lock:
+            if self._started is None:
+                self._started = time.monotonic_ns()
+
+    def wait_s(self, stamp_ns: int) -> float:
+        self.start()
+        due = self._started + (stamp_ns - self.first_ns) / self.speed
+        return (due - time.monotonic_ns()) / 1e9
+
+
+class _FileFlow:
+    def __init__(self, session: SessionFile, clock: _ReplayClock) -> None:
+        self._adc, self._stamps = session.flow_samples()
+        self._clock = clock
+        self._next = 0
+        self.sample_rate_hz = session.flow.sample_rate_hz
+        self.lost_samples = 0
+
+    def start(self) -> None:
+        self._clock.start()
+
+    def read(self) -> FlowBlock:
+        now = self._clock.first_ns + (time.monotonic_ns() - self._clock._started) * self._clock.speed \
+            if self._clock._started else self._clock.first_ns
+        end = int(np.searchsorted(self._stamps, now, side="right"))
+        k = np.arange(self._next, end)
+        self._next = max(self._next, end)
+        return FlowBlock(self._adc[k].astype(np.int32), k.astype(np.int64), self._stamps[k], 0)
+
+    def stop(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def replay_source(path: str | Path, speed: float = 1.0) -> Source:
+    """A recorded session played through the live view at real speed (or `speed` times it)."""
+    session = SessionFile(path)
+    first = int(min(session.timestamp_ns(h)[0] for h in session.heads if session.n_frames(h)))
+    clock = _ReplayClock(first, speed)
+    cameras = {h: _FileCamera(session, h, clock) for h in session.heads}
+    lights = {h: dict(zip(session.frame_id(h).tolist(), session.light_index(h).tolist())) for h in session.heads}
+    flow = _FileFlow(session, clock) if session.flow is not None and session.flow.gain_lps is not None else None
+    calibration = (session.flow.gain_lps, session.flow.offset_lps) if flow is not None else None
+    conditions = session.flow.conditions if session.flow is not None else "ATPS"
+    room = (23.0, 1013.0, 50.0)
+    if session.flow is not None:
+        a = session.flow.attrs
+        room = (float(a.get("room_temperature_c", 23.0)), float(a.get("room_pressure_hpa", 1013.0)),
+                float(a.get("room_humidity_pct", 50.0)))
+    return Source(session.rig, cameras, flow, lambda head, frame_id: int(lights[head].get(frame_id, -2)),
+                  calibration, f"replay of {Path(path).name}" + (f" at {speed:g}x" if speed != 1 else ""),
+                  conditions, room, replay=True, closers=[session.close])
+
+
+@dataclass
+class HeadView:
+    height_mm: np.ndarray | None = None  # above the subject's mean surface, NaN off the subject
+    distance_mm: float = float("nan")
+    frame_id: int = -1
+    reconstructed: int = 0
+    frames: int = 0
+    lost: int = 0
+    fps: float = 0.0
+
+
+@dataclass
+class Snapshot:
+    heads: dict[str, HeadView]
+    optical_t_s: np.ndarray
+    optical: np.ndarray  # gradient volume (sum of heads, thesis eq. 3.26), un-normalised
+    flow_t_s: np.ndarray
+    flow_volume_l: np.ndarray
+    recording: Path | None
+    recorded_frames: dict[str, int]
+    dropped: int
+    problems: list[str]
+    elapsed_s: float
+
+
+class _Rate:
+    def __init__(self) -> None:
+        self._times: collections.deque = collections.deque(maxlen=200)
+
+    def tick(self) -> None:
+        self._times.append(time.monotonic())
+
+    def per_s(self) -> float:
+        if len(self._times) < 2 or time.monotonic() - self._times[-1] > 1.0:
+            return 0.0
+        return (len(self._times) - 1) / (self._times[-1] - self._times[0])
+
+
+class LiveRig:
+    def __init__(self, source: Source, settings: ReconstructionSettings | None = None) -> None:
+        self.source = source
+        self.rig = source.rig
+        self.settings = settings or ReconstructionSettings(track=True)
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._recorder: Recorder | None = None
+        self._cycles: dict[str, collections.deque] = {h: collections.deque(maxlen=2 * self.rig.cycle_length)
+                                                       for h in source.cameras}
+        self._new_frame = {h: threading.Condition() for h in source.cameras}
+        self._views = {h: HeadView() for h in source.cameras}
+        self._rates = {h: _Rate() for h in source.cameras}
+        n = int(WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length * 2) + 10
+        self._optical = collections.deque(maxlen=n)
+        self._gradient = {h: 0.0 for h in source.cameras}
+        self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
+        self._flow_state = {"volume": 0.0, "last_ns": None, "mean": collections.deque(maxlen=3000)}
+        self._problems: list[str] = []
+        self._t0: int | None = None
+        self._latest_ns = 0
+        self._threads: list[threading.Thread] = []
+        self._started = time.monotonic()
+        factor = 1.0
+        if source.conditions == "ATPS":
+            factor = btps_factor(*source.room)
+        self._btps = factor
+
+    # life cycle
+    def start(self) -> None:
+        for camera in self.source.cameras.values():
+            camera.start()
+        if self.source.flow is not None:
+            self.source.flow.start()
+        for head, camera in self.source.cameras.items():
+            self._spawn(self._capture, f"capture-{head}", head, camera)
+            self._spawn(self._reconstruct, f"reconstruct-{head}", head)
+        if self.source.flow is not None:
+            self._spawn(self._capture_flow, "capture-flow")
+
+    def _spawn(self, target, name: str, *args) -> None:
+        thread = threading.Thread(target=target, args=args, name=name, daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def stop(self) -> RecordSummary | None:
+        summary = self.stop_recording() if self._recorder is not None else None
+        self._stop.set()
+        for condition in self._new_frame.values():
+            with condition:
+                condition.notify_all()
+        for thread in self._threads:
+            thread.join(timeout=5)
+        for camera in self.source.cameras.values():
+            camera.stop()
+            camera.close()
+        if self.source.flow is not None:
+            self.source.flow.stop()
+            self.source.flow.close()
+        for close in self.source.closers:
+            close()
+        return summary
+
+    # recording
+    def start_recording(self, path: str | Path, subject: SubjectRecord | None, kind: str = "patient",
+                        root_attrs: dict | None = None, heads: list[str] | None = None) -> None:
+        """Record every head (or only `heads`: a front-only session) and the flow sensor."""
+        from dataclasses import replace
+
+        if self.source.replay:
+            raise ValueError("a replayed session cannot be recorded again")
+        heads = heads or list(self.source.cameras)
+        rig = self.rig if len(heads) == len(self.rig.heads) else replace(
+            self.rig, heads={h: self.rig.heads[h] for h in heads}, baseline_mm=None)
+        recorder = Recorder(path, rig, {h: self.source.cameras[h] for h in heads}, self.source.light_of,
+                            self.source.flow, self.source.flow_calibration, subject, kind=kind)
+        for key, value in (root_attrs or {}).items():
+            recorder.writer.set_root_attr(key, value)
+        recorder.begin()
+        with self._lock:
+            self._recorder = recorder
+            self._recorded_flow: list[FlowBlock] = []
+            self._recorded_events: list[tuple[int, str]] = []
+
+    def mark(self, label: str) -> int:
+        """A protocol event now (session clock); written into the recording."""
+        stamp = self._latest_ns or time.monotonic_ns()
+        with self._lock:
+            recorder = self._recorder
+        if recorder is not None:
+            recorder.submit_event(stamp, label)
+            with self._lock:
+                self._recorded_events.append((stamp, label))
+        return stamp
+
+    def recorded_values(self, age_years: float | None = None):
+        """The pulmonary function values of the recording so far, from the flow sensor, by the same
+        analysis as the report (core.analysis): for feedback after each manoeuvre. None without a
+        calibrated flow sensor."""
+        from core.analysis import analyse_volume, tidal_windows
+        from core.flow import flow_sensor_volume
+
+        if self.source.flow_calibration is None or self._recorder is None:
+            return None
+        with self._lock:
+            blocks = list(self._recorded_flow)
+            events = list(self._recorded_events)
+        if not blocks:
+            return None
+        adc = np.concatenate([b.adc for b in blocks])
+        stamps = np.concatenate([b.timestamp_ns for b in blocks])
+        start = int(stamps[0])
+        marks = sorted(((t - start) / 1e9, label) for t, label in events)
+        end_s = (int(stamps[-1]) - start) / 1e9
+        gain, offset = self.source.flow_calibration
+        volume = flow_sensor_volume(adc, stamps, gain, offset, self._btps, tidal_windows(marks, end_s))
+        return analyse_volume((volume.timestamp_ns - start) / 1e9, volume.volume_l, marks, age_years)
+
+    def stop_recording(self) -> RecordSummary:
+        with self._lock:
+            recorder, self._recorder = self._recorder, None
+        if recorder is None:
+            raise ValueError("not recording")
+        return recorder.end({h: c.stats for h, c in recorder.cameras.items()},
+                            int(getattr(self.source.flow, "lost_samples", 0)) if self.source.flow else 0)
+
+    @property
+    def recording(self) -> bool:
+        return self._recorder is not None
+
+    # threads
+    def _capture(self, head: str, camera) -> None:
+        try:
+            while not self._stop.is_set():
+                frame = camera.grab(0.2)
+                if frame is None:
+                    continue
+                self._latest_ns = max(self._latest_ns, frame.timestamp_ns)
+                if self._t0 is None:
+                    self._t0 = frame.timestamp_ns
+                recorder = self._recorder
+                if recorder is not None and head in recorder.cameras:
+                    recorder.submit_frame(head, frame)
+                self._rates[head].tick()
+                condition = self._new_frame[head]
+                with condition:
+                    self._cycles[head].append((frame, self.source.light_of(head, frame.frame_id)))
+                    condition.notify()
+        except CameraError as exc:
+            self._problem(str(exc))
+
+    def _capture_flow(self) -> None:
+        gain, offset = self.source.flow_calibration or (None, None)
+        try:
+            while not self._stop.is_set():
+                block = self.source.flow.read()
+                if len(block.adc):
+                    recorder = self._recorder
+                    if recorder is not None:
+                        recorder.submit_flow(block)
+                        with self._lock:
+                            self._recorded_flow.append(block)
+                    if gain is not None:
+                        self._integrate_flow(block, gain, offset)
+                time.sleep(0.01)
+        except Exception as exc:  # a flow sensor that stops answering: said, and the cameras go on
+            self._problem(f"flow sensor: {exc}")
+
+    def _integrate_flow(self, block: FlowBlock, gain: float, offset: float) -> None:
+        """Flow to volume for the display: BTPS, and the mean flow of the last 30 s taken out
+        (a zero offset drifts the volume; the report's volume removes drift properly)."""
+        flow = (gain * block.adc.astype(float) + offset) * self._btps
+        state = self._flow_state
+        for k in range(0, len(flow), 10):
+            chunk = flow[k:k + 10]
+            stamps = block.timestamp_ns[k:k + 10]
+            state["mean"].append(float(chunk.mean()))
+            if state["last_ns"] is not None:
+                dt = (int(stamps[-1]) - state["last_ns"]) / 1e9
+                state["volume"] += (float(chunk.mean()) - float(np.mean(state["mean"]))) * dt
+            state["last_ns"] = int(stamps[-1])
+            if self._t0 is not None:
+                self._flow.append(((int(stamps[-1]) - self._t0) / 1e9, state["volume"]))
+
+    def _newest_cycle(self, head: str) -> list[tuple[Frame, int]] | None:
+        """The newest complete light cycle in the buffer: consecutive frame ids, each light once,
+        ending with the dark frame."""
+        items = list(self._cycles[head])
+        n = self.rig.cycle_length
+        for end in range(len(items) - 1, n - 2, -1):
+            window = items[end - n + 1:end + 1]
+            ids = [f.frame_id for f, _ in window]
+            lights = sorted(light for _, light in window)
+            if ids == list(range(ids[0], ids[0] + n)) and lights == sorted(self.rig.sequence):
+                return window
+        return None
+
+    def _reconstruct(self, head: str) -> None:
+        reconstructor = HeadReconstructor(self.rig.heads[head], None, self.settings)
+        done_id = -1
+        condition = self._new_frame[head]
+        max_value = self.rig.heads[head].max_value
+        while not self._stop.is_set():
+            with condition:
+                condition.wait(timeout=0.2)
+                window = self._newest_cycle(head)
+            if window is None or window[-1][0].frame_id <= done_id:
+                continue
+            done_id = window[-1][0].frame_id
+            by_light = {light: frame.image for frame, light in window}
+            dark = by_light[-1].astype(np.float64)
+            raw = [by_light[k] for k in range(4)]
+            signal = np.stack([r.astype(np.float64) for r in raw]) - dark[None]
+            saturated = np.stack([r >= max_value for r in raw])
+            try:
+                result = reconstructor.reconstruct(signal, saturated, dark)
+            except Exception as exc:  # a map that cannot be made is skipped, and said once
+                self._problem(f"{head}: reconstruction failed: {exc}")
+                continue
+            depth = np.where(result.mask, result.depth_mm, np.nan)
+            height = (np.nanmean(depth) - depth).astype(np.float32) if result.mask.any() else None
+            view = self._views[head]
+            with self._lock:
+                view.height_mm = height
+                view.distance_mm = float(result.distance_mm)
+                view.frame_id = done_id
+                view.reconstructed += 1
+                self._gradient[head] = float(result.gradient_volume)
+                if head == next(iter(self.source.cameras)) and self._t0 is not None:
+                    stamp = window[-1][0].timestamp_ns
+                    self._optical.append(((stamp - self._t0) / 1e9, sum(self._gradient.values())))
+
+    def _problem(self, message: str) -> None:
+        log.warning(message)
+        with self._lock:
+            if message not in self._problems:
+                self._problems.append(message)
+
+    # what the GUI pulls
+    def snapshot(self) -> Snapshot:
+        with self._lock:
+            heads = {}
+            for h, v in self._views.items():
+                stats = self.source.cameras[h].stats
+                heads[h] = HeadView(v.height_mm, v.distance_mm, v.frame_id, v.reconstructed, stats.delivered,
+                                    stats.lost + stats.failed, self._rates[h].per_s())
+            optical = np.array(self._optical, dtype=float).reshape(-1, 2)
+            flow = np.array(self._flow, dtype=float).reshape(-1, 2)
+            recorder = self._recorder
+            problems = list(self._problems) + (recorder.problems if recorder is not None else [])
+        return Snapshot(heads, optical[:, 0], optical[:, 1], flow[:, 0], flow[:, 1],
+                        recorder.path if recorder is not None else None,
+                        recorder.frames_written() if recorder is not None else {},
+                        recorder._dropped if recorder is not None else 0, problems,
+                        time.monotonic() - self._started)
+
+    @property
+    def replay_finished(self) -> bool:
+        return self.source.replay and all(getattr(c, "finished", False) for c in self.source.cameras.values())
+
+
+def rig_source(config_path: str | Path | None = None, scale: float | None = None) -> Source:
+    """The rig a configuration names (resources/rigs/simulated.toml by default)."""
+    from contextlib import ExitStack
+
+    from app.record_cli import open_hardware
+    from core.profile import load_profile
+    from drivers.recorder import sequence_light_of
+    from drivers.rig import load_rig_config
+
+    config = load_rig_config(config_path)
+    if config.simulated:
+        sim = config.simulation
+        source = simulated_source(scale=scale or float(sim.get("scale", 0.25)), heads=tuple(config.cameras),
+                                  seed=int(sim.get("seed", 1)))
+        source.name = f"{config.name} (simulated, scale {scale or float(sim.get('scale', 0.25)):g})"
+    else:
+        stack = ExitStack()
+        try:
+            rig, cameras, flow, calibration = open_hardware(config, stack)
+        except Exception:
+            stack.close()
+            raise
+        source = Source(rig, cameras, flow, sequence_light_of(rig), calibration, config.name,
+                        closers=[stack.close])
+    if config.calibration is not None:
+        source.rig = load_profile(config.calibration).apply(source.rig)
+    return source
