@@ -322,8 +322,10 @@ class LiveRig:
         adc = np.concatenate([b.adc for b in blocks])
         stamps = np.concatenate([b.timestamp_ns for b in blocks])
         start = int(stamps[0])
-        marks = sorted(((t - start) / 1e9, label) for t, label in events)
         end_s = (int(stamps[-1]) - start) / 1e9
+        # the flow sensor's newest samples arrive a little after the frames that stamp the events
+        marks = sorted((min((t - start) / 1e9, end_s) if (t - start) / 1e9 - end_s < 0.5 else (t - start) / 1e9,
+                        label) for t, label in events)
         gain, offset = self.source.flow_calibration
         volume = flow_sensor_volume(adc, stamps, gain, offset, self._btps, tidal_windows(marks, end_s))
         return analyse_volume((volume.timestamp_ns - start) / 1e9, volume.volume_l, marks, age_years)

@@ -205,7 +205,9 @@ def regression_samples(results_path: Path):
         heads = [h for h in ("front", "back") if h in r.get("heads", {})]
         if not heads:
             raise UserError(f"{results_path} is not a results file with heads")
-        session = Path(str(r.attrs["session"]))
+        from core.process import session_of_results
+
+        session = session_of_results(results_path)
         t = r[f"heads/{heads[0]}/timestamp_ns"][:]
         gv = sum(np.interp(t, r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/gradient_volume"][:]) for h in heads)
         if "valid_pixels" not in r[f"heads/{heads[0]}"]:

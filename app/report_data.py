@@ -15,7 +15,7 @@ import numpy as np
 from app.records import Patient, Records
 from core.analysis import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.pipeline import ReconstructionSettings
-from core.process import RESULTS_FORMAT, maps_at
+from core.process import RESULTS_FORMAT, maps_at, session_of_results
 from core.reference import Reference
 from core.session import SessionError, SessionFile
 from core.session_analysis import analyse_session
@@ -118,16 +118,6 @@ class ReportData:
         return self.sources[source].parameters() if source in self.sources else {}
 
 
-def _results_session(results: Path) -> Path:
-    with h5py.File(results, "r") as f:
-        named = Path(str(f.attrs.get("session", "")))
-    for candidate in (named, results.parent / named.name):
-        if candidate.name and candidate.exists():
-            return candidate
-    raise SessionError(f"{results}: its session file {named} is not there (nor beside the results file); "
-                       "the report needs the session's events and subject")
-
-
 def open_inputs(path: str | os.PathLike) -> tuple[Path, Path | None]:
     """(session, results or None) for a session file or a results file."""
     path = Path(path)
@@ -136,7 +126,7 @@ def open_inputs(path: str | os.PathLike) -> tuple[Path, Path | None]:
             is_results = str(f.attrs.get("format", "")) == RESULTS_FORMAT
     except OSError as exc:
         raise SessionError(f"cannot open {path}: {exc}") from exc
-    return (_results_session(path), path) if is_results else (path, None)
+    return (session_of_results(path), path) if is_results else (path, None)
 
 
 def _optical_curve(results: Path, start_ns: int) -> tuple[np.ndarray, np.ndarray] | None:

@@ -210,7 +210,9 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
     result.problems += [f"forced expiration from {t:.1f} s not finished before the recording ended: left out"
                         for t in forced_unfinished]
     for a, b in forced_windows:
-        before = (t >= a - 2.0) & (t <= a + 0.3)
+        # The blow starts from the full inspiration (TLC): the highest volume from just before the
+        # operator's mark (marked at the blow) to the manoeuvre's end (marked at the inspiration).
+        before = (t >= a - 2.0) & (t <= b)
         if before.sum() < 10:
             continue
         i_top = int(np.nonzero(before)[0][np.argmax(v[before])])

@@ -200,6 +200,17 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
     return out
 
 
+def session_of_results(results: str | os.PathLike) -> Path:
+    """The session file a results file was made from: where it was, or beside the results file."""
+    results = Path(results)
+    with h5py.File(results, "r") as f:
+        named = Path(str(f.attrs.get("session", "")))
+    for candidate in (named, results.parent / named.name):
+        if candidate.name and candidate.exists():
+            return candidate
+    raise SessionError(f"{results}: its session file {named} is not there (nor beside the results file)")
+
+
 def with_true_lights(session: SessionFile) -> RigCalibration:
     """A calibration profile holding the simulation's true lights (for benchmarks: the noise floor)."""
     from core.profile import HeadCalibration

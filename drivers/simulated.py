@@ -46,10 +46,11 @@ class SimulatedRigState:
     def now_s(self) -> float:
         return (time.monotonic_ns() - self.start_ns) / 1e9
 
-    def perform(self, manoeuvre: str, blow=None) -> None:
+    def perform(self, manoeuvre: str, blow=None) -> float:
         """The simulated subject does what the operator asks, from now: "vc" (slow vital capacity)
-        or "forced" (a forced expiration, `blow` a core.sim.breathing.ForcedBlow), then breathes quietly."""
-        from core.sim.breathing import ForcedBlow, forced, slow_vc, tidal
+        or "forced" (a forced expiration, `blow` a core.sim.breathing.ForcedBlow), then breathes quietly.
+        Returns the seconds until the manoeuvre is over."""
+        from core.sim.breathing import RATE_HZ, ForcedBlow, forced, slow_vc, tidal
 
         if self.waveform is None:
             raise ValueError("this simulated scene does not breathe")
@@ -62,6 +63,7 @@ class SimulatedRigState:
         else:
             raise ValueError(f"unknown manoeuvre {manoeuvre!r}: vc or forced")
         self.waveform.splice(self.now_s() + 0.3, samples, tidal(subject, 600.0, rng))
+        return 0.3 + len(samples) / RATE_HZ
 
 
 @dataclass

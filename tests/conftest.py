@@ -7,6 +7,17 @@ from pathlib import Path
 
 import pytest
 
+# Qt draws offscreen, and the application's settings, records and logs go to a folder of this
+# test run, never the user's own.
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+_HOME = Path(os.environ.get("PHOTOPFT_TEST_HOME", "")) if os.environ.get("PHOTOPFT_TEST_HOME") else None
+if _HOME is None:
+    import tempfile
+
+    _HOME = Path(tempfile.mkdtemp(prefix="photopft-test-home-"))
+for _name in ("XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_STATE_HOME"):
+    os.environ[_name] = str(_HOME / _name.lower())
+
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 if "PHOTOPFT_SHARED" in os.environ:
     SHARED = Path(os.environ["PHOTOPFT_SHARED"])

@@ -11,7 +11,6 @@ from PySide6.QtWidgets import QGridLayout, QGroupBox, QHBoxLayout, QLabel, QVBox
 
 from app.live import WINDOW_S, Snapshot
 
-pg.setConfigOptions(imageAxisOrder="row-major", antialias=False)
 
 HEIGHT_RANGE_MM = 40.0  # the maps' fixed scale: +-40 mm about the subject's mean surface
 WORKING_RANGE_MM = (1500.0, 2500.0)  # subject distances the rig is calibrated for

@@ -224,9 +224,14 @@ class MainWindow(QMainWindow):
         return job
 
     def sphere_calibration(self) -> None:
-        from app.gui.wizards.sphere import SphereCalibrationWizard
+        from app.gui.wizards.sphere import SphereCalibrationWizard, capture_from_rig
 
-        SphereCalibrationWizard(self).exec()
+        heads = tuple(self.source.cameras)
+        scale = self.source.rig.heads["front"].width / 1400.0
+        capture = None if self.source.simulated is not None else capture_from_rig(self)
+        wizard = SphereCalibrationWizard(self, heads, scale, capture=capture)
+        if wizard.exec() and wizard.saved_to is not None:
+            self.statusBar().showMessage(f"Rig calibration saved: {wizard.saved_to}", 10000)
 
     def spirometer_calibration(self) -> None:
         from app.gui.wizards.spirometer import SpirometerCalibrationWizard

@@ -55,6 +55,7 @@ class SimConfig:
     grid_step_mm: float = 1.0
     sphere_radius_mm: float = 75.0
     placements: int = 7
+    placement_only: int | None = None  # render only this placement (one capture of a calibration wizard)
     placement_cycles: int = 3
     created: str | None = None
     compression: str | None = None
@@ -139,11 +140,13 @@ def sphere_placements(config: SimConfig, baseline: float, cycle_s: float) -> lis
     rng = np.random.default_rng(config.seed + 53)
     spots = [(0.0, 0.0, 0.0), (-220, -150, -150), (220, 150, 150), (220, -150, 0), (-220, 150, 0),
              (0, -170, 150), (0, 170, -150), (-120, 0, 180), (120, 0, -180)]
-    while len(spots) < config.placements:
+    while len(spots) < max(config.placements, (config.placement_only or 0) + 1):
         spots.append((rng.uniform(-230, 230), rng.uniform(-170, 170), rng.uniform(-180, 180)))
     hold = config.placement_cycles * cycle_s
-    return [SpherePlacement(k * hold, np.array([x, y, mid + z], dtype=float))
-            for k, (x, y, z) in enumerate(spots[: config.placements])]
+    chosen = list(enumerate(spots[: config.placements]))
+    if config.placement_only is not None:
+        chosen = [(0, spots[config.placement_only])]
+    return [SpherePlacement(k * hold, np.array([x, y, mid + z], dtype=float)) for k, (x, y, z) in chosen]
 
 
 def build_scene(config: SimConfig, rig: Rig) -> tuple[Scene, Waveform | None]:

@@ -150,7 +150,7 @@ class PositioningPage(QWizardPage):
             width = view.height_mm.shape[1]
             centre = 0.5 * (columns[0] + columns[-1]) if len(columns) else np.nan
             centred = bool(len(columns)) and abs(centre - (width - 1) / 2) <= CENTRED_FRACTION * width
-            ok &= distance_ok and centred
+            ok = ok and bool(distance_ok and centred)
             lines.append(f"<b>{head.capitalize()}</b>: distance {view.distance_mm:.0f} mm "
                          f"{'OK' if distance_ok else f'<span style=color:#b00020>outside {low:.0f}–{high:.0f} mm</span>'}"
                          f"; centred {'OK' if centred else '<span style=color:#b00020>move the patient to the centre</span>'}")
@@ -243,8 +243,7 @@ class ManoeuvrePage(QWizardPage):
     def _begin(self) -> None:
         self.engine.mark("forced-start" if self.kind == "forced" else "vc-start")
         simulated = self.engine.source.simulated
-        if simulated is not None:
-            simulated.perform(self.kind)
+        self.last_duration_s = simulated.perform(self.kind) if simulated is not None else 0.0
         self.begin.setEnabled(False)
         self.end.setEnabled(True)
 

@@ -1,0 +1,282 @@
+"""Sphere calibration (engineer): light positions from a specular sphere (thesis eqs 4.1-4.12,
+all placements in one least-squares triangulation).
+
+The sphere is captured at the centre of the view, then at two or more other places; each capture
+shows the detected outline and highlights. The result lists each light's position, residual
+(pass/fail against the threshold) and pseudo light vector; saving makes it the rig's calibration
+profile and keeps the previous one. On the simulated rig a capture renders the simulated sphere
+at the next place; on a real rig it records a second of the sphere.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6.QtCore import Qt
+from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout, QLabel, QListWidget, QPushButton,
+                               QTableWidget, QTableWidgetItem, QVBoxLayout, QWizard, QWizardPage)
+
+from app.calibration_store import RIG_PROFILE, calibration_dir, keep_previous
+from app.gui.errors import show_error
+
+MIN_CAPTURES = 3
+
+
+def capture_simulated(folder: Path, index: int, scale: float, heads: tuple[str, ...], radius_mm: float) -> Path:
+    """One placement of the simulated specular sphere (index 0: the centre of the view)."""
+    from core.sim.simulate import SimConfig, simulate
+
+    path = folder / f"sphere-{index + 1:02d}.h5"
+    simulate(path, SimConfig(scene="specular-sphere", scale=scale, heads=heads, seed=1, placement_only=index,
+                             sphere_radius_mm=radius_mm, led_offset_mm=8.0, led_intensity_spread=0.1))
+    return path
+
+
+def capture_from_rig(window):
+    """A capture on a real rig: a second of the sphere recorded from the live engine."""
+    import time
+
+    def capture(folder: Path, index: int) -> Path:
+        wizard = window.findChild(SphereCalibrationWizard)
+        radius = wizard.intro.radius.value() if wizard is not None else 75.0
+        path = folder / f"sphere-{index + 1:02d}.h5"
+        engine = window.engine
+        engine.start_recording(path, None, kind="sphere-calibration",
+                               root_attrs={"sphere_radius_mm": float(radius), "sphere_finish": "specular"})
+        engine.mark("placement")
+        time.sleep(1.0)
+        summary = engine.stop_recording()
+        if summary.problems:
+            raise OSError("; ".join(summary.problems))
+        return path
+
+    return capture
+
+
+def detect_capture(path: Path, head_name: str):
+    """(summed image, sphere fit, {light: highlight}, problems) of one capture's head."""
+    from core.light_calibration import _specular_head, placement_images
+    from core.session import SessionFile
+
+    with SessionFile(path) as session:
+        radius = float(session.attrs["sphere_radius_mm"])
+        image = placement_images(session, head_name)[0].signal.sum(0)
+        result = _specular_head(session, head_name, radius)[0]
+    return image, result.sphere, result.highlights, result.problems
+
+
+class IntroPage(QWizardPage):
+    def __init__(self) -> None:
+        super().__init__()
+        self.setTitle("Sphere calibration")
+        self.setSubTitle("Light positions from the highlights of a polished (specular) sphere.")
+        text = QLabel("1. Put the specular sphere on its stand at the centre of the view, at the patient's "
+                      "distance, and keep the room dark.\n2. Capture it there, then at two or more other places "
+                      "spread through the working volume (left and right, higher and lower, nearer and farther).\n"
+                      "3. Each capture shows the sphere's outline and the four highlights: all four must be found.")
+        text.setWordWrap(True)
+        self.radius = QDoubleSpinBox(minimum=10.0, maximum=300.0, value=75.0, suffix=" mm", decimals=2)
+        from core.light_calibration import DEFAULT_MAX_RESIDUAL_MM
+
+        self.threshold = QDoubleSpinBox(minimum=0.5, maximum=100.0, value=DEFAULT_MAX_RESIDUAL_MM, suffix=" mm",
+                                        decimals=1)
+        form = QFormLayout(self)
+        form.addRow(text)
+        form.addRow("Sphere radius (from its certificate)", self.radius)
+        form.addRow("Largest accepted residual per light", self.threshold)
+
+
+class CapturePage(QWizardPage):
+    def __init__(self) -> None:
+        super().__init__()
+        self.setTitle("Captures")
+        self.setSubTitle("Capture at the centre first, then at two or more other places.")
+        self.capture_button = QPushButton("Capture at the centre")
+        self.capture_button.clicked.connect(self.capture)
+        self.head = QComboBox()
+        self.head.currentTextChanged.connect(self._show_selected)
+        self.list = QListWidget()
+        self.list.currentRowChanged.connect(self._show_selected)
+        self.plot = pg.PlotWidget(background="w")
+        self.plot.setAspectLocked(True)
+        self.plot.invertY(True)
+        self.image = pg.ImageItem()
+        self.plot.addItem(self.image)
+        self.outline = self.plot.plot(pen=pg.mkPen("r", width=2))
+        self.spots = pg.ScatterPlotItem(size=14, pen=pg.mkPen("c", width=2), brush=None, symbol="o")
+        self.plot.addItem(self.spots)
+        self.labels: list[pg.TextItem] = []
+        left = QVBoxLayout()
+        left.addWidget(self.capture_button)
+        left.addWidget(QLabel("Head shown"))
+        left.addWidget(self.head)
+        left.addWidget(self.list, 1)
+        layout = QHBoxLayout(self)
+        layout.addLayout(left, 1)
+        layout.addWidget(self.plot, 3)
+        self.captures: list[Path] = []
+        self.detections: list[dict] = []
+        self.folder = Path(tempfile.mkdtemp(prefix="photopft-sphere-"))
+
+    def initializePage(self) -> None:  # noqa: N802
+        if not self.head.count():
+            self.head.addItems(self.wizard().heads)
+
+    def capture(self) -> None:
+        wizard = self.wizard()
+        index = len(self.captures)
+        self.capture_button.setEnabled(False)
+        self.capture_button.setText("Capturing …")
+        wizard.start_job(lambda: self._capture(index), f"Capture {index + 1}", self._captured)
+
+    def _capture(self, index: int):
+        wizard = self.wizard()
+        path = wizard.capture(self.folder, index)
+        return path, {h: detect_capture(path, h) for h in wizard.heads}
+
+    def _captured(self, result) -> None:
+        path, detections = result
+        self.captures.append(path)
+        self.detections.append(detections)
+        found = min(len(d[2]) for d in detections.values())
+        where = "centre" if len(self.captures) == 1 else f"place {len(self.captures)}"
+        self.list.addItem(f"{len(self.captures)}: {where}, highlights found {found}/4"
+                          + ("" if found == 4 else " (check the sphere and the lighting)"))
+        self.list.setCurrentRow(self.list.count() - 1)
+        self.capture_button.setText("Capture at another place")
+        self.capture_button.setEnabled(True)
+        self.completeChanged.emit()
+
+    def capture_failed(self) -> None:
+        self.capture_button.setText("Capture again")
+        self.capture_button.setEnabled(True)
+
+    def _show_selected(self, *_) -> None:
+        row = self.list.currentRow()
+        head = self.head.currentText()
+        if row < 0 or not head or head not in self.detections[row]:
+            return
+        image, sphere, highlights, _ = self.detections[row][head]
+        self.image.setImage(image, autoLevels=True)
+        angle = np.linspace(0, 2 * np.pi, 200)
+        cu, cv = sphere.centre_px
+        self.outline.setData(cu + sphere.radius_px * np.cos(angle), cv + sphere.radius_px * np.sin(angle))
+        self.spots.setData([h.uv[0] for h in highlights.values()], [h.uv[1] for h in highlights.values()])
+        for label in self.labels:
+            self.plot.removeItem(label)
+        self.labels = []
+        for light, h in highlights.items():
+            label = pg.TextItem(f"L{light}", color="c", anchor=(0, 1))
+            label.setPos(h.uv[0] + 6, h.uv[1] - 6)
+            self.plot.addItem(label)
+            self.labels.append(label)
+
+    def isComplete(self) -> bool:  # noqa: N802
+        if len(self.captures) < MIN_CAPTURES:
+            return False
+        return all(len(d[2]) == 4 for d in self.detections[0].values())  # the centre capture gives pseudo vectors
+
+
+class ResultPage(QWizardPage):
+    def __init__(self) -> None:
+        super().__init__()
+        self.setTitle("Result")
+        self.setSubTitle("Light positions in each head's camera frame; every residual must pass.")
+        self.table = QTableWidget(0, 7)
+        self.table.setHorizontalHeaderLabels(["Head", "Light", "Position (mm)", "± (mm)", "Residual (mm)",
+                                              "Pass", "Pseudo light vector"])
+        self.message = QLabel()
+        self.message.setWordWrap(True)
+        layout = QVBoxLayout(self)
+        layout.addWidget(self.table)
+        layout.addWidget(self.message)
+        self.calibration = None
+
+    def initializePage(self) -> None:  # noqa: N802
+        from core.light_calibration import calibrate_lights
+        from core.lights import CalibrationError
+
+        wizard = self.wizard()
+        threshold = wizard.intro.threshold.value()
+        self.calibration = None
+        self.table.setRowCount(0)
+        try:
+            # every light is solved, then judged here, so the table shows which fail
+            calibration, _ = calibrate_lights(wizard.capture_page.captures, max_residual_mm=float("inf"))
+        except CalibrationError as exc:
+            self.message.setText(f"<b>The calibration failed:</b> {exc}. Go back and capture again.")
+            self.completeChanged.emit()
+            return
+        rows = [(name, k, head) for name, head in calibration.heads.items() for k in range(4)]
+        self.table.setRowCount(len(rows))
+        for r, (name, k, head) in enumerate(rows):
+            residual = float(head.residual_mm[k])
+            cells = [name, f"L{k}", ", ".join(f"{x:.1f}" for x in head.light_positions_mm[k]),
+                     ", ".join(f"{x:.1f}" for x in head.light_position_sigma_mm[k]), f"{residual:.2f}",
+                     "pass" if residual <= threshold else "FAIL",
+                     ", ".join(f"{x:+.3f}" for x in head.pseudo_light_vectors[k])]
+            for c, text in enumerate(cells):
+                item = QTableWidgetItem(text)
+                item.setFlags(item.flags() & ~Qt.ItemFlag.ItemIsEditable)
+                self.table.setItem(r, c, item)
+        self.table.resizeColumnsToContents()
+        failed = [f"{name} L{k}" for name, k, head in rows if head.residual_mm[k] > threshold]
+        if failed:
+            self.message.setText(f"<b>{', '.join(failed)} fail</b> the {threshold:g} mm threshold: go back and "
+                                 "capture at more places (spread wider), or check the sphere's radius.")
+            self.completeChanged.emit()
+            return
+        self.calibration = calibration
+        self.message.setText(f"All {len(rows)} lights pass (threshold {threshold:g} mm). Finish saves the profile.")
+        self.completeChanged.emit()
+
+    def isComplete(self) -> bool:  # noqa: N802
+        return self.calibration is not None
+
+
+class SphereCalibrationWizard(QWizard):
+    def __init__(self, parent, heads: tuple[str, ...] = ("front", "back"), scale: float = 0.25,
+                 capture=None, start_job=None, profile_dir: Path | None = None) -> None:
+        super().__init__(parent)
+        self.setWindowTitle("Sphere calibration")
+        self.heads = list(heads)
+        self.scale = scale
+        self._capture = capture
+        self._start_job = start_job or getattr(parent, "start_job", None)
+        self.profile_dir = profile_dir or calibration_dir()
+        self.saved_to: Path | None = None
+        self.intro = IntroPage()
+        self.capture_page = CapturePage()
+        self.result_page = ResultPage()
+        for page in (self.intro, self.capture_page, self.result_page):
+            self.addPage(page)
+        self.setMinimumSize(900, 600)
+
+    def capture(self, folder: Path, index: int) -> Path:
+        if self._capture is not None:
+            return self._capture(folder, index)
+        return capture_simulated(folder, index, self.scale, tuple(self.heads), self.intro.radius.value())
+
+    def start_job(self, work, what: str, done) -> None:
+        if self._start_job is None:
+            done(work())
+            return
+        job = self._start_job(work, what, done)
+        job.signals.failed.connect(lambda *_: self.capture_page.capture_failed())
+
+    def accept(self) -> None:
+        calibration = self.result_page.calibration
+        self.profile_dir.mkdir(parents=True, exist_ok=True)
+        target = self.profile_dir / RIG_PROFILE
+        try:
+            kept = keep_previous(target)
+            calibration.save(target)
+        except OSError as exc:
+            show_error(self, "The calibration profile cannot be saved.", f"{exc}. Check the folder's permissions.")
+            return
+        self.saved_to = target
+        self.previous = kept
+        super().accept()

@@ -1,0 +1,218 @@
+"""The desktop application, driven with pytest-qt on the offscreen platform against the simulated
+rig: the live view, replay, each wizard page by page, a whole patient session, error dialogs."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+from PySide6.QtCore import QTimer
+from PySide6.QtWidgets import QApplication, QWizard
+
+from app.gui.main_window import MainWindow
+from app.live import LiveRig, replay_source, simulated_source
+from app.records import Records
+from core.session import SessionFile, validate_session
+
+pytestmark = pytest.mark.slow
+
+
+def _close_when_shown(qtbot, seen: list[str]):
+    """Close the next modal dialog (an error message) and keep its text."""
+
+    def close() -> None:
+        dialog = QApplication.activeModalWidget()
+        if dialog is None:
+            QTimer.singleShot(50, close)
+            return
+        seen.append(dialog.text() + " " + dialog.informativeText())
+        dialog.close()
+
+    QTimer.singleShot(50, close)
+
+
+@pytest.fixture
+def window(qtbot):
+    w = MainWindow(simulated_source(scale=0.1))
+    qtbot.addWidget(w)
+    w.show()
+    yield w
+    w.close()
+
+
+def test_live_view_draws_both_heads_and_the_curves(window, qtbot):
+    def maps_shown() -> None:
+        snapshot = window.engine.snapshot()
+        assert all(v.reconstructed >= 3 for v in snapshot.heads.values())
+        assert all(window.view.maps[h].placeholder is None for h in ("front", "back"))
+        assert len(snapshot.flow_t_s) > 50
+
+    qtbot.waitUntil(maps_shown, timeout=30000)
+    updates = window.view.updates
+    qtbot.wait(1000)
+    assert window.view.updates - updates >= 10  # the timer draws, whatever the cameras do
+    front = window.view.maps["front"].image.image
+    assert front.ndim == 2 and np.isfinite(front).mean() > 0.2
+    assert window.view.maps["front"].image.levels.tolist() == [-40.0, 40.0]  # the fixed scale
+    assert "frames/s" in window.view.status.labels["front_rate"].text()
+    assert "mm" in window.view.status.labels["front_distance"].text()
+
+
+def test_replay_of_a_recorded_session(small_session, qtbot):
+    w = MainWindow(replay_source(small_session, speed=2.0))
+    qtbot.addWidget(w)
+    w.show()
+    qtbot.waitUntil(lambda: w.engine.replay_finished, timeout=30000)
+    qtbot.waitUntil(lambda: all(v.reconstructed > 0 for v in w.engine.snapshot().heads.values()), timeout=10000)
+    with SessionFile(small_session) as s:
+        assert w.engine.snapshot().heads["front"].frames == s.n_frames("front")
+    w.close()
+
+
+def test_a_broken_file_is_a_dialog_not_a_traceback(window, qtbot, tmp_path):
+    broken = tmp_path / "broken.h5"
+    broken.write_bytes(b"not hdf5")
+    seen: list[str] = []
+    _close_when_shown(qtbot, seen)
+    window.replay(broken)
+    assert seen and "Cannot open broken.h5" in seen[0] and "photopft validate" in seen[0]
+    assert not window.source.replay  # the live view goes on with what it had
+
+
+def _press(qtbot, wizard: QWizard) -> None:
+    assert wizard.button(QWizard.WizardButton.NextButton).isEnabled()
+    wizard.next()
+
+
+def test_a_whole_patient_session(qtbot, tmp_path):
+    from app.gui.wizards.patient_session import ManoeuvrePage, PatientSessionWizard
+
+    engine = LiveRig(simulated_source(scale=0.1))
+    engine.start()
+    records = Records(tmp_path / "records.sqlite3")
+    wizard = PatientSessionWizard(None, engine, records, sessions_dir=tmp_path / "sessions", operator="op1")
+    qtbot.addWidget(wizard)
+    wizard.show()
+    try:
+        page = wizard.currentPage()
+        assert not page.isComplete()
+        page.family.setText("Nowak")
+        page.given.setText("Ewa")
+        page.sex.setCurrentText("female")
+        page.height.setValue(166.0)
+        page.weight.setValue(61.0)
+        page.add.click()
+        assert page.isComplete()
+        _press(qtbot, wizard)
+        positioning = wizard.currentPage()
+        qtbot.waitUntil(positioning.isComplete, timeout=30000)
+        _press(qtbot, wizard)  # recording starts here
+        assert engine.recording
+        tidal = wizard.currentPage()
+        tidal.seconds.setValue(10)
+        tidal.start.click()
+        qtbot.waitUntil(tidal.isComplete, timeout=20000)
+        _press(qtbot, wizard)
+        for kind in ("vc", "forced"):
+            page = wizard.currentPage()
+            assert isinstance(page, ManoeuvrePage) and page.kind == kind
+            while not page.isComplete():
+                assert page.count < 8
+                page.begin.click()
+                duration = engine.source.simulated.waveform and page.last_duration_s
+                qtbot.wait(int(1000 * (duration + 0.8)))
+                page.end.click()
+            _press(qtbot, wizard)
+        feedback = wizard.page(wizard.pageIds()[4]).feedback.toPlainText()
+        assert "Blow 1: FVC" in feedback and "acceptable" in feedback
+        assert "Grade" in feedback or "another blow" in feedback
+        review = wizard.currentPage()
+        assert "FVC_l" in review.summary.toPlainText()
+        wizard.accept()
+    finally:
+        engine.stop()
+    path = wizard.session_path
+    assert validate_session(path) == [], validate_session(path)
+    with SessionFile(path) as s:
+        labels = [label for _, label in s.events()]
+        assert labels[0] == "tidal-start" and "vc-start" in labels and labels.count("forced-start") >= 3
+        assert s.subject.id.startswith("P-") and s.attrs["operator"] == "op1"
+        assert "Nowak" not in json.dumps({k: str(v) for k, v in s.attrs.items()})
+    (patient,) = records.find_patients("Nowak")
+    (row,) = records.history(patient.id)
+    assert row.session_path == path and row.status == "recorded"
+    assert row.summary["flow sensor"]["FVC_l"] > 2.0
+    records.close()
+
+
+def test_the_sphere_calibration_wizard(qtbot, tmp_path):
+    from app.gui.wizards.sphere import SphereCalibrationWizard
+
+    wizard = SphereCalibrationWizard(None, ("front", "back"), 0.25, profile_dir=tmp_path)
+    qtbot.addWidget(wizard)
+    wizard.show()
+    _press(qtbot, wizard)
+    captures = wizard.currentPage()
+    for k in range(3):
+        assert not captures.isComplete()
+        captures.capture()
+        qtbot.waitUntil(lambda: len(captures.captures) == k + 1, timeout=60000)
+        assert "highlights found 4/4" in captures.list.item(k).text()
+    assert captures.outline.xData is not None and len(captures.spots.data) == 4
+    _press(qtbot, wizard)
+    result = wizard.currentPage()
+    assert result.isComplete(), result.message.text()
+    assert result.table.rowCount() == 8 and all(result.table.item(r, 5).text() == "pass" for r in range(8))
+    (tmp_path / "rig-calibration.json").write_text("{}")  # the profile in force, to be kept
+    wizard.accept()
+    from core.profile import load_profile
+
+    profile = load_profile(tmp_path / "rig-calibration.json")
+    assert set(profile.heads) == {"front", "back"}
+    assert len(list(tmp_path.glob("rig-calibration-*.json"))) == 1
+
+
+def test_the_spirometer_calibration_wizard(qtbot, tmp_path, processed_full_session):
+    from app.gui.wizards.spirometer import SpirometerCalibrationWizard
+    from core.calibration import FlowCalibration, VolumeCalibration, load_profile
+
+    wizard = SpirometerCalibrationWizard(None, profile_dir=tmp_path)
+    qtbot.addWidget(wizard)
+    wizard.show()
+    flow = wizard.currentPage()
+    for reference in (-6.0, -2.0, 0.0):
+        flow.reference.setValue(reference)
+        flow.read.click()
+    assert not flow.isComplete() or len(flow.pairs) == 3
+    for reference in (2.0, 6.0):
+        flow.reference.setValue(reference)
+        flow.read.click()
+    assert flow.isComplete() and "R² = " in flow.fit_label.text()
+    assert abs(flow.calibration.gain_lps - 0.0075) < 0.0002  # the simulated sensor's own gain
+    _press(qtbot, wizard)
+    volume = wizard.currentPage()
+    assert not volume.isComplete()
+    volume.add_files([processed_full_session[1]])
+    assert volume.isComplete(), volume.label.text()
+    _press(qtbot, wizard)
+    conditions = wizard.currentPage()
+    conditions.temperature.setValue(21.0)
+    assert abs(float(conditions.factor.text()) - 1.0) > 0.05
+    wizard.accept()
+    assert isinstance(load_profile(tmp_path / "flow-calibration.json"), FlowCalibration)
+    assert isinstance(load_profile(tmp_path / "volume-calibration.json"), VolumeCalibration)
+    assert json.loads((tmp_path / "flow-calibration.json").read_text())["room"]["temperature_c"] == 21.0
+
+
+def test_no_top_level_widget_is_left_behind(qtbot):
+    before = set(QApplication.topLevelWidgets())
+    w = MainWindow(simulated_source(scale=0.1))
+    w.show()
+    qtbot.wait(300)
+    w.close()
+    w.deleteLater()
+    qtbot.wait(100)
+    left = [x for x in QApplication.topLevelWidgets() if x not in before and x.isVisible()]
+    assert left == []
