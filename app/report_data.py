@@ -280,7 +280,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             curves[FLOW_SENSOR] = analysed.flow_volume
         else:
             notes.append("No flow sensor was recorded in this session.")
-        main = OPTICAL if OPTICAL in sources else (FLOW_SENSOR if FLOW_SENSOR in sources else None)
+        # The flow sensor is the reference where one was recorded; the optical method stands beside it.
+        main = FLOW_SENSOR if FLOW_SENSOR in sources else (OPTICAL if OPTICAL in sources else None)
         if main is None:
             notes.append("No volume curve in litres: no pulmonary function values can be reported.")
         if subject is None:

@@ -15,7 +15,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 from reportlab import rl_config
-from reportlab.graphics.charts.legends import LineLegend
 from reportlab.graphics.charts.lineplots import LinePlot
 from reportlab.graphics import shapes
 from reportlab.graphics.shapes import Drawing, Line, Rect, String
@@ -165,7 +164,7 @@ def _quality_lines(data: ReportData) -> list[str]:
 
 def _plot(width: float, height: float, series: list[list[tuple[float, float]]], x_label: str, y_label: str,
           x_range: tuple[float, float] | None = None, y_range: tuple[float, float] | None = None,
-          legend: list[str] | None = None, markers: bool = False) -> Drawing:
+          markers: bool = False) -> Drawing:
     drawing = Drawing(width, height)
     plot = LinePlot()
     plot.x, plot.y = 34, 26
@@ -201,41 +200,40 @@ def _plot(width: float, height: float, series: list[list[tuple[float, float]]], 
     rotated = Group(label)
     rotated.transform = (0, 1, -1, 0, 8, plot.y + plot.height / 2)
     drawing.add(rotated)
-    if legend:
-        key = LineLegend()
-        key.x, key.y = plot.x + plot.width - 95, plot.y + 8 + 8 * (len(legend) - 1)
-        key.fontName, key.fontSize = FONT, 6.5
-        key.dx, key.dy, key.deltay = 14, 0, 8
-        key.columnMaximum = len(legend)
-        key.colorNamePairs = [(GREYS[k % len(GREYS)], name) for k, name in enumerate(legend)]
-        drawing.add(key)
     return drawing
 
 
-def _decimate(x: np.ndarray, y: np.ndarray, points: int = 300) -> list[tuple[float, float]]:
+def _decimate(x: np.ndarray, y: np.ndarray, x_range: tuple[float, float], y_range: tuple[float, float],
+              points: int = 300) -> list[tuple[float, float]]:
+    """At most `points` points, inside the axes (a plot does not clip what lies outside)."""
+    inside = (x >= x_range[0]) & (x <= x_range[1]) & np.isfinite(x) & np.isfinite(y)
+    x, y = x[inside], np.clip(y[inside], *y_range)
     step = max(1, len(x) // points)
-    return [(float(a), float(b)) for a, b in zip(x[::step], y[::step]) if math.isfinite(a) and math.isfinite(b)]
+    return [(float(a), float(b)) for a, b in zip(x[::step], y[::step])]
 
 
-def _curves(data: ReportData, width: float) -> Drawing | None:
+def _curves(data: ReportData, width: float) -> tuple[Drawing, str] | None:
+    """Volume-time and flow-volume of the best blows, and the key to their line styles."""
     best = best_manoeuvres(data.manoeuvres)
     if not best:
         return None
     half = width / 2 - 4
-    t_max = max(6.0, min(15.0, max(float(m.time_s[-1]) for m in best)))
-    v_max = max(float(np.max(m.volume_l)) for m in best) * 1.1
-    f_max = max(float(np.max(m.flow_lps)) for m in best) * 1.1
-    names = [f"blow {m.number}" + ("" if m.acceptable else " (not acceptable)") for m in best]
-    volume_time = _plot(half, 150, [_decimate(m.time_s, m.volume_l) for m in best], "time from time zero (s)",
-                        "exhaled volume (L)", (-0.5, t_max), (0.0, v_max), names)
-    flow_volume = _plot(half, 150, [_decimate(m.volume_l, m.flow_lps) for m in best], "exhaled volume (L)",
-                        "expiratory flow (L/s)", (0.0, v_max), (min(0.0, -0.05 * f_max), f_max))
+    t_range = (-0.5, max(6.0, min(15.0, max(float(m.time_s[-1]) for m in best))))
+    v_range = (0.0, max(float(np.max(m.volume_l)) for m in best) * 1.1)
+    f_max = max(float(np.percentile(m.flow_lps, 99.5)) for m in best) * 1.15
+    f_range = (-0.05 * f_max, f_max)
+    volume_time = _plot(half, 150, [_decimate(m.time_s, m.volume_l, t_range, v_range) for m in best],
+                        "time from time zero (s)", "exhaled volume (L)", t_range, v_range)
+    flow_volume = _plot(half, 150, [_decimate(m.volume_l, m.flow_lps, v_range, f_range) for m in best],
+                        "exhaled volume (L)", "expiratory flow (L/s)", v_range, f_range)
     drawing = Drawing(width, 150)
-    volume_time.translate(0, 0)
     drawing.add(volume_time)
     flow_volume.translate(half + 8, 0)
     drawing.add(flow_volume)
-    return drawing
+    styles = ("solid", "dashed", "dotted")
+    key = "; ".join(f"{styles[k]}: blow {m.number} (FEV1 {m.fev1_l:.2f} L, FVC {m.fvc_l:.2f} L, "
+                    f"{'acceptable' if m.acceptable else 'not acceptable'})" for k, m in enumerate(best))
+    return drawing, key
 
 
 def _comparison(data: ReportData, styles, width: float) -> list:
@@ -424,8 +422,10 @@ def write_report(data: ReportData, output: str | os.PathLike, page_size: str = "
     curves = _curves(data, width)
     story.append(Paragraph(f"Forced expirations ({data.main_source or 'none'}): the best manoeuvres",
                            styles["h2"]))
-    story.append(curves if curves is not None else
-                 Paragraph("No forced expiration to show.", styles["body"]))
+    if curves is None:
+        story.append(Paragraph("No forced expiration to show.", styles["body"]))
+    else:
+        story += [curves[0], Paragraph(curves[1], styles["small"])]
     story += _comparison(data, styles, width)
     if data.notes:
         story.append(Paragraph("Notes", styles["h2"]))
