@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -30,6 +31,7 @@ from drivers.recorder import Recorder, RecordSummary
 log = logging.getLogger(__name__)
 
 WINDOW_S = 30.0  # what the volume curve shows
+WORKER_NICENESS = 10
 
 
 @dataclass
@@ -251,7 +253,15 @@ class LiveRig:
             self._spawn(self._capture_flow, "capture-flow")
 
     def _spawn(self, target, name: str, *args) -> None:
-        thread = threading.Thread(target=target, args=args, name=name, daemon=True)
+        def run() -> None:
+            # Workers yield the CPU to the GUI thread: it only draws, but must never wait long.
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WORKER_NICENESS)
+            except (OSError, AttributeError):
+                pass
+            target(*args)
+
+        thread = threading.Thread(target=run, name=name, daemon=True)
         thread.start()
         self._threads.append(thread)
 

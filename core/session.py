@@ -197,6 +197,18 @@ class SessionWriter(_OwnsFile):
         dataset.resize(n + len(values), axis=0)
         dataset[n:] = values
 
+    @staticmethod
+    def _append_frames(dataset: h5py.Dataset, frames: np.ndarray) -> None:
+        """One frame per chunk and no filter: each frame goes to the file as its chunk, past the chunk
+        cache (half the time of a sliced write, and nothing left for the next flush to write)."""
+        if dataset.chunks != (1,) + frames.shape[1:] or dataset.compression is not None:
+            SessionWriter._append(dataset, frames)
+            return
+        n = dataset.shape[0]
+        dataset.resize(n + len(frames), axis=0)
+        for k, frame in enumerate(frames):
+            dataset.id.write_direct_chunk((n + k,) + (0,) * (frames.ndim - 1), np.ascontiguousarray(frame))
+
     def append_frames(self, head: str, frames: np.ndarray, light_index: Iterable[int],
                       timestamp_ns: Iterable[int], frame_id: Iterable[int]) -> None:
         """Append frames (N, H, W) of one head with their light index, timestamps and frame ids."""
@@ -214,7 +226,7 @@ class SessionWriter(_OwnsFile):
         frame_id = np.atleast_1d(np.asarray(frame_id, dtype=np.uint64))
         if not len(frames) == len(light_index) == len(timestamp_ns) == len(frame_id):
             raise SessionError(f"head {head!r}: frames, light_index, timestamp_ns and frame_id differ in length")
-        self._append(ds["frames"], frames.astype(ds["frames"].dtype, copy=False))
+        self._append_frames(ds["frames"], frames.astype(ds["frames"].dtype, copy=False))
         self._append(ds["light_index"], light_index)
         self._append(ds["timestamp_ns"], timestamp_ns)
         self._append(ds["frame_id"], frame_id)
