@@ -12,6 +12,7 @@ is versioned with `PRAGMA user_version`; `MIGRATIONS[k]` takes version k to k + 
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import secrets
@@ -266,8 +267,11 @@ class Records:
     def set_results(self, session_id: int, results_path: str | os.PathLike | None,
                     values: dict[str, dict[str, float | str | int]], status: str = "processed") -> None:
         """Store the summary values of a session: {source: {name: value}}, e.g. {"flow sensor": {"FEV1_l": 4.1}}."""
-        summary = {source: {k: (v.item() if hasattr(v, "item") else v) for k, v in named.items()}
-                   for source, named in values.items()}
+        def plain(value):
+            value = value.item() if hasattr(value, "item") else value
+            return None if isinstance(value, float) and not math.isfinite(value) else value
+
+        summary = {source: {k: plain(v) for k, v in named.items()} for source, named in values.items()}
         with self.transaction():
             updated = self._db.execute(
                 "UPDATE sessions SET results_path = ?, summary = ?, status = ? WHERE id = ?",
@@ -279,7 +283,8 @@ class Records:
             self._db.executemany(
                 "INSERT INTO session_values (session_id, name, source, value) VALUES (?, ?, ?, ?)",
                 [(session_id, name, source, float(value)) for source, named in summary.items()
-                 for name, value in named.items() if isinstance(value, (int, float)) and not isinstance(value, bool)])
+                 for name, value in named.items()
+                 if isinstance(value, (int, float)) and not isinstance(value, bool) and value is not None])
 
     _SESSION_COLUMNS = ("id, patient_id, session_path, results_path, recorded, operator, rig, calibration, status, "
                         "summary")

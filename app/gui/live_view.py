@@ -57,9 +57,10 @@ class VolumeView(pg.GraphicsLayoutWidget):
         self.setBackground("w")
         self.litres = self.addPlot(title="Volume (L, BTPS), last 30 s")
         self.litres.setLabel("left", "volume", units="L")
+        self.litres.getAxis("left").enableAutoSIPrefix(False)
         self.litres.showGrid(y=True, alpha=0.3)
         self.litres.setMouseEnabled(False, False)
-        self.litres.addLegend(offset=(10, 5))
+        self.litres.addLegend(offset=(-10, 5))
         self.flow_curve = self.litres.plot(pen=pg.mkPen((20, 20, 20), width=2), name="flow sensor")
         self.nextRow()
         self.relative = self.addPlot(title="Optical: gradient volume (thesis eq. 3.27, relative)")
@@ -74,15 +75,22 @@ class VolumeView(pg.GraphicsLayoutWidget):
     def show_curves(self, s: Snapshot) -> None:
         end = max(s.flow_t_s[-1] if len(s.flow_t_s) else 0.0, s.optical_t_s[-1] if len(s.optical_t_s) else 0.0)
         start = end - WINDOW_S
-        if len(s.flow_t_s):
+        if len(s.flow_t_s) > 2:
             keep = s.flow_t_s >= start
-            self.flow_curve.setData(s.flow_t_s[keep], s.flow_volume_l[keep])
-        if len(s.optical_t_s) > 2:
+            t, v = s.flow_t_s[keep], s.flow_volume_l[keep]
+            # display only: the line through the window's ends taken out, so a zero drift of the
+            # sensor does not carry the curve off the plot (the report removes drift properly)
+            trend = np.polyfit(t, v, 1) if len(t) > 100 else (0.0, float(np.median(v)))
+            self.flow_curve.setData(t, v - np.polyval(trend, t))
+        if len(s.optical_t_s) > 5:
             keep = s.optical_t_s >= start
+            keep[:3] = False  # the first maps, before the distance is tracked
             values = s.optical[keep]
-            centred = values - values.mean()
-            scale = np.max(np.abs(centred)) or 1.0
-            self.optical_curve.setData(s.optical_t_s[keep], centred / scale)
+            if len(values) > 2:
+                # thesis eq. 3.27, robust to a stray map: centred on the median, scaled by the 98th percentile
+                centred = values - np.median(values)
+                scale = float(np.percentile(np.abs(centred), 98)) or 1.0
+                self.optical_curve.setData(s.optical_t_s[keep], np.clip(centred / scale, -1.05, 1.05))
         self.litres.setXRange(max(0.0, start), max(WINDOW_S, end), padding=0)
 
 

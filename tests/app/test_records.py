@@ -32,9 +32,11 @@ def test_patients_sessions_history_and_trends(tmp_path):
         for k, fev1 in enumerate((2.9, 2.8, 2.6)):
             when = datetime(2026, 1 + k, 10, 9, 30, tzinfo=timezone.utc)
             sid = records.add_session(p.id, tmp_path / f"s{k}.h5", when, operator="op", rig="simulated")
-            records.set_results(sid, tmp_path / f"r{k}.h5", {"flow sensor": {"FEV1_l": fev1, "grade": "A"}})
+            records.set_results(sid, tmp_path / f"r{k}.h5", {"flow sensor": {"FEV1_l": fev1, "grade": "A",
+                                                                             "IE50": float("nan")}})
         history = records.history(p.id)
         assert [s.summary["flow sensor"]["FEV1_l"] for s in history] == [2.9, 2.8, 2.6]
+        assert history[0].summary["flow sensor"]["IE50"] is None  # not a number: stored as missing
         assert history[0].status == "processed" and history[0].session_path == (tmp_path / "s0.h5").resolve()
         assert [v for _, v in records.trend(p.id, "FEV1_l", "flow sensor")] == [2.9, 2.8, 2.6]
         attrs = p.subject_attrs(datetime(2026, 5, 17, tzinfo=timezone.utc))

@@ -59,6 +59,7 @@ class FlowPage(QWizardPage):
         self.plot.setLabel("bottom", "reference flow", units="L/s")
         self.plot.setLabel("left", "residual", units="L/s")
         self.plot.addLine(y=0, pen=pg.mkPen("k", width=1))
+        self.plot.getAxis("left").enableAutoSIPrefix(False)
         self.points = pg.ScatterPlotItem(size=9, brush=pg.mkBrush(30, 30, 30))
         self.plot.addItem(self.points)
         row = QHBoxLayout()
@@ -113,6 +114,7 @@ class FlowPage(QWizardPage):
                 item = QTableWidgetItem(text)
                 item.setFlags(item.flags() & ~Qt.ItemFlag.ItemIsEditable)
                 self.table.setItem(r, c, item)
+        self.table.resizeColumnsToContents()
         if self.calibration is not None:
             self.points.setData([f for f, _ in self.pairs], list(residuals))
         else:

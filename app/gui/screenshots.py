@@ -1,0 +1,128 @@
+"""Screenshots of the main window and every wizard page on the simulated rig, for the user guide:
+`xvfb-run -a python -m app.gui.screenshots docs/images` (a real X server, the xcb platform)."""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from PySide6.QtCore import QTimer
+from PySide6.QtWidgets import QApplication, QWidget
+
+
+def _wait(app: QApplication, seconds: float, until=None) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        app.processEvents()
+        if until is not None and until():
+            return
+        time.sleep(0.02)
+
+
+def _grab(widget: QWidget, path: Path) -> None:
+    widget.grab().save(str(path))
+    print(f"wrote {path}")
+
+
+def main(out: Path) -> int:
+    from app.gui.main_window import MainWindow
+    from app.gui.wizards.patient_session import PatientSessionWizard
+    from app.gui.wizards.sphere import SphereCalibrationWizard
+    from app.gui.wizards.spirometer import SpirometerCalibrationWizard
+    from app.live import simulated_source
+    from app.records import Records
+
+    out.mkdir(parents=True, exist_ok=True)
+    app = QApplication.instance() or QApplication(sys.argv[:1])
+    window = MainWindow(simulated_source(scale=0.25))
+    window.resize(1400, 860)
+    window.show()
+    _wait(app, 60, lambda: all(v.reconstructed > 3 for v in window.engine.snapshot().heads.values()))
+    _wait(app, 8)  # the volume curve fills
+    _grab(window, out / "main-window.png")
+
+    folder = Path(tempfile.mkdtemp(prefix="photopft-shots-"))
+    records = Records(folder / "records.sqlite3")
+    wizard = PatientSessionWizard(window, window.engine, records, sessions_dir=folder)
+    wizard.show()
+    page = wizard.currentPage()
+    page.family.setText("Nowak")
+    page.given.setText("Ewa")
+    page.number.setText("H-1234")
+    page.sex.setCurrentText("female")
+    page.height.setValue(166)
+    page.weight.setValue(61)
+    page.add.click()
+    _wait(app, 0.5)
+    _grab(wizard, out / "patient-1-patient.png")
+    wizard.next()
+    _wait(app, 20, wizard.currentPage().isComplete)
+    _grab(wizard, out / "patient-2-positioning.png")
+    wizard.next()
+    tidal = wizard.currentPage()
+    tidal.seconds.setValue(10)
+    tidal.start.click()
+    _wait(app, 4)
+    _grab(wizard, out / "patient-3-tidal.png")
+    _wait(app, 15, tidal.isComplete)
+    wizard.next()
+    for name in ("vc", "forced"):
+        page = wizard.currentPage()
+        while not page.isComplete():
+            page.begin.click()
+            _wait(app, page.last_duration_s + 0.8)
+            page.end.click()
+            _wait(app, 0.2)
+        _grab(wizard, out / f"patient-{4 if name == 'vc' else 5}-{name}.png")
+        wizard.next()
+    _wait(app, 0.5)
+    _grab(wizard, out / "patient-6-review.png")
+    wizard.accept()
+
+    sphere = SphereCalibrationWizard(window, ("front", "back"), 0.25, profile_dir=folder / "cal")
+    sphere.show()
+    _wait(app, 0.3)
+    _grab(sphere, out / "sphere-1-intro.png")
+    sphere.next()
+    captures = sphere.currentPage()
+    for k in range(4):
+        captures.capture()
+        _wait(app, 60, lambda: len(captures.captures) == k + 1)
+    _wait(app, 0.5)
+    _grab(sphere, out / "sphere-2-captures.png")
+    sphere.next()
+    _wait(app, 0.5)
+    _grab(sphere, out / "sphere-3-result.png")
+    sphere.reject()
+
+    spiro = SpirometerCalibrationWizard(window, profile_dir=folder / "cal")
+    spiro.show()
+    flow = spiro.currentPage()
+    for reference in (-8.0, -4.0, -1.0, 0.0, 1.0, 4.0, 8.0):
+        flow.reference.setValue(reference)
+        flow.read.click()
+    _wait(app, 0.5)
+    _grab(spiro, out / "spirometer-1-flow.png")
+    spiro.next()
+    volume = spiro.currentPage()
+    training = sorted(Path(p) for p in sys.argv[2:])
+    if training:
+        volume.add_files(training)
+    _wait(app, 0.5)
+    _grab(spiro, out / "spirometer-2-volume.png")
+    if not volume.isComplete():
+        volume.enabled.setChecked(False)
+    spiro.next()
+    _wait(app, 0.3)
+    _grab(spiro, out / "spirometer-3-conditions.png")
+    spiro.reject()
+    QTimer.singleShot(0, window.close)
+    _wait(app, 1)
+    records.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(Path(sys.argv[1]) if len(sys.argv) > 1 else Path("docs/images")))
