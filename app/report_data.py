@@ -148,10 +148,11 @@ def _gradient_correlation(results: Path, start_ns: int, t_flow: np.ndarray, v_fl
     t = series[heads[0]][0]
     flow = np.interp(t, t_flow, v_flow)
     normalised = {h: normalised_gradient_volume(np.interp(t, *series[h])) for h in heads}
-    for h, values in normalised.items():
-        out[h] = float(np.corrcoef(values, flow)[0, 1])
-    if len(heads) > 1:
-        out["combined"] = float(np.corrcoef(sum(normalised.values()), flow)[0, 1])
+    with np.errstate(invalid="ignore", divide="ignore"):  # a flat series has no correlation: NaN, said as such
+        for h, values in normalised.items():
+            out[h] = float(np.corrcoef(values, flow)[0, 1])
+        if len(heads) > 1:
+            out["combined"] = float(np.corrcoef(sum(normalised.values()), flow)[0, 1])
     return out
 
 

@@ -89,8 +89,19 @@ def _smoke_test(app, window, seconds: float) -> int:
         window.close()
         app.quit()
 
-    QTimer.singleShot(1500, begin)
-    QTimer.singleShot(int(1500 + seconds * 1000), finish)
+    waited = time.monotonic()
+
+    def when_ready() -> None:
+        """Start once both heads show maps (the first start of an installed app compiles first)."""
+        heads = window.engine.snapshot().heads
+        if all(v.reconstructed > 0 for v in heads.values()) or time.monotonic() - waited > 300:
+            print(f"smoke test: first maps after {time.monotonic() - waited:.1f} s", flush=True)
+            begin()
+            QTimer.singleShot(int(seconds * 1000), finish)
+        else:
+            QTimer.singleShot(200, when_ready)
+
+    QTimer.singleShot(500, when_ready)
     app.exec()
     summary = figures["summary"]
     print(f"smoke test: {figures['elapsed']:.1f} s recorded in the window: "

@@ -1,0 +1,18 @@
+"""Entry point of the installed application (PyInstaller): the `photopft` command line."""
+
+import os
+import sys
+from pathlib import Path
+
+if getattr(sys, "frozen", False):
+    # numba keeps its compiled functions in the user's cache folder (the bundle is read-only)
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "photopft" / "numba"
+    os.environ.setdefault("NUMBA_CACHE_DIR", str(cache))
+    # Aravis' typelib and libraries travel in the bundle
+    bundle = Path(sys._MEIPASS)
+    os.environ["GI_TYPELIB_PATH"] = os.pathsep.join(
+        p for p in (str(bundle / "gi_typelibs"), os.environ.get("GI_TYPELIB_PATH", "")) if p)
+
+from app.cli import main  # noqa: E402
+
+sys.exit(main())

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Smoke test of the built application: install the tarball into a scratch prefix, start it
+# offscreen with --smoke-test (record a simulated session in the real window, process it, write its
+# report) and check it exits 0. Usage: bash installer/smoke-test.sh [dist/photopft-*.tar.gz]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+tarball=${1:-$(ls -t dist/photopft-*-linux-*.tar.gz | head -1)}
+scratch=$(mktemp -d)
+trap 'rm -rf "$scratch"' EXIT
+tar -C "$scratch" -xzf "$tarball"
+app=$(ls -d "$scratch"/photopft-*/photopft)/photopft
+export HOME="$scratch/home" QT_QPA_PLATFORM=offscreen
+mkdir -p "$HOME"
+"$app" --version
+started=$(date +%s)
+"$app" gui --smoke-test "${SMOKE_SECONDS:-10}"
+echo "smoke test passed in $(( $(date +%s) - started )) s"
