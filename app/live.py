@@ -305,8 +305,9 @@ class LiveRig:
             self._recorded_events: list[tuple[int, str]] = []
 
     def mark(self, label: str) -> int:
-        """A protocol event now (session clock); written into the recording."""
-        stamp = self._latest_ns or time.monotonic_ns()
+        """A protocol event now, on the session clock (the monotonic clock that stamps frames and
+        flow samples; not the newest frame's time, which lags when capture falls behind)."""
+        stamp = time.monotonic_ns()
         with self._lock:
             recorder = self._recorder
         if recorder is not None:
@@ -314,6 +315,14 @@ class LiveRig:
             with self._lock:
                 self._recorded_events.append((stamp, label))
         return stamp
+
+    def flow_reaches(self, timestamp_ns: int) -> bool:
+        """Whether the recording's flow samples reach `timestamp_ns` (always, without a flow sensor)."""
+        if self.source.flow is None or self._recorder is None:
+            return True
+        with self._lock:
+            last = self._recorded_flow[-1].timestamp_ns[-1] if self._recorded_flow else None
+        return last is not None and int(last) >= timestamp_ns
 
     def recorded_values(self, age_years: float | None = None):
         """The pulmonary function values of the recording so far, from the flow sensor, by the same

@@ -8,6 +8,7 @@ and never passed on as images; frame ids and timestamps are kept, so a lost fram
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -233,7 +234,10 @@ class AravisCamera:
             dtype = np.uint8 if self.bits == 8 else np.uint16
             image = np.frombuffer(buffer.get_data(), dtype=dtype).reshape(
                 buffer.get_image_height(), buffer.get_image_width()).copy()
-            frame = Frame(image, self._unwrap(int(buffer.get_frame_id())), int(buffer.get_system_timestamp()))
+            # Aravis stamps a buffer with the wall clock (g_get_real_time); the session clock, which
+            # the flow sensor and the protocol events use too, is the monotonic clock.
+            stamp = int(buffer.get_system_timestamp()) + (time.monotonic_ns() - time.time_ns())
+            frame = Frame(image, self._unwrap(int(buffer.get_frame_id())), stamp)
             self.stats.count(frame.frame_id)
             return frame
         finally:

@@ -19,6 +19,25 @@ log = logging.getLogger("photopft.gui")
 DISPLAY_INTERVAL_MS = 33  # about 30 display updates per second
 
 
+def calibration_in_force(source: Source) -> str:
+    """The light calibration of the rig in use, and its age."""
+    from datetime import datetime, timezone
+
+    stamps = {h.calibrated for h in source.rig.heads.values() if h.calibrated}
+    if not stamps:
+        return "no light calibration recorded"
+    oldest = min(stamps)
+    try:
+        age = datetime.now(timezone.utc) - datetime.fromisoformat(oldest)
+        days = age.total_seconds() / 86400
+        age_text = "today" if days < 1 else f"{days:.0f} days ago"
+        warn = " — recalibrate (over 30 days)" if days > 30 else ""
+    except ValueError:
+        age_text, warn = "date unreadable", ""
+    kind = "simulated rig's true lights" if source.simulated is not None else "lights"
+    return f"{kind} calibrated {oldest[:10]} ({age_text}){warn}"
+
+
 class StallMonitor:
     """How late the GUI thread's event loop runs a 10 ms timer: its longest stall."""
 
@@ -146,6 +165,7 @@ class MainWindow(QMainWindow):
             self.setCentralWidget(self.view)
         self.engine = LiveRig(source)
         self.engine.start()
+        self.calibration_text = calibration_in_force(source)
         self.statusBar().showMessage(f"Showing {source.name}", 5000)
 
     def refresh(self) -> None:

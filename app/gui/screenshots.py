@@ -74,7 +74,7 @@ def main(out: Path) -> int:
             page.begin.click()
             _wait(app, page.last_duration_s + 0.8)
             page.end.click()
-            _wait(app, 0.2)
+            _wait(app, 15, lambda: page.assessed == page.count)
         _grab(wizard, out / f"patient-{4 if name == 'vc' else 5}-{name}.png")
         wizard.next()
     _wait(app, 0.5)

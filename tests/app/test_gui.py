@@ -124,6 +124,7 @@ def test_a_whole_patient_session(qtbot, tmp_path):
                 duration = engine.source.simulated.waveform and page.last_duration_s
                 qtbot.wait(int(1000 * (duration + 0.8)))
                 page.end.click()
+                qtbot.waitUntil(lambda: page.assessed == page.count, timeout=15000)
             _press(qtbot, wizard)
         feedback = wizard.page(wizard.pageIds()[4]).feedback.toPlainText()
         assert "Blow 1: FVC" in feedback and "acceptable" in feedback

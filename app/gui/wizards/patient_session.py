@@ -119,16 +119,26 @@ class PositioningPage(QWizardPage):
                          "facing the front head. Recording starts when every check passes and you press Next.")
         self.checks = QLabel()
         self.checks.setTextFormat(Qt.TextFormat.RichText)
+        self.maps_row = QHBoxLayout()
+        self.maps: dict = {}
         layout = QVBoxLayout(self)
         layout.addWidget(_instructions("Move the patient until both lines read OK: the distance within the "
                                        "working range and the body centred in the picture."))
+        layout.addLayout(self.maps_row, 1)
         layout.addWidget(self.checks)
-        layout.addStretch(1)
         self.passed = False
         self.timer = QTimer(self)
         self.timer.timeout.connect(self._check)
 
     def initializePage(self) -> None:  # noqa: N802
+        from app.gui.live_view import HeadMapView
+
+        for head in self.wizard().heads():
+            if head not in self.maps:
+                self.maps[head] = HeadMapView(head)
+                self.maps_row.addWidget(self.maps[head])
+        for head, view in self.maps.items():
+            view.setVisible(head in self.wizard().heads())
         self.timer.start(200)
 
     def cleanupPage(self) -> None:  # noqa: N802
@@ -140,6 +150,8 @@ class PositioningPage(QWizardPage):
         heads = self.wizard().heads()
         for head in heads:
             view = snapshot.heads.get(head)
+            if head in self.maps and view is not None:
+                self.maps[head].show_map(view.height_mm)
             if view is None or view.height_mm is None:
                 lines.append(f"{head}: waiting for the first map")
                 ok = False
@@ -238,6 +250,8 @@ class ManoeuvrePage(QWizardPage):
         layout.addLayout(buttons)
         layout.addWidget(self.feedback)
         self.count = 0
+        self.assessed = 0
+        self._lines: list[str] = []
         self.finished = False
 
     def _begin(self) -> None:
@@ -248,13 +262,25 @@ class ManoeuvrePage(QWizardPage):
         self.end.setEnabled(True)
 
     def _end(self) -> None:
-        self.engine.mark("maneuver-end")
+        self._end_ns = self.engine.mark("maneuver-end")
+        self._asked = time.monotonic()
         self.count += 1
         self.end.setEnabled(False)
-        self.begin.setEnabled(True)
-        self.feedback.append(self._assess())
-        if self.kind != "forced" or self.count >= MAX_BLOWS:
-            self.begin.setEnabled(self.kind == "forced" and self.count < MAX_BLOWS)
+        self.begin.setEnabled(False)
+        self.feedback.setPlainText("\n".join(self._lines + [f"{'Blow' if self.kind == 'forced' else 'Slow VC'} "
+                                                             f"{self.count}: analysing …"]))
+        self._when_flow_arrives()
+
+    def _when_flow_arrives(self) -> None:
+        """The flow sensor's samples reach the recording a little after the frames that stamp the
+        events (seconds on a busy machine): the blow is judged once they cover it."""
+        if not self.engine.flow_reaches(self._end_ns) and time.monotonic() - self._asked < 10.0:
+            QTimer.singleShot(100, self._when_flow_arrives)
+            return
+        self._lines.append(self._assess())
+        self.feedback.setPlainText("\n".join(self._lines))
+        self.assessed = self.count
+        self.begin.setEnabled(self.kind == "forced" and self.count < MAX_BLOWS and not self.finished)
         self.completeChanged.emit()
 
     def _assess(self) -> str:
@@ -277,16 +303,19 @@ class ManoeuvrePage(QWizardPage):
             and grade.acceptable_fvc >= 2
         self.finished = self.count >= MAX_BLOWS or (self.count >= MIN_BLOWS and repeatable)
         if self.finished:
-            text += f" Grade {grade.grade}: enough blows."
+            text += f" Grade {grade.grade}: enough blows." if self.count < MAX_BLOWS or repeatable else \
+                f" Grade {grade.grade}: eight blows, the most the standard allows."
         elif self.count >= MIN_BLOWS:
             text += (f" Repeatability not met yet (FVC within {grade.fvc_repeatability_l:.3f} L, FEV1 within "
                      f"{grade.fev1_repeatability_l:.3f} L; needs 0.150 L): another blow, please.")
         return text
 
     def isComplete(self) -> bool:  # noqa: N802
+        if self.end.isEnabled() or self.assessed < self.count:
+            return False
         if self.kind == "forced":
-            return self.end.isEnabled() is False and (self.finished or self.count >= MAX_BLOWS)
-        return self.count >= 1 and not self.end.isEnabled()
+            return self.finished or self.count >= MAX_BLOWS
+        return self.count >= 1
 
 
 class ReviewPage(QWizardPage):
