@@ -223,6 +223,24 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     rec.add_argument("--rate", type=float, default=110.0, help="frames/s asked of the fake cameras")
     rec.add_argument("--no-write", action="store_true", help="print only")
     rec.set_defaults(run=lambda args: print(run_record(args.seconds, not args.no_write, args.rate)) or 0)
+    gui = what.add_parser("gui", help="the live view: display updates/s, GUI-thread stalls, maps/s, memory")
+    gui.add_argument("--scale", type=float, default=0.5)
+    gui.add_argument("--seconds", type=float, default=20.0)
+    gui.add_argument("--no-record", action="store_true", help="live view only (no session file written)")
+    gui.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_gui(args: argparse.Namespace) -> int:
+        from app.gui.bench_gui import run_gui_bench
+
+        text = run_gui_bench(args.scale, args.seconds, not args.no_record)
+        print(text)
+        if not args.no_write:
+            write_section(f"gui-{args.scale:g}-{'live' if args.no_record else 'recording'}",
+                          f"## Live view (`photopft bench gui --scale {args.scale:g} --seconds {args.seconds:g}"
+                          f"{' --no-record' if args.no_record else ''}`)\n\n{text}\n")
+        return 0
+
+    gui.set_defaults(run=run_gui)
     p.set_defaults(run=lambda args: p.print_help() or 2)
 
 
