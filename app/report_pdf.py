@@ -28,7 +28,7 @@ from reportlab.platypus import (Image, KeepTogether, PageBreak, Paragraph, Simpl
                                 TableStyle)
 
 from app.paths import resources_dir
-from app.report_data import FLOW_SENSOR, OPTICAL, HeadMaps, ReportData, ValueRow, best_manoeuvres
+from app.report_data import FLOW_SENSOR, OPTICAL, ReportData, ValueRow, best_manoeuvres
 from core import __version__
 
 PAGE_SIZES = {"a4": A4, "letter": letter}

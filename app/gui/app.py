@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 
@@ -23,16 +21,7 @@ def add_gui(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run_gui)
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
-
-
 def run_gui(args: argparse.Namespace) -> int:
-    from PySide6.QtCore import QTimer
     from PySide6.QtWidgets import QApplication
 
     from app.cli import UserError
@@ -58,67 +47,28 @@ def run_gui(args: argparse.Namespace) -> int:
 
 def _smoke_test(app, window, seconds: float) -> int:
     """Record on the simulated rig in the real window, then process and report the recording."""
-    from PySide6.QtCore import QTimer
-
+    from app.gui.measure import measure_live_view
     from core.session import SubjectRecord, validate_session
 
     folder = Path(tempfile.mkdtemp(prefix="photopft-smoke-"))
     session = folder / "smoke.h5"
-    figures: dict = {}
-
-    def begin() -> None:
-        window.stalls.reset()
-        figures["rss_start"] = _rss_mb()
-        figures["updates_start"] = window.view.updates
-        figures["maps_start"] = {h: v.reconstructed for h, v in window.engine.snapshot().heads.items()}
-        figures["t_start"] = time.monotonic()
-        window.engine.start_recording(session, SubjectRecord("SMOKE-0001", "male", 30.0, 175.0, 75.0),
-                                      kind="simulation")
-        window.engine.mark("tidal-start")
-
-    def finish() -> None:
-        elapsed = time.monotonic() - figures["t_start"]
-        snapshot = window.engine.snapshot()
-        figures["elapsed"] = elapsed
-        figures["updates"] = (window.view.updates - figures["updates_start"]) / elapsed
-        figures["maps"] = {h: (v.reconstructed - figures["maps_start"][h]) / elapsed
-                           for h, v in snapshot.heads.items()}
-        figures["stall"] = window.stalls.longest_ms
-        figures["rss_end"] = _rss_mb()
-        figures["summary"] = window.engine.stop_recording()
-        window.close()
-        app.quit()
-
-    waited = time.monotonic()
-
-    def when_ready() -> None:
-        """Start once both heads show maps (the first start of an installed app compiles first)."""
-        heads = window.engine.snapshot().heads
-        if all(v.reconstructed > 0 for v in heads.values()) or time.monotonic() - waited > 300:
-            print(f"smoke test: first maps after {time.monotonic() - waited:.1f} s", flush=True)
-            begin()
-            QTimer.singleShot(int(seconds * 1000), finish)
-        else:
-            QTimer.singleShot(200, when_ready)
-
-    QTimer.singleShot(500, when_ready)
-    app.exec()
-    summary = figures["summary"]
-    print(f"smoke test: {figures['elapsed']:.1f} s recorded in the window: "
+    f = measure_live_view(app, window, seconds, session, SubjectRecord("SMOKE-0001", "male", 30.0, 175.0, 75.0))
+    summary = f.recording
+    print(f"smoke test: first maps after {f.first_maps_s:.1f} s; {f.elapsed_s:.1f} s recorded in the window: "
           + ", ".join(f"{h} {n} frames" for h, n in summary.frames.items())
           + f", {summary.dropped_by_software} dropped")
-    print("  maps reconstructed per second: " + ", ".join(f"{h} {r:.1f}" for h, r in figures["maps"].items()))
-    print(f"  display updates per second: {figures['updates']:.1f}; GUI thread longest stall "
-          f"{figures['stall']:.0f} ms; memory {figures['rss_start']:.0f} -> {figures['rss_end']:.0f} MB")
+    print("  maps reconstructed per second: " + ", ".join(f"{h} {r:.1f}" for h, r in f.maps_per_s.items()))
+    print(f"  display updates per second: {f.updates_per_s:.1f}; GUI thread longest stall "
+          f"{f.longest_stall_ms:.0f} ms; memory {f.rss_mb[0]:.0f} -> {f.rss_mb[-1]:.0f} MB")
     problems = validate_session(session)
-    ok = not problems and not summary.problems and all(r > 0 for r in figures["maps"].values()) \
-        and figures["updates"] > 0
+    ok = not problems and not summary.problems and all(r > 0 for r in f.maps_per_s.values()) \
+        and f.updates_per_s > 0
     if problems or summary.problems:
         print("  problems: " + "; ".join(problems + summary.problems))
         return 1
-    from core.process import process_session
     from app.report_data import build_report
     from app.report_pdf import write_report
+    from core.process import process_session
 
     results = folder / "smoke-results.h5"
     processed = process_session(session, results, every=11)
