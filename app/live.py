@@ -229,7 +229,7 @@ class LiveRig:
         self._optical = collections.deque(maxlen=n)
         self._gradient = {h: 0.0 for h in source.cameras}
         self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
-        self._flow_state = {"volume": 0.0, "last_ns": None, "mean": collections.deque(maxlen=3000)}
+        self._flow_state = {"volume": 0.0, "last_ns": None, "means": collections.deque(maxlen=3000), "sum": 0.0}
         self._problems: list[str] = []
         self._t0: int | None = None
         self._latest_ns = 0
@@ -407,10 +407,15 @@ class LiveRig:
         for k in range(0, len(flow), 10):
             chunk = flow[k:k + 10]
             stamps = block.timestamp_ns[k:k + 10]
-            state["mean"].append(float(chunk.mean()))
+            mean = float(chunk.mean())
+            means = state["means"]
+            if len(means) == means.maxlen:  # a running sum: the mean of the last 3000 chunks in O(1)
+                state["sum"] -= means[0]
+            means.append(mean)
+            state["sum"] += mean
             if state["last_ns"] is not None:
                 dt = (int(stamps[-1]) - state["last_ns"]) / 1e9
-                state["volume"] += (float(chunk.mean()) - float(np.mean(state["mean"]))) * dt
+                state["volume"] += (mean - state["sum"] / len(means)) * dt
             state["last_ns"] = int(stamps[-1])
             if self._t0 is not None:
                 self._flow.append(((int(stamps[-1]) - self._t0) / 1e9, state["volume"]))
@@ -484,7 +489,7 @@ class LiveRig:
         return Snapshot(heads, optical[:, 0], optical[:, 1], flow[:, 0], flow[:, 1],
                         recorder.path if recorder is not None else None,
                         recorder.frames_written() if recorder is not None else {},
-                        recorder._dropped if recorder is not None else 0, problems,
+                        recorder.dropped if recorder is not None else 0, problems,
                         time.monotonic() - self._started)
 
     @property

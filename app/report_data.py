@@ -289,11 +289,14 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             notes.append("The session has no subject data: no predicted values.")
         elif analysed.reference_problem:
             notes.append(f"No predicted values: {analysed.reference_problem}")
-        rows = [ValueRow(key, label, unit, {src: float(v.parameters()[key]) for src, v in sources.items()
-                                            if key in v.parameters()},
-                         analysed.references.get(ref) if ref else None) for key, label, unit, ref in MAIN_ROWS]
-        tidal_rows = [ValueRow(key, label, unit, {src: float(v.parameters()[key]) for src, v in sources.items()
-                                                  if key in v.parameters()}, None) for key, label, unit in TIDAL_ROWS]
+        parameters = {src: v.parameters() for src, v in sources.items()}
+
+        def by_source(key: str) -> dict[str, float]:
+            return {src: float(p[key]) for src, p in parameters.items() if key in p}
+
+        rows = [ValueRow(key, label, unit, by_source(key), analysed.references.get(ref) if ref else None)
+                for key, label, unit, ref in MAIN_ROWS]
+        tidal_rows = [ValueRow(key, label, unit, by_source(key), None) for key, label, unit in TIDAL_ROWS]
         for src, values in sources.items():
             notes += [f"{src}: {problem}" for problem in values.problems]
         manoeuvres = _manoeuvres(sources[main]) if main is not None else []

@@ -17,7 +17,8 @@ import numpy as np
 from reportlab import rl_config
 from reportlab.graphics.charts.lineplots import LinePlot
 from reportlab.graphics import shapes
-from reportlab.graphics.shapes import Drawing, Line, Rect, String
+from reportlab.graphics.shapes import Drawing, Group, Line, Rect, String
+from reportlab.graphics.widgets.markers import makeMarker
 from reportlab.lib import colors
 from reportlab.lib.pagesizes import A4, letter
 from reportlab.lib.styles import ParagraphStyle
@@ -164,7 +165,8 @@ def _quality_lines(data: ReportData) -> list[str]:
 
 def _plot(width: float, height: float, series: list[list[tuple[float, float]]], x_label: str, y_label: str,
           x_range: tuple[float, float] | None = None, y_range: tuple[float, float] | None = None,
-          markers: bool = False) -> Drawing:
+          points_first: bool = False) -> Drawing:
+    """Lines in black, grey, dashed and dotted; `points_first`: the first series as points only."""
     drawing = Drawing(width, height)
     plot = LinePlot()
     plot.x, plot.y = 34, 26
@@ -176,11 +178,10 @@ def _plot(width: float, height: float, series: list[list[tuple[float, float]]], 
         line.strokeWidth = 1.2 if k == 0 else 0.8
         if DASHES[k % len(DASHES)] is not None:
             line.strokeDashArray = DASHES[k % len(DASHES)]
-        if markers:
-            from reportlab.graphics.widgets.markers import makeMarker
-
-            line.symbol = makeMarker("Circle", size=2.5)
-            line.strokeWidth = 0
+    if points_first:
+        plot.lines[0].symbol = makeMarker("Circle", size=3)
+        plot.lines[0].strokeWidth = 0
+        plot.lines[0].strokeColor = None
     for axis in (plot.xValueAxis, plot.yValueAxis):
         axis.labels.fontName = FONT
         axis.labels.fontSize = 6.5
@@ -195,8 +196,6 @@ def _plot(width: float, height: float, series: list[list[tuple[float, float]]], 
     drawing.add(plot)
     drawing.add(String(plot.x + plot.width / 2, 4, x_label, fontName=FONT, fontSize=7, textAnchor="middle"))
     label = String(0, 0, y_label, fontName=FONT, fontSize=7, textAnchor="middle")
-    from reportlab.graphics.shapes import Group
-
     rotated = Group(label)
     rotated.transform = (0, 1, -1, 0, 8, plot.y + plot.height / 2)
     drawing.add(rotated)
@@ -265,13 +264,8 @@ def _comparison(data: ReportData, styles, width: float) -> list:
         series = [list(zip(means, diffs)), [(lo, ba[0]), (hi, ba[0])], [(lo, ba[1]), (hi, ba[1])],
                   [(lo, ba[2]), (hi, ba[2])]]
         plot = _plot(width * 0.55, 120, series, "mean of the two tidal volumes (L)",
-                     "optical − flow sensor (L)", (lo, hi), (-span, span), markers=False)
+                     "optical − flow sensor (L)", (lo, hi), (-span, span), points_first=True)
         scatter = plot.contents[0]
-        from reportlab.graphics.widgets.markers import makeMarker
-
-        scatter.lines[0].symbol = makeMarker("Circle", size=3)
-        scatter.lines[0].strokeWidth = 0
-        scatter.lines[0].strokeColor = None
         for k in (1, 2, 3):
             scatter.lines[k].strokeColor = colors.black
             scatter.lines[k].strokeWidth = 0.6

@@ -68,14 +68,17 @@ class PlacementResult:
     sphere: SphereFit
     highlights: dict[int, Highlight] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
+    image: np.ndarray | None = None  # the four lights' signals summed: what the sphere was found in
 
 
-def _specular_head(session: SessionFile, head_name: str, radius_mm: float) -> list[PlacementResult]:
+def specular_placements(session: SessionFile, head_name: str, radius_mm: float) -> list[PlacementResult]:
+    """The sphere and each light's highlight in every placement of a specular-sphere session."""
     head = session.rig.heads[head_name]
     results = []
     for placement in placement_images(session, head_name):
-        sphere = detect_sphere(placement.signal.sum(0), head, radius_mm)
-        result = PlacementResult(placement.index, sphere)
+        image = placement.signal.sum(0)
+        sphere = detect_sphere(image, head, radius_mm)
+        result = PlacementResult(placement.index, sphere, image=image)
         for light in range(4):
             try:
                 result.highlights[light] = detect_highlight(placement.signal[light], sphere, head, radius_mm,
@@ -122,7 +125,7 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
                    max_residual_mm: float = DEFAULT_MAX_RESIDUAL_MM) -> tuple[HeadCalibration, HeadReport]:
     results: list[PlacementResult] = []
     for session, radius in specular:
-        results += _specular_head(session, head.name, radius)
+        results += specular_placements(session, head.name, radius)
     problems = [p for r in results for p in r.problems]
     if not results:
         raise CalibrationError(f"head {head.name}: no specular-sphere placements to triangulate the lights from")

@@ -104,6 +104,11 @@ class Recorder:
         with self._lock:
             return list(self._errors)
 
+    @property
+    def dropped(self) -> int:
+        """Items the queue had no room for (the recording stops at the first)."""
+        return self._dropped
+
     def frames_written(self) -> dict[str, int]:
         return dict(self._counts)
 

@@ -58,14 +58,12 @@ def capture_from_rig(window):
 
 def detect_capture(path: Path, head_name: str):
     """(summed image, sphere fit, {light: highlight}, problems) of one capture's head."""
-    from core.light_calibration import _specular_head, placement_images
+    from core.light_calibration import specular_placements
     from core.session import SessionFile
 
     with SessionFile(path) as session:
-        radius = float(session.attrs["sphere_radius_mm"])
-        image = placement_images(session, head_name)[0].signal.sum(0)
-        result = _specular_head(session, head_name, radius)[0]
-    return image, result.sphere, result.highlights, result.problems
+        result = specular_placements(session, head_name, float(session.attrs["sphere_radius_mm"]))[0]
+    return result.image, result.sphere, result.highlights, result.problems
 
 
 class IntroPage(QWizardPage):
