@@ -210,8 +210,8 @@ def _regions(head: str, displacement: np.ndarray, depth: np.ndarray, fx: float, 
     footprint = (depth / fx) * (depth / fy)  # mm^2 per pixel
     volume = np.where(mask, displacement * footprint, 0.0)
     mid_row = int(rows[len(rows) // 2])
-    cols = np.nonzero(mask[rows].any(axis=0))[0]
-    mid_col = int(np.round(np.average(np.nonzero(mask[rows])[1]))) if len(cols) else mask.shape[1] // 2
+    columns = np.nonzero(mask[rows])[1]
+    mid_col = int(np.round(columns.mean())) if len(columns) else mask.shape[1] // 2
     right_side = "left" if head == "front" else "right"
     left_side = "right" if head == "front" else "left"
     upper = np.zeros(mask.shape, bool)

@@ -20,15 +20,16 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDateEdit, QDoubleSpinBox, 
                                QVBoxLayout, QWizard, QWizardPage)
 
 from app.gui.errors import show_error
+from app.gui.live_view import WORKING_RANGE_MM
 from app.live import LiveRig
 from app.paths import data_dir
 from app.records import Patient, Records, RecordsError
 from core.session import SubjectRecord
+from core.spirometry import REPEATABILITY_L
 
 MAX_BLOWS = 8
 MIN_BLOWS = 3
 CENTRED_FRACTION = 0.12  # the subject's centre within 12 % of the image width of its centre
-WORKING_RANGE_MM = (1500.0, 2500.0)
 
 
 def _instructions(text: str) -> QLabel:
@@ -299,7 +300,7 @@ class ManoeuvrePage(QWizardPage):
                                                             else "not acceptable")
         text = (f"Blow {self.count}: FVC {last.fvc_l:.2f} L, FEV1 {last.fev1_l:.2f} L, PEF {last.pef_lps:.1f} L/s: "
                 f"{verdict}" + (f" ({'; '.join(last.problems)})" if last.problems else "") + ".")
-        repeatable = grade.fvc_repeatability_l <= 0.150 and grade.fev1_repeatability_l <= 0.150 \
+        repeatable = grade.fvc_repeatability_l <= REPEATABILITY_L and grade.fev1_repeatability_l <= REPEATABILITY_L \
             and grade.acceptable_fvc >= 2
         self.finished = self.count >= MAX_BLOWS or (self.count >= MIN_BLOWS and repeatable)
         if self.finished:
@@ -307,7 +308,7 @@ class ManoeuvrePage(QWizardPage):
                 f" Grade {grade.grade}: eight blows, the most the standard allows."
         elif self.count >= MIN_BLOWS:
             text += (f" Repeatability not met yet (FVC within {grade.fvc_repeatability_l:.3f} L, FEV1 within "
-                     f"{grade.fev1_repeatability_l:.3f} L; needs 0.150 L): another blow, please.")
+                     f"{grade.fev1_repeatability_l:.3f} L; needs {REPEATABILITY_L:.3f} L): another blow, please.")
         return text
 
     def isComplete(self) -> bool:  # noqa: N802
