@@ -25,7 +25,8 @@ def calibration_in_force(source: Source) -> str:
 
     stamps = {h.calibrated for h in source.rig.heads.values() if h.calibrated}
     if not stamps:
-        return "no light calibration recorded"
+        return ("the simulated rig's true lights (nothing to calibrate)" if source.simulated is not None
+                else "no light calibration recorded: run the sphere calibration")
     oldest = min(stamps)
     try:
         age = datetime.now(timezone.utc) - datetime.fromisoformat(oldest)
