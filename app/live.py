@@ -24,7 +24,7 @@ from core.flow import btps_factor
 from core.pipeline import HeadReconstructor, ReconstructionSettings
 from core.rig import Rig
 from core.session import SessionFile, SubjectRecord
-from drivers.camera import CameraError, CameraStats, Frame
+from drivers.camera import CameraError, CameraStats, Frame, capture_frames
 from drivers.flowsensor import FlowBlock
 from drivers.recorder import Recorder, RecordSummary
 
@@ -96,8 +96,9 @@ class _FileCamera:
             time.sleep(wait)
         k = self._next
         self._next += 1
-        self.stats.count(int(self._ids[k]))
-        return Frame(np.asarray(self._frames[k]), int(self._ids[k]), int(self._stamps[k]))
+        frame = Frame(np.asarray(self._frames[k]), int(self._ids[k]), int(self._stamps[k]))
+        self.stats.count(frame)
+        return frame
 
     @property
     def finished(self) -> bool:
@@ -364,23 +365,22 @@ class LiveRig:
     # threads
     def _capture(self, head: str, camera) -> None:
         try:
-            while not self._stop.is_set():
-                frame = camera.grab(0.2)
-                if frame is None:
-                    continue
-                self._latest_ns = max(self._latest_ns, frame.timestamp_ns)
-                if self._t0 is None:
-                    self._t0 = frame.timestamp_ns
-                recorder = self._recorder
-                if recorder is not None and head in recorder.cameras:
-                    recorder.submit_frame(head, frame)
-                self._rates[head].tick()
-                condition = self._new_frame[head]
-                with condition:
-                    self._cycles[head].append((frame, self.source.light_of(head, frame.frame_id)))
-                    condition.notify()
+            capture_frames(camera, self._stop, lambda frame: self._take_frame(head, frame), self._problem)
         except CameraError as exc:
             self._problem(str(exc))
+
+    def _take_frame(self, head: str, frame: Frame) -> None:
+        self._latest_ns = max(self._latest_ns, frame.timestamp_ns)
+        if self._t0 is None:
+            self._t0 = frame.timestamp_ns
+        recorder = self._recorder
+        if recorder is not None and head in recorder.cameras:
+            recorder.submit_frame(head, frame)
+        self._rates[head].tick()
+        condition = self._new_frame[head]
+        with condition:
+            self._cycles[head].append((frame, self.source.light_of(head, frame.frame_id)))
+            condition.notify()
 
     def _capture_flow(self) -> None:
         gain, offset = self.source.flow_calibration or (None, None)

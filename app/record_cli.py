@@ -50,13 +50,15 @@ def _simulated(config, seconds: float, stack: ExitStack):
 
 
 def open_hardware(config, stack: ExitStack):
-    from core.rig import Rig, thesis_head
+    from core.rig import Rig
     from drivers.camera import AravisCamera, CameraSettings, bandwidth_advice
+    from drivers.rig import camera_head
     from drivers.flowsensor import FlowSensor, FlowSensorEmulator
     from drivers.sequencer import Sequencer, SequencerEmulator
 
     cam = config.camera
-    settings = CameraSettings(width=cam.get("width"), height=cam.get("height"), binning=int(cam.get("binning", 1)),
+    settings = CameraSettings(width=cam.get("width"), height=cam.get("height"), offset_x=int(cam.get("offset_x", 0)),
+                              offset_y=int(cam.get("offset_y", 0)), binning=int(cam.get("binning", 1)),
                               pixel_format=cam.get("pixel_format", "Mono12"),
                               exposure_us=float(cam.get("exposure_us", 1000.0)),
                               frame_rate_hz=float(cam.get("frame_rate_hz", 110.0)), trigger=cam.get("trigger", "free"))
@@ -70,10 +72,8 @@ def open_hardware(config, stack: ExitStack):
         if advice:
             print(f"warning: {head} camera: {advice}", file=sys.stderr)
         cameras[head] = camera
-        template = thesis_head(head)
-        heads[head] = template.__class__(**{**template.__dict__, "width": width, "height": height,
-                                            "cx": (width - 1) / 2, "cy": (height - 1) / 2,
-                                            "bit_depth": 8 if settings.pixel_format == "Mono8" else 12})
+        heads[head] = camera_head(head, config.optics.get(head, {}), camera.sensor_size, camera.region(),
+                                  settings.binning, 8 if settings.pixel_format == "Mono8" else 12)
     rig = Rig(config.name, heads, frame_rate_hz=settings.frame_rate_hz)
     port = config.sequencer_port
     if port != "sim":
@@ -150,6 +150,8 @@ def run_record(args: argparse.Namespace) -> int:
           f"{summary.flow_samples} flow samples ({summary.flow_lost} lost), dropped by the software "
           f"{summary.dropped_by_software}, queue at most {100 * summary.max_queue_fill:.0f} % full, "
           f"{summary.written_mb / summary.elapsed_s:.1f} MB/s written")
+    for notice in summary.notices:
+        print(f"note: {notice}", file=sys.stderr)
     for problem in summary.problems:
         print(f"stopped: {problem}", file=sys.stderr)
     if file_write_failed():

@@ -10,7 +10,7 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -19,6 +19,11 @@ GIGABIT_MB_S = 115.0  # what one gigabit link carries in practice
 
 class CameraError(Exception):
     """A camera that cannot be found, configured, or that stopped answering; the message names it."""
+
+
+class CameraDisconnected(CameraError):
+    """The camera stopped answering. Its stream is stopped cleanly; later grabs look for it again and
+    deliver frames once it is back, the gap visible in frame_id."""
 
 
 @dataclass(frozen=True)
@@ -49,12 +54,15 @@ class CameraStats:
     lost: int = 0  # gaps in the frame ids of delivered frames
     resent_packets: int = 0  # GigE Vision: packets lost on the wire and recovered by resend requests
     missing_packets: int = 0  # GigE Vision: packets lost for good (their frames fail)
+    reconnects: int = 0  # times the camera came back after a disconnect
     last_frame_id: int | None = None
+    last_timestamp_ns: int | None = None
 
-    def count(self, frame_id: int) -> None:
-        if self.last_frame_id is not None and frame_id > self.last_frame_id + 1:
-            self.lost += frame_id - self.last_frame_id - 1
-        self.last_frame_id = frame_id
+    def count(self, frame: Frame) -> None:
+        if self.last_frame_id is not None and frame.frame_id > self.last_frame_id + 1:
+            self.lost += frame.frame_id - self.last_frame_id - 1
+        self.last_frame_id = frame.frame_id
+        self.last_timestamp_ns = frame.timestamp_ns
         self.delivered += 1
 
 
@@ -67,6 +75,32 @@ class Camera(Protocol):
     def grab(self, timeout_s: float = 0.5) -> Frame | None: ...
     def stop(self) -> None: ...
     def close(self) -> None: ...
+
+
+def capture_frames(camera: Camera, stop: threading.Event, deliver: Callable[[Frame], None],
+                   say: Callable[[str], None], timeout_s: float = 0.2) -> None:
+    """Grab from `camera` until `stop` is set, handing each frame to `deliver`.
+
+    A camera that disconnects is said (`say`) and waited for; when it is back, how long it was
+    gone and which frame ids are missing is said too. Any other CameraError propagates.
+    """
+    gone = False
+    while not stop.is_set():
+        try:
+            frame = camera.grab(timeout_s)
+        except CameraDisconnected as exc:
+            gone, last_id, last_ns = True, camera.stats.last_frame_id, camera.stats.last_timestamp_ns
+            say(f"{exc}; waiting for it to come back")
+            continue
+        if frame is None:
+            continue
+        if gone:
+            gap = "" if last_id is None else \
+                (f" after {(frame.timestamp_ns - last_ns) / 1e9:.1f} s without frames; frame ids {last_id + 1} "
+                 f"to {frame.frame_id - 1} ({frame.frame_id - last_id - 1} frames) are missing")
+            say(f"camera {camera.name} is back{gap}")
+            gone = False
+        deliver(frame)
 
 
 def bandwidth_mb_s(width: int, height: int, bits: int, frame_rate_hz: float) -> float:
@@ -127,12 +161,21 @@ def find_aravis_device(identifier: str, interfaces: tuple[str, ...] = ()) -> str
 
 @dataclass
 class AravisCamera:
-    """A GigE Vision (or Aravis Fake) camera; frames popped from the caller's thread."""
+    """A GigE Vision (or Aravis Fake) camera; frames popped from the caller's thread.
+
+    When the camera stops answering, grab() raises CameraDisconnected once, after stopping the
+    stream; later grabs look for the camera again (at most once every `reconnect_interval_s`) and,
+    once it answers, reopen it with the same settings and go on. The camera counts its frames from
+    scratch when it comes back, so ids after the gap continue from the last id before it plus the
+    frame periods elapsed: the gap shows in frame_id, and since every id is one trigger of the
+    sequencer, the light of each frame stays right.
+    """
 
     identifier: str
     buffers: int = 16
     interfaces: tuple[str, ...] = ()
     packet_resend: bool = True  # GigE Vision: ask the camera again for lost packets
+    reconnect_interval_s: float = 1.0
     name: str = ""
     stats: CameraStats = field(default_factory=CameraStats)
 
@@ -140,12 +183,17 @@ class AravisCamera:
         self._aravis = _aravis()
         self._last_raw_id: int | None = None
         self._wraps = 0
+        self._id_offset = 0
+        self._settings: CameraSettings | None = None
+        self._gone = False  # disconnected and said so; grab() looks for the camera again
+        self._next_look = 0.0
+        self._resume = False  # back after a gap: the next frame re-bases the frame ids
         self.device_id = find_aravis_device(self.identifier, self.interfaces)
         self.name = self.name or self.device_id
-        self._lost_control = threading.Event()
         self._open()
 
     def _open(self) -> None:
+        self._lost_control = threading.Event()
         try:
             self._camera = self._aravis.Camera.new(self.device_id)
         except Exception as exc:  # GLib.Error and friends
@@ -197,6 +245,7 @@ class AravisCamera:
             raise
         except Exception as exc:
             raise CameraError(f"cannot configure {self.name}: {exc}") from exc
+        self._settings = settings
 
     def region(self) -> tuple[int, int, int, int]:
         return tuple(self._camera.get_region())
@@ -219,11 +268,17 @@ class AravisCamera:
 
     def grab(self, timeout_s: float = 0.5) -> Frame | None:
         """The next complete frame, or None on timeout; bad buffers are counted and skipped."""
+        if self._gone:
+            self._look_for_camera(timeout_s)
+            return None
         if self._stream is None:
             raise CameraError(f"{self.name} is not started")
         if self._lost_control.is_set():
-            raise CameraError(f"camera {self.name} disconnected (lost control): stopped cleanly; "
-                              "check its cable and power")
+            self.stop()
+            self._camera = None
+            self._gone = True
+            raise CameraDisconnected(f"camera {self.name} disconnected (lost control): stopped cleanly; "
+                                     "check its cable and power")
         buffer = self._stream.timeout_pop_buffer(int(timeout_s * 1e6))
         if buffer is None:
             return None
@@ -237,11 +292,43 @@ class AravisCamera:
             # Aravis stamps a buffer with the wall clock (g_get_real_time); the session clock, which
             # the flow sensor and the protocol events use too, is the monotonic clock.
             stamp = int(buffer.get_system_timestamp()) + (time.monotonic_ns() - time.time_ns())
-            frame = Frame(image, self._unwrap(int(buffer.get_frame_id())), stamp)
-            self.stats.count(frame.frame_id)
+            frame = Frame(image, self._frame_id(int(buffer.get_frame_id()), stamp), stamp)
+            self.stats.count(frame)
             return frame
         finally:
             self._stream.push_buffer(buffer)
+
+    def _look_for_camera(self, timeout_s: float) -> None:
+        """One attempt to find, reopen, configure and start the camera that went away."""
+        wait = self._next_look - time.monotonic()
+        if wait > 0:
+            time.sleep(min(wait, timeout_s))
+            return
+        self._next_look = time.monotonic() + self.reconnect_interval_s
+        try:
+            find_aravis_device(self.device_id, self.interfaces)
+            self._open()
+            if self._settings is not None:
+                self.configure(self._settings)
+            self.start()
+        except CameraError:
+            self._camera = self._stream = None
+            return
+        self._gone, self._resume = False, True
+        self._last_raw_id, self._wraps = None, 0
+        self.stats.reconnects += 1
+
+    def _frame_id(self, raw: int, stamp_ns: int) -> int:
+        """The unwrapped block id, re-based after a reconnect on the frame periods the gap lasted."""
+        unwrapped = self._unwrap(raw)
+        if self._resume:
+            self._resume = False
+            last_id, last_ns = self.stats.last_frame_id, self.stats.last_timestamp_ns
+            if last_id is not None and last_ns is not None:
+                rate = self._settings.frame_rate_hz if self._settings is not None else 110.0
+                periods = max(1, round((stamp_ns - last_ns) * rate / 1e9))
+                self._id_offset = last_id + periods - unwrapped
+        return unwrapped + self._id_offset
 
     def _unwrap(self, raw: int) -> int:
         """GigE Vision 1.x block ids are 16-bit and wrap from 65535 to 1 (0 is reserved): count the wraps."""
@@ -267,7 +354,8 @@ class AravisCamera:
     def close(self) -> None:
         self.stop()
         self._camera = None
+        self._gone = False
 
     @property
     def disconnected(self) -> bool:
-        return self._lost_control.is_set()
+        return self._gone or self._lost_control.is_set()

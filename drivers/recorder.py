@@ -22,7 +22,7 @@ import numpy as np
 
 from core.rig import Rig
 from core.session import SessionWriter, SubjectRecord
-from drivers.camera import Camera, CameraError
+from drivers.camera import Camera, CameraError, capture_frames
 
 
 class RecordingError(Exception):
@@ -41,7 +41,8 @@ class RecordSummary:
     max_queue_fill: float
     elapsed_s: float
     written_mb: float
-    problems: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)  # what stopped the recording
+    notices: list[str] = field(default_factory=list)  # what happened without stopping it (a camera gone and back)
 
 
 class Recorder:
@@ -57,6 +58,7 @@ class Recorder:
         self._queue: queue.Queue = queue.Queue(maxsize=queue_items)
         self._stop = threading.Event()
         self._errors: list[str] = []
+        self._notices: list[str] = []
         self._lock = threading.Lock()
         self._max_fill = 0.0
         self._dropped = 0
@@ -105,6 +107,15 @@ class Recorder:
             return list(self._errors)
 
     @property
+    def notices(self) -> list[str]:
+        with self._lock:
+            return list(self._notices)
+
+    def _notice(self, message: str) -> None:
+        with self._lock:
+            self._notices.append(message)
+
+    @property
     def dropped(self) -> int:
         """Items the queue had no room for (the recording stops at the first)."""
         return self._dropped
@@ -113,11 +124,9 @@ class Recorder:
         return dict(self._counts)
 
     def _capture(self, head: str, camera: Camera) -> None:
+        """A camera that disconnects is waited for while the other devices record on."""
         try:
-            while not self._stop.is_set():
-                frame = camera.grab(0.2)
-                if frame is not None:
-                    self.submit_frame(head, frame)
+            capture_frames(camera, self._stop, lambda frame: self.submit_frame(head, frame), self._notice)
         except CameraError as exc:
             with self._lock:
                 self._errors.append(str(exc))
@@ -190,7 +199,8 @@ class Recorder:
         elapsed = time.monotonic() - self._started
         return RecordSummary(self.path, dict(self._counts), {h: s.failed for h, s in stats.items()},
                              {h: s.lost for h, s in stats.items()}, self._flow_samples, flow_lost,
-                             self._dropped, self._max_fill, elapsed, self._written_bytes / 1e6, list(self._errors))
+                             self._dropped, self._max_fill, elapsed, self._written_bytes / 1e6, self.problems,
+                             self.notices)
 
     def run(self, seconds: float, progress: Callable[[float, dict], None] | None = None,
             events: list[tuple[int, str]] | None = None) -> RecordSummary:

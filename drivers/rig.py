@@ -12,6 +12,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from core.rig import Head, thesis_head
+
 RIGS = Path(__file__).resolve().parents[1] / "resources" / "rigs"
 DEFAULT_RIG = RIGS / "simulated.toml"
 
@@ -32,6 +36,7 @@ class RigConfig:
     camera: dict[str, Any] = field(default_factory=dict)
     simulation: dict[str, Any] = field(default_factory=dict)
     calibration: Path | None = None
+    optics: dict[str, dict[str, Any]] = field(default_factory=dict)  # head -> lens and sensor (see template.toml)
 
     @property
     def simulated(self) -> bool:
@@ -49,13 +54,14 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
     heads = data.get("heads")
     if not isinstance(heads, dict) or "front" not in heads:
         raise RigConfigError(f"{path}: [heads.front] is required")
-    cameras = {}
+    cameras, optics = {}, {}
     for name, head in heads.items():
         if name not in ("front", "back"):
             raise RigConfigError(f"{path}: unknown head [heads.{name}]: heads are front and back")
         if not isinstance(head, dict) or not isinstance(head.get("camera"), str) or not head["camera"]:
             raise RigConfigError(f"{path}: [heads.{name}] needs camera = \"sim\", an id, a serial number or an address")
         cameras[name] = head["camera"]
+        optics[name] = _optics(path, name, head)
     kinds = {c == "sim" for c in cameras.values()}
     if len(kinds) > 1:
         raise RigConfigError(f"{path}: mixing simulated and real cameras is not supported")
@@ -78,4 +84,55 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
     calibration = data.get("calibration")
     return RigConfig(path, str(data.get("name", path.stem)), cameras, str(sequencer), flow_port,
                      None if gain is None else float(gain), None if offset is None else float(offset), camera,
-                     data.get("simulation", {}), Path(calibration) if calibration else None)
+                     data.get("simulation", {}), Path(calibration) if calibration else None, optics)
+
+
+_OPTICS = ("focal_length_mm", "pixel_size_um", "fx_px", "fy_px", "cx_px", "cy_px")
+
+
+def _optics(path: Path, name: str, head: dict) -> dict[str, Any]:
+    """A head's lens and sensor: focal length and pixel size, or an OpenCV calibration of the whole
+    sensor (fx_px, fy_px, cx_px, cy_px, dist_coeffs), each checked."""
+    optics = {}
+    for key in _OPTICS:
+        if key in head:
+            value = head[key]
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or \
+                    (value <= 0 if key[0] in "fp" else value < 0):
+                raise RigConfigError(f"{path}: [heads.{name}] {key} must be a "
+                                     f"{'positive' if key[0] in 'fp' else 'non-negative'} number, found {value!r}")
+            optics[key] = float(value)
+    given = [k for k in ("fx_px", "fy_px", "cx_px", "cy_px") if k in optics]
+    if given and len(given) != 4:
+        raise RigConfigError(f"{path}: [heads.{name}] fx_px, fy_px, cx_px and cy_px go together")
+    if "dist_coeffs" in head:
+        coeffs = head["dist_coeffs"]
+        if not (isinstance(coeffs, list) and len(coeffs) == 5 and all(isinstance(c, (int, float)) for c in coeffs)):
+            raise RigConfigError(f"{path}: [heads.{name}] dist_coeffs must be OpenCV's five numbers "
+                                 f"[k1, k2, p1, p2, k3], found {coeffs!r}")
+        optics["dist_coeffs"] = [float(c) for c in coeffs]
+    return optics
+
+
+def camera_head(name: str, optics: dict[str, Any], sensor_size: tuple[int, int],
+                region: tuple[int, int, int, int], binning: int, bit_depth: int) -> Head:
+    """The head's geometry for the image the camera delivers.
+
+    `optics` describes the whole, unbinned sensor (the rig file's [heads.<name>]; the thesis' 25 mm
+    lens on 7.4 um pixels where it says nothing); `region` is the camera's (x, y, width, height) in
+    binned pixels. Binning b scales the focal length in pixels by 1/b and the principal point
+    (pixel centres) to (c + 0.5) / b - 0.5; the region's offset moves it.
+    """
+    pixel_mm = optics.get("pixel_size_um", 7.4) * 1e-3
+    focal_mm = optics.get("focal_length_mm", 25.0)
+    fx = optics.get("fx_px", focal_mm / pixel_mm)
+    fy = optics.get("fy_px", focal_mm / pixel_mm)
+    cx = optics.get("cx_px", (sensor_size[0] - 1) / 2.0)
+    cy = optics.get("cy_px", (sensor_size[1] - 1) / 2.0)
+    x, y, width, height = region
+    template = thesis_head(name)
+    return Head(name=name, width=width, height=height, fx=fx / binning, fy=fy / binning,
+                cx=(cx + 0.5) / binning - 0.5 - x, cy=(cy + 0.5) / binning - 0.5 - y,
+                pixel_size_mm=pixel_mm * binning, bit_depth=bit_depth,
+                light_positions_mm=template.light_positions_mm,
+                dist_coeffs=np.asarray(optics.get("dist_coeffs", np.zeros(5)), dtype=float))

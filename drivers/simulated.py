@@ -109,7 +109,7 @@ class SimCamera:
                                   noise_key(s.config.seed, self.head, i, head.width * head.height), s.digitisers[self.head])
         self._next += 1
         frame = Frame(image, i, due)
-        self.stats.count(i)
+        self.stats.count(frame)
         return frame
 
     def stop(self) -> None:

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from drivers.camera import (AravisCamera, CameraError, CameraSettings, bandwidth_advice, bandwidth_mb_s)
+from drivers.camera import AravisCamera, CameraError, CameraSettings, bandwidth_advice, bandwidth_mb_s, capture_frames
 
 FAKE_GV = shutil.which("arv-fake-gv-camera-0.8")
 
@@ -168,3 +168,85 @@ def test_camera_killed_mid_stream_stops_cleanly(fake_gv_cameras):
         while time.monotonic() < end:
             camera.grab(0.5)
     camera.close()  # no hang, no crash
+
+
+def test_camera_that_returns_is_reconnected_with_the_gap_in_frame_id(fake_gv_cameras):
+    _aravis_or_skip()
+    process = fake_gv_cameras("127.0.0.1", "FLAKY01")
+    camera = AravisCamera("FLAKY01", name="front (FLAKY01)")
+    camera.configure(CameraSettings(width=128, height=128, frame_rate_hz=100.0))
+    camera.start()
+    stop = threading.Event()
+    frames: list = []
+    said: list[str] = []
+
+    def deliver(frame) -> None:
+        frames.append(frame)
+        if len(frames) >= 400:
+            stop.set()
+
+    capture = threading.Thread(target=capture_frames, args=(camera, stop, deliver, said.append))
+    capture.start()
+    try:
+        end = time.monotonic() + 10.0
+        while len(frames) < 100 and time.monotonic() < end:
+            time.sleep(0.05)
+        before = len(frames)
+        process.kill()
+        process.wait()
+        end = time.monotonic() + 20.0
+        while not camera.disconnected and time.monotonic() < end:
+            time.sleep(0.1)
+        assert camera.disconnected, "the killed camera was never noticed"
+        time.sleep(1.0)
+        fake_gv_cameras("127.0.0.1", "FLAKY01")  # the same camera comes back
+        capture.join(timeout=60.0)
+    finally:
+        stop.set()
+        capture.join(timeout=5.0)
+        camera.close()
+    assert before >= 100
+    assert len(frames) >= 400, (len(frames), said, camera.stats)
+    assert camera.stats.reconnects == 1
+    ids = np.array([f.frame_id for f in frames])
+    assert np.all(np.diff(ids) >= 1), "frame ids went backwards after the reconnect"
+    gaps = np.flatnonzero(np.diff(ids) > 1)
+    assert len(gaps) >= 1
+    gap = gaps[np.argmax(np.diff(ids)[gaps])]
+    gone_s = (frames[gap + 1].timestamp_ns - frames[gap].timestamp_ns) / 1e9
+    assert gone_s > 1.0
+    assert abs((ids[gap + 1] - ids[gap]) - gone_s * 100.0) <= 2  # the ids count the frame periods the camera was gone
+    assert camera.stats.lost >= ids[gap + 1] - ids[gap] - 1
+    assert any("disconnected" in m for m in said) and any("is back" in m for m in said), said
+    assert all(f.image.shape == (128, 128) for f in frames)
+
+
+def test_recording_goes_on_through_a_camera_that_leaves_and_returns(fake_gv_cameras, tmp_path):
+    """`photopft record` on the fake GigE rig: the back camera is killed and started again mid-recording."""
+    import sys
+
+    from core.session import SessionFile, validate_session
+    from drivers.rig import DEFAULT_RIG
+
+    _aravis_or_skip()
+    fake_gv_cameras("127.0.0.1", "FRONT01")
+    back = fake_gv_cameras("127.0.0.2", "BACK01")
+    out = tmp_path / "gap.h5"
+    record = subprocess.Popen([sys.executable, "-m", "app", "record", "--rig", str(DEFAULT_RIG.parent / "fake-gige.toml"),
+                               "-o", str(out), "--seconds", "14"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True)
+    time.sleep(5.0)
+    back.kill()
+    back.wait()
+    time.sleep(4.0)
+    fake_gv_cameras("127.0.0.2", "BACK01")
+    stdout, stderr = record.communicate(timeout=90)
+    assert record.returncode == 0, stderr
+    assert "BACK01" in stderr and "disconnected" in stderr and "is back" in stderr, stderr
+    assert validate_session(out) == []
+    with SessionFile(out) as session:
+        front = np.diff(session.frame_id("front").astype(np.int64))
+        back_ids = np.diff(session.frame_id("back").astype(np.int64))
+        assert session.flow_samples()[0].size > 10_000
+    assert np.all(front >= 1) and np.all(back_ids >= 1)
+    assert back_ids.max() > 100, "the back camera's gap does not show in its frame ids"

@@ -7,7 +7,7 @@ import pytest
 
 from app.cli import main
 from core.session import SessionFile, validate_session
-from drivers.rig import DEFAULT_RIG, RigConfigError, load_rig_config
+from drivers.rig import DEFAULT_RIG, RigConfigError, camera_head, load_rig_config
 
 
 def test_shipped_rig_configs_load():
@@ -17,6 +17,25 @@ def test_shipped_rig_configs_load():
     assert fake.cameras == {"front": "FRONT01", "back": "BACK01"} and fake.sequencer_port == "emulator"
     template = load_rig_config(DEFAULT_RIG.parent / "template.toml")
     assert template.camera["trigger"] == "line"
+    assert template.optics["front"] == {"focal_length_mm": 25.0, "pixel_size_um": 7.4}
+
+
+def test_head_geometry_follows_binning_and_region():
+    """A point seen through the whole sensor lands on the same spot of the binned, cropped image."""
+    optics = {"fx_px": 3391.2, "fy_px": 3389.8, "cx_px": 702.4, "cy_px": 509.1}
+    full = camera_head("front", optics, (1400, 1024), (0, 0, 1400, 1024), 1, 12)
+    cropped = camera_head("front", optics, (1400, 1024), (100, 40, 500, 400), 2, 8)
+    point = np.array([120.0, -85.0, 1400.0])  # mm, camera frame
+    u = full.fx * point[0] / point[2] + full.cx
+    v = full.fy * point[1] / point[2] + full.cy
+    # binned pixel k covers full pixels 2k and 2k+1: full coordinate u is binned (u + 0.5) / 2 - 0.5
+    u2 = cropped.fx * point[0] / point[2] + cropped.cx
+    v2 = cropped.fy * point[1] / point[2] + cropped.cy
+    assert u2 == pytest.approx((u + 0.5) / 2 - 0.5 - 100) and v2 == pytest.approx((v + 0.5) / 2 - 0.5 - 40)
+    assert (cropped.width, cropped.height, cropped.bit_depth) == (500, 400, 8)
+    assert cropped.pixel_size_mm == pytest.approx(2 * full.pixel_size_mm)
+    nominal = camera_head("back", {"focal_length_mm": 16.0, "pixel_size_um": 5.5}, (2048, 1536), (0, 0, 1024, 768), 2, 8)
+    assert nominal.fx == pytest.approx(16.0 / 0.0055 / 2) and nominal.cx == pytest.approx(511.5)
 
 
 @pytest.mark.parametrize("text, message", [
@@ -26,6 +45,9 @@ def test_shipped_rig_configs_load():
     ("[heads.front]\ncamera='sim'\n[camera]\nframe_rate_hz=1000\n", "frame_rate_hz must be between"),
     ("[heads.front]\ncamera='sim'\n[flowsensor]\nport='sim'\ngain_lps=0.1\n", "go together"),
     ("[heads.front\n", "not valid TOML"),
+    ("[heads.front]\ncamera='X'\nfocal_length_mm=-25\n", "focal_length_mm must be a positive number"),
+    ("[heads.front]\ncamera='X'\nfx_px=3000.0\n", "fx_px, fy_px, cx_px and cy_px go together"),
+    ("[heads.front]\ncamera='X'\ndist_coeffs=[0.1, 0.0]\n", "dist_coeffs must be OpenCV's five numbers"),
 ])
 def test_bad_rig_configs_name_the_problem(tmp_path, text, message):
     path = tmp_path / "rig.toml"
