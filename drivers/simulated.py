@@ -68,11 +68,17 @@ class SimulatedRigState:
 
 @dataclass
 class SimCamera:
-    """A head of the simulated rig behind the Camera protocol."""
+    """A head of the simulated rig behind the Camera protocol.
+
+    `loop_cycles`: render that many light cycles once, at start, and deliver them over and over at
+    the rig's rate (ids and timestamps run on). For measuring the recorder at a rate the renderer
+    cannot reach on the same cores; the images repeat, so such a recording is not for reconstruction.
+    """
 
     state: SimulatedRigState
     head: str
     realtime: bool = True
+    loop_cycles: int = 0
     name: str = ""
     stats: CameraStats = field(default_factory=CameraStats)
 
@@ -80,16 +86,27 @@ class SimCamera:
         self.name = self.name or f"sim-{self.head}"
         self._next = 0
         self._running = False
+        self._loop: list[np.ndarray] = []
 
     def configure(self, settings: CameraSettings) -> None:
         """The simulated sensor keeps the rig's size and rate; settings are accepted as given."""
 
     def start(self) -> None:
+        if self.loop_cycles and not self._loop:
+            self._loop = [self._render(i) for i in range(self.loop_cycles * self.state.rig.cycle_length)]
         self._running = True
 
-    def grab(self, timeout_s: float = 0.5) -> Frame | None:
+    def _render(self, i: int) -> np.ndarray:
         from core.sim.scene import noise_key
 
+        s = self.state
+        head = s.heads[self.head]
+        light = s.rig.sequence[i % s.rig.cycle_length]
+        image, _ = s.scene.render(head, i / s.rig.frame_rate_hz, light,
+                                  noise_key(s.config.seed, self.head, i, head.width * head.height), s.digitisers[self.head])
+        return image
+
+    def grab(self, timeout_s: float = 0.5) -> Frame | None:
         if not self._running:
             return None
         s = self.state
@@ -103,10 +120,7 @@ class SimCamera:
             if wait > 0:
                 time.sleep(wait)
         i = self._next
-        head = s.heads[self.head]
-        light = s.rig.sequence[i % s.rig.cycle_length]
-        image, _ = s.scene.render(head, i / s.rig.frame_rate_hz, light,
-                                  noise_key(s.config.seed, self.head, i, head.width * head.height), s.digitisers[self.head])
+        image = self._loop[i % len(self._loop)] if self._loop else self._render(i)
         self._next += 1
         frame = Frame(image, i, due)
         self.stats.count(frame)
