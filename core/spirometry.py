@@ -140,6 +140,14 @@ class SessionGrade:
         return max(self.fev1_grade, self.fvc_grade, key=order.index)
 
 
+def repeatability_tolerance_l(largest_l: float, age_years: float | None = None) -> float:
+    """ATS/ERS 2019: the two largest values within 0.150 L; at age 6 or under, within 0.100 L or
+    10 % of the largest, whichever is greater."""
+    if age_years is not None and age_years <= 6:
+        return max(0.100, 0.10 * largest_l)
+    return REPEATABILITY_L
+
+
 def _grade(values: list[float], usable: int, age_years: float | None) -> tuple[str, float]:
     """ATS/ERS 2019 grade from the acceptable values and the count of usable ones."""
     values = sorted(values, reverse=True)
@@ -148,9 +156,7 @@ def _grade(values: list[float], usable: int, age_years: float | None) -> tuple[s
     if len(values) == 1:
         return "E", float("nan")
     spread = values[0] - values[1]
-    tolerance = REPEATABILITY_L
-    if age_years is not None and age_years <= 6:
-        tolerance = max(0.100, 0.10 * values[0])
+    tolerance = repeatability_tolerance_l(values[0], age_years)
     if len(values) >= 3 and spread <= tolerance:
         return "A", spread
     if spread <= tolerance:
@@ -174,7 +180,7 @@ def grade_session(manoeuvres: list[ForcedValues], age_years: float | None = None
         raise ValueError("no forced expirations to grade")
     largest = None  # the largest FVC before the manoeuvre: the first has none to be within
     for m in manoeuvres:
-        if not m.eofe and largest is not None and m.fvc_l >= largest - REPEATABILITY_L:
+        if not m.eofe and largest is not None and m.fvc_l >= largest - repeatability_tolerance_l(largest, age_years):
             m.eofe = True
             m.problems = [p for p in m.problems if not p.startswith("no plateau")]
         largest = m.fvc_l if largest is None else max(largest, m.fvc_l)

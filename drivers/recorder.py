@@ -25,6 +25,10 @@ from core.session import SessionWriter, SubjectRecord
 from drivers.camera import Camera, CameraError, capture_frames
 
 
+BATCH_ITEMS = 500  # queue items written in one batch at most
+BATCH_INTERVAL_S = 0.05  # the writer's pause when it has caught up
+
+
 class RecordingError(Exception):
     """The recording stopped before its end; the message says why. The file keeps what was written."""
 
@@ -145,25 +149,22 @@ class Recorder:
             self._stop.set()
 
     def _write(self) -> None:
+        """Write what the queue holds in batches, about 20 a second: one resize per dataset and
+        batch instead of eight h5py calls a frame (h5py holds the GIL throughout each call, so fewer
+        calls leave the GUI thread and the capture threads more of it)."""
         last_flush = time.monotonic()
         while not (self._stop.is_set() and self._queue.empty()):
+            items = []
             try:
-                item = self._queue.get(timeout=0.1)
+                while len(items) < BATCH_ITEMS:
+                    items.append(self._queue.get_nowait())
             except queue.Empty:
+                pass
+            if not items:
+                self._stop.wait(BATCH_INTERVAL_S)
                 continue
             try:
-                if item[0] == "frame":
-                    _, head, frame = item
-                    self.writer.append_frames(head, frame.image, [self.light_of(head, frame.frame_id)],
-                                              [frame.timestamp_ns], [frame.frame_id])
-                    self._counts[head] += 1
-                    self._written_bytes += frame.image.nbytes
-                elif item[0] == "flow":
-                    block = item[1]
-                    self.writer.append_flow(block.adc, block.timestamp_ns)
-                    self._flow_samples += len(block.adc)
-                else:
-                    self.writer.add_event(item[1], item[2])
+                self._write_batch(items)
                 if time.monotonic() - last_flush > 1.0:
                     self.writer.flush()
                     last_flush = time.monotonic()
@@ -174,6 +175,29 @@ class Recorder:
                                         f"`photopft recover {self.path}`")
                 self._stop.set()
                 return
+            if len(items) < BATCH_ITEMS:
+                self._stop.wait(BATCH_INTERVAL_S)
+
+    def _write_batch(self, items: list) -> None:
+        """Frames per head in arrival order, flow blocks joined, events one by one."""
+        frames: dict[str, list] = {}
+        flow = []
+        for item in items:
+            if item[0] == "frame":
+                frames.setdefault(item[1], []).append(item[2])
+            elif item[0] == "flow":
+                flow.append(item[1])
+            else:
+                self.writer.add_event(item[1], item[2])
+        for head, batch in frames.items():
+            self.writer.append_frames(head, np.stack([f.image for f in batch]),
+                                      [self.light_of(head, f.frame_id) for f in batch],
+                                      [f.timestamp_ns for f in batch], [f.frame_id for f in batch])
+            self._counts[head] += len(batch)
+            self._written_bytes += sum(f.image.nbytes for f in batch)
+        if flow:
+            self.writer.append_flow(np.concatenate([b.adc for b in flow]), np.concatenate([b.timestamp_ns for b in flow]))
+            self._flow_samples += sum(len(b.adc) for b in flow)
 
     def begin(self, events: list[tuple[int, str]] | None = None) -> None:
         """Start the writer; from here frames, flow and events may be submitted from any thread."""

@@ -39,10 +39,13 @@ class HeadMapView(pg.GraphicsLayoutWidget):
                                    interactive=False, width=14)
         self.bar.setImageItem(self.image, insert_in=plot)
         self.plot = plot
+        self._shown: np.ndarray | None = None
 
     def show_map(self, height_mm: np.ndarray | None) -> None:
-        if height_mm is None:
+        """Draw a new map; the one on screen is not drawn again (maps come slower than updates)."""
+        if height_mm is None or height_mm is self._shown:
             return
+        self._shown = height_mm
         if self.placeholder is not None:
             self.plot.removeItem(self.placeholder)
             self.placeholder = None
@@ -62,6 +65,9 @@ class VolumeView(pg.GraphicsLayoutWidget):
         self.litres.setMouseEnabled(False, False)
         self.litres.addLegend(offset=(-10, 5))
         self.flow_curve = self.litres.plot(pen=pg.mkPen((20, 20, 20), width=2), name="flow sensor")
+        # 3000 points a curve in a few hundred pixels: draw each pixel column's extremes only
+        self.flow_curve.setDownsampling(auto=True, method="peak")
+        self.flow_curve.setClipToView(True)
         self.nextRow()
         self.relative = self.addPlot(title="Optical: gradient volume (thesis eq. 3.27, relative)")
         self.relative.setLabel("bottom", "time", units="s")
@@ -110,8 +116,13 @@ class StatusPanel(QGroupBox):
             grid.addWidget(label, k, 1)
             self.labels[key] = label
         grid.setRowStretch(len(rows), 1)
+        self._shown: dict[str, tuple[str, bool]] = {}
 
     def set(self, key: str, text: str, warn: bool = False) -> None:
+        """Change a line; an unchanged one is left alone (a style sheet re-polishes the label)."""
+        if self._shown.get(key) == (text, warn):
+            return
+        self._shown[key] = (text, warn)
         label = self.labels[key]
         label.setText(text)
         label.setStyleSheet("color: #b00020; font-weight: bold" if warn else "")

@@ -9,7 +9,7 @@ import pytest
 
 from core.reference import ReferenceUnavailable, reference
 from core.sim.breathing import ForcedBlow, forced_expiration_curve
-from core.spirometry import forced_values, grade_session, read_waveform
+from core.spirometry import forced_values, grade_session, read_waveform, repeatability_tolerance_l
 
 
 def _within(got, expected, relative, absolute):
@@ -126,3 +126,15 @@ def test_reference_refuses_what_it_cannot_answer():
         reference("FEF2575", "male", 30, 175, "gli-global")
     with pytest.raises(ReferenceUnavailable, match="sex"):
         reference("FEV1", "other", 30, 175)
+
+
+def test_young_children_have_their_own_repeatability_tolerance():
+    """ATS/ERS 2019: at 6 years or under, within 0.100 L or 10 % of the largest value."""
+    assert repeatability_tolerance_l(1.2, age_years=5) == pytest.approx(0.120)
+    assert repeatability_tolerance_l(0.8, age_years=5) == pytest.approx(0.100)
+    assert repeatability_tolerance_l(0.8, age_years=30) == pytest.approx(0.150)
+    # two small blows 0.120 L apart: within an adult's 0.150 L, outside a child's 0.100 L (10 % is 0.080)
+    blows = [_blow(fvc=0.80, fev1=0.74, pef=2.0), _blow(fvc=0.68, fev1=0.62, pef=1.9)]
+    child, adult = grade_session(blows, age_years=5), grade_session(blows, age_years=30)
+    assert child.fvc_repeatability_l == pytest.approx(0.120, abs=0.01)
+    assert adult.fvc_grade == "B" and child.fvc_grade == "C"

@@ -25,7 +25,7 @@ from app.live import LiveRig
 from app.paths import data_dir
 from app.records import Patient, Records, RecordsError
 from core.session import SubjectRecord
-from core.spirometry import REPEATABILITY_L
+from core.spirometry import repeatability_tolerance_l
 
 MAX_BLOWS = 8
 MIN_BLOWS = 3
@@ -285,7 +285,8 @@ class ManoeuvrePage(QWizardPage):
         self.completeChanged.emit()
 
     def _assess(self) -> str:
-        values = self.engine.recorded_values(self.wizard().age_years())
+        age_years = self.wizard().age_years()
+        values = self.engine.recorded_values(age_years)
         if values is None:
             return f"{self.title()} {self.count}: recorded (no flow sensor: feedback comes with the report)."
         if self.kind != "forced":
@@ -300,15 +301,19 @@ class ManoeuvrePage(QWizardPage):
                                                             else "not acceptable")
         text = (f"Blow {self.count}: FVC {last.fvc_l:.2f} L, FEV1 {last.fev1_l:.2f} L, PEF {last.pef_lps:.1f} L/s: "
                 f"{verdict}" + (f" ({'; '.join(last.problems)})" if last.problems else "") + ".")
-        repeatable = grade.fvc_repeatability_l <= REPEATABILITY_L and grade.fev1_repeatability_l <= REPEATABILITY_L \
-            and grade.acceptable_fvc >= 2
+        repeatable = grade.fvc_grade in ("A", "B") and grade.fev1_grade in ("A", "B")  # two acceptable, within tolerance
         self.finished = self.count >= MAX_BLOWS or (self.count >= MIN_BLOWS and repeatable)
         if self.finished:
             text += f" Grade {grade.grade}: enough blows." if self.count < MAX_BLOWS or repeatable else \
                 f" Grade {grade.grade}: eight blows, the most the standard allows."
+        elif self.count >= MIN_BLOWS and min(grade.acceptable_fvc, grade.acceptable_fev1) < 2:
+            text += (f" {grade.acceptable_fvc} acceptable FVC and {grade.acceptable_fev1} acceptable FEV1 so far; "
+                     "two of each are needed: another blow, please.")
         elif self.count >= MIN_BLOWS:
-            text += (f" Repeatability not met yet (FVC within {grade.fvc_repeatability_l:.3f} L, FEV1 within "
-                     f"{grade.fev1_repeatability_l:.3f} L; needs {REPEATABILITY_L:.3f} L): another blow, please.")
+            text += (f" Repeatability not met yet (FVC within {grade.fvc_repeatability_l:.3f} L, needs "
+                     f"{repeatability_tolerance_l(grade.fvc_l, age_years):.3f} L; FEV1 within "
+                     f"{grade.fev1_repeatability_l:.3f} L, needs {repeatability_tolerance_l(grade.fev1_l, age_years):.3f} L):"
+                     " another blow, please.")
         return text
 
     def isComplete(self) -> bool:  # noqa: N802
