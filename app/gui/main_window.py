@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import gc
 import logging
 import sys
 import time
@@ -93,12 +96,37 @@ class Job(QRunnable):
 # a worker takes it, the GUI thread waits at most this long to get it back (measured with
 # `photopft bench gui`: longest stall 35-36 ms against 39-51 ms at 5 ms).
 GIL_SWITCH_INTERVAL_S = 0.001
+MMAP_THRESHOLD_BYTES = 128 * 1024
+M_MMAP_THRESHOLD = -3  # glibc's malloc.h: mallopt's parameter number
+
+
+def tune_process_for_live_view() -> None:
+    """Process-wide settings for a long live session (each measured with `photopft bench gui`).
+
+    - The GIL switch interval (above).
+    - Python's full garbage collections walk every object the program has made; with numba, scipy
+      and Qt loaded that took up to 111 ms, all threads stopped. `gc.freeze()` moves what exists
+      now (modules, widgets, compiled functions) out of their reach; called again once the first
+      maps are made.
+    - glibc raises its mmap threshold after the first large free, after which frames (about 0.7 MB
+      each) and maps come from the heap and fragment it across the threads' arenas; a fixed
+      threshold keeps them mmapped, returned to the system when freed.
+    """
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+    gc.freeze()
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c"))
+        libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
+    except (OSError, AttributeError, TypeError):  # not glibc: its own allocator, nothing to set
+        pass
+
 
 
 class MainWindow(QMainWindow):
     def __init__(self, source: Source, rig_config: Path | None = None) -> None:
         super().__init__()
-        sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+        tune_process_for_live_view()
+        self._frozen_after_first_maps = False
         self.setWindowTitle("photopft")
         self.rig_config = rig_config
         self.settings = QSettings("photopft", "photopft")
@@ -182,6 +210,9 @@ class MainWindow(QMainWindow):
             return
         snapshot = self.engine.snapshot()
         self.view.show(snapshot, self.calibration_text, self.source.name)
+        if not self._frozen_after_first_maps and all(v.reconstructed for v in snapshot.heads.values()):
+            gc.freeze()  # what the first maps made (numba's compiled code among it) is here to stay
+            self._frozen_after_first_maps = True
         if self.engine.replay_finished:
             self.status_label.setText("replay finished")
         else:

@@ -77,3 +77,17 @@ def test_record_the_simulated_rig(tmp_path, capsys):
 def test_record_refuses_a_missing_rig_file(tmp_path, capsys):
     assert main(["record", "-o", str(tmp_path / "x.h5"), "--rig", str(tmp_path / "none.toml")]) == 2
     assert "cannot read rig configuration" in capsys.readouterr().err
+
+
+def test_simulated_camera_loops_prerendered_cycles_with_ids_running_on():
+    from core.sim.simulate import SimConfig
+    from drivers.simulated import SimCamera, SimulatedRigState
+
+    state = SimulatedRigState.build(SimConfig(protocol="tidal", seconds=2.0, scale=0.1))
+    camera = SimCamera(state, "front", realtime=False, loop_cycles=2)
+    camera.start()
+    frames = [camera.grab() for _ in range(25)]
+    assert [f.frame_id for f in frames] == list(range(25))
+    assert np.array_equal(frames[0].image, frames[10].image) and np.array_equal(frames[3].image, frames[23].image)
+    assert not np.array_equal(frames[0].image, frames[5].image)  # the second cycle is its own render
+    assert camera.stats.delivered == 25 and camera.stats.lost == 0
