@@ -32,15 +32,14 @@ class SimulatedRigState:
         from dataclasses import replace
 
         from core.rig import thesis_rig
-        from core.sim.scene import Digitiser
-        from core.sim.simulate import as_built_heads, build_scene
+        from core.sim.simulate import as_built_heads, build_scene, sim_digitisers
 
         rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
         scene, waveform = build_scene(config, rig)
         if len(rig.heads) == 2:
             rig = replace(rig, baseline_mm=float(scene.baseline_mm))
         heads = as_built_heads(rig, config)
-        digitisers = {h: Digitiser(config.camera, config.bit_depth) for h in rig.heads}
+        digitisers = sim_digitisers(config, rig)
         return cls(config, rig, scene, heads, digitisers, realtime_start_ns or time.monotonic_ns(), waveform)
 
     def now_s(self) -> float:

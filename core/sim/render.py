@@ -12,7 +12,7 @@ cheap, with tails cut at 3.46 sigma); then full-well saturation and quantisation
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit, prange
@@ -40,6 +40,15 @@ class CameraModel:
     @property
     def exposure_gain(self) -> float:
         return self.white_level * self.full_well_e * self.reference_distance_mm**2
+
+    def binned(self, factor: float) -> "CameraModel":
+        """The sensor read with factor x factor pixels summed (a resampled sensor of the same field
+        of view): each output pixel collects factor^2 times the electrons and holds factor^2 full
+        wells, with the read noise of factor^2 reads (digital binning); the grey levels stay those
+        of one pixel, the noise relative to them falls by `factor`."""
+        if factor <= 0:
+            raise ValueError(f"binning factor must be positive, got {factor}")
+        return replace(self, full_well_e=self.full_well_e * factor**2, read_noise_e=self.read_noise_e * factor)
 
 
 def pack_lights(head: Head) -> np.ndarray:

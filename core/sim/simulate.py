@@ -193,6 +193,12 @@ def session_length_s(config: SimConfig, rig: Rig, waveform: Waveform | None, sce
     return 2.0
 
 
+def sim_digitisers(config: SimConfig, rig) -> dict[str, Digitiser]:
+    """Each head's sensor: the full-resolution camera model, binned by 1 / scale (scale 0.5 reads
+    2 x 2 pixels as one, as the rig does to fit a gigabit link)."""
+    return {h: Digitiser(config.camera.binned(1.0 / config.scale), config.bit_depth) for h in rig.heads}
+
+
 def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], None] | None = None) -> SimSummary:
     """Render the session described by `config` into a session file at `path`."""
     started = time.perf_counter()
@@ -213,7 +219,7 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
         raise ValueError(f"truth map frames {bad} outside 0-{n_frames - 1}")
     rng = np.random.default_rng(config.seed + 61)
     kept = rng.random(n_frames) >= config.drop_rate
-    digitisers = {h: Digitiser(config.camera, config.bit_depth) for h in rig.heads}
+    digitisers = sim_digitisers(config, rig)
 
     subject = None
     if scene.kind in ("simulation", "patient"):

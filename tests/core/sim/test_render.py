@@ -127,3 +127,24 @@ def test_noise_has_the_shot_and_read_variance():
     signal_e = quiet[centre].astype(float).mean() * e_per_dn
     measured = np.var((a[centre].astype(float) - b[centre].astype(float)) * e_per_dn) / 2
     assert measured == pytest.approx(signal_e + camera.read_noise_e**2, rel=0.1)
+
+
+def test_binned_pixels_have_the_grey_levels_of_one_and_half_its_noise():
+    """Scale 0.5 reads 2 x 2 pixels as one: four times the electrons, the same grey level, half the noise."""
+    _, board = _board(0.0, 0.0, albedo=0.7)
+    scene = HeightFieldScene({"front": board}, 2010.0, 4000.0)
+    camera = CameraModel()
+    binned = camera.binned(2.0)
+    assert binned.full_well_e == pytest.approx(4 * camera.full_well_e)
+    assert binned.read_noise_e == pytest.approx(2 * camera.read_noise_e)
+    head = thesis_head("front", scale=0.2)
+    spread = {}
+    for name, model in (("one", camera), ("binned", binned)):
+        frames = [scene.render(head, 0.0, 1, np.uint64(k * head.width * head.height), Digitiser(model, 12))[0]
+                  for k in range(8)]
+        stack = np.stack(frames).astype(float)[:, 60:140, 80:200]
+        spread[name] = (stack.mean(), stack.std(axis=0).mean())
+    assert spread["binned"][0] == pytest.approx(spread["one"][0], rel=0.01)
+    assert spread["binned"][1] / spread["one"][1] == pytest.approx(0.5, abs=0.07)
+    with pytest.raises(ValueError, match="positive"):
+        camera.binned(0.0)
