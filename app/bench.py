@@ -223,6 +223,22 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     rec.add_argument("--rate", type=float, default=110.0, help="frames/s asked of the fake cameras")
     rec.add_argument("--no-write", action="store_true", help="print only")
     rec.set_defaults(run=lambda args: print(run_record(args.seconds, not args.no_write, args.rate)) or 0)
+    vol = what.add_parser("volume", help="tidal volume, VC, FVC, FEV1 and the optical volume against the truth")
+    vol.add_argument("--scale", type=float, default=0.25)
+    vol.add_argument("--seconds", type=float, default=60.0)
+    vol.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_volume(args: argparse.Namespace) -> int:
+        from app.bench_volume import run_volume_bench
+
+        text = run_volume_bench(args.scale, args.seconds)
+        print(text)
+        if not args.no_write:
+            write_section("volume", f"## Volume (`photopft bench volume --scale {args.scale:g} --seconds "
+                                    f"{args.seconds:g}`)\n\n{text}\n")
+        return 0
+
+    vol.set_defaults(run=run_volume)
     gui = what.add_parser("gui", help="the live view: display updates/s, GUI-thread stalls, maps/s, memory")
     gui.add_argument("--scale", type=float, default=0.5)
     gui.add_argument("--seconds", type=float, default=20.0)

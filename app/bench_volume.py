@@ -1,0 +1,98 @@
+"""`photopft bench volume`: the values a clinician reads, per simulated scenario, against the truth.
+
+Each scenario is a simulated subject doing the full protocol (tidal breathing, slow VC, three
+forced expirations) at a distance, with postural sway; the session is processed as
+`photopft process` does and analysed as `photopft analyze` does. The truth's values come from the
+simulation's true lung volume through the same analysis.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from core.pipeline import ReconstructionSettings
+from core.process import process_session
+from core.session import SessionFile
+from core.session_analysis import analyse_session
+from core.volume import normalised_gradient_volume
+
+VALUES = (("TV", "TV_l"), ("VC", "VC_l"), ("FVC", "FVC_l"), ("FEV1", "FEV1_l"))
+
+
+@dataclass(frozen=True)
+class Scenario:
+    distance_mm: float
+    axial_sway_mm: float
+    seed: int
+
+
+SCENARIOS = (Scenario(1800.0, 50.0, 11), Scenario(2000.0, 50.0, 12), Scenario(2200.0, 50.0, 13))
+
+
+def within_limit(value: float, truth: float) -> bool:
+    """The issue's limit: within 3 % or 0.050 L of the truth, whichever is greater."""
+    return abs(value - truth) <= max(0.03 * abs(truth), 0.050)
+
+
+def _gradient_correlations(session: Path, results: Path) -> dict[str, float]:
+    """r of the normalised gradient volume (thesis eq. 3.27) against the true volume: front, back, combined."""
+    with h5py.File(results, "r") as r:
+        series = {h: (r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/gradient_volume"][:])
+                  for h in ("front", "back") if h in r["heads"]}
+    with SessionFile(session) as s:
+        truth = s.truth()
+        t_truth, volume = truth["timestamp_ns"][:], truth["volume_l"][:]
+    t = next(iter(series.values()))[0]
+    true_at = np.interp(t, t_truth, volume)
+    normalised = {h: normalised_gradient_volume(np.interp(t, ts, gv)) for h, (ts, gv) in series.items()}
+    out = {h: float(np.corrcoef(v, true_at)[0, 1]) for h, v in normalised.items()}
+    out["combined"] = float(np.corrcoef(sum(normalised.values()), true_at)[0, 1])
+    return out
+
+
+def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ...] = SCENARIOS) -> str:
+    from app.cli import build_parser, run_simulate
+
+    started = time.perf_counter()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, scenario in enumerate(scenarios):
+            session, results = Path(tmp) / f"s{k}.h5", Path(tmp) / f"r{k}.h5"
+            run_simulate(build_parser().parse_args([
+                "simulate", "-o", str(session), "--protocol", "full", "--seconds", f"{seconds:g}", "--scale",
+                f"{scale:g}", "--seed", str(scenario.seed), "--distance-mm", f"{scenario.distance_mm:g}",
+                "--distance-back-mm", f"{scenario.distance_mm:g}", "--sway-mm", f"{scenario.axial_sway_mm:g}"]))
+            process_session(session, results, every=11, settings=ReconstructionSettings(track=True))
+            report = analyse_session(session)
+            truth = report.truth.parameters()
+            flow = report.flow_sensor.parameters() if report.flow_sensor is not None else {}
+            rows.append((scenario, truth, flow, _gradient_correlations(session, results)))
+    lines = [f"Simulated subjects (full protocol, {seconds:g} s, scale {scale:g}, 12-bit camera with shot and read "
+             "noise, axial sway as given plus 15 mm lateral and 3 mm vertical), both heads at the distance given; "
+             "`photopft process` every 11th cycle window, `photopft analyze`. Limits: 3 % or 0.050 L.", "",
+             "| distance (mm) | sway (mm) | value | truth (L) | flow sensor (L) | within | metric optical (L) |",
+             "|---|---|---|---|---|---|---|"]
+    for scenario, truth, flow, _ in rows:
+        for label, key in VALUES:
+            if key not in truth:
+                continue
+            measured = flow.get(key)
+            verdict = "" if measured is None else ("yes" if within_limit(measured, truth[key]) else "**no**")
+            shown = "–" if measured is None else f"{measured:.3f}"
+            lines.append(f"| {scenario.distance_mm:.0f} | ±{scenario.axial_sway_mm:.0f} | {label} | {truth[key]:.3f} | "
+                         f"{shown} | {verdict} | not yet |")
+    lines += ["", "Optical volume against the true volume (r; target >= 0.995; thesis Table 5.2: front 0.94, "
+              "back -0.64, combined 0.98): the normalised gradient volume (eqs 3.26-3.27).", "",
+              "| distance (mm) | front | back | combined |", "|---|---|---|---|"]
+    for scenario, _, _, r in rows:
+        lines.append(f"| {scenario.distance_mm:.0f} | {r.get('front', float('nan')):.3f} | "
+                     f"{r.get('back', float('nan')):.3f} | {r['combined']:.3f} |")
+    lines += ["", "The metric optical volume (litres without a training step) is not built yet: see docs/volume.md "
+              "for what it needs.", f"Run time {time.perf_counter() - started:.0f} s on this machine."]
+    return "\n".join(lines)
