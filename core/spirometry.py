@@ -16,6 +16,7 @@ import numpy as np
 PEF_WINDOW_S = 0.08  # ATS/ERS: the steepest slope for back-extrapolation over an 80 ms window
 PLATEAU_L = 0.025  # end of forced expiration: less than this in the last second
 REPEATABILITY_L = 0.150
+COUGH_REBOUND_OF_PEF = 0.2  # flow rising again after PEF by this fraction of PEF, in the first second
 
 
 @dataclass
@@ -102,10 +103,14 @@ def forced_values(volume_l: np.ndarray, rate_hz: float) -> ForcedValues:
     first = (t >= time_zero + 0.05) & (t <= time_zero + 1.0) & (t > t[int(np.argmax(flow))])
     cough = False
     if first.any():
-        # A cough or glottic closure: flow falls to a tenth of peak and rises again within the first second.
+        # A cough or glottic closure in the first second: after the peak, flow only falls in a good
+        # blow; here it falls to a tenth of the peak and comes back above a third of it, or it
+        # comes back up by a fifth of the peak after falling (a cough that does not stop the flow).
         f = flow[first]
         low = np.nonzero(f < 0.1 * pef)[0]
-        cough = bool(len(low) and np.any(f[low[0]:] > 0.3 * pef))
+        stopped = bool(len(low) and np.any(f[low[0]:] > 0.3 * pef))
+        rebound = float(np.max(f - np.minimum.accumulate(f)))
+        cough = stopped or rebound > COUGH_REBOUND_OF_PEF * pef
     values = ForcedValues(fvc, fev1, fev075, fev6, pef, fef2575, fet, bev, time_zero, plateau, cough)
     values.eofe = plateau < PLATEAU_L or fet >= 15.0
     if not values.bev_ok:

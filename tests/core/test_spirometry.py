@@ -138,3 +138,19 @@ def test_young_children_have_their_own_repeatability_tolerance():
     child, adult = grade_session(blows, age_years=5), grade_session(blows, age_years=30)
     assert child.fvc_repeatability_l == pytest.approx(0.120, abs=0.01)
     assert adult.fvc_grade == "B" and child.fvc_grade == "C"
+
+
+def test_a_cough_that_only_slows_the_flow_is_caught():
+    """Flow halved for 60 ms at 0.4 s, then back: no stop, but a rebound no good blow has."""
+    volume = forced_expiration_curve(4.9, 4.1, 9.6, ForcedBlow(), 6.0)
+    flow = np.gradient(volume, 1e-3)
+
+    def with_dent(start: int) -> np.ndarray:
+        dented = flow.copy()
+        dented[start:start + 60] *= 0.5
+        return np.concatenate([[0.0], np.cumsum(0.5 * (dented[1:] + dented[:-1])) * 1e-3])
+
+    blow = forced_values(with_dent(400), 1000.0)
+    assert blow.cough_in_first_second and not blow.fev1_acceptable
+    assert not _blow().cough_in_first_second
+    assert not forced_values(with_dent(2400), 1000.0).cough_in_first_second  # past the first second
