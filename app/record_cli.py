@@ -52,8 +52,8 @@ def _simulated(config, seconds: float, stack: ExitStack):
 def open_hardware(config, stack: ExitStack):
     from core.rig import Rig
     from drivers.camera import AravisCamera, CameraSettings, bandwidth_advice
-    from drivers.rig import camera_head
     from drivers.flowsensor import FlowSensor, FlowSensorEmulator
+    from drivers.rig import camera_head
     from drivers.sequencer import Sequencer, SequencerEmulator
 
     cam = config.camera

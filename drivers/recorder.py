@@ -160,9 +160,6 @@ class Recorder:
                     items.append(self._queue.get_nowait())
             except queue.Empty:
                 pass
-            if not items:
-                self._stop.wait(BATCH_INTERVAL_S)
-                continue
             try:
                 self._write_batch(items)
                 if time.monotonic() - last_flush > 1.0:

@@ -87,20 +87,21 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
                      data.get("simulation", {}), Path(calibration) if calibration else None, optics)
 
 
-_OPTICS = ("focal_length_mm", "pixel_size_um", "fx_px", "fy_px", "cx_px", "cy_px")
+_POSITIVE_OPTICS = ("focal_length_mm", "pixel_size_um", "fx_px", "fy_px")
+_NON_NEGATIVE_OPTICS = ("cx_px", "cy_px")
 
 
 def _optics(path: Path, name: str, head: dict) -> dict[str, Any]:
     """A head's lens and sensor: focal length and pixel size, or an OpenCV calibration of the whole
     sensor (fx_px, fy_px, cx_px, cy_px, dist_coeffs), each checked."""
     optics = {}
-    for key in _OPTICS:
+    for key in _POSITIVE_OPTICS + _NON_NEGATIVE_OPTICS:
         if key in head:
             value = head[key]
-            if not isinstance(value, (int, float)) or isinstance(value, bool) or \
-                    (value <= 0 if key[0] in "fp" else value < 0):
+            positive = key in _POSITIVE_OPTICS
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or (value <= 0 if positive else value < 0):
                 raise RigConfigError(f"{path}: [heads.{name}] {key} must be a "
-                                     f"{'positive' if key[0] in 'fp' else 'non-negative'} number, found {value!r}")
+                                     f"{'positive' if positive else 'non-negative'} number, found {value!r}")
             optics[key] = float(value)
     given = [k for k in ("fx_px", "fy_px", "cx_px", "cy_px") if k in optics]
     if given and len(given) != 4:
