@@ -14,13 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
-import numpy as np
 
 from core.pipeline import ReconstructionSettings
 from core.process import process_session
 from core.session import SessionFile
 from core.session_analysis import analyse_session
-from core.volume import normalised_gradient_volume
+from core.volume import gradient_volume_correlations
 
 VALUES = (("TV", "TV_l"), ("VC", "VC_l"), ("FVC", "FVC_l"), ("FEV1", "FEV1_l"))
 
@@ -47,13 +46,7 @@ def _gradient_correlations(session: Path, results: Path) -> dict[str, float]:
                   for h in ("front", "back") if h in r["heads"]}
     with SessionFile(session) as s:
         truth = s.truth()
-        t_truth, volume = truth["timestamp_ns"][:], truth["volume_l"][:]
-    t = next(iter(series.values()))[0]
-    true_at = np.interp(t, t_truth, volume)
-    normalised = {h: normalised_gradient_volume(np.interp(t, ts, gv)) for h, (ts, gv) in series.items()}
-    out = {h: float(np.corrcoef(v, true_at)[0, 1]) for h, v in normalised.items()}
-    out["combined"] = float(np.corrcoef(sum(normalised.values()), true_at)[0, 1])
-    return out
+        return gradient_volume_correlations(series, truth["timestamp_ns"][:], truth["volume_l"][:])
 
 
 def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ...] = SCENARIOS) -> str:

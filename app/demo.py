@@ -12,7 +12,7 @@ from core.pipeline import ReconstructionSettings
 from core.process import process_session
 from core.session import SessionFile, validate_session
 from core.session_analysis import analyse_session
-from core.volume import normalised_gradient_volume
+from core.volume import gradient_volume_correlations
 
 
 def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) -> None:
@@ -60,8 +60,6 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
         for head, (_, distance, _) in series.items():
             lines.append(f"  {head}: subject distance {np.nanmedian(distance):.0f} mm (from "
                          f"{np.nanpercentile(distance, 2):.0f} to {np.nanpercentile(distance, 98):.0f} mm)")
-        t = series[heads[0]][0]
-        combined = sum(normalised_gradient_volume(np.interp(t, series[h][0], series[h][2])) for h in heads)
     with SessionFile(path) as s:
         if s.has_truth:
             truth = s.truth()
@@ -70,7 +68,8 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
             lines.append(f"  true volume (simulation): range {volume.min():+.3f} to {volume.max():+.3f} L, "
                          f"vital capacity {volume.max() - volume.min():.3f} L")
             if results is not None:
-                r_gv = np.corrcoef(combined, np.interp(t, t_truth, volume))[0, 1]
+                r_gv = gradient_volume_correlations({h: (series[h][0], series[h][2]) for h in heads}, t_truth,
+                                                    volume)["combined"]
                 lines.append(f"  gradient volume (thesis eqs 3.26-3.27, {' and '.join(heads)} combined) against the "
                              f"true volume: r = {r_gv:.3f} (thesis Table 5.2: 0.98)")
     report = analyse_session(path)

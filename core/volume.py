@@ -145,3 +145,15 @@ def normalised_gradient_volume(values: np.ndarray) -> np.ndarray:
     """Thesis eq. 3.27: (V - mean V) / max |V - mean V|."""
     centred = values - np.nanmean(values)
     return centred / np.nanmax(np.abs(centred))
+
+
+def gradient_volume_correlations(series: dict[str, tuple[np.ndarray, np.ndarray]], t_reference: np.ndarray,
+                                 reference: np.ndarray) -> dict[str, float]:
+    """r of each head's normalised gradient volume (eq. 3.27) and of their sum ("combined") against a
+    reference volume curve, on the first head's time stamps. series: head -> (timestamps, gradient volume)."""
+    t = next(iter(series.values()))[0]
+    reference_at = np.interp(t, t_reference, reference)
+    normalised = {h: normalised_gradient_volume(np.interp(t, ts, gv)) for h, (ts, gv) in series.items()}
+    out = {h: float(np.corrcoef(v, reference_at)[0, 1]) for h, v in normalised.items()}
+    out["combined"] = float(np.corrcoef(sum(normalised.values()), reference_at)[0, 1])
+    return out

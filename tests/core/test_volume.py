@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.rig import thesis_head
-from core.volume import cap_measure, rescaled_cap, two_head_distances
+from core.volume import cap_measure, gradient_volume_correlations, rescaled_cap, two_head_distances
 
 
 def _dome(head, distance_mm: float, height_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -49,3 +49,15 @@ def test_two_silhouettes_and_a_baseline_give_both_distances():
 
 def test_rescaling_a_cap_follows_the_cube_of_the_scale():
     assert rescaled_cap(np.array([2.0]), np.array([2000.0]), np.array([2100.0]))[0] == pytest.approx(2.0 * 1.05**3)
+
+
+def test_gradient_volume_correlations_per_head_and_combined():
+    t_ref = np.linspace(0.0, 20.0, 2001)
+    volume = np.sin(2 * np.pi * t_ref / 4.0)
+    t_front, t_back = np.linspace(0.5, 19.5, 191), np.linspace(0.55, 19.55, 191)
+    r = gradient_volume_correlations({"front": (t_front, 3.0 + 2.0 * np.sin(2 * np.pi * t_front / 4.0)),
+                                      "back": (t_back, -np.sin(2 * np.pi * t_back / 4.0))}, t_ref, volume)
+    assert r["front"] == pytest.approx(1.0, abs=1e-6) and r["back"] == pytest.approx(-1.0, abs=1e-3)
+    same = gradient_volume_correlations({"front": (t_front, np.sin(2 * np.pi * t_front / 4.0)),
+                                         "back": (t_back, np.sin(2 * np.pi * t_back / 4.0))}, t_ref, volume)
+    assert same["combined"] == pytest.approx(1.0, abs=1e-3)
