@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import gc
 import logging
 import sys
@@ -96,8 +94,6 @@ class Job(QRunnable):
 # a worker takes it, the GUI thread waits at most this long to get it back (measured with
 # `photopft bench gui`: longest stall 35-36 ms against 39-51 ms at 5 ms).
 GIL_SWITCH_INTERVAL_S = 0.001
-MMAP_THRESHOLD_BYTES = 128 * 1024
-M_MMAP_THRESHOLD = -3  # glibc's malloc.h: mallopt's parameter number
 
 
 def tune_process_for_live_view() -> None:
@@ -108,17 +104,13 @@ def tune_process_for_live_view() -> None:
       and Qt loaded that took up to 111 ms, all threads stopped. `gc.freeze()` moves what exists
       now (modules, widgets, compiled functions) out of their reach; called again once the first
       maps are made.
-    - glibc raises its mmap threshold after the first large free, after which frames (about 0.7 MB
-      each) and maps come from the heap and fragment it across the threads' arenas; a fixed
-      threshold keeps them mmapped, returned to the system when freed.
+
+    (A fixed glibc mmap threshold, to return frames and maps to the system when freed, was
+    tried and left out: every large temporary then page-faults, which halved the maps per second
+    and stalled the GUI thread for 111 ms.)
     """
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     gc.freeze()
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c"))
-        libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
-    except (OSError, AttributeError, TypeError):  # not glibc: its own allocator, nothing to set
-        pass
 
 
 
