@@ -13,7 +13,8 @@ def add_analyze(sub: argparse._SubParsersAction) -> None:
                        description="Tidal, slow VC and forced-expiration values (ATS/ERS 2019, graded, with GLI "
                                    "predicted values) of a session file, or the forced-expiration values of a "
                                    "waveform file (.wf, see shared/data/spirometry-waveforms/README.md).")
-    p.add_argument("session", type=Path, nargs="?", help="a session file (.h5)")
+    p.add_argument("session", type=Path, nargs="?",
+                   help="a session file (.h5), or a results file of `photopft process` (adds the optical values)")
     p.add_argument("--waveform", type=Path, help="a .wf file instead of a session")
     p.add_argument("--equations", choices=("gli-global", "gli-2012"), default="gli-global",
                    help="reference equations (default GLI Global 2022)")
@@ -58,23 +59,34 @@ ROWS = (("TV_l", "TV", "L"), ("RR_bpm", "RR", "/min"), ("VE_lpm", "VE", "L/min")
 REFERENCE_OF = {"FVC_l": "FVC", "FEV1_l": "FEV1", "FEV1_FVC": "FEV1_FVC", "FEF2575_lps": "FEF2575"}
 
 
+def _optical_volume(results) -> tuple | None:
+    import h5py
+
+    with h5py.File(results, "r") as f:
+        return (f["volume/timestamp_ns"][:], f["volume/volume_l"][:]) if "volume" in f else None
+
+
 def run_analyze_session(args: argparse.Namespace) -> int:
+    """A session file (flow sensor and truth), or a results file (its session, and its optical volume)."""
+    from app.report_data import open_inputs
     from core.session import SessionError
     from core.session_analysis import analyse_session
 
     try:
-        report = analyse_session(args.session, args.equations)
-    except (SessionError, ValueError) as exc:
-        raise UserError(str(exc)) from exc
-    sources = [(name, values.parameters()) for name, values in (("flow sensor", report.flow_sensor),
-                                                                ("truth (simulation)", report.truth)) if values]
+        session, results = open_inputs(args.session)
+        optical = _optical_volume(results) if results is not None else None
+        report = analyse_session(session, args.equations, optical_volume=optical)
+    except (SessionError, ValueError, OSError, KeyError) as exc:
+        raise UserError(f"{args.session}: {exc}") from exc
+    named = (("flow sensor", report.flow_sensor), ("optical", report.optical), ("truth (simulation)", report.truth))
+    sources = [(name, values.parameters()) for name, values in named if values]
     if not sources:
         raise UserError(f"{args.session} has neither a flow sensor recording nor a simulation truth to analyse; "
-                        "the optical volume comes with `photopft process`")
+                        "the optical volume comes with `photopft process` (analyse its results file)")
     main = sources[0][1]
     header = f"  {'value':<9} {'unit':<6}" + "".join(f"{name:>20}" for name, _ in sources)
     header += f"{'predicted':>11}{'LLN':>8}{'z':>7}{'% pred':>8}"
-    print(f"{args.session}: values from the {sources[0][0]}; reference {args.equations}")
+    print(f"{session}: values from the {sources[0][0]}; reference {args.equations}")
     print(header)
     for key, label, unit in ROWS:
         if not any(key in values for _, values in sources):
@@ -92,7 +104,7 @@ def run_analyze_session(args: argparse.Namespace) -> int:
                   f"{values['manoeuvres']} blows")
     if report.reference_problem:
         print(f"  no predicted values: {report.reference_problem}")
-    for name, values in (("flow sensor", report.flow_sensor), ("truth", report.truth)):
+    for name, values in named:
         if values is not None:
             for problem in values.problems:
                 print(f"  {name}: {problem}")

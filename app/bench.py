@@ -226,16 +226,17 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     vol = what.add_parser("volume", help="tidal volume, VC, FVC, FEV1 and the optical volume against the truth")
     vol.add_argument("--scale", type=float, default=0.25)
     vol.add_argument("--seconds", type=float, default=60.0)
+    vol.add_argument("--every", type=int, default=2, help="reconstruct every Nth cycle window (1: at the camera rate)")
     vol.add_argument("--no-write", action="store_true", help="print only")
 
     def run_volume(args: argparse.Namespace) -> int:
         from app.bench_volume import run_volume_bench
 
-        text = run_volume_bench(args.scale, args.seconds)
+        text = run_volume_bench(args.scale, args.seconds, every=args.every)
         print(text)
         if not args.no_write:
             write_section("volume", f"## Volume (`photopft bench volume --scale {args.scale:g} --seconds "
-                                    f"{args.seconds:g}`)\n\n{text}\n")
+                                    f"{args.seconds:g} --every {args.every}`)\n\n{text}\n")
         return 0
 
     vol.set_defaults(run=run_volume)

@@ -52,8 +52,11 @@ def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) ->
 
 def volume_summary(path: Path, results: Path | None = None) -> str:
     lines = ["volume summary:"]
+    optical = None
     if results is not None:
         with h5py.File(results, "r") as r:
+            if "volume" in r:
+                optical = r["volume/timestamp_ns"][:], r["volume/volume_l"][:]
             heads = [h for h in ("front", "back") if h in r["heads"]]
             series = {h: (r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/distance_mm"][:],
                           r[f"heads/{h}/gradient_volume"][:]) for h in heads}
@@ -72,7 +75,12 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
                                                     volume)["combined"]
                 lines.append(f"  gradient volume (thesis eqs 3.26-3.27, {' and '.join(heads)} combined) against the "
                              f"true volume: r = {r_gv:.3f} (thesis Table 5.2: 0.98)")
-    report = analyse_session(path)
+                if optical is not None:
+                    true_at = np.interp(optical[0], t_truth, volume)
+                    slope = np.polyfit(true_at - true_at[0], optical[1], 1)[0]
+                    lines.append(f"  metric optical volume (litres, no calibration) against the true volume: "
+                                 f"r = {np.corrcoef(optical[1], true_at)[0, 1]:.4f}, slope {slope:.3f}")
+    report = analyse_session(path, optical_volume=optical)
     if report.flow_volume is not None:
         t_flow, v_flow = report.flow_volume
         lines.append(f"  flow sensor (BTPS, zero drift removed): range {v_flow.min():+.3f} to {v_flow.max():+.3f} L")
@@ -83,7 +91,8 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
             lines.append(f"  flow sensor against the true volume: r = {np.corrcoef(v, volume)[0, 1]:.4f}, largest "
                          f"difference {np.max(np.abs(v - volume)):.3f} L")
         values = report.flow_sensor.parameters()
-        lines.append("key values (flow sensor; the optical values in litres come with the metric volume):")
+        optical_values = report.optical.parameters() if report.optical is not None else {}
+        lines.append("key values: flow sensor" + (", optical (metric volume)" if optical_values else "") + ":")
         shown = [("TV", "TV_l", "L"), ("RR", "RR_bpm", "/min"), ("VC", "VC_l", "L"), ("FVC", "FVC_l", "L"),
                  ("FEV1", "FEV1_l", "L"), ("FEV1/FVC", "FEV1_FVC", ""), ("PEF", "PEF_lps", "L/s")]
         for label, key, unit in shown:
@@ -91,7 +100,8 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
                 ref = report.references.get({"FVC_l": "FVC", "FEV1_l": "FEV1", "FEV1_FVC": "FEV1_FVC"}.get(key, ""))
                 extra = (f"  (predicted {ref.predicted:.2f}, LLN {ref.lln:.2f}, z {ref.zscore(values[key]):+.2f})"
                          if ref is not None else "")
-                lines.append(f"  {label:<9} {values[key]:7.3f} {unit}{extra}")
+                beside = f" {optical_values[key]:7.3f}" if key in optical_values else ""
+                lines.append(f"  {label:<9} {values[key]:7.3f}{beside} {unit}{extra}")
         if "grade" in values:
             lines.append(f"  forced expirations: grade {values['grade']}, {values['acceptable_FVC']} of "
                          f"{values['manoeuvres']} acceptable")

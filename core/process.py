@@ -13,10 +13,12 @@ import numpy as np
 from scipy import ndimage
 
 from core import __version__
+from core.metric_volume import HeadDisplacements, MetricVolume, metric_volume, tidal_compartments
 from core.photometric import CycleWindow, complete_cycles
 from core.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.profile import ProfileError, RigCalibration
 from core.session import SessionError, SessionFile
+from core.volume import DisplacementTracker
 
 RESULTS_FORMAT = "photopft-results"
 MOTION_SMOOTHING_PX = 2.0
@@ -91,7 +93,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             if name not in rig.heads:
                 raise SessionError(f"{session_path} has no head {name!r} (heads: {', '.join(session.heads)})")
         maps_at = sorted(set(maps_at or []))
-        counts, distances = {}, {}
+        counts, distances, displacements = {}, {}, {}
         with h5py.File(output, "w") as out:
             out.attrs["format"] = RESULTS_FORMAT
             out.attrs["format_version"] = np.int64(1)
@@ -122,6 +124,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 if pseudo is not None and not np.any(pseudo):
                     pseudo = None
                 reconstructor = HeadReconstructor(head, pseudo, settings)
+                tracker = DisplacementTracker(head)
+                sums = []
                 frames = session.frames(name)
                 stamps = session.timestamp_ns(name)
                 ids = session.frame_id(name)
@@ -143,6 +147,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                     rows["distance_mm"].append(result.distance_mm)
                     rows["gradient_volume"].append(result.gradient_volume)
                     rows["valid_pixels"].append(int(result.mask.sum()))
+                    sums.append(tracker.add(result.depth_mm, result.mask))
                     if window.newest in maps_at:
                         saved_index.append(window.newest)
                         saved_normals.append(result.normals.astype(np.float32))
@@ -164,9 +169,15 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 m.create_dataset("depth_mm", data=np.stack(saved_depth) if saved_depth
                                  else np.zeros(shape, np.float32), compression="gzip")
                 counts[name] = len(rows["frame_index"])
+                displacements[name] = HeadDisplacements(np.asarray(rows["timestamp_ns"], dtype=np.int64), sums)
                 distances[name] = float(np.nanmean(rows["distance_mm"])) if rows["distance_mm"] else float("nan")
+            metric = metric_volume(displacements, rig.baseline_mm) if all(counts.values()) else None
+            if metric is not None:
+                _write_metric_volume(out, metric, session)
             if volume_calibration is not None:
                 _write_regression_volume(out, names, volume_calibration)
+            elif metric is not None:
+                _write_volume(out, metric.timestamp_ns, metric.volume_l, METRIC_METHOD + metric.scale_from)
             parameters = out.create_group("parameters")
             _write_parameters(session_path, parameters, out)
     return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances)
@@ -226,21 +237,60 @@ def with_true_lights(session: SessionFile) -> RigCalibration:
 
 
 def _write_parameters(session_path: str | os.PathLike, parameters: h5py.Group, out: h5py.File) -> None:
-    """Pulmonary function values. Until the optical volume in litres lands they come from the flow
-    sensor, and the `source` attribute says so; a session without one gets an empty group."""
+    """Pulmonary function values: from the flow sensor where the session has one (the reference
+    instrument), else from /volume (the optical volume in litres); the `source` attribute says
+    which. The optical values are also kept as attributes of /volume, to stand beside the flow
+    sensor's."""
     from core.session_analysis import analyse_session
 
-    report = analyse_session(session_path)
-    if report.flow_sensor is None:
-        parameters.attrs["source"] = "none: no flow sensor, and no optical volume in litres yet"
+    optical = (out["volume/timestamp_ns"][:], out["volume/volume_l"][:]) if "volume" in out else None
+    report = analyse_session(session_path, optical_volume=optical)
+    if report.optical is not None:
+        for key, value in report.optical.parameters().items():
+            out["volume"].attrs[f"parameter_{key}"] = value
+    if report.flow_sensor is not None:
+        parameters.attrs["source"] = "flow sensor"
+        chosen = report.flow_sensor
+        t, volume = report.flow_volume
+        g = out.create_group("flow_sensor")
+        g.create_dataset("time_s", data=t)
+        g.create_dataset("volume_l", data=volume)
+    elif report.optical is not None:
+        parameters.attrs["source"] = f"optical: {out['volume'].attrs['method']}"
+        chosen = report.optical
+    else:
+        parameters.attrs["source"] = "none: no flow sensor and no optical volume in litres"
         return
-    parameters.attrs["source"] = "flow sensor"
-    for key, value in report.flow_sensor.parameters().items():
+    for key, value in chosen.parameters().items():
         parameters.attrs[key] = value
-    t, volume = report.flow_volume
-    g = out.create_group("flow_sensor")
-    g.create_dataset("time_s", data=t)
-    g.create_dataset("volume_l", data=volume)
+
+
+METRIC_METHOD = "metric: footprint-weighted displacement in the body frame, scale from the "
+
+
+def _write_volume(out: h5py.File, timestamp_ns: np.ndarray, volume_l: np.ndarray, method: str) -> h5py.Group:
+    g = out.create_group("volume")
+    g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
+    g.create_dataset("volume_l", data=np.asarray(volume_l, dtype=np.float64) - volume_l[0])
+    g.attrs["method"] = method
+    return g
+
+
+def _write_metric_volume(out: h5py.File, metric: MetricVolume, session: SessionFile) -> None:
+    """/metric_volume (an extension of the spec): the metric volume in total, per head and per trunk
+    quadrant, and the distance each head's sides were scaled to; as attributes, each quadrant's
+    share of quiet breathing and the thoraco-abdominal phase angle."""
+    g = out.create_group("metric_volume")
+    g.attrs["scale_from"] = metric.scale_from
+    for key, value in tidal_compartments(session, metric).items():
+        g.attrs[key] = value
+    g.create_dataset("timestamp_ns", data=np.asarray(metric.timestamp_ns, dtype=np.int64))
+    g.create_dataset("volume_l", data=metric.volume_l - metric.volume_l[0])
+    for name, values in metric.heads.items():
+        g.create_dataset(f"heads/{name}/volume_l", data=values - values[0])
+        g.create_dataset(f"heads/{name}/side_distance_mm", data=metric.side_distance_mm[name])
+    for name, values in metric.regions.items():
+        g.create_dataset(f"regions/{name}/volume_l", data=values - values[0])
 
 
 def _write_regression_volume(out: h5py.File, heads: list[str], calibration) -> None:
@@ -252,10 +302,7 @@ def _write_regression_volume(out: h5py.File, heads: list[str], calibration) -> N
 
     features = np.column_stack([sum(series("gradient_volume")), sum(series("valid_pixels")),
                                 np.mean(series("distance_mm"), axis=0)])
-    volume = calibration.volume_l(features)
-    g = out.create_group("volume")
-    g.create_dataset("timestamp_ns", data=t)
-    g.create_dataset("volume_l", data=volume - volume[0])
-    g.attrs["method"] = "thesis regression (eqs 5.1-5.3) on gradient volume, valid pixels and distance"
+    g = _write_volume(out, t, calibration.volume_l(features),
+                      "thesis regression (eqs 5.1-5.3) on gradient volume, valid pixels and distance")
     g.attrs["calibration_created"] = calibration.created
     g.attrs["calibration_sessions"] = ",".join(calibration.sessions)

@@ -1,4 +1,5 @@
-"""The pulmonary function values of a recorded session, from its flow sensor (and its truth)."""
+"""The pulmonary function values of a recorded session: from its flow sensor, from an optical volume
+curve when one is given (a results file's /volume), and from its truth (simulations)."""
 
 from __future__ import annotations
 
@@ -20,13 +21,17 @@ class SessionReport:
     references: dict[str, Reference]
     reference_problem: str | None
     flow_volume: tuple[np.ndarray, np.ndarray] | None  # (seconds from the first frame, litres)
+    optical: SessionValues | None = None
+    optical_volume: tuple[np.ndarray, np.ndarray] | None = None  # (seconds from the first frame, litres)
 
 
 def _events(session: SessionFile, start_ns: int) -> list[tuple[float, str]]:
     return sorted(((t - start_ns) / 1e9, label) for t, label in session.events())
 
 
-def analyse_session(path: str | os.PathLike, equations: str = "gli-global") -> SessionReport:
+def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
+                    optical_volume: tuple[np.ndarray, np.ndarray] | None = None) -> SessionReport:
+    """optical_volume: (timestamp_ns, litres) on the session's clock, e.g. a results file's /volume."""
     with SessionFile(path) as s:
         start = int(min(s.timestamp_ns(h)[0] for h in s.heads if s.n_frames(h)))
         events = _events(s, start)
@@ -58,6 +63,12 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global") -> S
             truth = s.truth()
             t = (np.asarray(truth["timestamp_ns"]) - start) / 1e9
             truth_values = analyse_volume(t, np.asarray(truth["volume_l"]), events, age)
+        optical_values, optical_curve = None, None
+        if optical_volume is not None:
+            t = (np.asarray(optical_volume[0], dtype=np.int64) - start) / 1e9
+            volume = np.asarray(optical_volume[1], dtype=float)
+            optical_values = analyse_volume(t, volume, events, age)
+            optical_curve = (t, volume)
         references: dict[str, Reference] = {}
         problem = None
         if s.subject is not None:
@@ -70,4 +81,5 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global") -> S
                                                       s.subject.height_cm, equations)
             except ReferenceUnavailable as exc:
                 problem = str(exc)
-    return SessionReport(flow_values, truth_values, references, problem, flow_volume)
+    return SessionReport(flow_values, truth_values, references, problem, flow_volume, optical_values,
+                         optical_curve)

@@ -1,18 +1,17 @@
-"""Volumes from height maps: the thesis' gradient volume and the metric volume in litres.
+"""Volumes from height maps: the thesis' gradient volume, and the building blocks of the metric volume.
 
-Metric volume of one head ("cap volume"): the volume between the torso's surface and the plane
-through its lateral silhouette edges, each pixel weighted by its footprint (Z / fx)(Z / fy).
-The plane moves with the body, so a rigid shift of the whole torso (sway, along the axis or
-sideways) leaves the cap volume as it is, while breathing, which lifts the chest and abdomen
-off their sides, changes it. The front and back caps add up to the volume change of the trunk
-(what moves the sides themselves, lateral expansion of the ribs, is not seen by either head).
+Metric volume of one head: each map is compared with a reference map of the same head in the
+body's own frame (resampled so the trunk silhouettes coincide), both referred to the depth of
+their own silhouette (the rim, where the ribs hinge), so a rigid shift of the whole torso (sway,
+along the axis or sideways) is not breathing; every pixel's displacement is weighted by its
+footprint (Z / fx)(Z / fy). What moves the rim itself is not seen: lateral expansion of the ribs
+widens the silhouette, and a rim that moves along the axis is taken for sway.
 
-The cap volume scales as the cube of the depth map's scale, so its distance must be right from
-frame to frame to a millimetre or so (about 30 mL per mm for an adult at 2 m). With both
-heads, the distance comes from the silhouettes: both heads see the same lateral edges, so
-their widths in pixels stand in the inverse ratio of the distances, D_f / D_b = W_b / W_f, and
-D_f + D_b is the baseline between the heads: a triangulation across the subject that lateral
-expansion cannot disturb (it widens both silhouettes alike).
+The result scales with the depth map's absolute scale times the relief above the rim (about
+10 L per head for an adult), so every map's scale is set afterwards from a distance that
+breathing does not move (core/metric_volume.py). With both heads it comes from the silhouettes:
+both see the same lateral edges, so their widths in pixels stand in the inverse ratio of the
+distances, D_f / D_b = W_b / W_f, and D_f + D_b is the baseline between the heads.
 """
 
 from __future__ import annotations
@@ -25,59 +24,10 @@ from scipy import ndimage
 from core.rig import Head
 
 
-@dataclass(frozen=True)
-class CapMeasure:
-    volume_l: float  # cap volume at the map's own scale
-    side_depth_mm: float  # depth of the silhouette plane on the optical axis
-    width_px: float  # mean silhouette width over the torso rows
-    rows: int
-
-
 def torso_rows(mask: np.ndarray, min_width_fraction: float = 0.6) -> np.ndarray:
     """Rows of the trunk: as wide as 60 % of the widest row or more (the neck and head are narrower)."""
     widths = mask.sum(axis=1)
     return np.nonzero(widths >= min_width_fraction * widths.max())[0] if widths.max() > 0 else np.zeros(0, int)
-
-
-def _silhouette_plane(depth_mm: np.ndarray, valid: np.ndarray, rows: np.ndarray,
-                      edge_px: int) -> tuple[np.ndarray, list[int]]:
-    """Plane z = c0 + c1 u + c2 v through the lateral silhouette edges of the trunk rows, and the
-    width of each row."""
-    xs, ys, zs, widths = [], [], [], []
-    for r in rows:
-        cols = np.nonzero(valid[r])[0]
-        left, right = cols[0], cols[-1]
-        widths.append(right - left + 1)
-        for c in np.unique(np.concatenate([cols[:edge_px], cols[-edge_px:]])):
-            xs.append(c)
-            ys.append(r)
-            zs.append(depth_mm[r, c])
-    a = np.column_stack([np.ones(len(xs)), xs, ys])
-    z = np.asarray(zs)
-    coefficients = np.linalg.lstsq(a, z, rcond=None)[0]
-    for _ in range(2):  # robust: drop edge points far from the plane (a hand, a fold)
-        residual = z - a @ coefficients
-        keep = np.abs(residual) < 3.0 * max(1.4826 * np.median(np.abs(residual)), 1.0)
-        coefficients = np.linalg.lstsq(a[keep], z[keep], rcond=None)[0]
-    return coefficients, widths
-
-
-def cap_measure(depth_mm: np.ndarray, mask: np.ndarray, head: Head, edge_px: int = 2) -> CapMeasure:
-    """Cap volume, silhouette plane and width of one height map."""
-    valid = mask & np.isfinite(depth_mm)
-    rows = torso_rows(valid)
-    if len(rows) < 5:
-        return CapMeasure(float("nan"), float("nan"), float("nan"), 0)
-    coefficients, widths = _silhouette_plane(depth_mm, valid, rows, edge_px)
-    region = np.zeros_like(valid)
-    region[rows] = valid[rows]
-    r_idx, c_idx = np.nonzero(region)
-    plane = coefficients[0] + coefficients[1] * c_idx + coefficients[2] * r_idx
-    z_px = depth_mm[r_idx, c_idx]
-    footprint = (z_px / head.fx) * (z_px / head.fy)
-    volume = float(np.sum((plane - z_px) * footprint)) * 1e-6
-    side_depth = float(coefficients[0] + coefficients[1] * head.cx + coefficients[2] * head.cy)
-    return CapMeasure(volume, side_depth, float(np.mean(widths)), len(rows))
 
 
 def side_depth_mm(depth_mm: np.ndarray, mask: np.ndarray, edge_px: int = 2) -> float:
@@ -99,6 +49,25 @@ def _silhouette_centre_px(mask: np.ndarray) -> tuple[float, float]:
     return float(np.mean(centres)), 0.5 * float(rows[0] + rows[-1])
 
 
+def _aligned_depth(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: np.ndarray, mask_b: np.ndarray,
+                   head: Head, ratio: float | None = None) -> tuple[np.ndarray, float, float]:
+    """Map a resampled onto map b's pixels through the similarity (scale about the principal point
+    and shift) that carries b's trunk silhouette onto a's; with the side depths of a and b.
+    ratio: a's image size over b's (default: from the side depths, as image size goes as 1 / distance)."""
+    side_a, side_b = side_depth_mm(depth_a, mask_a), side_depth_mm(depth_b, mask_b)
+    (ua, va), (ub, vb) = _silhouette_centre_px(mask_a), _silhouette_centre_px(mask_b)
+    if not all(np.isfinite([side_a, side_b, ua, ub])):
+        return np.full(depth_b.shape, np.nan), side_a, side_b
+    ratio = side_b / side_a if ratio is None else ratio
+    v, u = np.mgrid[0:depth_b.shape[0], 0:depth_b.shape[1]].astype(float)
+    u_a = head.cx + (u - head.cx) * ratio + (ua - head.cx - (ub - head.cx) * ratio)
+    v_a = head.cy + (v - head.cy) * ratio + (va - head.cy - (vb - head.cy) * ratio)
+    valid = mask_a & np.isfinite(depth_a)
+    z = ndimage.map_coordinates(np.where(valid, depth_a, 0.0), [v_a, u_a], order=1, cval=0.0)
+    weight = ndimage.map_coordinates(valid.astype(float), [v_a, u_a], order=1, cval=0.0)
+    return np.where(weight > 0.99, z / np.maximum(weight, 1e-9), np.nan), side_a, side_b
+
+
 def body_aligned_displacement(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: np.ndarray, mask_b: np.ndarray,
                               head: Head) -> np.ndarray:
     """How far each point of the trunk moved towards the camera from map b to map a, on map b's
@@ -110,22 +79,127 @@ def body_aligned_displacement(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: 
     shift) that carries b's trunk silhouette onto a's, and brought to b's distance by the depth of
     the sides (side_depth_mm).
     """
-    side_a, side_b = side_depth_mm(depth_a, mask_a), side_depth_mm(depth_b, mask_b)
-    (ua, va), (ub, vb) = _silhouette_centre_px(mask_a), _silhouette_centre_px(mask_b)
+    z_a, side_a, side_b = _aligned_depth(depth_a, mask_a, depth_b, mask_b, head)
     out = np.full(depth_b.shape, np.nan)
-    if not all(np.isfinite([side_a, side_b, ua, ub])):
-        return out
-    ratio = side_b / side_a  # image size goes as 1 / distance
-    v, u = np.mgrid[0:depth_b.shape[0], 0:depth_b.shape[1]].astype(float)
-    u_a = head.cx + (u - head.cx) * ratio + (ua - head.cx - (ub - head.cx) * ratio)
-    v_a = head.cy + (v - head.cy) * ratio + (va - head.cy - (vb - head.cy) * ratio)
-    valid = mask_a & np.isfinite(depth_a)
-    z = ndimage.map_coordinates(np.where(valid, depth_a, 0.0), [v_a, u_a], order=1, cval=0.0)
-    weight = ndimage.map_coordinates(valid.astype(float), [v_a, u_a], order=1, cval=0.0)
-    z_a = np.where(weight > 0.99, z / np.maximum(weight, 1e-9), np.nan) + (side_b - side_a)
-    inside = mask_b & np.isfinite(depth_b)
-    out[inside] = depth_b[inside] - z_a[inside]
+    inside = mask_b & np.isfinite(depth_b) & np.isfinite(z_a)
+    out[inside] = depth_b[inside] - (z_a[inside] + side_b - side_a)
     return out
+
+
+def trunk_regions(mask: np.ndarray, head_name: str) -> dict[str, np.ndarray]:
+    """The trunk's quadrants on a map's pixels: the upper and lower half of the trunk rows (chest and
+    abdomen), split at the silhouette's mean column (the midline). The front head sees the
+    patient's left on the image's right, the back head on the image's left. Empty if the map
+    shows no trunk."""
+    rows = torso_rows(mask)
+    if len(rows) < 4:
+        return {}
+    mid_row = int(rows[len(rows) // 2])
+    mid_col = int(np.round(np.nonzero(mask[rows])[1].mean()))
+    image_right, image_left = ("left", "right") if head_name == "front" else ("right", "left")
+    upper = np.zeros(mask.shape, bool)
+    upper[rows[0]:mid_row] = True
+    lower = np.zeros(mask.shape, bool)
+    lower[mid_row:rows[-1] + 1] = True
+    left_columns = np.zeros(mask.shape, bool)
+    left_columns[:, :mid_col] = True
+    return {f"upper {image_left}": mask & upper & left_columns, f"upper {image_right}": mask & upper & ~left_columns,
+            f"lower {image_left}": mask & lower & left_columns, f"lower {image_right}": mask & lower & ~left_columns}
+
+
+REGIONS = ("upper left", "upper right", "lower left", "lower right")
+
+
+@dataclass(frozen=True)
+class DisplacementSums:
+    """One map against the reference map of its head, in footprint-weighted sums (mm^3) over the
+    pixels both show, per region ("all" is every such pixel, the neck and shoulders included):
+    reference = sum fp (Z_ref - rim_ref), current = sum fp (z - rim) with z the current map
+    resampled into the reference's body frame and rim each map's silhouette depth (rim_depths). Kept apart so the two maps' scales can be set
+    afterwards (metric_head_volume_l)."""
+
+    side_mm: float  # depth of the trunk's silhouette (rim_depths), at the map's own scale
+    width_px: float
+    reference: dict[str, float]
+    current: dict[str, float]
+
+
+def rim_depths(depth_a: np.ndarray, depth_b: np.ndarray, mask: np.ndarray, band_px: int) -> tuple[float, float]:
+    """Depths of two aligned maps at the trunk's silhouette (the rim), extrapolated from the band of
+    `band_px` pixels inside it on both sides of every trunk row: a straight line through each map's
+    mean depth at 0, 1, ... band_px - 1 pixels from the edge, taken half a pixel outside.
+
+    A straight line, because breathing moves the trunk less the nearer a point is to its sides (the
+    ribs hinge there), about in proportion to the distance from the rim: the band's own movement
+    would otherwise be taken for sway and lost from the volume. The fit is linear in the depths, so
+    the rim of a difference is the difference of the rims."""
+    sums_a, sums_b, counts = np.zeros(band_px), np.zeros(band_px), np.zeros(band_px)
+    for r in torso_rows(mask):
+        cols = np.nonzero(mask[r])[0]
+        n = min(band_px, len(cols) // 2)
+        for edge in (cols[:n], cols[::-1][:n]):
+            sums_a[:n] += depth_a[r, edge]
+            sums_b[:n] += depth_b[r, edge]
+            counts[:n] += 1
+    used = counts > 0
+    if used.sum() < 2:
+        return float("nan"), float("nan")
+    j = np.arange(band_px)[used]
+    at_rim = [np.polyval(np.polyfit(j, sums[used] / counts[used], 1), -0.5) for sums in (sums_a, sums_b)]
+    return float(at_rim[0]), float(at_rim[1])
+
+
+class DisplacementTracker:
+    """A head's metric volume, map by map: the first map with a trunk becomes the reference."""
+
+    def __init__(self, head: Head, rim_band_px: int = 12) -> None:
+        self.head = head
+        self.rim_band_px = rim_band_px
+        self._reference: tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]] | None = None
+
+    def add(self, depth_mm: np.ndarray, mask: np.ndarray) -> DisplacementSums:
+        valid = mask & np.isfinite(depth_mm)
+        rows = torso_rows(valid)
+        width = float(np.mean(valid[rows].sum(axis=1))) if len(rows) else float("nan")
+        if self._reference is None:
+            regions = trunk_regions(valid, self.head.name)
+            if not regions:
+                return DisplacementSums(float("nan"), width, {}, {})
+            footprint = (depth_mm / self.head.fx) * (depth_mm / self.head.fy)
+            self._reference = (np.where(valid, depth_mm, np.nan), valid, footprint, regions)
+            self._reference_width = width
+        ref_depth, ref_mask, footprint, regions = self._reference
+        # the silhouette's width gives the image scale more steadily than the photometric distance
+        z, _, _ = _aligned_depth(depth_mm, valid, ref_depth, ref_mask, self.head, width / self._reference_width)
+        both = ref_mask & np.isfinite(z)
+        rim_ref, rim = rim_depths(ref_depth, z, both, self.rim_band_px)
+        reference = np.where(both, footprint * (ref_depth - rim_ref), 0.0)
+        current = np.where(both, footprint * (z - rim), 0.0)
+        parts = dict(regions, all=ref_mask)
+        return DisplacementSums(rim, width, {k: float(reference[m].sum()) for k, m in parts.items()},
+                                {k: float(current[m].sum()) for k, m in parts.items()})
+
+
+def metric_head_volume_l(reference: np.ndarray, current: np.ndarray, side_mm: np.ndarray,
+                         side_target_mm: np.ndarray) -> np.ndarray:
+    """Volume (L) a head saw the trunk gain since its reference map, from the DisplacementSums
+    series, with each map scaled so that its sides lie at side_target_mm (the reference map is
+    the first): V = k0^2 (k0 C - k S), k = target / side (the footprint goes as the reference's
+    scale squared, depths as each map's own)."""
+    k = np.asarray(side_target_mm) / np.asarray(side_mm)
+    k0 = k[np.flatnonzero(np.isfinite(k))[0]] if np.isfinite(k).any() else np.nan
+    return k0 ** 2 * (k0 * np.asarray(reference) - k * np.asarray(current)) * 1e-6
+
+
+def smooth_in_time(t_s: np.ndarray, values: np.ndarray, sigma_s: float) -> np.ndarray:
+    """Gaussian smoothing of a series on (nearly) even time steps; NaNs bridged by interpolation."""
+    t, x = np.asarray(t_s, float), np.asarray(values, float)
+    good = np.isfinite(x)
+    if good.sum() < 2:
+        return x.copy()
+    x = np.interp(t, t[good], x[good])
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    return ndimage.gaussian_filter1d(x, sigma_s / step, mode="nearest") if step > 0 else x
 
 
 def two_head_distances(width_front_px: np.ndarray, width_back_px: np.ndarray, baseline_mm: float,
@@ -134,11 +208,6 @@ def two_head_distances(width_front_px: np.ndarray, width_back_px: np.ndarray, ba
     ratio = np.asarray(width_front_px) / np.asarray(width_back_px)
     front = baseline_mm / (1.0 + ratio)
     return front, baseline_mm - front
-
-
-def rescaled_cap(volume_l: np.ndarray, side_depth_mm: np.ndarray, distance_mm: np.ndarray) -> np.ndarray:
-    """Cap volume after scaling the map so its silhouette plane lies at `distance_mm` (volume ~ scale^3)."""
-    return np.asarray(volume_l) * (np.asarray(distance_mm) / np.asarray(side_depth_mm)) ** 3
 
 
 def normalised_gradient_volume(values: np.ndarray) -> np.ndarray:

@@ -1,0 +1,122 @@
+"""The metric optical volume: litres from the height maps of one or both heads, without a training step.
+
+Each head's maps are compared with its first map in the body's own frame (core/volume.py,
+DisplacementTracker): the current map is resampled so its trunk silhouette lies on the
+reference's, both are referred to the depth of their own sides (so a rigid shift along the axis
+is not breathing), and the displacement of every pixel, weighted by its metric footprint
+(Z / fx)(Z / fy), adds up to the volume the trunk gained on that head's side.
+
+The depth map's absolute scale is the weak point: the surface's relief above its sides (about
+10 L per head for an adult) scales with it, so a map 1 % too far reads 0.1 L too much. The
+scale of every map is therefore set from a distance that does not follow breathing:
+- two heads: the silhouette widths and the baseline (D_f / D_b = W_b / W_f, D_f + D_b = baseline;
+  lateral expansion widens both silhouettes alike), smoothed over WIDTH_SMOOTHING_S;
+- one head: the side depth of the maps themselves, smoothed over SIDE_SMOOTHING_S.
+Measured limits on simulated subjects: docs/volume.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.analysis import tidal_stretches, tidal_values, tidal_windows
+from core.compartments import compartment_shares, phase_angle_deg
+from core.volume import REGIONS, DisplacementSums, metric_head_volume_l, smooth_in_time, two_head_distances
+
+WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of silhouette width is 4 mm of distance
+SIDE_SMOOTHING_S = 3.0
+VOLUME_SMOOTHING_S = 0.03  # the maps' own noise; a forced expiration's volume curve has little above 5 Hz
+
+
+@dataclass
+class HeadDisplacements:
+    timestamp_ns: np.ndarray
+    sums: list[DisplacementSums]
+
+    def series(self, key: str, region: str) -> np.ndarray:
+        return np.array([getattr(s, key).get(region, np.nan) for s in self.sums], dtype=float)
+
+    @property
+    def side_mm(self) -> np.ndarray:
+        return np.array([s.side_mm for s in self.sums], dtype=float)
+
+    @property
+    def width_px(self) -> np.ndarray:
+        return np.array([s.width_px for s in self.sums], dtype=float)
+
+
+@dataclass
+class MetricVolume:
+    timestamp_ns: np.ndarray  # the first head's map times
+    volume_l: np.ndarray  # both heads, since the first map (positive = inhaled)
+    heads: dict[str, np.ndarray]  # each head's part, on timestamp_ns
+    regions: dict[str, np.ndarray]  # each trunk quadrant over the heads (REGIONS), on timestamp_ns
+    side_distance_mm: dict[str, np.ndarray]  # the distance each head's sides were scaled to
+    scale_from: str
+
+
+def side_targets(heads: dict[str, HeadDisplacements], baseline_mm: float | None) -> tuple[dict[str, np.ndarray], str]:
+    """The distance each map's sides are scaled to, on each head's own times."""
+    names = list(heads)
+    if len(names) == 2 and baseline_mm:
+        front, back = heads[names[0]], heads[names[1]]
+        t = front.timestamp_ns.astype(float) / 1e9
+        back_width = np.interp(t, back.timestamp_ns.astype(float) / 1e9, _bridged(back.width_px))
+        d_front, _ = two_head_distances(_bridged(front.width_px), back_width, baseline_mm)
+        d_front = smooth_in_time(t, d_front, WIDTH_SMOOTHING_S)
+        d_back = np.interp(back.timestamp_ns.astype(float) / 1e9, t, baseline_mm - d_front)
+        return {names[0]: d_front, names[1]: d_back}, "silhouette widths and the baseline"
+    return ({n: smooth_in_time(h.timestamp_ns.astype(float) / 1e9, h.side_mm, SIDE_SMOOTHING_S)
+             for n, h in heads.items()}, "each head's side depth, smoothed")
+
+
+def _bridged(x: np.ndarray) -> np.ndarray:
+    good = np.isfinite(x)
+    if not good.any():
+        return x
+    i = np.arange(len(x))
+    return np.interp(i, i[good], x[good])
+
+
+def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None) -> MetricVolume:
+    """Both heads' volumes on the first head's times, their sum and the regions' sums."""
+    targets, scale_from = side_targets(heads, baseline_mm)
+    t = next(iter(heads.values())).timestamp_ns
+    per_head, regions = {}, {r: np.zeros(len(t)) for r in REGIONS}
+    for name, h in heads.items():
+        side, target = h.side_mm, targets[name]
+
+        def on_t(values: np.ndarray) -> np.ndarray:
+            return np.interp(t.astype(float), h.timestamp_ns.astype(float), _bridged(values))
+
+        per_head[name] = on_t(metric_head_volume_l(h.series("reference", "all"), h.series("current", "all"),
+                                                   side, target))
+        for r in REGIONS:
+            regions[r] += on_t(metric_head_volume_l(h.series("reference", r), h.series("current", r), side, target))
+    seconds = t.astype(float) / 1e9
+
+    def smooth(values: np.ndarray) -> np.ndarray:
+        return smooth_in_time(seconds, values, VOLUME_SMOOTHING_S)
+
+    per_head = {name: smooth(v) for name, v in per_head.items()}
+    return MetricVolume(t, sum(per_head.values()), per_head, {r: smooth(v) for r, v in regions.items()},
+                        targets, scale_from)
+
+
+def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
+    """Each quadrant's share of quiet breathing (`share_upper_left` ...) and the thoraco-abdominal
+    phase angle (`phase_angle_deg`, upper against lower half of the trunk) of a session
+    (core.session.SessionFile) over its stretches of quiet breathing."""
+    t = (metric.timestamp_ns - metric.timestamp_ns[0]) / 1e9
+    start = int(metric.timestamp_ns[0])
+    events = sorted(((ts - start) / 1e9, label) for ts, label in session.events())
+    windows = tidal_windows(events, float(t[-1]))
+    out = {f"share_{k.replace(' ', '_')}": v for k, v in compartment_shares(t, metric.regions, windows).items()}
+    tidal = tidal_values(tidal_stretches(t, metric.volume_l, events))
+    if tidal is not None:
+        chest = metric.regions["upper left"] + metric.regions["upper right"]
+        abdomen = metric.regions["lower left"] + metric.regions["lower right"]
+        out["phase_angle_deg"] = phase_angle_deg(t, chest, abdomen, windows, 60.0 / tidal.respiratory_rate_bpm)
+    return out

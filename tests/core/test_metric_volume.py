@@ -1,0 +1,83 @@
+"""The metric optical volume on constructed geometry: a dome-shaped trunk that bulges by a known
+volume, seen again after it swayed along the axis and sideways, and with a wrong absolute scale."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.metric_volume import HeadDisplacements, metric_volume
+from core.rig import thesis_head
+from core.volume import DisplacementTracker, metric_head_volume_l
+
+RIM_MM = 2000.0
+SEMI_AXES_MM = (200.0, 250.0)
+DOME_MM = 80.0
+BULGE_MM = 10.0
+BULGE_VOLUME_L = BULGE_MM * np.pi * SEMI_AXES_MM[0] * SEMI_AXES_MM[1] / 2.0 * 1e-6  # integral of (1 - r^2)
+
+
+def _trunk_map(head, bulge_mm: float, shift_mm=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """Depth seen by `head` of the surface Z = rim + sz - (dome + bulge)(1 - r^2), r^2 over an
+    ellipse in body coordinates (X - sx, Y - sy), found by fixed-point iteration along each ray."""
+    u = (np.arange(head.width) - head.cx) / head.fx
+    v = (np.arange(head.height) - head.cy) / head.fy
+    u, v = np.meshgrid(u, v)
+    sx, sy, sz = shift_mm
+    z = np.full(u.shape, RIM_MM + sz)
+    for _ in range(30):
+        r2 = ((u * z - sx) / SEMI_AXES_MM[0]) ** 2 + ((v * z - sy) / SEMI_AXES_MM[1]) ** 2
+        z = RIM_MM + sz - (DOME_MM + bulge_mm) * np.clip(1.0 - r2, 0.0, None)
+    mask = r2 < 1.0
+    return np.where(mask, z, np.nan), mask
+
+
+def _volume_l(head, current: tuple[np.ndarray, np.ndarray], rim_mm: float, scale: float = 1.0) -> float:
+    tracker = DisplacementTracker(head)
+    first = tracker.add(*_trunk_map(head, 0.0))
+    depth, mask = current
+    second = tracker.add(depth * scale, mask)
+    sums = [first, second]
+    volume = metric_head_volume_l(np.array([s.reference["all"] for s in sums]),
+                                  np.array([s.current["all"] for s in sums]),
+                                  np.array([s.side_mm for s in sums]), np.array([RIM_MM, rim_mm]))
+    return float(volume[1] - volume[0])
+
+
+def test_a_bulge_of_known_volume_is_measured_in_litres():
+    head = thesis_head("front", scale=0.25)
+    assert _volume_l(head, _trunk_map(head, BULGE_MM), RIM_MM) == pytest.approx(BULGE_VOLUME_L, rel=0.03)
+    assert abs(_volume_l(head, _trunk_map(head, 0.0), RIM_MM)) < 0.002
+
+
+def test_sway_along_the_axis_and_sideways_is_not_breathing():
+    head = thesis_head("front", scale=0.25)
+    swayed = _trunk_map(head, BULGE_MM, (15.0, -5.0, 40.0))
+    assert _volume_l(head, swayed, RIM_MM + 40.0) == pytest.approx(BULGE_VOLUME_L, rel=0.03)
+    # what is left of 40 mm along the axis and 15 mm sideways: the resampling near the silhouette
+    assert abs(_volume_l(head, _trunk_map(head, 0.0, (15.0, -5.0, 40.0)), RIM_MM + 40.0)) < 0.03
+
+
+def test_a_map_at_the_wrong_absolute_scale_is_brought_to_the_silhouette_distance():
+    """The photometric distance of one map may be 10 mm out; the scale comes from the rim's target."""
+    head = thesis_head("front", scale=0.25)
+    measured = _volume_l(head, _trunk_map(head, BULGE_MM), RIM_MM, scale=1.005)
+    assert measured == pytest.approx(BULGE_VOLUME_L, rel=0.03)
+
+
+def test_two_heads_take_their_distances_from_the_silhouette_widths():
+    front, back = thesis_head("front", scale=0.25), thesis_head("back", scale=0.25)
+    baseline = 2 * RIM_MM
+    heads = {}
+    for head in (front, back):
+        tracker = DisplacementTracker(head)
+        maps = [_trunk_map(head, 0.0), _trunk_map(head, BULGE_MM)]
+        sums = [tracker.add(depth * scale, mask) for (depth, mask), scale in zip(maps, (1.004, 0.996))]
+        heads[head.name] = HeadDisplacements(np.array([0, 1_000_000_000], dtype=np.int64), sums)
+    result = metric_volume(heads, baseline)
+    assert result.side_distance_mm["front"] == pytest.approx([RIM_MM, RIM_MM], abs=2.0)
+    gained = result.volume_l[1] - result.volume_l[0]
+    assert gained == pytest.approx(2 * BULGE_VOLUME_L, rel=0.03)
+    # the quadrants cover the trunk rows (60 % of the widest or more), not the narrow ends of the dome
+    in_quadrants = sum(r[1] - r[0] for r in result.regions.values())
+    assert 0.9 * gained < in_quadrants < gained
