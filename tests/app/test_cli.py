@@ -73,6 +73,11 @@ def test_every_verb_has_help(capsys):
 def test_demo_runs_end_to_end(tmp_path, capsys):
     assert main(["demo", "-o", str(tmp_path), "--seconds", "12", "--scale", "0.05"]) == 0
     out = capsys.readouterr().out
-    for text in ("valid", "reconstructed", "volume summary", "gradient volume", "key values", "TV"):
+    for text in ("valid", "reconstructed", "volume summary", "gradient volume", "metric optical volume",
+                 "key values", "TV"):
         assert text in out, text
     assert (tmp_path / "session.h5").exists() and (tmp_path / "results.h5").exists()
+    # the results file analysed: its session's flow sensor and truth, and the optical volume beside them
+    assert main(["analyze", str(tmp_path / "results.h5")]) == 0
+    header = next(line for line in capsys.readouterr().out.splitlines() if line.strip().startswith("value"))
+    assert "flow sensor" in header and "optical" in header and "truth" in header
