@@ -172,11 +172,11 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 displacements[name] = HeadDisplacements(np.asarray(rows["timestamp_ns"], dtype=np.int64), sums)
                 distances[name] = float(np.nanmean(rows["distance_mm"])) if rows["distance_mm"] else float("nan")
             metric = metric_volume(displacements, rig.baseline_mm) if all(counts.values()) else None
-            if metric is not None:
+            if metric is not None and np.isfinite(metric.volume_l).all():  # a trunk in every head's view
                 _write_metric_volume(out, metric, session)
             if volume_calibration is not None:
                 _write_regression_volume(out, names, volume_calibration)
-            elif metric is not None:
+            elif "metric_volume" in out:
                 _write_volume(out, metric.timestamp_ns, metric.volume_l, METRIC_METHOD + metric.scale_from)
             parameters = out.create_group("parameters")
             _write_parameters(session_path, parameters, out)

@@ -38,4 +38,6 @@ def run_gui_bench(scale: float, seconds: float, record: bool) -> str:
         + ", ".join(f"{h} {r:.0f}" for h, r in f.frames_per_s.items())
         + f" | {dropped} | {f.rss_mb[0]:.0f} -> {f.rss_mb[-1]:.0f} MB (peak {max(f.rss_mb):.0f}) |",
     ]
+    if len(f.rss_mb) > 8:  # sampled every 10 s: a leak grows steadily, a heap settling levels off
+        rows += ["", "memory each minute (MB): " + ", ".join(f"{m:.0f}" for m in f.rss_mb[::6])]
     return "\n".join(rows)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import gc
 import logging
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -105,12 +108,41 @@ def tune_process_for_live_view() -> None:
       now (modules, widgets, compiled functions) out of their reach; called again once the first
       maps are made.
 
+    - Every 10 s the C heap's free memory goes back to the system (malloc_trim): the frames and
+      maps freed by six threads otherwise stay with the process (3-minute recording at scale 0.5:
+      +110 MB without, +87 MB with it, the growth after the first minute 35 against 15 MB).
+
     (A fixed glibc mmap threshold, to return frames and maps to the system when freed, was
     tried and left out: every large temporary then page-faults, which halved the maps per second
     and stalled the GUI thread for 111 ms.)
     """
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     gc.freeze()
+    start_memory_trimmer()
+
+
+_trimmer: threading.Thread | None = None
+
+
+def start_memory_trimmer(interval_s: float = 10.0) -> None:
+    """Hand the memory the C heap holds free back to the system every `interval_s` (glibc's
+    malloc_trim; ctypes lets go of the GIL during the call, so nothing waits for it)."""
+    global _trimmer
+    if _trimmer is not None:
+        return
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return
+
+    def loop() -> None:
+        while True:
+            time.sleep(interval_s)
+            trim(0)
+
+    _trimmer = threading.Thread(target=loop, name="memory-trim", daemon=True)
+    _trimmer.start()
 
 
 
