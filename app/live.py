@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 
 from core.flow import btps_factor
+from core.metric_volume import LiveMetricVolume
 from core.pipeline import HeadReconstructor, ReconstructionSettings
 from core.rig import Rig
 from core.session import SessionFile, SubjectRecord
@@ -198,6 +199,8 @@ class Snapshot:
     dropped: int
     problems: list[str]
     elapsed_s: float
+    metric_t_s: np.ndarray
+    metric_volume_l: np.ndarray  # the metric optical volume (litres, both heads)
 
 
 class _Rate:
@@ -229,6 +232,8 @@ class LiveRig:
         n = int(WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length * 2) + 10
         self._optical = collections.deque(maxlen=n)
         self._gradient = {h: 0.0 for h in source.cameras}
+        self._metric = LiveMetricVolume({h: self.rig.heads[h] for h in source.cameras}, self.rig.baseline_mm)
+        self._metric_curve = collections.deque(maxlen=n)
         self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
         self._flow_state = {"volume": 0.0, "last_ns": None, "means": collections.deque(maxlen=3000), "sum": 0.0}
         self._problems: list[str] = []
@@ -457,6 +462,9 @@ class LiveRig:
                 continue
             depth = np.where(result.mask, result.depth_mm, np.nan)
             height = (np.nanmean(depth) - depth).astype(np.float32) if result.mask.any() else None
+            stamp = window[-1][0].timestamp_ns
+            t_s = (stamp - self._t0) / 1e9 if self._t0 is not None else None
+            litres = self._metric.add(head, t_s, result.depth_mm, result.mask) if t_s is not None else float("nan")
             view = self._views[head]
             with self._lock:
                 view.height_mm = height
@@ -464,9 +472,10 @@ class LiveRig:
                 view.frame_id = done_id
                 view.reconstructed += 1
                 self._gradient[head] = float(result.gradient_volume)
-                if head == next(iter(self.source.cameras)) and self._t0 is not None:
-                    stamp = window[-1][0].timestamp_ns
-                    self._optical.append(((stamp - self._t0) / 1e9, sum(self._gradient.values())))
+                if head == next(iter(self.source.cameras)) and t_s is not None:  # one clock for the curves
+                    self._optical.append((t_s, sum(self._gradient.values())))
+                    if np.isfinite(litres):
+                        self._metric_curve.append((t_s, litres))
 
     def _problem(self, message: str) -> None:
         log.warning(message)
@@ -484,13 +493,14 @@ class LiveRig:
                                     stats.lost + stats.failed, self._rates[h].per_s())
             optical = np.array(self._optical, dtype=float).reshape(-1, 2)
             flow = np.array(self._flow, dtype=float).reshape(-1, 2)
+            metric = np.array(self._metric_curve, dtype=float).reshape(-1, 2)
             recorder = self._recorder
             problems = list(self._problems) + (recorder.problems if recorder is not None else [])
         return Snapshot(heads, optical[:, 0], optical[:, 1], flow[:, 0], flow[:, 1],
                         recorder.path if recorder is not None else None,
                         recorder.frames_written() if recorder is not None else {},
                         recorder.dropped if recorder is not None else 0, problems,
-                        time.monotonic() - self._started)
+                        time.monotonic() - self._started, metric[:, 0], metric[:, 1])
 
     @property
     def replay_finished(self) -> bool:

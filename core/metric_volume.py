@@ -23,7 +23,11 @@ import numpy as np
 
 from core.analysis import tidal_stretches, tidal_values, tidal_windows
 from core.compartments import compartment_shares, phase_angle_deg
-from core.volume import REGIONS, DisplacementSums, metric_head_volume_l, smooth_in_time, two_head_distances
+import threading
+
+from core.rig import Head
+from core.volume import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l, metric_head_volume_l,
+                         smooth_in_time, two_head_distances)
 
 WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of silhouette width is 4 mm of distance
 SIDE_SMOOTHING_S = 3.0
@@ -120,3 +124,54 @@ def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
         abdomen = metric.regions["lower left"] + metric.regions["lower right"]
         out["phase_angle_deg"] = phase_angle_deg(t, chest, abdomen, windows, 60.0 / tidal.respiratory_rate_bpm)
     return out
+
+
+class LiveMetricVolume:
+    """The metric volume map by map, for the live view: causal, so each map's scale comes from the
+    silhouette widths seen so far (two heads) or the rim depth (one head), smoothed by an
+    exponential average with the time constants above. Each head's maps come from one thread;
+    `add` may be called from a thread per head."""
+
+    def __init__(self, heads: dict[str, Head], baseline_mm: float | None) -> None:
+        self._trackers = {name: DisplacementTracker(head) for name, head in heads.items()}
+        self._names = list(heads)
+        self._two_heads = len(heads) == 2 and bool(baseline_mm)
+        self._baseline = baseline_mm
+        self._lock = threading.Lock()
+        self._width: dict[str, float] = {}
+        self._target: dict[str, tuple[float, float]] = {}  # head -> (time s, smoothed distance)
+        self._k_reference: dict[str, float] = {}
+        self._reference_side: dict[str, float] = {}
+        self._volume = {name: 0.0 for name in heads}
+
+    def _smoothed(self, name: str, t_s: float, value: float, time_constant_s: float) -> float:
+        if name in self._target:
+            t_last, last = self._target[name]
+            weight = 1.0 - np.exp(-max(t_s - t_last, 0.0) / time_constant_s)
+            value = last + weight * (value - last)
+        self._target[name] = (t_s, value)
+        return value
+
+    def add(self, name: str, t_s: float, depth_mm: np.ndarray, mask: np.ndarray) -> float:
+        """Feed one head's map; the volume (L) both heads have seen since their first maps, or NaN
+        while a head has no trunk in view yet."""
+        sums = self._trackers[name].add(depth_mm, mask)
+        with self._lock:
+            if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
+                return float("nan")
+            self._width[name] = sums.width_px
+            reference_side = self._reference_side.setdefault(name, sums.side_mm)  # the first is the reference
+            if self._two_heads and len(self._width) == 2:
+                front, back = self._names
+                d_front, _ = two_head_distances(np.array([self._width[front]]), np.array([self._width[back]]),
+                                                self._baseline)
+                own = float(d_front[0]) if name == front else self._baseline - float(d_front[0])
+                target = self._smoothed(name, t_s, own, WIDTH_SMOOTHING_S)
+            elif self._two_heads:
+                return float("nan")
+            else:
+                target = self._smoothed(name, t_s, sums.side_mm, SIDE_SMOOTHING_S)
+            k = target / sums.side_mm
+            k_reference = self._k_reference.setdefault(name, target / reference_side)
+            self._volume[name] = float(head_volume_l(sums.reference["all"], sums.current["all"], k_reference, k))
+            return sum(self._volume.values()) if len(self._k_reference) == len(self._names) else float("nan")

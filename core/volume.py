@@ -180,15 +180,21 @@ class DisplacementTracker:
                                 {k: float(current[m].sum()) for k, m in parts.items()})
 
 
+def head_volume_l(reference, current, k_reference, k):
+    """Volume (L) from DisplacementSums (mm^3) with the reference map scaled by k_reference and the
+    current one by k: V = k0^2 (k0 C - k S) (the footprint goes as the reference's scale squared,
+    depths as each map's own)."""
+    return k_reference ** 2 * (k_reference * np.asarray(reference) - np.asarray(k) * np.asarray(current)) * 1e-6
+
+
 def metric_head_volume_l(reference: np.ndarray, current: np.ndarray, side_mm: np.ndarray,
                          side_target_mm: np.ndarray) -> np.ndarray:
     """Volume (L) a head saw the trunk gain since its reference map, from the DisplacementSums
-    series, with each map scaled so that its sides lie at side_target_mm (the reference map is
-    the first): V = k0^2 (k0 C - k S), k = target / side (the footprint goes as the reference's
-    scale squared, depths as each map's own)."""
+    series, with each map scaled so that its rim lies at side_target_mm (the reference map is the
+    first): k = target / side."""
     k = np.asarray(side_target_mm) / np.asarray(side_mm)
     k0 = k[np.flatnonzero(np.isfinite(k))[0]] if np.isfinite(k).any() else np.nan
-    return k0 ** 2 * (k0 * np.asarray(reference) - k * np.asarray(current)) * 1e-6
+    return head_volume_l(reference, current, k0, k)
 
 
 def smooth_in_time(t_s: np.ndarray, values: np.ndarray, sigma_s: float) -> np.ndarray:

@@ -53,7 +53,8 @@ class HeadMapView(pg.GraphicsLayoutWidget):
 
 
 class VolumeView(pg.GraphicsLayoutWidget):
-    """The volume curve (litres, last 30 s): the flow sensor, and the optical trace under it."""
+    """The volume curve (litres, last 30 s): the flow sensor and the metric optical volume, and the
+    gradient volume (relative) under them."""
 
     def __init__(self, parent=None) -> None:
         super().__init__(parent)
@@ -68,6 +69,7 @@ class VolumeView(pg.GraphicsLayoutWidget):
         # 3000 points a curve in a few hundred pixels: draw each pixel column's extremes only
         self.flow_curve.setDownsampling(auto=True, method="peak")
         self.flow_curve.setClipToView(True)
+        self.metric_curve = self.litres.plot(pen=pg.mkPen((200, 80, 20), width=2), name="optical (metric)")
         self.nextRow()
         self.relative = self.addPlot(title="Optical: gradient volume (thesis eq. 3.27, relative)")
         self.relative.setLabel("bottom", "time", units="s")
@@ -81,13 +83,15 @@ class VolumeView(pg.GraphicsLayoutWidget):
     def show_curves(self, s: Snapshot) -> None:
         end = max(s.flow_t_s[-1] if len(s.flow_t_s) else 0.0, s.optical_t_s[-1] if len(s.optical_t_s) else 0.0)
         start = end - WINDOW_S
-        if len(s.flow_t_s) > 2:
-            keep = s.flow_t_s >= start
-            t, v = s.flow_t_s[keep], s.flow_volume_l[keep]
-            # display only: the line through the window's ends taken out, so a zero drift of the
-            # sensor does not carry the curve off the plot (the report removes drift properly)
-            trend = np.polyfit(t, v, 1) if len(t) > 100 else (0.0, float(np.median(v)))
-            self.flow_curve.setData(t, v - np.polyval(trend, t))
+        for curve, t_all, v_all in ((self.flow_curve, s.flow_t_s, s.flow_volume_l),
+                                    (self.metric_curve, s.metric_t_s, s.metric_volume_l)):
+            if len(t_all) > 2:
+                keep = t_all >= start
+                t, v = t_all[keep], v_all[keep]
+                # display only: the line through the window's ends taken out, so a zero drift of the
+                # sensor (or the optical volume's slow offsets) does not carry the curve off the plot
+                trend = np.polyfit(t, v, 1) if len(t) > 100 else (0.0, float(np.median(v)))
+                curve.setData(t, v - np.polyval(trend, t))
         if len(s.optical_t_s) > 5:
             keep = s.optical_t_s >= start
             keep[:3] = False  # the first maps, before the distance is tracked

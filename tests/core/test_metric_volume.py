@@ -108,3 +108,18 @@ def test_process_writes_the_metric_volume_and_uses_it_without_a_flow_sensor(tmp_
         assert np.isfinite(metric.attrs["phase_angle_deg"])
         shares = [metric.attrs[f"share_{k}"] for k in ("upper_left", "upper_right", "lower_left", "lower_right")]
         assert sum(shares) == pytest.approx(1.0, abs=1e-6) and min(shares) > 0.05
+
+
+def test_the_live_volume_follows_the_maps_as_they_come():
+    """Causal, map by map: NaN until each head has had a map scaled by both silhouette widths; then the
+    bulge's volume once both heads have seen it."""
+    from core.metric_volume import LiveMetricVolume
+
+    front, back = thesis_head("front", scale=0.25), thesis_head("back", scale=0.25)
+    live = LiveMetricVolume({"front": front, "back": back}, 2 * RIM_MM)
+    assert np.isnan(live.add("front", 0.0, *_trunk_map(front, 0.0)))
+    assert np.isnan(live.add("back", 0.0, *_trunk_map(back, 0.0)))  # the front not yet scaled by both widths
+    assert live.add("front", 0.1, *_trunk_map(front, 0.0)) == pytest.approx(0.0, abs=1e-3)
+    live.add("front", 1.0, *_trunk_map(front, BULGE_MM))
+    both = live.add("back", 1.0, *_trunk_map(back, BULGE_MM))
+    assert both == pytest.approx(2 * BULGE_VOLUME_L, rel=0.03)
