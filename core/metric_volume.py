@@ -2,29 +2,29 @@
 
 Each head's maps are compared with its first map in the body's own frame (core/volume.py,
 DisplacementTracker): the current map is resampled so its trunk silhouette lies on the
-reference's, both are referred to the depth of their own sides (so a rigid shift along the axis
+reference's, both are referred to the depth of their own rim (so a rigid shift along the axis
 is not breathing), and the displacement of every pixel, weighted by its metric footprint
 (Z / fx)(Z / fy), adds up to the volume the trunk gained on that head's side.
 
-The depth map's absolute scale is the weak point: the surface's relief above its sides (about
-10 L per head for an adult) scales with it, so a map 1 % too far reads 0.1 L too much. The
+The depth map's absolute scale is the weak point: the surface's relief above its rim (10-25 L per
+head for an adult, the neck and shoulders included) scales with it, so a map 1 % too far reads
+0.1-0.25 L too much. The
 scale of every map is therefore set from a distance that does not follow breathing:
 - two heads: the silhouette widths and the baseline (D_f / D_b = W_b / W_f, D_f + D_b = baseline;
   lateral expansion widens both silhouettes alike), smoothed over WIDTH_SMOOTHING_S;
-- one head: the side depth of the maps themselves, smoothed over SIDE_SMOOTHING_S.
+- one head: the rim depth of the maps themselves, smoothed over SIDE_SMOOTHING_S.
 Measured limits on simulated subjects: docs/volume.md.
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
 from core.analysis import tidal_stretches, tidal_values, tidal_windows
 from core.compartments import compartment_shares, phase_angle_deg
-import threading
-
 from core.rig import Head
 from core.volume import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l, metric_head_volume_l,
                          smooth_in_time, two_head_distances)
