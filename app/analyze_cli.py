@@ -59,22 +59,16 @@ ROWS = (("TV_l", "TV", "L"), ("RR_bpm", "RR", "/min"), ("VE_lpm", "VE", "L/min")
 REFERENCE_OF = {"FVC_l": "FVC", "FEV1_l": "FEV1", "FEV1_FVC": "FEV1_FVC", "FEF2575_lps": "FEF2575"}
 
 
-def _optical_volume(results) -> tuple | None:
-    import h5py
-
-    with h5py.File(results, "r") as f:
-        return (f["volume/timestamp_ns"][:], f["volume/volume_l"][:]) if "volume" in f else None
-
-
 def run_analyze_session(args: argparse.Namespace) -> int:
     """A session file (flow sensor and truth), or a results file (its session, and its optical volume)."""
     from app.report_data import open_inputs
+    from core.process import optical_volume
     from core.session import SessionError
     from core.session_analysis import analyse_session
 
     try:
         session, results = open_inputs(args.session)
-        optical = _optical_volume(results) if results is not None else None
+        optical = optical_volume(results) if results is not None else None
         report = analyse_session(session, args.equations, optical_volume=optical)
     except (SessionError, ValueError, OSError, KeyError) as exc:
         raise UserError(f"{args.session}: {exc}") from exc

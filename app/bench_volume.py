@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 from core.pipeline import ReconstructionSettings
-from core.process import process_session
+from core.process import optical_volume, process_session
 from core.session import SessionFile
 from core.session_analysis import analyse_session
 from core.volume import gradient_volume_correlations
@@ -81,9 +81,7 @@ def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ..
                 f"{scale:g}", "--seed", str(scenario.seed), "--distance-mm", f"{scenario.distance_mm:g}",
                 "--distance-back-mm", f"{scenario.distance_mm:g}", "--sway-mm", f"{scenario.axial_sway_mm:g}"]))
             process_session(session, results, every=every, settings=ReconstructionSettings(track=True))
-            with h5py.File(results, "r") as r:
-                optical_volume = r["volume/timestamp_ns"][:], r["volume/volume_l"][:]
-            report = analyse_session(session, optical_volume=optical_volume)
+            report = analyse_session(session, optical_volume=optical_volume(results))
             truth = report.truth.parameters()
             flow = report.flow_sensor.parameters() if report.flow_sensor is not None else {}
             rows.append((scenario, truth, flow, report.optical.parameters(), _gradient_correlations(session, results),

@@ -9,7 +9,7 @@ import h5py
 import numpy as np
 
 from core.pipeline import ReconstructionSettings
-from core.process import process_session
+from core.process import optical_volume, process_session
 from core.session import SessionFile, validate_session
 from core.session_analysis import analyse_session
 from core.volume import gradient_volume_correlations
@@ -52,11 +52,9 @@ def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) ->
 
 def volume_summary(path: Path, results: Path | None = None) -> str:
     lines = ["volume summary:"]
-    optical = None
+    optical = optical_volume(results) if results is not None else None
     if results is not None:
         with h5py.File(results, "r") as r:
-            if "volume" in r:
-                optical = r["volume/timestamp_ns"][:], r["volume/volume_l"][:]
             heads = [h for h in ("front", "back") if h in r["heads"]]
             series = {h: (r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/distance_mm"][:],
                           r[f"heads/{h}/gradient_volume"][:]) for h in heads}

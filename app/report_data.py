@@ -15,11 +15,11 @@ import numpy as np
 from app.records import Patient, Records
 from core.analysis import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.pipeline import ReconstructionSettings
-from core.process import RESULTS_FORMAT, maps_at, session_of_results
+from core.process import RESULTS_FORMAT, maps_at, optical_volume, session_of_results
 from core.reference import Reference
 from core.session import SessionError, SessionFile
 from core.session_analysis import analyse_session
-from core.volume import body_aligned_displacement, normalised_gradient_volume, torso_rows
+from core.volume import body_aligned_displacement, normalised_gradient_volume, torso_rows, trunk_regions
 
 OPTICAL = "optical"
 FLOW_SENSOR = "flow sensor"
@@ -130,11 +130,8 @@ def open_inputs(path: str | os.PathLike) -> tuple[Path, Path | None]:
 
 
 def _optical_curve(results: Path, start_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
-    with h5py.File(results, "r") as f:
-        if "volume" not in f:
-            return None
-        t = (f["volume/timestamp_ns"][:] - start_ns) / 1e9
-        return t, f["volume/volume_l"][:].astype(float)
+    volume = optical_volume(results)
+    return None if volume is None else ((volume[0] - start_ns) / 1e9, volume[1])
 
 
 def _gradient_correlation(results: Path, start_ns: int, t_flow: np.ndarray, v_flow: np.ndarray) -> dict[str, float]:
@@ -204,24 +201,11 @@ def _regions(head: str, displacement: np.ndarray, depth: np.ndarray, fx: float, 
     rows, split at the subject's midline). The front head sees the patient's left on the image's
     right; the back head their right."""
     mask = np.isfinite(displacement) & np.isfinite(depth)
-    rows = torso_rows(mask)
-    if len(rows) < 4:
+    parts = trunk_regions(mask, head)
+    if not parts:
         return {}
     footprint = (depth / fx) * (depth / fy)  # mm^2 per pixel
     volume = np.where(mask, displacement * footprint, 0.0)
-    mid_row = int(rows[len(rows) // 2])
-    columns = np.nonzero(mask[rows])[1]
-    mid_col = int(np.round(columns.mean())) if len(columns) else mask.shape[1] // 2
-    right_side = "left" if head == "front" else "right"
-    left_side = "right" if head == "front" else "left"
-    upper = np.zeros(mask.shape, bool)
-    upper[rows[0]:mid_row] = True
-    lower = np.zeros(mask.shape, bool)
-    lower[mid_row:rows[-1] + 1] = True
-    image_left = np.zeros(mask.shape, bool)
-    image_left[:, :mid_col] = True
-    parts = {f"upper {left_side}": upper & image_left, f"upper {right_side}": upper & ~image_left,
-             f"lower {left_side}": lower & image_left, f"lower {right_side}": lower & ~image_left}
     sums = {name: float(volume[region].sum()) for name, region in parts.items()}
     total = sum(sums.values())
     if not np.isfinite(total) or total <= 0.0:  # no net outward movement: within the alignment's error

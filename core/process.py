@@ -211,6 +211,12 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
     return out
 
 
+def optical_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
+    """A results file's /volume as (timestamp_ns, litres), or None if it has none."""
+    with h5py.File(results, "r") as f:
+        return (f["volume/timestamp_ns"][:], f["volume/volume_l"][:].astype(float)) if "volume" in f else None
+
+
 def session_of_results(results: str | os.PathLike) -> Path:
     """The session file a results file was made from: where it was, or beside the results file."""
     results = Path(results)
