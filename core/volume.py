@@ -49,23 +49,20 @@ def _silhouette_centre_px(mask: np.ndarray) -> tuple[float, float]:
     return float(np.mean(centres)), 0.5 * float(rows[0] + rows[-1])
 
 
-def _aligned_depth(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: np.ndarray, mask_b: np.ndarray,
-                   head: Head, ratio: float | None = None) -> tuple[np.ndarray, float, float]:
-    """Map a resampled onto map b's pixels through the similarity (scale about the principal point
-    and shift) that carries b's trunk silhouette onto a's; with the side depths of a and b.
-    ratio: a's image size over b's (default: from the side depths, as image size goes as 1 / distance)."""
-    side_a, side_b = side_depth_mm(depth_a, mask_a), side_depth_mm(depth_b, mask_b)
+def _aligned_depth(depth_a: np.ndarray, mask_a: np.ndarray, mask_b: np.ndarray, head: Head,
+                   ratio: float) -> np.ndarray:
+    """Map a resampled onto map b's pixels through the similarity (scale `ratio`, a's image size over
+    b's, about the principal point, and shift) that carries b's trunk silhouette onto a's."""
     (ua, va), (ub, vb) = _silhouette_centre_px(mask_a), _silhouette_centre_px(mask_b)
-    if not all(np.isfinite([side_a, side_b, ua, ub])):
-        return np.full(depth_b.shape, np.nan), side_a, side_b
-    ratio = side_b / side_a if ratio is None else ratio
-    v, u = np.mgrid[0:depth_b.shape[0], 0:depth_b.shape[1]].astype(float)
+    if not all(np.isfinite([ratio, ua, ub])):
+        return np.full(mask_b.shape, np.nan)
+    v, u = np.mgrid[0:mask_b.shape[0], 0:mask_b.shape[1]].astype(float)
     u_a = head.cx + (u - head.cx) * ratio + (ua - head.cx - (ub - head.cx) * ratio)
     v_a = head.cy + (v - head.cy) * ratio + (va - head.cy - (vb - head.cy) * ratio)
     valid = mask_a & np.isfinite(depth_a)
     z = ndimage.map_coordinates(np.where(valid, depth_a, 0.0), [v_a, u_a], order=1, cval=0.0)
     weight = ndimage.map_coordinates(valid.astype(float), [v_a, u_a], order=1, cval=0.0)
-    return np.where(weight > 0.99, z / np.maximum(weight, 1e-9), np.nan), side_a, side_b
+    return np.where(weight > 0.99, z / np.maximum(weight, 1e-9), np.nan)
 
 
 def body_aligned_displacement(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: np.ndarray, mask_b: np.ndarray,
@@ -79,7 +76,8 @@ def body_aligned_displacement(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: 
     shift) that carries b's trunk silhouette onto a's, and brought to b's distance by the depth of
     the sides (side_depth_mm).
     """
-    z_a, side_a, side_b = _aligned_depth(depth_a, mask_a, depth_b, mask_b, head)
+    side_a, side_b = side_depth_mm(depth_a, mask_a), side_depth_mm(depth_b, mask_b)
+    z_a = _aligned_depth(depth_a, mask_a, mask_b, head, side_b / side_a)  # image size goes as 1 / distance
     out = np.full(depth_b.shape, np.nan)
     inside = mask_b & np.isfinite(depth_b) & np.isfinite(z_a)
     out[inside] = depth_b[inside] - (z_a[inside] + side_b - side_a)
@@ -115,8 +113,8 @@ class DisplacementSums:
     """One map against the reference map of its head, in footprint-weighted sums (mm^3) over the
     pixels both show, per region ("all" is every such pixel, the neck and shoulders included):
     reference = sum fp (Z_ref - rim_ref), current = sum fp (z - rim) with z the current map
-    resampled into the reference's body frame and rim each map's silhouette depth (rim_depths). Kept apart so the two maps' scales can be set
-    afterwards (metric_head_volume_l)."""
+    resampled into the reference's body frame and rim each map's silhouette depth (rim_depths).
+    Kept apart so the two maps' scales can be set afterwards (metric_head_volume_l)."""
 
     side_mm: float  # depth of the trunk's silhouette (rim_depths), at the map's own scale
     width_px: float
@@ -170,7 +168,7 @@ class DisplacementTracker:
             self._reference_width = width
         ref_depth, ref_mask, footprint, regions = self._reference
         # the silhouette's width gives the image scale more steadily than the photometric distance
-        z, _, _ = _aligned_depth(depth_mm, valid, ref_depth, ref_mask, self.head, width / self._reference_width)
+        z = _aligned_depth(depth_mm, valid, ref_mask, self.head, width / self._reference_width)
         both = ref_mask & np.isfinite(z)
         rim_ref, rim = rim_depths(ref_depth, z, both, self.rim_band_px)
         reference = np.where(both, footprint * (ref_depth - rim_ref), 0.0)
