@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 
 WINDOW_S = 30.0  # what the volume curve shows
 WORKER_NICENESS = 10
+NO_LIMIT_NS = 2**63 - 1
 
 
 @dataclass
@@ -201,6 +202,24 @@ class Snapshot:
     elapsed_s: float
     metric_t_s: np.ndarray
     metric_volume_l: np.ndarray  # the metric optical volume (litres, both heads)
+    flow_until_ns: int = 0  # the recording's newest flow sample (no limit without a recording or flow sensor)
+    replay_finished: bool = False
+
+    @classmethod
+    def empty(cls, heads) -> "Snapshot":
+        """Before the engine has anything to show."""
+        none = np.zeros(0)
+        return cls({h: HeadView() for h in heads}, none, none, none, none, None, {}, 0, [], 0.0, none, none)
+
+
+@dataclass(frozen=True)
+class EngineInfo:
+    """What the GUI knows of the source an engine runs on."""
+    rig: Rig
+    heads: tuple[str, ...]
+    name: str
+    replay: bool
+    simulated: bool  # the simulated rig: its subject follows the operator's prompts (LiveRig.perform)
 
 
 class _Rate:
@@ -289,6 +308,15 @@ class LiveRig:
             close()
         return summary
 
+    @property
+    def info(self) -> EngineInfo:
+        s = self.source
+        return EngineInfo(self.rig, tuple(s.cameras), s.name, s.replay, s.simulated is not None)
+
+    def perform(self, manoeuvre: str) -> float:
+        """The simulated subject does the manoeuvre ("vc" or "forced"); the seconds it takes (0 on a real rig)."""
+        return self.source.simulated.perform(manoeuvre) if self.source.simulated is not None else 0.0
+
     # recording
     def start_recording(self, path: str | Path, subject: SubjectRecord | None, kind: str = "patient",
                         root_attrs: dict | None = None, heads: list[str] | None = None) -> None:
@@ -310,10 +338,11 @@ class LiveRig:
             self._recorded_flow: list[FlowBlock] = []
             self._recorded_events: list[tuple[int, str]] = []
 
-    def mark(self, label: str) -> int:
-        """A protocol event now, on the session clock (the monotonic clock that stamps frames and
-        flow samples; not the newest frame's time, which lags when capture falls behind)."""
-        stamp = time.monotonic_ns()
+    def mark(self, label: str, stamp_ns: int | None = None) -> int:
+        """A protocol event now (or at `stamp_ns`), on the session clock: the system's monotonic clock,
+        which stamps frames and flow samples in every process (not the newest frame's time, which
+        lags when capture falls behind)."""
+        stamp = time.monotonic_ns() if stamp_ns is None else stamp_ns
         with self._lock:
             recorder = self._recorder
         if recorder is not None:
@@ -324,11 +353,13 @@ class LiveRig:
 
     def flow_reaches(self, timestamp_ns: int) -> bool:
         """Whether the recording's flow samples reach `timestamp_ns` (always, without a flow sensor)."""
-        if self.source.flow is None or self._recorder is None:
-            return True
         with self._lock:
-            last = self._recorded_flow[-1].timestamp_ns[-1] if self._recorded_flow else None
-        return last is not None and int(last) >= timestamp_ns
+            return self._flow_until_ns() >= timestamp_ns
+
+    def _flow_until_ns(self) -> int:
+        if self.source.flow is None or self._recorder is None:
+            return NO_LIMIT_NS
+        return int(self._recorded_flow[-1].timestamp_ns[-1]) if self._recorded_flow else 0
 
     def recorded_values(self, age_years: float | None = None):
         """The pulmonary function values of the recording so far, from the flow sensor, by the same
@@ -496,11 +527,13 @@ class LiveRig:
             metric = np.array(self._metric_curve, dtype=float).reshape(-1, 2)
             recorder = self._recorder
             problems = list(self._problems) + (recorder.problems if recorder is not None else [])
+            flow_until = self._flow_until_ns()
         return Snapshot(heads, optical[:, 0], optical[:, 1], flow[:, 0], flow[:, 1],
                         recorder.path if recorder is not None else None,
                         recorder.frames_written() if recorder is not None else {},
                         recorder.dropped if recorder is not None else 0, problems,
-                        time.monotonic() - self._started, metric[:, 0], metric[:, 1])
+                        time.monotonic() - self._started, metric[:, 0], metric[:, 1], flow_until,
+                        self.replay_finished)
 
     @property
     def replay_finished(self) -> bool:

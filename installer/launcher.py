@@ -1,5 +1,6 @@
 """Entry point of the installed application (PyInstaller): the `photopft` command line."""
 
+import multiprocessing
 import os
 import sys
 from pathlib import Path
@@ -12,6 +13,9 @@ if getattr(sys, "frozen", False):
     bundle = Path(sys._MEIPASS)
     os.environ["GI_TYPELIB_PATH"] = os.pathsep.join(
         p for p in (str(bundle / "gi_typelibs"), os.environ.get("GI_TYPELIB_PATH", "")) if p)
+
+# the live engine runs in a spawned process of this same executable (app/engine_process.py)
+multiprocessing.freeze_support()
 
 from app.cli import main  # noqa: E402
 

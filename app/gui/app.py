@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+from functools import partial
 from pathlib import Path
 
 
@@ -25,19 +26,21 @@ def run_gui(args: argparse.Namespace) -> int:
     from PySide6.QtWidgets import QApplication
 
     from app.cli import UserError
-    from app.gui.errors import install_excepthook, setup_logging
+    from app.gui.errors import ENGINE_LOG, install_excepthook, setup_logging
     from app.gui.main_window import MainWindow
     from app.live import replay_source, rig_source
+    from app.logs import log_file
 
     setup_logging()
     app = QApplication.instance() or QApplication(sys.argv[:1])
     app.setApplicationName("photopft")
     app.setOrganizationName("photopft")
+    opener = partial(replay_source, args.session, args.speed) if args.session else \
+        partial(rig_source, args.rig, args.scale)
     try:
-        source = replay_source(args.session, args.speed) if args.session else rig_source(args.rig, args.scale)
-    except Exception as exc:  # the rig or file cannot be opened: one clear line, before any window
+        window = MainWindow(opener, args.rig, engine_log=log_file(ENGINE_LOG))
+    except Exception as exc:  # the rig or file cannot be opened: one clear line, and no window
         raise UserError(f"cannot start: {exc}") from exc
-    window = MainWindow(source, args.rig)
     install_excepthook(lambda: window)
     window.show()
     if args.smoke_test is None:

@@ -6,36 +6,27 @@ from __future__ import annotations
 import logging
 import sys
 import traceback
-from logging.handlers import RotatingFileHandler
 from pathlib import Path
 
 from PySide6.QtWidgets import QMessageBox, QWidget
 
-from app.paths import state_dir
+from app.logs import log_file, log_to_file
 
 log = logging.getLogger("photopft.gui")
 
-
-def log_file() -> Path:
-    return state_dir() / "photopft.log"
+ENGINE_LOG = "photopft-engine.log"
 
 
 def setup_logging() -> Path:
-    path = log_file()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handler = RotatingFileHandler(path, maxBytes=5_000_000, backupCount=3, encoding="utf-8")
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(threadName)s %(name)s: %(message)s"))
-    root = logging.getLogger()
-    root.addHandler(handler)
-    root.setLevel(logging.INFO)
-    return path
+    """The GUI's log file; the engine process writes ENGINE_LOG beside it."""
+    return log_to_file(log_file())
 
 
 def show_error(parent: QWidget | None, what: str, todo: str, detail: str = "") -> None:
     """A modal message: what happened, what to do; the detail is logged, not shown."""
     log.error("%s | %s%s", what, todo, f"\n{detail}" if detail else "")
     box = QMessageBox(QMessageBox.Icon.Warning, "photopft", what, QMessageBox.StandardButton.Ok, parent)
-    box.setInformativeText(f"{todo}\n\nDetails are in the log file: {log_file()}")
+    box.setInformativeText(f"{todo}\n\nDetails are in the log files: {log_file()} and {log_file(ENGINE_LOG)}")
     box.exec()
 
 

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import gc
 import logging
 import sys
-import threading
 import time
+from functools import partial
 from pathlib import Path
+from typing import Callable
 
 from PySide6.QtCore import QByteArray, QRunnable, QSettings, QThreadPool, QTimer, Signal, QObject
 from PySide6.QtGui import QAction, QKeySequence
@@ -17,20 +16,21 @@ from PySide6.QtWidgets import QFileDialog, QLabel, QMainWindow, QMessageBox
 
 from app.gui.errors import show_error
 from app.gui.live_view import LiveView
-from app.live import LiveRig, Source, replay_source, rig_source
+from app.engine_process import EngineProcess
+from app.live import EngineInfo, Source, replay_source, rig_source
 
 log = logging.getLogger("photopft.gui")
 
 DISPLAY_INTERVAL_MS = 33  # about 30 display updates per second
 
 
-def calibration_in_force(source: Source) -> str:
+def calibration_in_force(info: EngineInfo) -> str:
     """The light calibration of the rig in use, and its age."""
     from datetime import datetime, timezone
 
-    stamps = {h.calibrated for h in source.rig.heads.values() if h.calibrated}
+    stamps = {h.calibrated for h in info.rig.heads.values() if h.calibrated}
     if not stamps:
-        return ("the simulated rig's true lights (nothing to calibrate)" if source.simulated is not None
+        return ("the simulated rig's true lights (nothing to calibrate)" if info.simulated
                 else "no light calibration recorded: run the sphere calibration")
     oldest = min(stamps)
     try:
@@ -40,7 +40,7 @@ def calibration_in_force(source: Source) -> str:
         warn = " — recalibrate (over 30 days)" if days > 30 else ""
     except ValueError:
         age_text, warn = "date unreadable", ""
-    kind = "simulated rig's true lights" if source.simulated is not None else "lights"
+    kind = "simulated rig's true lights" if info.simulated else "lights"
     return f"{kind} calibrated {oldest[:10]} ({age_text}){warn}"
 
 
@@ -94,67 +94,38 @@ class Job(QRunnable):
 
 
 # The GIL changes hands every 1 ms instead of Python's 5: each time a paint hands the GIL to Qt and
-# a worker takes it, the GUI thread waits at most this long to get it back (measured with
-# `photopft bench gui`: longest stall 35-36 ms against 39-51 ms at 5 ms).
+# another thread (the snapshot receiver, a report job) takes it, the GUI thread waits at most this
+# long to get it back (measured with `photopft bench gui` when the engine ran in this process:
+# longest stall 35-36 ms against 39-51 ms at 5 ms).
 GIL_SWITCH_INTERVAL_S = 0.001
 
 
 def tune_process_for_live_view() -> None:
-    """Process-wide settings for a long live session (each measured with `photopft bench gui`).
+    """Settings of the GUI process for a long live session (the engine has its own process,
+    app.engine_process, and its own settings).
 
     - The GIL switch interval (above).
-    - Python's full garbage collections walk every object the program has made; with numba, scipy
-      and Qt loaded that took up to 111 ms, all threads stopped. `gc.freeze()` moves what exists
-      now (modules, widgets, compiled functions) out of their reach; called again once the first
-      maps are made.
-
-    - Every 10 s the C heap's free memory goes back to the system (malloc_trim): the frames and
-      maps freed by six threads otherwise stay with the process (3-minute recording at scale 0.5:
-      +110 MB without, +87 MB with it, the growth after the first minute 35 against 15 MB).
-
-    (A fixed glibc mmap threshold, to return frames and maps to the system when freed, was
-    tried and left out: every large temporary then page-faults, which halved the maps per second
-    and stalled the GUI thread for 111 ms.)
+    - Python's full garbage collections walk every object the program has made; with Qt and
+      pyqtgraph loaded that took tens of ms, all threads stopped. `gc.freeze()` moves what exists
+      now (modules, widgets) out of their reach; called again once the first maps are drawn.
     """
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     gc.freeze()
-    start_memory_trimmer()
-
-
-_trimmer: threading.Thread | None = None
-
-
-def start_memory_trimmer(interval_s: float = 10.0) -> None:
-    """Hand the memory the C heap holds free back to the system every `interval_s` (glibc's
-    malloc_trim; ctypes lets go of the GIL during the call, so nothing waits for it)."""
-    global _trimmer
-    if _trimmer is not None:
-        return
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        trim = libc.malloc_trim
-    except (OSError, AttributeError):  # not glibc
-        return
-
-    def loop() -> None:
-        while True:
-            time.sleep(interval_s)
-            trim(0)
-
-    _trimmer = threading.Thread(target=loop, name="memory-trim", daemon=True)
-    _trimmer.start()
-
 
 
 class MainWindow(QMainWindow):
-    def __init__(self, source: Source, rig_config: Path | None = None) -> None:
+    def __init__(self, opener: Callable[[], Source], rig_config: Path | None = None,
+                 engine_log: Path | None = None) -> None:
+        """`opener`: a picklable callable that opens the source in the engine process (see
+        app.engine_process), e.g. functools.partial(app.live.simulated_source, scale=0.5)."""
         super().__init__()
         tune_process_for_live_view()
         self._frozen_after_first_maps = False
         self.setWindowTitle("photopft")
         self.rig_config = rig_config
         self.settings = QSettings("photopft", "photopft")
-        self.engine: LiveRig | None = None
+        self.engine: EngineProcess | None = None
+        self.engine_log = engine_log
         self.view: LiveView | None = None
         self.calibration_text = "session /rig (as recorded or as simulated)"
         self._jobs: list[Job] = []
@@ -165,7 +136,7 @@ class MainWindow(QMainWindow):
         self.timer = QTimer(self)
         self.timer.setInterval(DISPLAY_INTERVAL_MS)
         self.timer.timeout.connect(self.refresh)
-        self.use_source(source)
+        self.use_source(opener)
         self.timer.start()
         geometry = self.settings.value("main/geometry")
         if isinstance(geometry, QByteArray):
@@ -216,24 +187,26 @@ class MainWindow(QMainWindow):
             toolbar.addAction(a)
 
     # the engine
-    def use_source(self, source: Source) -> None:
+    def use_source(self, opener: Callable[[], Source]) -> None:
+        """Run the live view on another source: the new engine starts first, so a source that
+        cannot be opened leaves the current one running (and raises)."""
+        engine = EngineProcess(opener, self.engine_log)
         if self.engine is not None:
             self.engine.stop()
-        self.source = source
-        heads = list(source.cameras)
+        self.engine = engine
+        self.info = engine.info
+        heads = list(self.info.heads)
         if self.view is None or self.view.heads != heads:
             self.view = LiveView(heads)
             self.setCentralWidget(self.view)
-        self.engine = LiveRig(source)
-        self.engine.start()
-        self.calibration_text = calibration_in_force(source)
-        self.statusBar().showMessage(f"Showing {source.name}", 5000)
+        self.calibration_text = calibration_in_force(self.info)
+        self.statusBar().showMessage(f"Showing {self.info.name}", 5000)
 
     def refresh(self) -> None:
         if self.engine is None:
             return
         snapshot = self.engine.snapshot()
-        self.view.show(snapshot, self.calibration_text, self.source.name)
+        self.view.show(snapshot, self.calibration_text, self.info.name)
         if not self._frozen_after_first_maps and all(v.reconstructed for v in snapshot.heads.values()):
             gc.freeze()  # what the first maps made (numba's compiled code among it) is here to stay
             self._frozen_after_first_maps = True
@@ -246,7 +219,7 @@ class MainWindow(QMainWindow):
     def new_patient_session(self) -> None:
         from app.gui.wizards.patient_session import PatientSessionWizard
 
-        if self.source.replay:
+        if self.info.replay:
             self.back_to_rig()
         wizard = PatientSessionWizard(self, self.engine)
         wizard.exec()
@@ -261,16 +234,14 @@ class MainWindow(QMainWindow):
         from core.session import SessionError
 
         try:
-            source = replay_source(path, speed)
+            self.use_source(partial(replay_source, path, speed))
         except (SessionError, OSError) as exc:
             show_error(self, f"Cannot open {path.name}.", f"{exc}. Choose a photopft session file (.h5); "
                        "`photopft validate FILE` lists what is wrong with it.")
-            return
-        self.use_source(source)
 
     def back_to_rig(self) -> None:
         try:
-            self.use_source(rig_source(self.rig_config))
+            self.use_source(partial(rig_source, self.rig_config))
         except Exception as exc:  # the rig cannot be opened: said, and the view keeps what it has
             show_error(self, "The rig cannot be opened.", f"{exc}. Check the rig configuration in Settings.")
 
@@ -310,9 +281,9 @@ class MainWindow(QMainWindow):
     def sphere_calibration(self) -> None:
         from app.gui.wizards.sphere import SphereCalibrationWizard, capture_from_rig
 
-        heads = tuple(self.source.cameras)
-        scale = self.source.rig.heads["front"].width / 1400.0
-        capture = None if self.source.simulated is not None else capture_from_rig(self)
+        heads = tuple(self.info.heads)
+        scale = self.info.rig.heads["front"].width / 1400.0
+        capture = None if self.info.simulated else capture_from_rig(self)
         wizard = SphereCalibrationWizard(self, heads, scale, capture=capture)
         if wizard.exec() and wizard.saved_to is not None:
             self.statusBar().showMessage(f"Rig calibration saved: {wizard.saved_to}", 10000)

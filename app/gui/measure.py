@@ -7,16 +7,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from app.memory import rss_mb
 from drivers.recorder import RecordSummary
-
-
-def rss_mb() -> float:
-    """Resident memory of this process (Linux)."""
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 @dataclass
@@ -27,7 +19,8 @@ class LiveFigures:
     longest_stall_ms: float = 0.0
     maps_per_s: dict[str, float] = field(default_factory=dict)
     frames_per_s: dict[str, float] = field(default_factory=dict)
-    rss_mb: list[float] = field(default_factory=list)  # at the start, every 10 s, at the end
+    rss_mb: list[float] = field(default_factory=list)  # GUI and engine processes: at the start, every 10 s, at the end
+    gui_rss_mb: list[float] = field(default_factory=list)
     recording: RecordSummary | None = None
 
 
@@ -42,7 +35,13 @@ def measure_live_view(app, window, seconds: float, record_to: Path | None = None
     figures = LiveFigures(first_maps_s=float("nan"))
     start: dict = {}
     sample = QTimer()
-    sample.timeout.connect(lambda: figures.rss_mb.append(rss_mb()))
+
+    def memory() -> None:
+        gui = rss_mb()
+        figures.gui_rss_mb.append(gui)
+        figures.rss_mb.append(gui + rss_mb(window.engine.pid))
+
+    sample.timeout.connect(memory)
 
     def begin() -> None:
         heads = window.engine.snapshot().heads
@@ -53,7 +52,7 @@ def measure_live_view(app, window, seconds: float, record_to: Path | None = None
         window.stalls.reset()
         start.update(t=time.monotonic(), updates=window.view.updates,
                      maps={h: v.reconstructed for h, v in heads.items()}, frames={h: v.frames for h, v in heads.items()})
-        figures.rss_mb.append(rss_mb())
+        memory()
         if record_to is not None:
             window.engine.start_recording(record_to, subject, kind=kind)
             window.engine.mark("tidal-start")
@@ -64,7 +63,7 @@ def measure_live_view(app, window, seconds: float, record_to: Path | None = None
         sample.stop()
         elapsed = time.monotonic() - start["t"]
         heads = window.engine.snapshot().heads
-        figures.rss_mb.append(rss_mb())
+        memory()
         figures.elapsed_s = elapsed
         figures.updates_per_s = (window.view.updates - start["updates"]) / elapsed
         figures.longest_stall_ms = window.stalls.longest_ms

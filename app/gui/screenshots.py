@@ -6,6 +6,7 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 from PySide6.QtCore import QTimer
@@ -36,7 +37,7 @@ def main(out: Path) -> int:
 
     out.mkdir(parents=True, exist_ok=True)
     app = QApplication.instance() or QApplication(sys.argv[:1])
-    window = MainWindow(simulated_source(scale=0.25))
+    window = MainWindow(partial(simulated_source, scale=0.25))
     window.resize(1400, 860)
     window.show()
     _wait(app, 60, lambda: all(v.reconstructed > 3 for v in window.engine.snapshot().heads.values()))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import time
+from functools import partial
 
 import numpy as np
 import pytest
@@ -12,7 +13,8 @@ from PySide6.QtCore import QTimer
 from PySide6.QtWidgets import QApplication, QWizard
 
 from app.gui.main_window import MainWindow
-from app.live import LiveRig, replay_source, simulated_source
+from app.engine_process import EngineProcess
+from app.live import replay_source, simulated_source
 from app.records import Records
 from core.session import SessionFile, validate_session
 
@@ -35,7 +37,7 @@ def _close_when_shown(qtbot, seen: list[str]):
 
 @pytest.fixture
 def window(qtbot):
-    w = MainWindow(simulated_source(scale=0.1))
+    w = MainWindow(partial(simulated_source, scale=0.1))
     qtbot.addWidget(w)
     w.show()
     yield w
@@ -61,7 +63,7 @@ def test_live_view_draws_both_heads_and_the_curves(window, qtbot):
 
 
 def test_replay_of_a_recorded_session(small_session, qtbot):
-    w = MainWindow(replay_source(small_session, speed=2.0))
+    w = MainWindow(partial(replay_source, small_session, speed=2.0))
     qtbot.addWidget(w)
     w.show()
     qtbot.waitUntil(lambda: w.engine.replay_finished, timeout=30000)
@@ -78,7 +80,7 @@ def test_a_broken_file_is_a_dialog_not_a_traceback(window, qtbot, tmp_path):
     _close_when_shown(qtbot, seen)
     window.replay(broken)
     assert seen and "Cannot open broken.h5" in seen[0] and "photopft validate" in seen[0]
-    assert not window.source.replay  # the live view goes on with what it had
+    assert not window.info.replay  # the live view goes on with what it had
 
 
 def _press(qtbot, wizard: QWizard) -> None:
@@ -89,8 +91,7 @@ def _press(qtbot, wizard: QWizard) -> None:
 def test_a_whole_patient_session(qtbot, tmp_path):
     from app.gui.wizards.patient_session import ManoeuvrePage, PatientSessionWizard
 
-    engine = LiveRig(simulated_source(scale=0.1))
-    engine.start()
+    engine = EngineProcess(partial(simulated_source, scale=0.1))
     records = Records(tmp_path / "records.sqlite3")
     wizard = PatientSessionWizard(None, engine, records, sessions_dir=tmp_path / "sessions", operator="op1")
     qtbot.addWidget(wizard)
@@ -121,7 +122,7 @@ def test_a_whole_patient_session(qtbot, tmp_path):
             while not page.isComplete():
                 assert page.count < 8
                 page.begin.click()
-                duration = engine.source.simulated.waveform and page.last_duration_s
+                duration = page.last_duration_s
                 qtbot.wait(int(1000 * (duration + 0.8)))
                 page.end.click()
                 qtbot.waitUntil(lambda: page.assessed == page.count, timeout=15000)
@@ -209,7 +210,7 @@ def test_the_spirometer_calibration_wizard(qtbot, tmp_path, processed_full_sessi
 
 def test_no_top_level_widget_is_left_behind(qtbot):
     before = set(QApplication.topLevelWidgets())
-    w = MainWindow(simulated_source(scale=0.1))
+    w = MainWindow(partial(simulated_source, scale=0.1))
     w.show()
     qtbot.wait(300)
     w.close()

@@ -21,7 +21,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDateEdit, QDoubleSpinBox, 
 
 from app.gui.errors import show_error
 from app.gui.live_view import WORKING_RANGE_MM
-from app.live import LiveRig
+from app.engine_process import Engine
 from app.paths import data_dir
 from app.records import Patient, Records, RecordsError
 from core.session import SubjectRecord
@@ -112,7 +112,7 @@ class PatientPage(QWizardPage):
 class PositioningPage(QWizardPage):
     """The live view behind shows the maps; here, the checks that must pass before recording."""
 
-    def __init__(self, engine: LiveRig) -> None:
+    def __init__(self, engine: Engine) -> None:
         super().__init__()
         self.engine = engine
         self.setTitle("Positioning")
@@ -183,7 +183,7 @@ class PositioningPage(QWizardPage):
 class TimedPage(QWizardPage):
     """Tidal breathing: a set time of quiet breathing, counted down."""
 
-    def __init__(self, engine: LiveRig) -> None:
+    def __init__(self, engine: Engine) -> None:
         super().__init__()
         self.engine = engine
         self.setTitle("Tidal breathing")
@@ -226,7 +226,7 @@ class TimedPage(QWizardPage):
 class ManoeuvrePage(QWizardPage):
     """One kind of manoeuvre, started and ended by the operator (the simulated subject follows)."""
 
-    def __init__(self, engine: LiveRig, kind: str) -> None:
+    def __init__(self, engine: Engine, kind: str) -> None:
         super().__init__()
         self.engine = engine
         self.kind = kind
@@ -257,8 +257,7 @@ class ManoeuvrePage(QWizardPage):
 
     def _begin(self) -> None:
         self.engine.mark("forced-start" if self.kind == "forced" else "vc-start")
-        simulated = self.engine.source.simulated
-        self.last_duration_s = simulated.perform(self.kind) if simulated is not None else 0.0
+        self.last_duration_s = self.engine.perform(self.kind)
         self.begin.setEnabled(False)
         self.end.setEnabled(True)
 
@@ -325,7 +324,7 @@ class ManoeuvrePage(QWizardPage):
 
 
 class ReviewPage(QWizardPage):
-    def __init__(self, engine: LiveRig) -> None:
+    def __init__(self, engine: Engine) -> None:
         super().__init__()
         self.engine = engine
         self.setTitle("Review and save")
@@ -347,7 +346,7 @@ class ReviewPage(QWizardPage):
 
 
 class PatientSessionWizard(QWizard):
-    def __init__(self, parent, engine: LiveRig, records: Records | None = None,
+    def __init__(self, parent, engine: Engine, records: Records | None = None,
                  sessions_dir: Path | None = None, operator: str = "") -> None:
         super().__init__(parent)
         self.setWindowTitle("Patient session")
@@ -368,7 +367,7 @@ class PatientSessionWizard(QWizard):
         self.setMinimumSize(760, 520)
 
     def heads(self) -> list[str]:
-        heads = list(self.engine.source.cameras)
+        heads = list(self.engine.info.heads)
         return ["front"] if self.patient_page.front_only.isChecked() else heads
 
     def age_years(self) -> float | None:
@@ -381,7 +380,7 @@ class PatientSessionWizard(QWizard):
         self.sessions_dir.mkdir(parents=True, exist_ok=True)
         self.session_path = self.sessions_dir / f"{patient.pseudonym}-{now:%Y%m%d-%H%M%S}.h5"
         subject = SubjectRecord(**patient.subject_attrs(now))
-        kind = "simulation" if self.engine.source.simulated is not None else "patient"
+        kind = "simulation" if self.engine.info.simulated else "patient"
         try:
             self.engine.start_recording(self.session_path, subject, kind=kind, heads=self.heads(),
                                         root_attrs={"operator": self.operator} if self.operator else None)

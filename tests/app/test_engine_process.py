@@ -1,0 +1,77 @@
+"""The live engine in its own process (app.engine_process), as the GUI drives it, without Qt:
+snapshots, a recording with its events, a source that cannot be opened, and an engine that dies."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from functools import partial
+
+import pytest
+
+from app.engine_process import EngineError, EngineProcess
+from app.live import replay_source, simulated_source
+from core.session import SessionError, SessionFile, SubjectRecord, recover_session, validate_session
+
+pytestmark = pytest.mark.slow
+
+SUBJECT = SubjectRecord("ENGINE-1", "female", 40.0, 165.0, 60.0)
+
+
+def _wait(condition, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+@pytest.fixture
+def engine():
+    e = EngineProcess(partial(simulated_source, scale=0.1))
+    yield e
+    e.stop()
+
+
+def test_snapshots_and_a_recording_with_events(engine, tmp_path):
+    assert engine.info.heads == ("front", "back") and engine.info.simulated and not engine.info.replay
+    _wait(lambda: all(v.reconstructed > 0 for v in engine.snapshot().heads.values()), 120)
+    snapshot = engine.snapshot()
+    assert all(v.height_mm is not None and v.height_mm.shape == engine.rig.heads[h].shape
+               for h, v in snapshot.heads.items())  # each map travels once, and stays
+    path = tmp_path / "s.h5"
+    engine.start_recording(path, SUBJECT, kind="simulation")
+    assert engine.recording
+    time.sleep(0.5)
+    mark = engine.mark("tidal-start")
+    assert engine.perform("forced") > 1.0  # the simulated subject follows the prompt
+    _wait(lambda: engine.flow_reaches(mark + 500_000_000), 30)
+    assert engine.recorded_values(30.0) is not None
+    summary = engine.stop_recording()
+    assert not engine.recording and min(summary.frames.values()) > 20
+    assert validate_session(path) == [], validate_session(path)
+    with SessionFile(path) as s:
+        assert [(t, label) for t, label in s.events()] == [(mark, "tidal-start")]
+        assert s.timestamp_ns("front")[0] < mark < s.timestamp_ns("front")[-1]
+
+
+def test_a_source_that_cannot_be_opened_raises_its_own_error(tmp_path):
+    broken = tmp_path / "broken.h5"
+    broken.write_bytes(b"not hdf5")
+    with pytest.raises(SessionError, match="broken.h5"):
+        EngineProcess(partial(replay_source, broken))
+
+
+def test_an_engine_that_dies_is_said_and_the_recording_so_far_is_kept(engine, tmp_path):
+    path = tmp_path / "killed.h5"
+    _wait(lambda: all(v.frames > 0 for v in engine.snapshot().heads.values()), 120)
+    engine.start_recording(path, SUBJECT, kind="simulation")
+    _wait(lambda: min(engine.snapshot().recorded_frames.values(), default=0) > 30, 60)
+    time.sleep(1.5)
+    os.kill(engine.pid, signal.SIGKILL)
+    _wait(lambda: any("capture engine stopped" in p for p in engine.snapshot().problems), 10)
+    with pytest.raises(EngineError, match="stopped"):
+        engine.stop_recording()
+    kept = recover_session(path)
+    assert validate_session(path) == [], validate_session(path)
+    assert min(kept.values()) > 30
