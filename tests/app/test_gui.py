@@ -4,7 +4,6 @@ rig: the live view, replay, each wizard page by page, a whole patient session, e
 from __future__ import annotations
 
 import json
-import time
 from functools import partial
 
 import numpy as np
