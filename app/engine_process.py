@@ -22,14 +22,16 @@ from __future__ import annotations
 import gc
 import logging
 import multiprocessing
+import os
 import pickle
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
-from app.live import EngineInfo, HeadView, LiveRig, Snapshot, Source
+from app.live import WORKER_NICENESS, EngineInfo, HeadView, LiveRig, Snapshot, Source
 from app.memory import start_memory_trimmer
 
 log = logging.getLogger(__name__)
@@ -37,6 +39,24 @@ log = logging.getLogger(__name__)
 PUBLISH_INTERVAL_S = 0.030  # a little faster than the display's 33 ms, so each update has a fresh snapshot
 START_TIMEOUT_S = 300.0  # a cold start imports numba and renders the simulated subject
 COMMAND_TIMEOUT_S = 120.0  # stopping a recording flushes its queues to disk
+# glibc gives every thread that allocates an arena of its own; the frames and maps that the
+# capture, reconstruction and writer threads allocate and free then fragment several heaps, which
+# the process keeps (measured with `photopft bench gui`, docs/user-guide.md). Two arenas bound it.
+ENGINE_MALLOC_ARENAS = "2"
+
+
+@contextmanager
+def _environment(**variables: str):
+    """Environment variables for a process started inside the block (this one's C library has read
+    its own already)."""
+    before = {k: os.environ.get(k) for k in variables}
+    os.environ.update({k: v for k, v in variables.items() if before[k] is None})
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
 
 
 class EngineError(RuntimeError):
@@ -55,6 +75,10 @@ def _portable(exc: BaseException) -> BaseException:
 
 def _serve(opener: Callable[[], Source], commands, snapshots, log_path: str | None) -> None:
     """The engine process: open the source, run a LiveRig, publish snapshots, answer commands."""
+    try:  # first, so that every thread made here inherits it (numba's, Aravis', the workers)
+        os.setpriority(os.PRIO_PROCESS, 0, WORKER_NICENESS)
+    except (OSError, AttributeError):
+        pass
     if log_path:
         from app.logs import log_to_file
 
@@ -124,7 +148,8 @@ class EngineProcess:
         self._process = context.Process(target=_serve, name="photopft-engine", daemon=True,
                                         args=(opener, their_commands, snapshots_out,
                                               str(log_path) if log_path else None))
-        self._process.start()
+        with _environment(MALLOC_ARENA_MAX=ENGINE_MALLOC_ARENAS):
+            self._process.start()
         their_commands.close()
         snapshots_out.close()
         self._lock = threading.Lock()

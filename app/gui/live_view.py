@@ -85,9 +85,11 @@ class VolumeView(pg.GraphicsLayoutWidget):
         start = end - WINDOW_S
         for curve, t_all, v_all in ((self.flow_curve, s.flow_t_s, s.flow_volume_l),
                                     (self.metric_curve, s.metric_t_s, s.metric_volume_l)):
-            if len(t_all) > 2:
-                keep = t_all >= start
-                t, v = t_all[keep], v_all[keep]
+            keep = t_all >= start
+            t, v = t_all[keep], v_all[keep]
+            if len(t) < 2:  # nothing in the window (a simulated rig whose cameras lag the flow sensor)
+                curve.setData([], [])
+            else:
                 # display only: the line through the window's ends taken out, so a zero drift of the
                 # sensor (or the optical volume's slow offsets) does not carry the curve off the plot
                 trend = np.polyfit(t, v, 1) if len(t) > 100 else (0.0, float(np.median(v)))

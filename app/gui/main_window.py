@@ -10,9 +10,9 @@ from functools import partial
 from pathlib import Path
 from typing import Callable
 
-from PySide6.QtCore import QByteArray, QRunnable, QSettings, QThreadPool, QTimer, Signal, QObject
+from PySide6.QtCore import QByteArray, QObject, QRunnable, QSettings, Qt, QThreadPool, QTimer, Signal
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import QFileDialog, QLabel, QMainWindow, QMessageBox
+from PySide6.QtWidgets import QApplication, QFileDialog, QLabel, QMainWindow, QMessageBox
 
 from app.gui.errors import show_error
 from app.gui.live_view import LiveView
@@ -190,7 +190,11 @@ class MainWindow(QMainWindow):
     def use_source(self, opener: Callable[[], Source]) -> None:
         """Run the live view on another source: the new engine starts first, so a source that
         cannot be opened leaves the current one running (and raises)."""
-        engine = EngineProcess(opener, self.engine_log)
+        QApplication.setOverrideCursor(Qt.CursorShape.WaitCursor)  # the engine process starts in seconds
+        try:
+            engine = EngineProcess(opener, self.engine_log)
+        finally:
+            QApplication.restoreOverrideCursor()
         if self.engine is not None:
             self.engine.stop()
         self.engine = engine
