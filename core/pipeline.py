@@ -48,6 +48,7 @@ class ReconstructionSettings:
     distance: str = "photometric"  # photometric (this project) or dmr (thesis eq. 4.13 only)
     track: bool = False  # search the distance near the previous cycle's (streams of one subject)
     distance_pixels: int = 250000  # pixels the photometric distance uses (its noise falls as 1/sqrt)
+    fit_intensity: bool = True  # first cycle: fit the lights' relative intensities with the distance
 
     def __post_init__(self) -> None:
         if self.distance not in ("photometric", "dmr"):
@@ -109,6 +110,9 @@ class HeadReconstructor:
         self._axis = np.ascontiguousarray(axis, dtype=np.float64)
         self._mu = np.ascontiguousarray(mu, dtype=np.float64)
         self.last_distance_mm: float | None = None
+        # the lights' relative intensities as fitted on the first cycle, as factors of the rig's
+        # (PhotometricDistance.scale_and_intensity); None until then or when not fitted
+        self.intensity_factors: np.ndarray | None = None
 
     def _integrate(self, normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
         h = self.head
@@ -167,7 +171,8 @@ class HeadReconstructor:
         guess = self.last_distance_mm if tracked else (dmr.distance_mm if np.isfinite(dmr.distance_mm)
                                                        else NOMINAL_DISTANCE_MM)
         photometric = s.distance == "photometric" and s.method == "near"
-        problem = (PhotometricDistance(signal, mask, h.light_positions_mm, h.light_intensity, dark,
+        intensity = h.light_intensity * (self.intensity_factors if self.intensity_factors is not None else 1.0)
+        problem = (PhotometricDistance(signal, mask, h.light_positions_mm, intensity, dark,
                                        max_pixels=s.distance_pixels) if photometric else None)
         normals = pseudo_normals
         log_depth = self._integrate(normals, mask)
@@ -180,7 +185,7 @@ class HeadReconstructor:
             used = np.zeros(h.shape, dtype=np.int64)
             for done in range(1, s.iterations + 1):
                 points = np.ascontiguousarray(self._rays * np.nan_to_num(depth, nan=distance)[..., None])
-                near_light_normals(signal, points, h.light_positions_mm, h.light_intensity, self._axis, self._mu,
+                near_light_normals(signal, points, h.light_positions_mm, intensity, self._axis, self._mu,
                                    saturated, min_signal, normals, albedo, used)
                 normals[~mask] = np.nan
                 log_depth = self._integrate(normals, mask)
@@ -194,6 +199,11 @@ class HeadReconstructor:
                     if not searched:  # settled: one search near the tracked distance, then stop
                         depth, distance = self._scaled(log_depth, dmr, problem, distance, "near")
                     break
+        if problem is not None and s.fit_intensity and self.intensity_factors is None and np.isfinite(distance):
+            scale, factors = problem.scale_and_intensity(self._rays, depth / distance, distance)
+            if np.isfinite(scale):
+                depth, distance = depth * (scale / distance), scale
+                self.intensity_factors = factors
         valid = mask & np.isfinite(depth) & np.isfinite(normals[..., 2])
         depth = np.where(valid, depth, np.nan)
         normals = np.where(valid[..., None], normals, np.nan)

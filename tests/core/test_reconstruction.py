@@ -138,3 +138,41 @@ def test_intensity_falloff_matters(sphere_session):
         return np.degrees(np.arccos(np.clip(np.sum(n[ok] * truth_n[ok], -1), -1, 1))).mean()
 
     assert error(right.normals) + 0.5 < error(wrong.normals)
+
+
+
+@pytest.fixture(scope="module")
+def torso_2200(tmp_path_factory):
+    path = tmp_path_factory.mktemp("rec") / "torso.h5"
+    simulate(path, SimConfig(scene="torso", protocol="static", seconds=10 / 110, scale=0.25, heads=("front",),
+                             sway=Sway(0, 0, 0), truth_maps_at=[4], distance_mm=2200.0))
+    return path
+
+
+def test_the_distance_does_not_follow_an_intensity_error(torso_2200):
+    """At 2.2 m the four lights are nearly equally far from every point: the inverse-square falloff
+    tells the distance only through small differences between them, and a light 1 % brighter than
+    the rig says moves the plain fit by several mm. Fitted with the intensities (on the first
+    cycle), the distance stays where the right intensities put it, and the error is found."""
+    with SessionFile(torso_2200) as s:
+        head = with_true_lights(s).apply(s.rig).heads["front"]
+        signal, _, dark = _cycle(s, 4)
+        truth_d = s.truth()["front/depth_mm"][0].astype(float)
+    brighter = np.array([1.0, 1.0, 1.01, 1.0])
+
+    def distance_error(h, fit: bool) -> tuple[float, HeadReconstructor]:
+        reconstructor = HeadReconstructor(h, settings=ReconstructionSettings(integrator="masked", iterations=3,
+                                                                             fit_intensity=fit))
+        result = reconstructor.reconstruct(signal, dark=dark)
+        ok = result.mask & np.isfinite(truth_d)
+        return float(np.median(result.depth_mm[ok] - truth_d[ok])), reconstructor
+
+    off = replace(head, light_intensity=head.light_intensity * brighter)
+    right, _ = distance_error(head, True)
+    fitted, reconstructor = distance_error(off, True)
+    plain_right, _ = distance_error(head, False)
+    plain_off, _ = distance_error(off, False)
+    assert abs(plain_off - plain_right) > 5.0
+    assert abs(fitted - right) < 1.5 and abs(right) < 5.0
+    factors = reconstructor.intensity_factors
+    np.testing.assert_allclose(factors / factors.mean(), (1 / brighter) / np.mean(1 / brighter), atol=0.002)
