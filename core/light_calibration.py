@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.lights import (CalibrationError, Highlight, SphereFit, closest_points, detect_highlight, detect_sphere,
-                         pixel_rays, refine_on_matte, triangulate)
+from core.lights import (CalibrationError, Highlight, MattePlacement, SphereFit, closest_points, detect_highlight,
+                         detect_sphere, pixel_rays, refine_on_matte, triangulate)
 from core.photometric import complete_cycles
 from core.profile import HeadCalibration, RigCalibration
 from core.rig import Head
@@ -89,8 +89,8 @@ def specular_placements(session: SessionFile, head_name: str, radius_mm: float) 
     return results
 
 
-def _matte_observations(session: SessionFile, head_name: str, radius_mm: float):
-    """Per placement: sphere points, normals and each light's signal on the sphere."""
+def _matte_placements(session: SessionFile, head_name: str, radius_mm: float) -> list[MattePlacement]:
+    """Each placement's matte sphere as detected: its pixels' rays and signals, its centre."""
     head = session.rig.heads[head_name]
     out = []
     for placement in placement_images(session, head_name):
@@ -98,15 +98,7 @@ def _matte_observations(session: SessionFile, head_name: str, radius_mm: float):
         rows, cols = np.nonzero(sphere.mask)
         rays = pixel_rays(head, np.column_stack([cols, rows]))
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-        c = sphere.centre_mm
-        b = rays @ c
-        disc = b * b - (c @ c - radius_mm**2)
-        keep = disc > 0
-        t = b[keep] - np.sqrt(disc[keep])
-        points = rays[keep] * t[:, None]
-        normals = (points - c) / radius_mm
-        signal = placement.signal[:, rows[keep], cols[keep]]
-        out.append((points, normals, signal))
+        out.append(MattePlacement(rays, placement.signal[:, rows, cols], sphere.centre_mm, radius_mm))
     return out
 
 
@@ -161,17 +153,12 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
                                 "thesis_pair_error_mm": np.round(pair_error, 4).tolist()}
     refined = False
     if matte:
-        observations = []
-        for session, radius in matte:
-            observations += _matte_observations(session, head.name, radius)
-        scales = np.zeros(4)
-        fit_rms = np.zeros(4)
-        for light in range(4):
-            obs = [(p, n, s[light]) for p, n, s in observations]
-            positions[light], scales[light], fit_rms[light] = refine_on_matte(obs, triangulated[light])
-        intensity = scales / scales.mean()
+        placements = [p for session, radius in matte for p in _matte_placements(session, head.name, radius)]
+        fit = refine_on_matte(placements, triangulated)
+        positions, intensity = fit.positions_mm, fit.intensity
         refined = True
-        extra["matte_fit_rms"] = np.round(fit_rms, 6).tolist()
+        extra["matte_fit_rms"] = np.round(fit.rms, 6).tolist()
+        extra["matte_distance_factors"] = np.round(fit.distance_factors, 6).tolist()
     calibration = HeadCalibration(positions, intensity, sigma, residual, pseudo, extra)
     report = HeadReport(head.name, len(results), pair_error, triangulated, refined, problems)
     return calibration, report

@@ -238,30 +238,84 @@ def triangulate(points: np.ndarray, directions: np.ndarray, prior_mm: np.ndarray
     return Triangulation(position, np.sqrt(np.diag(covariance)), float(np.sqrt(np.mean(d**2))), d)
 
 
-def refine_on_matte(observations: list[tuple[np.ndarray, np.ndarray, np.ndarray]], initial_mm: np.ndarray,
-                    ) -> tuple[np.ndarray, float, float]:
-    """Position and scale of one light from a matte sphere's shading.
+@dataclass
+class MattePlacement:
+    """A matte sphere as detected in one placement: its pixels' unit rays and each light's signal."""
 
-    observations: per placement (points (N, 3) mm, normals (N, 3), signal (N,) lit minus dark).
-    Model: signal = s * max(0, n . (P - X)) / |P - X|^3 (Lambertian, inverse square). Returns
-    (position, scale s, relative rms residual).
+    rays: np.ndarray  # (N, 3) unit
+    signal: np.ndarray  # (4, N) lit minus dark
+    centre_mm: np.ndarray  # (3,) from the outline
+    radius_mm: float
+
+
+@dataclass(frozen=True)
+class MatteRefinement:
+    positions_mm: np.ndarray  # (4, 3)
+    intensity: np.ndarray  # (4,) relative, mean 1
+    distance_factors: np.ndarray  # per placement: the fitted centre over the outline's (along its ray)
+    rms: np.ndarray  # (4,) relative rms residual per light
+
+
+def sphere_surface(rays: np.ndarray, centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where each ray first meets the sphere, and the normal there (rays that miss: the closest point)."""
+    b = rays @ centre
+    disc = np.clip(b * b - (centre @ centre - radius**2), 0.0, None)
+    points = rays * (b - np.sqrt(disc))[:, None]
+    normals = points - centre
+    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
+                    max_pixels_per_placement: int = 4000) -> MatteRefinement:
+    """Positions and relative intensities of all four lights from a matte sphere's shading, with
+    each placement's distance along its ray fitted too.
+
+    Model: signal_k = s_k * max(0, n . (P_k - X)) / |P_k - X|^3 (Lambertian, inverse square), X and n
+    where the pixel's ray meets the sphere (known radius) at its centre c * f, f fitted per
+    placement. The outline alone leaves the sphere's distance off by a fraction of a pixel of its
+    radius (a few mm at 2 m, docs/reconstruction.md), and the lights would absorb that error; the
+    shading inside the outline tells the distance too, through how fast the normal turns from
+    pixel to pixel. Pixels near the limb, where the outline's error matters most, are left out
+    (normal within 70 degrees of the view).
     """
-    points = np.concatenate([o[0] for o in observations])
-    normals = np.concatenate([o[1] for o in observations])
-    signal = np.concatenate([o[2] for o in observations])
+    rays, signal, centres, radii = [], [], [], []
+    for placement in placements:
+        _, normals = sphere_surface(placement.rays, placement.centre_mm, placement.radius_mm)
+        facing = np.nonzero(-np.sum(normals * placement.rays, axis=1) > np.cos(np.radians(70.0)))[0]
+        facing = facing[::max(1, len(facing) // max_pixels_per_placement)]
+        rays.append(placement.rays[facing])
+        signal.append(placement.signal[:, facing])
+        centres.append(placement.centre_mm)
+        radii.append(placement.radius_mm)
+    n_placements = len(rays)
+    typical = float(np.median(np.concatenate([s[s > 0] for s in signal]))) if signal else 1.0
 
-    def model(params: np.ndarray) -> np.ndarray:
-        d = params[:3] - points
-        r = np.linalg.norm(d, axis=1)
-        return params[3] * np.clip(np.sum(normals * d, axis=1), 0, None) / r**3
+    def shading(positions: np.ndarray, factors: np.ndarray) -> list[np.ndarray]:
+        out = []
+        for r, c, radius, f in zip(rays, centres, radii, factors):
+            points, normals = sphere_surface(r, c * f, radius)
+            d = positions[:, None, :] - points[None]  # (4, N, 3)
+            distance = np.linalg.norm(d, axis=2)
+            out.append(np.clip(np.sum(normals[None] * d, axis=2), 0.0, None) / distance**3)
+        return out
 
-    # Initial scale by linear least squares at the initial position.
-    shape = model(np.r_[initial_mm, 1.0])
-    scale0 = float(shape @ signal / (shape @ shape))
-    typical = float(np.median(signal[signal > 0])) if np.any(signal > 0) else 1.0
+    initial = np.asarray(initial_mm, float)
+    model0 = shading(initial, np.ones(n_placements))
+    scale0 = np.array([sum(m[k] @ s[k] for m, s in zip(model0, signal)) / sum(m[k] @ m[k] for m in model0)
+                       for k in range(4)])
 
-    def residuals(params: np.ndarray) -> np.ndarray:
-        return (model(np.r_[params[:3], params[3] * scale0]) - signal) / typical
+    def unpack(x: np.ndarray):
+        return x[:12].reshape(4, 3), scale0 * x[12:16], x[16:]
 
-    fit = least_squares(residuals, np.r_[initial_mm, 1.0], x_scale=np.array([10.0, 10.0, 10.0, 0.01]))
-    return fit.x[:3], float(fit.x[3] * scale0), float(np.sqrt(np.mean(fit.fun**2)))
+    def residuals(x: np.ndarray) -> np.ndarray:
+        positions, scales, factors = unpack(x)
+        return np.concatenate([(scales[:, None] * m - s).ravel() for m, s in zip(shading(positions, factors), signal)]
+                              ) / typical
+
+    x0 = np.r_[initial.ravel(), np.ones(4), np.ones(n_placements)]
+    x_scale = np.r_[np.full(12, 10.0), np.full(4, 0.01), np.full(n_placements, 0.001)]
+    fit = least_squares(residuals, x0, x_scale=x_scale)
+    positions, scales, factors = unpack(fit.x)
+    per_light = np.concatenate([r.reshape(4, -1) for r in np.split(fit.fun, np.cumsum(
+        [4 * r.shape[0] for r in rays])[:-1])], axis=1)
+    return MatteRefinement(positions, scales / scales.mean(), factors, np.sqrt(np.mean(per_light**2, axis=1)))

@@ -48,7 +48,9 @@ class ReconstructionSettings:
     distance: str = "photometric"  # photometric (this project) or dmr (thesis eq. 4.13 only)
     track: bool = False  # search the distance near the previous cycle's (streams of one subject)
     distance_pixels: int = 250000  # pixels the photometric distance uses (its noise falls as 1/sqrt)
-    fit_intensity: bool = True  # first cycle: fit the lights' relative intensities with the distance
+    # first cycle: fit the lights' relative intensities with the distance (for a rig whose LEDs have
+    # drifted since their calibration; it costs accuracy on small subjects, docs/reconstruction.md)
+    fit_intensity: bool = False
 
     def __post_init__(self) -> None:
         if self.distance not in ("photometric", "dmr"):
