@@ -34,6 +34,7 @@ from core.photometric import distant_light_normals, gradients_from_normals, near
 from core.rig import Head
 
 NOMINAL_DISTANCE_MM = 2000.0
+DISTANCE_RESET = 0.05  # relative change of the distance from one cycle to the next that is not noise
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,10 @@ class ReconstructionSettings:
     # first cycle: fit the lights' relative intensities with the distance (for a rig whose LEDs have
     # drifted since their calibration; it costs accuracy on small subjects, docs/reconstruction.md)
     fit_intensity: bool = False
+    # The distance of one cycle scatters by several mm (camera noise); each cycle's estimate is
+    # averaged exponentially with the previous ones over about this many cycles (1: none). A jump
+    # of more than DISTANCE_RESET (a new subject, a replay's start) starts the average again.
+    distance_cycles: int = 5
 
     def __post_init__(self) -> None:
         if self.distance not in ("photometric", "dmr"):
@@ -206,6 +211,11 @@ class HeadReconstructor:
             if np.isfinite(scale):
                 depth, distance = depth * (scale / distance), scale
                 self.intensity_factors = factors
+        previous = self.last_distance_mm
+        if (previous is not None and s.distance_cycles > 1 and np.isfinite(distance)
+                and abs(distance - previous) < DISTANCE_RESET * previous):
+            averaged = previous + (distance - previous) / s.distance_cycles
+            depth, distance = depth * (averaged / distance), averaged
         valid = mask & np.isfinite(depth) & np.isfinite(normals[..., 2])
         depth = np.where(valid, depth, np.nan)
         normals = np.where(valid[..., None], normals, np.nan)

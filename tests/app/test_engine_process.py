@@ -40,6 +40,7 @@ def test_snapshots_and_a_recording_with_events(engine, tmp_path):
     assert all(v.height_mm is not None and v.height_mm.shape == engine.rig.heads[h].shape
                for h, v in snapshot.heads.items())  # each map travels once, and stays
     path = tmp_path / "s.h5"
+    before = time.monotonic_ns()
     engine.start_recording(path, SUBJECT, kind="simulation")
     assert engine.recording
     time.sleep(0.5)
@@ -52,7 +53,8 @@ def test_snapshots_and_a_recording_with_events(engine, tmp_path):
     assert validate_session(path) == [], validate_session(path)
     with SessionFile(path) as s:
         assert [(t, label) for t, label in s.events()] == [(mark, "tidal-start")]
-        assert s.timestamp_ns("front")[0] < mark < s.timestamp_ns("front")[-1]
+        assert before < mark < s.timestamp_ns("front")[-1]  # the session clock (a loaded machine's first
+        # recorded frame may come after the mark: the simulated cameras skip what they cannot render in time)
 
 
 def test_a_source_that_cannot_be_opened_raises_its_own_error(tmp_path):
