@@ -214,10 +214,8 @@ class MainWindow(QMainWindow):
         if not self._frozen_after_first_maps and all(v.reconstructed for v in snapshot.heads.values()):
             gc.freeze()  # what the first maps made (numba's compiled code among it) is here to stay
             self._frozen_after_first_maps = True
-        if self.engine.replay_finished:
-            self.status_label.setText("replay finished")
-        else:
-            self.status_label.setText(f"GUI longest stall {self.stalls.longest_ms:.0f} ms")
+        # the operator's status bar; the display's own timing (self.stalls) is for `photopft bench gui`
+        self.status_label.setText("replay finished" if self.engine.replay_finished else "")
 
     # menu actions
     def new_patient_session(self) -> None:
