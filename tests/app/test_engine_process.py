@@ -53,8 +53,9 @@ def test_snapshots_and_a_recording_with_events(engine, tmp_path):
     assert validate_session(path) == [], validate_session(path)
     with SessionFile(path) as s:
         assert [(t, label) for t, label in s.events()] == [(mark, "tidal-start")]
-        assert before < mark < s.timestamp_ns("front")[-1]  # the session clock (a loaded machine's first
-        # recorded frame may come after the mark: the simulated cameras skip what they cannot render in time)
+        # the stamp crossed over unchanged, on the monotonic clock (not compared with the frames' stamps:
+        # on a loaded machine the simulated cameras' nominal stamps fall seconds behind it)
+        assert before < mark
 
 
 def test_a_source_that_cannot_be_opened_raises_its_own_error(tmp_path):
