@@ -65,6 +65,15 @@ class SimulatedRigState:
         return 0.3 + len(samples) / RATE_HZ
 
 
+# How far a simulated camera's frames may fall behind the clock before it skips ahead. A real
+# camera keeps time and drops what it cannot deliver; a renderer slower than the frame rate (scale
+# 0.5 on two cores, or 0.25 on a busy machine) would otherwise stamp its frames ever further in the
+# past, away from the flow sensor's samples and the operator's event marks, and the live view's
+# optical curve would drift out of the window the flow sensor's curve sets. Skipped frames are
+# lost frames (gaps in the ids), as on a real rig.
+MAX_LAG_S = 0.1
+
+
 @dataclass
 class SimCamera:
     """A head of the simulated rig behind the Camera protocol.
@@ -112,7 +121,11 @@ class SimCamera:
         period_ns = 1e9 / s.rig.frame_rate_hz
         due = s.start_ns + int(round(self._next * period_ns))
         if self.realtime:
-            wait = (due - time.monotonic_ns()) / 1e9
+            now = time.monotonic_ns()
+            if now - due > MAX_LAG_S * 1e9:  # behind: skip to the frame due now, as a camera drops frames
+                self._next = int((now - s.start_ns) // period_ns)
+                due = s.start_ns + int(round(self._next * period_ns))
+            wait = (due - now) / 1e9
             if wait > timeout_s:
                 time.sleep(timeout_s)
                 return None
