@@ -227,9 +227,6 @@ class EngineProcess:
             raise value
         return value
 
-    def start(self) -> None:
-        """The engine runs from its construction; here for the LiveRig interface."""
-
     def stop(self):
         """Stop the engine (and a recording, whose summary is returned) and end its process."""
         if self._closed:

@@ -307,15 +307,15 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
     def unpack(x: np.ndarray):
         return x[:12].reshape(4, 3), scale0 * x[12:16], x[16:]
 
-    def residuals(x: np.ndarray) -> np.ndarray:
+    def misfit(x: np.ndarray) -> np.ndarray:
+        """(4, all pixels) model minus signal, relative to the typical signal."""
         positions, scales, factors = unpack(x)
-        return np.concatenate([(scales[:, None] * m - s).ravel() for m, s in zip(shading(positions, factors), signal)]
-                              ) / typical
+        return np.concatenate([scales[:, None] * m - s for m, s in zip(shading(positions, factors), signal)],
+                              axis=1) / typical
 
     x0 = np.r_[initial.ravel(), np.ones(4), np.ones(n_placements)]
     x_scale = np.r_[np.full(12, 10.0), np.full(4, 0.01), np.full(n_placements, 0.001)]
-    fit = least_squares(residuals, x0, x_scale=x_scale)
+    fit = least_squares(lambda x: misfit(x).ravel(), x0, x_scale=x_scale)
     positions, scales, factors = unpack(fit.x)
-    per_light = np.concatenate([r.reshape(4, -1) for r in np.split(fit.fun, np.cumsum(
-        [4 * r.shape[0] for r in rays])[:-1])], axis=1)
-    return MatteRefinement(positions, scales / scales.mean(), factors, np.sqrt(np.mean(per_light**2, axis=1)))
+    rms = np.sqrt(np.mean(misfit(fit.x) ** 2, axis=1))
+    return MatteRefinement(positions, scales / scales.mean(), factors, rms)

@@ -87,7 +87,7 @@ class VolumeView(pg.GraphicsLayoutWidget):
                                     (self.metric_curve, s.metric_t_s, s.metric_volume_l)):
             keep = t_all >= start
             t, v = t_all[keep], v_all[keep]
-            if len(t) < 2:  # nothing in the window (a simulated rig whose cameras lag the flow sensor)
+            if len(t) < 2:  # nothing in the window yet (no trunk in view, or the maps not yet scaled)
                 curve.setData([], [])
             else:
                 # display only: the line through the window's ends taken out, so a zero drift of the
