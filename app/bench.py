@@ -270,12 +270,14 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     gui.add_argument("--scale", type=float, default=0.5)
     gui.add_argument("--seconds", type=float, default=20.0)
     gui.add_argument("--no-record", action="store_true", help="live view only (no session file written)")
+    gui.add_argument("--warmup", type=float, default=30.0,
+                     help="seconds of live view before the measurement (as while positioning the patient)")
     gui.add_argument("--no-write", action="store_true", help="print only")
 
     def run_gui(args: argparse.Namespace) -> int:
         from app.gui.bench_gui import run_gui_bench
 
-        text = run_gui_bench(args.scale, args.seconds, not args.no_record)
+        text = run_gui_bench(args.scale, args.seconds, not args.no_record, args.warmup)
         print(text)
         if not args.no_write:
             write_section(f"gui-{args.scale:g}-{'live' if args.no_record else 'recording'}",

@@ -298,7 +298,13 @@ class SessionWriter(_OwnsFile):
         self._file.swmr_mode = True
 
     def flush(self) -> None:
+        """Everything written so far to disk, and out of the page cache: a recording is written once
+        and read later (27 GB for 10 minutes at half resolution), and a page cache full of it pushes
+        every other program's memory out and makes the kernel reclaim and compact memory in the
+        page faults of other programs, the live view's drawing among them."""
         self._file.flush()
+        if hasattr(os, "posix_fadvise") and self._file.driver == "sec2":
+            os.posix_fadvise(self._file.id.get_vfd_handle(), 0, 0, os.POSIX_FADV_DONTNEED)
 
 
 # --------------------------------------------------------------------------- reading

@@ -9,7 +9,7 @@ from functools import partial
 from pathlib import Path
 
 
-def run_gui_bench(scale: float, seconds: float, record: bool) -> str:
+def run_gui_bench(scale: float, seconds: float, record: bool, warmup_s: float = 30.0) -> str:
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from PySide6.QtWidgets import QApplication
 
@@ -23,14 +23,15 @@ def run_gui_bench(scale: float, seconds: float, record: bool) -> str:
     window.show()
     folder = Path(tempfile.mkdtemp(prefix="photopft-bench-gui-"))
     f = measure_live_view(app, window, seconds, folder / "bench.h5" if record else None,
-                          SubjectRecord("BENCH", "male", 30.0, 175.0, 75.0))
+                          SubjectRecord("BENCH", "male", 30.0, 175.0, 75.0), warmup_s=warmup_s)
     for path in folder.glob("*"):
         path.unlink()
     folder.rmdir()
     dropped = f.recording.dropped_by_software if f.recording is not None else 0
     rows = [
-        f"scale {scale:g}, {'recording' if record else 'live view only'}, {f.elapsed_s:.0f} s, simulated rig "
-        f"(its cameras rendered on the same cores), {os.cpu_count()} cores",
+        f"scale {scale:g}, {'recording' if record else 'live view only'}, {f.elapsed_s:.0f} s after "
+        f"{warmup_s:.0f} s of live view (as while positioning), simulated rig (its cameras rendered on the "
+        f"same cores), {os.cpu_count()} cores",
         "",
         "| display updates/s | GUI thread longest stall | maps/s per head | frames/s per head | dropped | memory |",
         "|---|---|---|---|---|---|",
@@ -39,9 +40,13 @@ def run_gui_bench(scale: float, seconds: float, record: bool) -> str:
         + ", ".join(f"{h} {r:.0f}" for h, r in f.frames_per_s.items())
         + f" | {dropped} | {f.rss_mb[0]:.0f} -> {f.rss_mb[-1]:.0f} MB (peak {max(f.rss_mb):.0f}) |",
         "",
-        "Memory: the GUI process and the engine process together (GUI alone "
-        f"{f.gui_rss_mb[0]:.0f} -> {f.gui_rss_mb[-1]:.0f} MB).",
+        "Memory: the GUI process and the engine process together, from the start of the measurement "
+        f"to its end (GUI alone {f.gui_rss_mb[0]:.0f} -> {f.gui_rss_mb[-1]:.0f} MB); when every head had "
+        f"its first map, before the warm-up: {f.rss_first_maps_mb:.0f} MB.",
     ]
+    stalls = ", ".join(f"{ms:.0f} ms at {t:.0f} s" for t, ms in sorted(f.long_stalls, key=lambda x: -x[1])[:5])
+    rows += ["", f"GUI-thread stalls longer than a display interval (33 ms): {len(f.long_stalls)}"
+             + (f"; the longest: {stalls}" if stalls else "")]
     if len(f.rss_mb) > 8:  # sampled every 10 s: a leak grows steadily, a heap settling levels off
         rows += ["", "memory each minute (MB): " + ", ".join(f"{m:.0f}" for m in f.rss_mb[::6])]
     return "\n".join(rows)

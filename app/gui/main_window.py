@@ -45,11 +45,14 @@ def calibration_in_force(info: EngineInfo) -> str:
 
 
 class StallMonitor:
-    """How late the GUI thread's event loop runs a 10 ms timer: its longest stall."""
+    """How late the GUI thread's event loop runs a 10 ms timer: its longest stall, and when the
+    stalls longer than a display interval happened (seconds since the last reset)."""
 
     def __init__(self, parent: QObject) -> None:
         self.longest_ms = 0.0
+        self.long_stalls: list[tuple[float, float]] = []  # (s since reset, ms) over DISPLAY_INTERVAL_MS
         self._last = time.perf_counter()
+        self._since = self._last
         self._timer = QTimer(parent)
         self._timer.setInterval(10)
         self._timer.timeout.connect(self._tick)
@@ -61,11 +64,16 @@ class StallMonitor:
         if self._skip:
             self._skip -= 1
         else:
-            self.longest_ms = max(self.longest_ms, (now - self._last) * 1000.0 - 10.0)
+            stall_ms = (now - self._last) * 1000.0 - 10.0
+            self.longest_ms = max(self.longest_ms, stall_ms)
+            if stall_ms > DISPLAY_INTERVAL_MS:
+                self.long_stalls.append((self._last - self._since, stall_ms))
         self._last = now
 
     def reset(self) -> None:
         self.longest_ms = 0.0
+        self.long_stalls = []
+        self._since = time.perf_counter()
         self._skip = 5
 
 

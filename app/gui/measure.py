@@ -1,5 +1,6 @@
 """One measurement of the live view in the real window, shared by `photopft gui --smoke-test` and
-`photopft bench gui`: from the first maps of every head, for a set time, optionally recording."""
+`photopft bench gui`: from the first maps of every head (and a warm-up after them), for a set
+time, optionally recording."""
 
 from __future__ import annotations
 
@@ -17,18 +18,23 @@ class LiveFigures:
     elapsed_s: float = 0.0
     updates_per_s: float = 0.0
     longest_stall_ms: float = 0.0
+    long_stalls: list[tuple[float, float]] = field(default_factory=list)  # (s into the measurement, ms)
     maps_per_s: dict[str, float] = field(default_factory=dict)
     frames_per_s: dict[str, float] = field(default_factory=dict)
-    rss_mb: list[float] = field(default_factory=list)  # GUI and engine processes: at the start, every 10 s, at the end
+    # GUI and engine processes: at the start of the measurement, every 10 s, at the end
+    rss_mb: list[float] = field(default_factory=list)
+    rss_first_maps_mb: float = float("nan")  # both processes when every head had its first map
     gui_rss_mb: list[float] = field(default_factory=list)
     recording: RecordSummary | None = None
 
 
 def measure_live_view(app, window, seconds: float, record_to: Path | None = None, subject=None,
-                      kind: str = "simulation", first_maps_timeout_s: float = 300.0) -> LiveFigures:
+                      kind: str = "simulation", first_maps_timeout_s: float = 300.0, warmup_s: float = 0.0) -> LiveFigures:
     """Run the window's event loop until every head has a map (a cold numba cache compiles first),
-    then measure for `seconds` (recording into `record_to` when given, with a tidal-start event),
-    stop the recording, close the window and return the figures."""
+    then for `warmup_s` more (the live view before a recording, as while the operator positions
+    the patient: the engine's buffers and the drawing reach their working size), then measure for
+    `seconds` (recording into `record_to` when given, with a tidal-start event), stop the
+    recording, close the window and return the figures."""
     from PySide6.QtCore import QTimer
 
     waited = time.monotonic()
@@ -36,10 +42,12 @@ def measure_live_view(app, window, seconds: float, record_to: Path | None = None
     start: dict = {}
     sample = QTimer()
 
+    def both_mb() -> float:
+        return rss_mb() + rss_mb(window.engine.pid)
+
     def memory() -> None:
-        gui = rss_mb()
-        figures.gui_rss_mb.append(gui)
-        figures.rss_mb.append(gui + rss_mb(window.engine.pid))
+        figures.gui_rss_mb.append(rss_mb())
+        figures.rss_mb.append(both_mb())
 
     sample.timeout.connect(memory)
 
@@ -49,6 +57,11 @@ def measure_live_view(app, window, seconds: float, record_to: Path | None = None
             QTimer.singleShot(200, begin)
             return
         figures.first_maps_s = time.monotonic() - waited
+        figures.rss_first_maps_mb = both_mb()
+        QTimer.singleShot(int(warmup_s * 1000), measure)
+
+    def measure() -> None:
+        heads = window.engine.snapshot().heads
         window.stalls.reset()
         start.update(t=time.monotonic(), updates=window.view.updates,
                      maps={h: v.reconstructed for h, v in heads.items()}, frames={h: v.frames for h, v in heads.items()})
@@ -67,6 +80,7 @@ def measure_live_view(app, window, seconds: float, record_to: Path | None = None
         figures.elapsed_s = elapsed
         figures.updates_per_s = (window.view.updates - start["updates"]) / elapsed
         figures.longest_stall_ms = window.stalls.longest_ms
+        figures.long_stalls = list(window.stalls.long_stalls)
         figures.maps_per_s = {h: (v.reconstructed - start["maps"][h]) / elapsed for h, v in heads.items()}
         figures.frames_per_s = {h: (v.frames - start["frames"][h]) / elapsed for h, v in heads.items()}
         if record_to is not None:
