@@ -52,6 +52,9 @@ class HeadMapView(pg.GraphicsLayoutWidget):
         self.image.setImage(height_mm, autoLevels=False, levels=(-HEIGHT_RANGE_MM, HEIGHT_RANGE_MM))
 
 
+VOLUME_STEPS_L = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0)  # half-ranges of the volume axis (L)
+
+
 class VolumeView(pg.GraphicsLayoutWidget):
     """The volume curve (litres, last 30 s): the flow sensor and the metric optical volume, and the
     gradient volume (relative) under them."""
@@ -72,17 +75,31 @@ class VolumeView(pg.GraphicsLayoutWidget):
         self.metric_curve = self.litres.plot(pen=pg.mkPen((200, 80, 20), width=2), name="optical (metric)")
         self.nextRow()
         self.relative = self.addPlot(title="Optical: gradient volume (thesis eq. 3.27, relative)")
-        self.relative.setLabel("bottom", "time", units="s")
+        # a fixed time axis, now at the right: the curves move, the axes and the grid are drawn once
+        # (a scrolling range rebuilt both axes' ticks and labels at every update)
+        self.relative.setLabel("bottom", "time before now (s)")
         self.relative.setMouseEnabled(False, False)
         self.relative.setXLink(self.litres)
+        self.litres.setXRange(-WINDOW_S, 0.0, padding=0)
+        self._litres_range = 0.0
+        self._set_litres_range(0.0)
         self.relative.setYRange(-1.05, 1.05)
         self.optical_curve = self.relative.plot(pen=pg.mkPen((40, 90, 200), width=2))
         self.ci.layout.setRowStretchFactor(0, 3)
         self.ci.layout.setRowStretchFactor(1, 2)
 
+    def _set_litres_range(self, largest_l: float) -> None:
+        """The volume axis in steps (VOLUME_STEPS_L), changed only when the curves need another step:
+        its ticks and labels are drawn again only then."""
+        needed = next((step for step in VOLUME_STEPS_L if largest_l * 1.05 <= step), VOLUME_STEPS_L[-1])
+        if needed != self._litres_range:
+            self._litres_range = needed
+            self.litres.setYRange(-needed, needed, padding=0)
+
     def show_curves(self, s: Snapshot) -> None:
         end = max(s.flow_t_s[-1] if len(s.flow_t_s) else 0.0, s.optical_t_s[-1] if len(s.optical_t_s) else 0.0)
         start = end - WINDOW_S
+        largest_l = 0.0
         for curve, t_all, v_all in ((self.flow_curve, s.flow_t_s, s.flow_volume_l),
                                     (self.metric_curve, s.metric_t_s, s.metric_volume_l)):
             keep = t_all >= start
@@ -93,7 +110,10 @@ class VolumeView(pg.GraphicsLayoutWidget):
                 # display only: the line through the window's ends taken out, so a zero drift of the
                 # sensor (or the optical volume's slow offsets) does not carry the curve off the plot
                 trend = np.polyfit(t, v, 1) if len(t) > 100 else (0.0, float(np.median(v)))
-                curve.setData(t, v - np.polyval(trend, t))
+                shown = v - np.polyval(trend, t)
+                curve.setData(t - end, shown)
+                largest_l = max(largest_l, float(np.max(np.abs(shown))))
+        self._set_litres_range(largest_l)
         if len(s.optical_t_s) > 5:
             keep = s.optical_t_s >= start
             keep[:3] = False  # the first maps, before the distance is tracked
@@ -102,8 +122,7 @@ class VolumeView(pg.GraphicsLayoutWidget):
                 # thesis eq. 3.27, robust to a stray map: centred on the median, scaled by the 98th percentile
                 centred = values - np.median(values)
                 scale = float(np.percentile(np.abs(centred), 98)) or 1.0
-                self.optical_curve.setData(s.optical_t_s[keep], np.clip(centred / scale, -1.05, 1.05))
-        self.litres.setXRange(max(0.0, start), max(WINDOW_S, end), padding=0)
+                self.optical_curve.setData(s.optical_t_s[keep] - end, np.clip(centred / scale, -1.05, 1.05))
 
 
 class StatusPanel(QGroupBox):
