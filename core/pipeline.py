@@ -93,6 +93,16 @@ def gradient_volume(normals: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sum(np.abs(p[valid]) + np.abs(q[valid])) / k) if k else float("nan")
 
 
+def running_distance(previous_mm: float | None, distance_mm: float, cycles: int) -> float:
+    """The distance after a cycle that estimated `distance_mm`: averaged exponentially with the
+    previous cycles' over about `cycles` of them; a jump of more than DISTANCE_RESET (a new subject,
+    a replay's start), a first cycle or cycles <= 1 take the new estimate as it is."""
+    if (previous_mm is None or cycles <= 1 or not np.isfinite(distance_mm)
+            or abs(distance_mm - previous_mm) >= DISTANCE_RESET * previous_mm):
+        return distance_mm
+    return previous_mm + (distance_mm - previous_mm) / cycles
+
+
 def subject_mask(signal: np.ndarray, fraction: float) -> np.ndarray:
     total = np.sum(np.clip(signal, 0, None), axis=0)
     level = fraction * np.percentile(total, 99)
@@ -211,10 +221,8 @@ class HeadReconstructor:
             if np.isfinite(scale):
                 depth, distance = depth * (scale / distance), scale
                 self.intensity_factors = factors
-        previous = self.last_distance_mm
-        if (previous is not None and s.distance_cycles > 1 and np.isfinite(distance)
-                and abs(distance - previous) < DISTANCE_RESET * previous):
-            averaged = previous + (distance - previous) / s.distance_cycles
+        averaged = running_distance(self.last_distance_mm, distance, s.distance_cycles)
+        if averaged != distance:
             depth, distance = depth * (averaged / distance), averaged
         valid = mask & np.isfinite(depth) & np.isfinite(normals[..., 2])
         depth = np.where(valid, depth, np.nan)

@@ -10,7 +10,7 @@ import pytest
 
 from core.lightfield import light_field, normals_from_field
 from core.photometric import complete_cycles, distant_light_normals, near_light_normals
-from core.pipeline import HeadReconstructor, ReconstructionSettings
+from core.pipeline import DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, running_distance
 from core.process import process_session, with_true_lights
 from core.profile import HeadCalibration, RigCalibration
 from core.session import SessionError, SessionFile
@@ -176,3 +176,20 @@ def test_the_distance_does_not_follow_an_intensity_error(torso_2200):
     assert abs(fitted - right) < 1.5 and abs(right) < 5.0
     factors = reconstructor.intensity_factors
     np.testing.assert_allclose(factors / factors.mean(), (1 / brighter) / np.mean(1 / brighter), atol=0.002)
+
+
+def test_running_distance_averages_small_changes_and_restarts_on_a_jump():
+    assert running_distance(None, 2010.0, 5) == 2010.0  # the first cycle as it is
+    assert running_distance(2000.0, 2010.0, 5) == pytest.approx(2002.0)  # a fifth of the way
+    assert running_distance(2000.0, 2010.0, 1) == 2010.0  # no averaging asked
+    jump = 2000.0 * (1 + 1.5 * DISTANCE_RESET)
+    assert running_distance(2000.0, jump, 5) == jump  # a new subject: start again
+    assert np.isnan(running_distance(2000.0, float("nan"), 5))
+    # a still subject: the scatter of single cycles falls as the average runs
+    rng = np.random.default_rng(0)
+    estimates = 2000.0 + 4.0 * rng.standard_normal(400)
+    running, kept = None, []
+    for d in estimates:
+        running = running_distance(running, d, 5)
+        kept.append(running)
+    assert np.std(kept[20:]) < 0.45 * np.std(estimates)
