@@ -106,71 +106,73 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
 
         rows: list[Row] = []
         lights_effect: list[float] = []
-        for shape in shapes:
-            for distance in distances:
-                path = folder / f"{shape}-{distance}.h5"
-                last_frame = 5 * TRACKED_CYCLES - 1
-                simulate(path, SimConfig(scene=shape, protocol="static", seconds=5 * TRACKED_CYCLES / 110,
-                                         distance_mm=float(distance), sway=Sway(0, 0, 0),
-                                         truth_maps_at=[4, last_frame], **common))
-                with SessionFile(path) as session:
-                    frame, signal, saturated, dark = _cycle(session, "front")
-                    truth = session.truth()
-                    true_normals = np.asarray(truth["front/normals"][0], dtype=np.float64)
-                    true_depth = np.asarray(truth["front/depth_mm"][0], dtype=np.float64)
-                    head = calibration.apply(session.rig).heads["front"]
-                    true_head = session.rig.heads["front"]
-                    # ours on a stream of a still subject: every cycle's own distance (its scatter
-                    # is the camera noise's), and their running average as `photopft process` and the
-                    # live view keep it (`distance_cycles`), at the last cycle
-                    settings = ReconstructionSettings(method="near", integrator="masked", iterations=3)
-                    stream = HeadReconstructor(head, cal.pseudo_light_vectors, replace(settings, distance_cycles=1))
-                    last_depth = np.asarray(truth["front/depth_mm"][1], dtype=np.float64)
-                    cycle_errors, running = [], None
-                    for newest, cycle_signal, cycle_saturated, cycle_dark in _cycles(session, "front"):
-                        streamed = stream.reconstruct(cycle_signal, cycle_saturated, cycle_dark)
-                        on_subject = streamed.mask & np.isfinite(last_depth) & np.isfinite(streamed.depth_mm)
-                        cycle_errors.append(_depth_errors(streamed.depth_mm, last_depth, on_subject)[0])
-                        measured = streamed.distance_mm
-                        running = running_distance(running, measured, settings.distance_cycles)
-                    # the depth scales with the distance: the error of the running average's map
-                    true_median = float(np.median(last_depth[on_subject]))
-                    tracked_error = (cycle_errors[-1] + true_median) * running / measured - true_median
-                true_head = replace(true_head, light_positions_mm=true_positions, light_intensity=true_intensity)
-                methods = {
-                    "traditional": (head, ReconstructionSettings(method="distant", integrator="masked")),
-                    "thesis": (head, ReconstructionSettings(method="near", distance="dmr", integrator="masked",
-                                                            iterations=3)),
-                    "ours": (head, ReconstructionSettings(method="near", integrator="masked", iterations=3)),
-                }
-                results = {}
-                for name, (h, settings) in methods.items():
-                    reconstructor = HeadReconstructor(h, cal.pseudo_light_vectors, settings)
-                    results[name] = reconstructor.reconstruct(signal, saturated, dark)
-                valid = results["ours"].mask & np.isfinite(true_normals[..., 2])
-                for name, result in results.items():
-                    ok = valid & np.isfinite(result.normals[..., 2]) & np.isfinite(result.depth_mm)
-                    offset, height = _depth_errors(result.depth_mm, true_depth, ok)
-                    ours = name == "ours"
-                    rows.append(Row(shape, distance, name, _angular_error(result.normals, true_normals, ok),
-                                    offset, height, tracked_error if ours else float("nan"),
-                                    float(np.std(cycle_errors)) if ours else float("nan")))
-                # The noise floor: the same solver handed the true surface and the true lights.
-                rays = HeadReconstructor(true_head)._rays
-                points = np.ascontiguousarray(rays * np.nan_to_num(true_depth, nan=float(distance))[..., None])
-                floor = np.full(true_head.shape + (3,), np.nan)
-                calibrated = np.full(true_head.shape + (3,), np.nan)
-                albedo = np.full(true_head.shape, np.nan)
-                used = np.zeros(true_head.shape, dtype=np.int64)
-                axis, mu = np.tile([0.0, 0.0, 1.0], (4, 1)), np.zeros(4)
-                near_light_normals(signal, points, true_positions, true_intensity, axis, mu, saturated,
-                                   0.01 * true_head.max_value, floor, albedo, used)
-                near_light_normals(signal, points, cal.light_positions_mm, cal.light_intensity, axis, mu, saturated,
-                                   0.01 * true_head.max_value, calibrated, albedo, used)
-                ok = valid & np.isfinite(floor[..., 2])
-                rows.append(Row(shape, distance, "noise floor", _angular_error(floor, true_normals, ok), 0.0, 0.0))
-                both = ok & np.isfinite(calibrated[..., 2])
-                lights_effect.append(_angular_error(calibrated, floor, both))
+        for scene_number, (shape, distance) in enumerate((s, d) for s in shapes for d in distances):
+            path = folder / f"{shape}-{distance}.h5"
+            last_frame = 5 * TRACKED_CYCLES - 1
+            # the same rig and shapes for every scene (seed), the camera noise drawn anew for each:
+            # with one draw for all, the one-cycle errors of every scene were one sample, not many
+            simulate(path, SimConfig(scene=shape, protocol="static", seconds=5 * TRACKED_CYCLES / 110,
+                                     distance_mm=float(distance), sway=Sway(0, 0, 0),
+                                     truth_maps_at=[4, last_frame], noise_seed=1000 * seed + scene_number,
+                                     **common))
+            with SessionFile(path) as session:
+                frame, signal, saturated, dark = _cycle(session, "front")
+                truth = session.truth()
+                true_normals = np.asarray(truth["front/normals"][0], dtype=np.float64)
+                true_depth = np.asarray(truth["front/depth_mm"][0], dtype=np.float64)
+                head = calibration.apply(session.rig).heads["front"]
+                true_head = session.rig.heads["front"]
+                # ours on a stream of a still subject: every cycle's own distance (its scatter
+                # is the camera noise's), and their running average as `photopft process` and the
+                # live view keep it (`distance_cycles`), at the last cycle
+                settings = ReconstructionSettings(method="near", integrator="masked", iterations=3)
+                stream = HeadReconstructor(head, cal.pseudo_light_vectors, replace(settings, distance_cycles=1))
+                last_depth = np.asarray(truth["front/depth_mm"][1], dtype=np.float64)
+                cycle_errors, running = [], None
+                for newest, cycle_signal, cycle_saturated, cycle_dark in _cycles(session, "front"):
+                    streamed = stream.reconstruct(cycle_signal, cycle_saturated, cycle_dark)
+                    on_subject = streamed.mask & np.isfinite(last_depth) & np.isfinite(streamed.depth_mm)
+                    cycle_errors.append(_depth_errors(streamed.depth_mm, last_depth, on_subject)[0])
+                    measured = streamed.distance_mm
+                    running = running_distance(running, measured, settings.distance_cycles)
+                # the depth scales with the distance: the error of the running average's map
+                true_median = float(np.median(last_depth[on_subject]))
+                tracked_error = (cycle_errors[-1] + true_median) * running / measured - true_median
+            true_head = replace(true_head, light_positions_mm=true_positions, light_intensity=true_intensity)
+            methods = {
+                "traditional": (head, ReconstructionSettings(method="distant", integrator="masked")),
+                "thesis": (head, ReconstructionSettings(method="near", distance="dmr", integrator="masked",
+                                                        iterations=3)),
+                "ours": (head, ReconstructionSettings(method="near", integrator="masked", iterations=3)),
+            }
+            results = {}
+            for name, (h, settings) in methods.items():
+                reconstructor = HeadReconstructor(h, cal.pseudo_light_vectors, settings)
+                results[name] = reconstructor.reconstruct(signal, saturated, dark)
+            valid = results["ours"].mask & np.isfinite(true_normals[..., 2])
+            for name, result in results.items():
+                ok = valid & np.isfinite(result.normals[..., 2]) & np.isfinite(result.depth_mm)
+                offset, height = _depth_errors(result.depth_mm, true_depth, ok)
+                ours = name == "ours"
+                rows.append(Row(shape, distance, name, _angular_error(result.normals, true_normals, ok),
+                                offset, height, tracked_error if ours else float("nan"),
+                                float(np.std(cycle_errors)) if ours else float("nan")))
+            # The noise floor: the same solver handed the true surface and the true lights.
+            rays = HeadReconstructor(true_head)._rays
+            points = np.ascontiguousarray(rays * np.nan_to_num(true_depth, nan=float(distance))[..., None])
+            floor = np.full(true_head.shape + (3,), np.nan)
+            calibrated = np.full(true_head.shape + (3,), np.nan)
+            albedo = np.full(true_head.shape, np.nan)
+            used = np.zeros(true_head.shape, dtype=np.int64)
+            axis, mu = np.tile([0.0, 0.0, 1.0], (4, 1)), np.zeros(4)
+            near_light_normals(signal, points, true_positions, true_intensity, axis, mu, saturated,
+                               0.01 * true_head.max_value, floor, albedo, used)
+            near_light_normals(signal, points, cal.light_positions_mm, cal.light_intensity, axis, mu, saturated,
+                               0.01 * true_head.max_value, calibrated, albedo, used)
+            ok = valid & np.isfinite(floor[..., 2])
+            rows.append(Row(shape, distance, "noise floor", _angular_error(floor, true_normals, ok), 0.0, 0.0))
+            both = ok & np.isfinite(calibrated[..., 2])
+            lights_effect.append(_angular_error(calibrated, floor, both))
 
     lines.append(f"## Accuracy (`photopft bench accuracy --scale {scale:g}`)")
     lines.append("")
@@ -182,7 +184,8 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                  "The rig as built has every LED "
                  f"{led_offset_mm:g} mm off the drawing and intensities within 5 %; the lights come from a "
                  "simulated calibration (specular sphere at 7 places, then a matte sphere at the same places), "
-                 "not from the truth.")
+                 f"not from the truth. Rig and shapes from seed {seed}; each scene's camera noise drawn anew "
+                 "(`noise_seed`), so the one-cycle errors of different scenes are independent draws.")
     lines.append("")
     lines.append("Light calibration, error against the built rig per LED (mm): "
                  f"drawing {np.round(drawing_error, 1).tolist()}, specular triangulation "

@@ -111,7 +111,7 @@ class SimCamera:
         head = s.heads[self.head]
         light = s.rig.sequence[i % s.rig.cycle_length]
         image, _ = s.scene.render(head, i / s.rig.frame_rate_hz, light,
-                                  noise_key(s.config.seed, self.head, i, head.width * head.height), s.digitisers[self.head])
+                                  noise_key(s.config.noise_draw, self.head, i, head.width * head.height), s.digitisers[self.head])
         return image
 
     def grab(self, timeout_s: float = 0.5) -> Frame | None:

@@ -35,6 +35,7 @@ class SimConfig:
     seconds: float | None = None  # None: the protocol's natural length
     scale: float = 0.25
     seed: int = 1
+    noise_seed: int | None = None  # the camera noise's draw (None: seed); the rest of the scene keeps `seed`
     heads: tuple[str, ...] = ("front", "back")
     distance_mm: float = 2000.0  # front camera to the surface on its optical axis, at rest
     distance_back_mm: float = 2000.0
@@ -59,6 +60,11 @@ class SimConfig:
     placement_cycles: int = 3
     created: str | None = None
     compression: str | None = None
+
+    @property
+    def noise_draw(self) -> int:
+        """The seed of the camera noise: noise_seed when given, else seed."""
+        return self.seed if self.noise_seed is None else self.noise_seed
 
 
 @dataclass
@@ -254,7 +260,7 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
                     frames, ids, lights, stamps = [], [], [], []
                     for i in indices:
                         light = rig.sequence[i % rig.cycle_length]
-                        key = noise_key(config.seed, name, i, head.width * head.height)
+                        key = noise_key(config.noise_draw, name, i, head.width * head.height)
                         frame, rendered = scene.render(head, i / rig.frame_rate_hz, light, key, digitisers[name],
                                                        want_maps=i in map_frames)
                         if rendered is not None:

@@ -31,6 +31,20 @@ def test_same_seed_same_session_other_seed_other_noise(tmp_path):
         np.testing.assert_array_equal(fa["truth/volume_l"][:], fb["truth/volume_l"][:])
 
 
+def test_noise_seed_draws_other_noise_on_the_same_scene(tmp_path):
+    config = SimConfig(protocol="tidal", seconds=0.2, scale=0.08, seed=5)
+    simulate(tmp_path / "a.h5", config)
+    simulate(tmp_path / "n.h5", SimConfig(protocol="tidal", seconds=0.2, scale=0.08, seed=5, noise_seed=77))
+    a, n = _frames(tmp_path / "a.h5"), _frames(tmp_path / "n.h5")
+    with SessionFile(tmp_path / "a.h5") as fa, SessionFile(tmp_path / "n.h5") as fn:
+        np.testing.assert_array_equal(fa.truth()["front/depth_mm"][0], fn.truth()["front/depth_mm"][0])
+        np.testing.assert_array_equal(fa.rig.heads["front"].light_positions_mm, fn.rig.heads["front"].light_positions_mm)
+    for head in a:
+        difference = a[head].astype(np.int32) - n[head].astype(np.int32)
+        assert np.count_nonzero(difference) > 0.3 * difference.size  # other noise (the dark background often rounds alike)
+        assert abs(difference.mean()) < 0.1  # and nothing else: zero on average
+
+
 def test_torso_is_an_adult_trunk_seen_from_the_front(tmp_path):
     path = tmp_path / "t.h5"
     simulate(path, SimConfig(protocol="static", seconds=0.1, scale=0.25, sway=Sway(0, 0, 0), truth_maps_at=[4]))
