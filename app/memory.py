@@ -43,4 +43,3 @@ def start_memory_trimmer(interval_s: float = 10.0) -> None:
 
     _trimmer = threading.Thread(target=loop, name="memory-trim", daemon=True)
     _trimmer.start()
-

@@ -298,10 +298,11 @@ class SessionWriter(_OwnsFile):
         self._file.swmr_mode = True
 
     def flush(self) -> None:
-        """Everything written so far to disk, and out of the page cache: a recording is written once
-        and read later (27 GB for 10 minutes at half resolution), and a page cache full of it pushes
-        every other program's memory out and makes the kernel reclaim and compact memory in the
-        page faults of other programs, the live view's drawing among them."""
+        """Everything written so far handed to the system, and the file's pages that are on disk let
+        go from the page cache (the rest at the next flush): a recording is written once and read
+        later (27 GB for 10 minutes at half resolution), and kept cached it would push every other
+        program's memory out (measured: the page cache held 0.7 GB after a minute of recording at half
+        resolution, which wrote 2.7 GB)."""
         self._file.flush()
         if hasattr(os, "posix_fadvise") and self._file.driver == "sec2":
             os.posix_fadvise(self._file.id.get_vfd_handle(), 0, 0, os.POSIX_FADV_DONTNEED)
