@@ -44,17 +44,16 @@ TRACKED_CYCLES = 10
 
 
 def _cycles(session, head_name: str):
-    """Every complete light cycle of a head, in order: (newest frame, signal, saturated, dark)."""
+    """Every complete light cycle of a head, in order: (newest frame, signal, saturated, dark), as
+    `photopft process` makes them (without its motion compensation: the subjects stand still)."""
     from core.photometric import complete_cycles
+    from core.process import cycle_signal
 
-    frames = session.frames(head_name)
+    frames, ids = session.frames(head_name), session.frame_id(head_name)
     max_value = session.rig.heads[head_name].max_value
-    for window in complete_cycles(session.light_index(head_name), session.frame_id(head_name),
+    for window in complete_cycles(session.light_index(head_name), ids,
                                   session.rig.cycle_length)[::session.rig.cycle_length]:
-        dark = frames[window.dark].astype(np.float64)
-        raw = [frames[i] for i in window.lit]
-        yield (window.newest, np.stack([r.astype(np.float64) - dark for r in raw]),
-               np.stack([r >= max_value for r in raw]), dark)
+        yield (window.newest, *cycle_signal(frames, window, None, max_value, {}, ids))
 
 
 def _angular_error(normals: np.ndarray, truth: np.ndarray, valid: np.ndarray) -> float:
@@ -106,6 +105,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
 
         rows: list[Row] = []
         lights_effect: list[float] = []
+        ours_settings = ReconstructionSettings(method="near", integrator="masked", iterations=3)
         for scene_number, (shape, distance) in enumerate((s, d) for s in shapes for d in distances):
             path = folder / f"{shape}-{distance}.h5"
             last_frame = 5 * TRACKED_CYCLES - 1
@@ -125,8 +125,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                 # ours on a stream of a still subject: every cycle's own distance (its scatter
                 # is the camera noise's), and their running average as `photopft process` and the
                 # live view keep it (`distance_cycles`), at the last cycle
-                settings = ReconstructionSettings(method="near", integrator="masked", iterations=3)
-                stream = HeadReconstructor(head, cal.pseudo_light_vectors, replace(settings, distance_cycles=1))
+                stream = HeadReconstructor(head, cal.pseudo_light_vectors, replace(ours_settings, distance_cycles=1))
                 last_depth = np.asarray(truth["front/depth_mm"][1], dtype=np.float64)
                 cycle_errors, running = [], None
                 for newest, cycle_signal, cycle_saturated, cycle_dark in _cycles(session, "front"):
@@ -134,7 +133,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                     on_subject = streamed.mask & np.isfinite(last_depth) & np.isfinite(streamed.depth_mm)
                     cycle_errors.append(_depth_errors(streamed.depth_mm, last_depth, on_subject)[0])
                     measured = streamed.distance_mm
-                    running = running_distance(running, measured, settings.distance_cycles)
+                    running = running_distance(running, measured, ours_settings.distance_cycles)
                 # the depth scales with the distance: the error of the running average's map
                 true_median = float(np.median(last_depth[on_subject]))
                 tracked_error = (cycle_errors[-1] + true_median) * running / measured - true_median
@@ -143,7 +142,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                 "traditional": (head, ReconstructionSettings(method="distant", integrator="masked")),
                 "thesis": (head, ReconstructionSettings(method="near", distance="dmr", integrator="masked",
                                                         iterations=3)),
-                "ours": (head, ReconstructionSettings(method="near", integrator="masked", iterations=3)),
+                "ours": (head, ours_settings),
             }
             results = {}
             for name, (h, settings) in methods.items():

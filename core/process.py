@@ -32,7 +32,7 @@ class ProcessSummary:
     mean_distance_mm: dict[str, float]
 
 
-def _cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindow | None, max_value: int,
+def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindow | None, max_value: int,
                   cache: dict[int, np.ndarray], frame_id: np.ndarray,
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each light's frame minus the dark frame; with `previous` (the cycle one period earlier),
@@ -140,7 +140,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                         del cache[stale]
                     previous = (all_windows.get(int(ids[window.newest]) - rig.cycle_length)
                                 if motion_compensation else None)
-                    signal, saturated, dark = _cycle_signal(frames, window, previous, head.max_value, cache, ids)
+                    signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids)
                     result = reconstructor.reconstruct(signal, saturated, dark)
                     rows["timestamp_ns"].append(stamps[window.newest])
                     rows["frame_index"].append(window.newest)
@@ -206,7 +206,7 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
         for index in frame_indices:
             window = windows[max(0, int(np.searchsorted(ends, index, side="right")) - 1)]
             previous = by_id.get(int(ids[window.newest]) - rig.cycle_length) if motion_compensation else None
-            signal, saturated, dark = _cycle_signal(frames, window, previous, head.max_value, {}, ids)
+            signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, {}, ids)
             out.append(reconstructor.reconstruct(signal, saturated, dark))
     return out
 
