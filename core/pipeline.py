@@ -34,15 +34,18 @@ from core.photometric import distant_light_normals, gradients_from_normals, near
 from core.rig import Head
 
 NOMINAL_DISTANCE_MM = 2000.0
+EDGE_GROWTH_PX = 3
 DISTANCE_RESET = 0.05  # relative change of the distance from one cycle to the next that is not noise
 
 
 @dataclass(frozen=True)
 class ReconstructionSettings:
     method: str = "near"  # near: per-pixel lights (this project); distant: traditional photometric stereo
-    integrator: str = "dct"  # dct: fast (live); masked: accurate (offline)
+    integrator: str = "masked"  # masked: least squares on the subject; dct: faster, flattens (core/integrate.py)
     iterations: int = 2
     mask_fraction: float = 0.1  # subject: summed signal above this fraction of its 99th percentile
+    # ... and its edge grown into what is above this fraction (None: eroded by a pixel instead)
+    mask_edge_fraction: float | None = 0.03
     shadow_fraction: float = 0.01  # a light below this fraction of full scale counts as shadowed
     dmr_threshold: float = DMR_THRESHOLD
     max_depth_change_mm: float = 0.05  # stop iterating when the depth moves less than this (median)
@@ -103,11 +106,21 @@ def running_distance(previous_mm: float | None, distance_mm: float, cycles: int)
     return previous_mm + (distance_mm - previous_mm) / cycles
 
 
-def subject_mask(signal: np.ndarray, fraction: float) -> np.ndarray:
+def subject_mask(signal: np.ndarray, fraction: float, edge_fraction: float | None = None,
+                 edge_px: int = EDGE_GROWTH_PX) -> np.ndarray:
+    """The subject's pixels: summed signal above `fraction` of its 99th percentile, holes filled.
+
+    Without edge_fraction, eroded by a pixel (mixed pixels at the silhouette). With it, grown
+    instead by up to edge_px pixels into what is still above edge_fraction: the flanks of a
+    torso, lit at grazing angles, are dim but their normals are good to the last pixel, and the
+    metric volume is referred to the silhouette (core/volume.py), so every pixel lost there is
+    breathing lost."""
     total = np.sum(np.clip(signal, 0, None), axis=0)
-    level = fraction * np.percentile(total, 99)
-    mask = ndimage.binary_fill_holes(total > level)
-    return ndimage.binary_erosion(mask, iterations=1)
+    reference = np.percentile(total, 99)
+    mask = ndimage.binary_fill_holes(total > fraction * reference)
+    if edge_fraction is None:
+        return ndimage.binary_erosion(mask, iterations=1)
+    return ndimage.binary_dilation(mask, iterations=edge_px, mask=total > edge_fraction * reference)
 
 
 class HeadReconstructor:
@@ -179,7 +192,7 @@ class HeadReconstructor:
         signal = np.ascontiguousarray(signal, dtype=np.float64)
         if saturated is None:
             saturated = np.zeros(signal.shape, dtype=np.bool_)
-        mask = subject_mask(signal, s.mask_fraction)
+        mask = subject_mask(signal, s.mask_fraction, s.mask_edge_fraction)
         pseudo_normals, albedo = distant_light_normals(signal, np.zeros(h.shape), self.pseudo_light_vectors)
         pseudo_normals[~mask] = np.nan
         dmr = dmr_distance(pseudo_normals, mask, h.fx, h.fy, h.cx, h.cy, h.light_positions_mm,

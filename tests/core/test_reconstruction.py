@@ -10,7 +10,7 @@ import pytest
 
 from core.lightfield import light_field, normals_from_field
 from core.photometric import complete_cycles, distant_light_normals, near_light_normals
-from core.pipeline import DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, running_distance
+from core.pipeline import DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, running_distance, subject_mask
 from core.process import process_session, with_true_lights
 from core.profile import HeadCalibration, RigCalibration
 from core.session import SessionError, SessionFile
@@ -193,3 +193,21 @@ def test_running_distance_averages_small_changes_and_restarts_on_a_jump():
         running = running_distance(running, d, 5)
         kept.append(running)
     assert np.std(kept[20:]) < 0.45 * np.std(estimates)
+
+
+def test_the_subject_mask_reaches_the_dim_silhouette_and_not_the_background():
+    """A disc lit at grazing angles towards its edge (signal ~ cos of the normal's tilt) on a dark
+    background: the grown mask reaches closer to the silhouette than the eroded one, and no farther
+    than the disc."""
+    h, w = 120, 160
+    y, x = np.mgrid[0:h, 0:w].astype(float)
+    r = np.hypot(x - 80, y - 60) / 50.0
+    disc = r < 1
+    cosine = np.sqrt(np.clip(1 - r**2, 0, None))
+    signal = np.stack([1000.0 * cosine + 2.0] * 4)
+    eroded = subject_mask(signal, 0.1)
+    grown = subject_mask(signal, 0.1, 0.03)
+    assert (grown & ~disc).sum() == 0
+    assert eroded.sum() < grown.sum() <= disc.sum()
+    missing = lambda m: disc.sum() - m.sum()  # noqa: E731
+    assert missing(grown) < 0.4 * missing(eroded)
