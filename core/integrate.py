@@ -23,15 +23,22 @@ from numba import njit, prange
 from scipy.fft import dctn, idctn, next_fast_len
 
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}  # no 'nnan': NaN marks pixels off the subject
+# A normal this far from the viewing ray is not integrated: the gradient grows as 1 / cos and the
+# silhouette's outermost pixels (partly background) would throw the surface around them
+MAX_VIEW_ANGLE_DEG = 85.0
+MIN_VIEW_COSINE = float(np.cos(np.radians(MAX_VIEW_ANGLE_DEG)))
 
 
 def log_depth_gradients(normals: np.ndarray, fx: float, fy: float, cx: float, cy: float,
                         ) -> tuple[np.ndarray, np.ndarray]:
-    """d(log Z)/du and d(log Z)/dv per pixel (columns, rows) from unit normals (H, W, 3)."""
+    """d(log Z)/du and d(log Z)/dv per pixel (columns, rows) from unit normals (H, W, 3); NaN where
+    the normal is more than MAX_VIEW_ANGLE_DEG from the viewing ray."""
     height, width = normals.shape[:2]
     x = ((np.arange(width) - cx) / fx)[None, :]
     y = ((np.arange(height) - cy) / fy)[:, None]
     denominator = normals[..., 0] * x + normals[..., 1] * y + normals[..., 2]
+    grazing = np.abs(denominator) < MIN_VIEW_COSINE * np.sqrt(x * x + y * y + 1.0)
+    denominator = np.where(grazing, np.nan, denominator)
     with np.errstate(invalid="ignore", divide="ignore"):
         return -normals[..., 0] / (fx * denominator), -normals[..., 1] / (fy * denominator)
 
@@ -83,15 +90,16 @@ def integrate_dct(gu: np.ndarray, gv: np.ndarray, workers: int = -1) -> np.ndarr
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
-def _log_depth_gradients(normals, mask, fx, fy, cx, cy, gu, gv):
+def _log_depth_gradients(normals, mask, fx, fy, cx, cy, min_cosine, gu, gv):
     """d(log Z)/du and d(log Z)/dv (see the module doc), NaN off the mask, single precision."""
     height, width = mask.shape
     for i in prange(height):
         y = (i - cy) / fy
         for j in range(width):
             n0, n1, n2 = normals[i, j, 0], normals[i, j, 1], normals[i, j, 2]
-            den = n0 * (j - cx) / fx + n1 * y + n2
-            if mask[i, j] and den != 0.0:
+            x = (j - cx) / fx
+            den = n0 * x + n1 * y + n2
+            if mask[i, j] and abs(den) >= min_cosine * np.sqrt(x * x + y * y + 1.0):
                 gu[i, j] = -n0 / (fx * den)
                 gv[i, j] = -n1 / (fy * den)
             else:
@@ -105,7 +113,7 @@ def log_depth_dct(normals: np.ndarray, mask: np.ndarray, fx: float, fy: float, c
     height, width = mask.shape
     gu = np.empty((height, width), dtype=np.float32)
     gv = np.empty((height, width), dtype=np.float32)
-    _log_depth_gradients(normals, mask & np.isfinite(normals[..., 2]), fx, fy, cx, cy, gu, gv)
+    _log_depth_gradients(normals, mask & np.isfinite(normals[..., 2]), fx, fy, cx, cy, MIN_VIEW_COSINE, gu, gv)
     div = np.empty((height, width), dtype=np.float32)
     _divergence(gu, gv, div)
     transformed = dctn(div, type=2, norm="ortho", workers=workers)

@@ -122,7 +122,11 @@ def bear(shared_data):
 
 
 def _mean_abs_error(got, truth, mask):
-    err = got[mask] - truth[mask]
+    """Mean absolute error after the mean offset, over the mask's pixels given a depth; at most
+    0.1 % of them may be left out (normals past MAX_VIEW_ANGLE_DEG at the silhouette)."""
+    given = mask & np.isfinite(got)
+    assert given.sum() >= 0.999 * mask.sum()
+    err = got[given] - truth[given]
     return float(np.mean(np.abs(err - err.mean())))
 
 
@@ -132,7 +136,7 @@ def test_real_normals_integrate_within_1mm(bear):
     assert _mean_abs_error(got, truth, mask) <= 1.0
     fast = depth_from_normals(normals, mask, k[0, 0], k[1, 1], k[0, 2], k[1, 2], float(np.median(truth[mask])),
                               "dct")
-    assert _mean_abs_error(fast, truth, mask) <= 3.5  # the plain DCT reference is 3.27 mm
+    assert _mean_abs_error(fast, truth, mask) <= 3.6  # the plain DCT reference is 3.27 mm
 
 
 def test_the_normal_convention_matches_the_depth(bear):
@@ -142,4 +146,16 @@ def test_the_normal_convention_matches_the_depth(bear):
     angle = np.degrees(np.arccos(np.clip(np.sum(normals * from_depth, -1), -1, 1)))
     assert np.median(angle[inner]) < 2.0
     gu, gv = log_depth_gradients(normals, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
-    assert np.isfinite(gu[mask]).all() and np.isfinite(gv[mask]).all()
+    assert np.isfinite(gu[inner]).mean() > 0.999 and np.isfinite(gv[inner]).mean() > 0.999
+
+
+def test_normals_at_grazing_view_are_not_integrated():
+    """A normal nearly perpendicular to its viewing ray (a silhouette pixel that is partly
+    background) would give a gradient of any size; it is left out, not integrated."""
+    fx = fy = 800.0
+    normals = np.tile(np.array([0.0, 0.0, -1.0]), (3, 4, 1))
+    tilt = np.radians(88.0)
+    normals[1, 1] = [np.sin(tilt), 0.0, -np.cos(tilt)]
+    gu, gv = log_depth_gradients(normals, fx, fy, 1.5, 1.0)
+    assert np.isnan(gu[1, 1]) and np.isnan(gv[1, 1])
+    assert np.isfinite(np.delete(gu.ravel(), 5)).all()
