@@ -143,24 +143,30 @@ def _masked_divergence(gu, gv, mask, out):
             out[i, j] = total
 
 
+@njit(fastmath=_FAST, cache=True, nogil=True, inline="always")
+def _laplacian_at(z, mask, i, j):
+    """(A^T A z) at a pixel of the mask: the sum of its differences from its neighbours in the mask."""
+    height, width = mask.shape
+    centre = z[i, j]
+    total = 0.0
+    if j + 1 < width and mask[i, j + 1]:
+        total += centre - z[i, j + 1]
+    if j > 0 and mask[i, j - 1]:
+        total += centre - z[i, j - 1]
+    if i + 1 < height and mask[i + 1, j]:
+        total += centre - z[i + 1, j]
+    if i > 0 and mask[i - 1, j]:
+        total += centre - z[i - 1, j]
+    return total
+
+
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
 def _masked_laplacian(z, mask, out):
-    """A^T A z: per pixel of the mask, the sum of its differences from its neighbours in the mask."""
+    """A^T A z on the mask, zero off it."""
     height, width = mask.shape
     for i in prange(height):
         for j in range(width):
-            total = 0.0
-            if mask[i, j]:
-                centre = z[i, j]
-                if j + 1 < width and mask[i, j + 1]:
-                    total += centre - z[i, j + 1]
-                if j > 0 and mask[i, j - 1]:
-                    total += centre - z[i, j - 1]
-                if i + 1 < height and mask[i + 1, j]:
-                    total += centre - z[i + 1, j]
-                if i > 0 and mask[i - 1, j]:
-                    total += centre - z[i - 1, j]
-            out[i, j] = total
+            out[i, j] = _laplacian_at(z, mask, i, j) if mask[i, j] else 0.0
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
@@ -186,18 +192,8 @@ def _cg_direction(direction, product, preconditioned, mask, beta):
         row = 0.0
         for j in range(width):
             if mask[i, j]:
-                centre = preconditioned[i, j]
-                laplacian = 0.0
-                if j + 1 < width and mask[i, j + 1]:
-                    laplacian += centre - preconditioned[i, j + 1]
-                if j > 0 and mask[i, j - 1]:
-                    laplacian += centre - preconditioned[i, j - 1]
-                if i + 1 < height and mask[i + 1, j]:
-                    laplacian += centre - preconditioned[i + 1, j]
-                if i > 0 and mask[i - 1, j]:
-                    laplacian += centre - preconditioned[i - 1, j]
-                d = centre + beta * direction[i, j]
-                a_d = laplacian + beta * product[i, j]
+                d = preconditioned[i, j] + beta * direction[i, j]
+                a_d = _laplacian_at(preconditioned, mask, i, j) + beta * product[i, j]
                 direction[i, j] = d
                 product[i, j] = a_d
                 row += d * a_d
