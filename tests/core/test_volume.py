@@ -27,3 +27,22 @@ def test_gradient_volume_correlations_per_head_and_combined():
     same = gradient_volume_correlations({"front": (t_front, np.sin(2 * np.pi * t_front / 4.0)),
                                          "back": (t_back, np.sin(2 * np.pi * t_back / 4.0))}, t_ref, volume)
     assert same["combined"] == pytest.approx(1.0, abs=1e-3)
+
+
+def test_the_rim_is_extrapolated_past_the_noisy_outermost_pixels():
+    """Depth falling linearly towards the silhouette, the two outermost pixels of every row thrown
+    off (dim, grazing light): the rim is where the line through the rest meets the edge."""
+    from core.volume import rim_depths
+
+    rng = np.random.default_rng(5)
+    mask = np.zeros((40, 60), bool)
+    mask[5:35, 10:50] = True
+    cols = np.arange(60)
+    from_edge = np.minimum(cols - 10, 49 - cols).astype(float)
+    depth = np.tile(2000.0 - 3.0 * from_edge, (40, 1))
+    noisy = depth.copy()
+    noisy[:, [10, 11, 48, 49]] += rng.normal(0, 20.0, (40, 4))
+    rim, _ = rim_depths(noisy, noisy, mask, band_px=12)
+    assert abs(rim - 2001.5) < 0.01  # 3 mm per pixel, half a pixel outside the edge
+    with_them, _ = rim_depths(noisy, noisy, mask, band_px=12, skip_px=0)
+    assert abs(with_them - 2001.5) > 0.1
