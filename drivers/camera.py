@@ -15,6 +15,8 @@ from typing import Callable, Protocol
 import numpy as np
 
 GIGABIT_MB_S = 115.0  # what one gigabit link carries in practice
+OPEN_ATTEMPTS = 3  # opening a camera: tries before giving up
+OPEN_RETRY_S = 0.5
 
 
 class CameraError(Exception):
@@ -190,7 +192,15 @@ class AravisCamera:
         self._resume = False  # back after a gap: the next frame re-bases the frame ids
         self.device_id = find_aravis_device(self.identifier, self.interfaces)
         self.name = self.name or self.device_id
-        self._open()
+        for attempt in range(OPEN_ATTEMPTS):
+            try:
+                self._open()
+                break
+            except CameraError:
+                # a GigE Vision camera's first control reads can time out on a busy link or host
+                if attempt == OPEN_ATTEMPTS - 1:
+                    raise
+                time.sleep(OPEN_RETRY_S)
 
     def _open(self) -> None:
         self._lost_control = threading.Event()
