@@ -83,10 +83,7 @@ def integrate_dct(gu: np.ndarray, gv: np.ndarray, workers: int = -1) -> np.ndarr
     height, width = gu.shape
     div = np.empty((height, width), dtype=np.float32)
     _divergence(np.asarray(gu, dtype=np.float32), np.asarray(gv, dtype=np.float32), div)
-    transformed = dctn(div, type=2, norm="ortho", workers=workers)
-    transformed *= _dct_eigenvalues(height, width)
-    transformed[0, 0] = 0.0
-    return idctn(transformed, type=2, norm="ortho", workers=workers)
+    return _dct_poisson(div, workers)
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
@@ -116,11 +113,7 @@ def log_depth_dct(normals: np.ndarray, mask: np.ndarray, fx: float, fy: float, c
     _log_depth_gradients(normals, mask & np.isfinite(normals[..., 2]), fx, fy, cx, cy, MIN_VIEW_COSINE, gu, gv)
     div = np.empty((height, width), dtype=np.float32)
     _divergence(gu, gv, div)
-    transformed = dctn(div, type=2, norm="ortho", workers=workers)
-    transformed *= _dct_eigenvalues(height, width)
-    transformed[0, 0] = 0.0
-    out = idctn(transformed, type=2, norm="ortho", workers=workers)
-    return np.where(mask, out, np.nan)
+    return np.where(mask, _dct_poisson(div, workers), np.nan)
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
@@ -222,8 +215,8 @@ def _cg_step(z, residual, direction, product, mask, step):
 
 
 def _dct_poisson(image: np.ndarray, workers: int) -> np.ndarray:
-    """The rectangle's Neumann Poisson solve of a right-hand side (the DCT path, as a preconditioner)."""
-    transformed = dctn(image.astype(np.float32), type=2, norm="ortho", workers=workers)
+    """The rectangle's Neumann Poisson solve of a right-hand side (the DCT path), single precision."""
+    transformed = dctn(image.astype(np.float32, copy=False), type=2, norm="ortho", workers=workers)
     transformed *= _dct_eigenvalues(*image.shape)
     transformed[0, 0] = 0.0
     return idctn(transformed, type=2, norm="ortho", workers=workers)
