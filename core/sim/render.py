@@ -3,8 +3,9 @@
     I_k = rho * E_k * A_k * max(0, n . l_k) / r_k**2 (+ specular) + ambient + noise
 
 Rays are cast through every pixel centre (OpenCV pinhole, no distortion) and met with the
-surface by Newton's method on a height field, warm-started from the previous frame, or
-analytically for spheres. Noise: shot noise (Gaussian with the Poisson variance) and read
+surface by Newton's method on a height field, warm-started from the previous frame (and, where
+it fails on a flank the ray nearly grazes, by marching from the front), or analytically for
+spheres. Noise: shot noise (Gaussian with the Poisson variance) and read
 noise, drawn from a counter-based hash of (seed, frame, pixel) so that frames are the same
 whatever the number of threads (the normal deviate is the Irwin-Hall sum of four uniforms:
 cheap, with tails cut at 3.46 sigma); then full-well saturation and quantisation.
@@ -123,17 +124,92 @@ def _digitise(signal_e, read_e, dn_per_e, max_dn, key):
     return dn
 
 
+@njit(inline="always", fastmath=_FAST)
+def _surface_at(fields, amps, gx0, gy0, inv_step, xb, yb):
+    """Height, gradient (x, y) and albedo of the breathing surface at body point (xb, yb), bilinear
+    on the grid; the height is NaN off the object."""
+    fx = (xb - gx0) * inv_step
+    fy = (yb - gy0) * inv_step
+    jj = int(np.floor(fx))
+    ii = int(np.floor(fy))
+    if jj < 0 or ii < 0 or jj >= fields.shape[1] - 1 or ii >= fields.shape[0] - 1:
+        return np.nan, 0.0, 0.0, 0.0
+    tx = fx - jj
+    ty = fy - ii
+    w00 = (1 - tx) * (1 - ty)
+    w01 = tx * (1 - ty)
+    w10 = (1 - tx) * ty
+    w11 = tx * ty
+    hh = w00 * fields[ii, jj, 0] + w01 * fields[ii, jj + 1, 0] + w10 * fields[ii + 1, jj, 0] + w11 * fields[ii + 1, jj + 1, 0]
+    if not np.isfinite(hh):
+        return np.nan, 0.0, 0.0, 0.0
+    gx = w00 * fields[ii, jj, 1] + w01 * fields[ii, jj + 1, 1] + w10 * fields[ii + 1, jj, 1] + w11 * fields[ii + 1, jj + 1, 1]
+    gy = w00 * fields[ii, jj, 2] + w01 * fields[ii, jj + 1, 2] + w10 * fields[ii + 1, jj, 2] + w11 * fields[ii + 1, jj + 1, 2]
+    alb = w00 * fields[ii, jj, 3] + w01 * fields[ii, jj + 1, 3] + w10 * fields[ii + 1, jj, 3] + w11 * fields[ii + 1, jj + 1, 3]
+    for c in range(amps.shape[0]):
+        a = amps[c]
+        if a != 0.0:
+            k = 4 + 3 * c
+            hh += a * (w00 * fields[ii, jj, k] + w01 * fields[ii, jj + 1, k]
+                       + w10 * fields[ii + 1, jj, k] + w11 * fields[ii + 1, jj + 1, k])
+            gx += a * (w00 * fields[ii, jj, k + 1] + w01 * fields[ii, jj + 1, k + 1]
+                       + w10 * fields[ii + 1, jj, k + 1] + w11 * fields[ii + 1, jj + 1, k + 1])
+            gy += a * (w00 * fields[ii, jj, k + 2] + w01 * fields[ii, jj + 1, k + 2]
+                       + w10 * fields[ii + 1, jj, k + 2] + w11 * fields[ii + 1, jj + 1, k + 2])
+    return hh, gx, gy, alb
+
+
+# The march that backs up Newton's method: the surface comes towards a ray at most 1 + slope * ray slope
+# mm per mm of depth (grid slopes are cut at 80 degrees, build_height_field; rays stay within 15
+# degrees of the axis), so steps of a third of the gap to the surface cannot pass through it; then
+# 1 mm steps near it, and bisection to 1 mm / 2**14.
+_MARCH_STEP_MM = 1.0
+_MARCH_GAP_FRACTION = 1.0 / 3.0
+_BISECTIONS = 14
+
+
+@njit(fastmath=_FAST, nogil=True, cache=True)
+def _first_hit(fields, amps, gx0, gy0, inv_step, uj, vi, sign_x, sx, sy, z0, z_front):
+    """The nearest meeting of the ray with the surface, marched from depth z_front (in front of the
+    whole surface) and bisected: (hit, depth). Newton's method fails on a flank the ray nearly
+    grazes; the silhouette is where the ray is tangent to the surface, not where Newton's method,
+    started from the mid-plane, stops converging."""
+    za = z_front
+    hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * za * uj - sx, za * vi - sy)
+    if not np.isfinite(hh) or za - z0 + hh >= 0.0:
+        return False, za
+    gap = z0 - hh - za
+    while True:
+        zb = za + max(_MARCH_STEP_MM, _MARCH_GAP_FRACTION * gap)
+        hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zb * uj - sx, zb * vi - sy)
+        if not np.isfinite(hh):
+            return False, zb
+        if zb - z0 + hh >= 0.0:
+            break
+        za = zb
+        gap = z0 - hh - za
+    for _ in range(_BISECTIONS):
+        zm = 0.5 * (za + zb)
+        hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zm * uj - sx, zm * vi - sy)
+        if not np.isfinite(hh):
+            return False, zm
+        if zm - z0 + hh >= 0.0:
+            zb = zm
+        else:
+            za = zm
+    return True, zb
+
+
 @njit(parallel=True, fastmath=_FAST, nogil=True, cache=True)
-def render_height_field(out, z_state, u, v, fields, gx0, gy0, step, amps, sign_x, sx, sy, z0,
+def render_height_field(out, z_state, u, v, fields, gx0, gy0, step, amps, sign_x, sx, sy, z0, front_mm,
                         spec, shin, light, lit, gain, ambient_e, background_e, read_e, dn_per_e, max_dn,
                         key0, want_maps, depth_out, normal_out):
     """Render one frame of a height field `Z = z0 - h(sign_x * X - sx, Y - sy)`; returns nothing.
 
-    z_state holds each pixel's depth from the previous call (NaN: none) and is updated.
+    front_mm: no point of the surface stands out of the mid-plane by more. z_state holds each
+    pixel's depth from the previous call (NaN: none) and is updated.
     """
     height, width = out.shape
-    ny, nx = fields.shape[0], fields.shape[1]
-    n_modes = amps.shape[0]
     inv_step = 1.0 / step
     for i in prange(height):
         vi = v[i]
@@ -143,45 +219,10 @@ def render_height_field(out, z_state, u, v, fields, gx0, gy0, step, amps, sign_x
             if not np.isfinite(zc):
                 zc = z0
             hit = False
-            hh = 0.0
-            gx = 0.0
-            gy = 0.0
-            alb = 0.0
             for _ in range(16):
-                xb = sign_x * zc * uj - sx
-                yb = zc * vi - sy
-                fx = (xb - gx0) * inv_step
-                fy = (yb - gy0) * inv_step
-                jj = int(np.floor(fx))
-                ii = int(np.floor(fy))
-                if jj < 0 or ii < 0 or jj >= nx - 1 or ii >= ny - 1:
-                    break
-                tx = fx - jj
-                ty = fy - ii
-                w00 = (1 - tx) * (1 - ty)
-                w01 = tx * (1 - ty)
-                w10 = (1 - tx) * ty
-                w11 = tx * ty
-                hh = (w00 * fields[ii, jj, 0] + w01 * fields[ii, jj + 1, 0]
-                      + w10 * fields[ii + 1, jj, 0] + w11 * fields[ii + 1, jj + 1, 0])
+                hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zc * uj - sx, zc * vi - sy)
                 if not np.isfinite(hh):
                     break
-                gx = (w00 * fields[ii, jj, 1] + w01 * fields[ii, jj + 1, 1]
-                      + w10 * fields[ii + 1, jj, 1] + w11 * fields[ii + 1, jj + 1, 1])
-                gy = (w00 * fields[ii, jj, 2] + w01 * fields[ii, jj + 1, 2]
-                      + w10 * fields[ii + 1, jj, 2] + w11 * fields[ii + 1, jj + 1, 2])
-                alb = (w00 * fields[ii, jj, 3] + w01 * fields[ii, jj + 1, 3]
-                       + w10 * fields[ii + 1, jj, 3] + w11 * fields[ii + 1, jj + 1, 3])
-                for c in range(n_modes):
-                    a = amps[c]
-                    if a != 0.0:
-                        k = 4 + 3 * c
-                        hh += a * (w00 * fields[ii, jj, k] + w01 * fields[ii, jj + 1, k]
-                                   + w10 * fields[ii + 1, jj, k] + w11 * fields[ii + 1, jj + 1, k])
-                        gx += a * (w00 * fields[ii, jj, k + 1] + w01 * fields[ii, jj + 1, k + 1]
-                                   + w10 * fields[ii + 1, jj, k + 1] + w11 * fields[ii + 1, jj + 1, k + 1])
-                        gy += a * (w00 * fields[ii, jj, k + 2] + w01 * fields[ii, jj + 1, k + 2]
-                                   + w10 * fields[ii + 1, jj, k + 2] + w11 * fields[ii + 1, jj + 1, k + 2])
                 g = zc - z0 + hh
                 dg = 1.0 + gx * sign_x * uj + gy * vi
                 if dg < 0.05:
@@ -191,6 +232,11 @@ def render_height_field(out, z_state, u, v, fields, gx0, gy0, step, amps, sign_x
                 if abs(dz) < 1e-4:
                     hit = True
                     break
+            if not hit:
+                hit, zc = _first_hit(fields, amps, gx0, gy0, inv_step, uj, vi, sign_x, sx, sy, z0, z0 - front_mm)
+                if hit:
+                    hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zc * uj - sx,
+                                                  zc * vi - sy)
             key = key0 + np.uint64(i * width + j)
             if hit:
                 z_state[i, j] = zc

@@ -126,8 +126,9 @@ class HeightFieldScene(Scene):
         depth, normals = _empty_maps(head, want_maps)
         lights = pack_lights(head)
         g = surface.grid
+        amps = self.amplitudes(t_s).astype(np.float64)
         render_height_field(out, self._z_state[head.name], u, v, surface.fields, g.x0, g.y0, g.step,
-                            self.amplitudes(t_s).astype(np.float64), sign_x, sx, sy, z0, surface.specular,
+                            amps, sign_x, sx, sy, z0, surface.front_mm(amps), surface.specular,
                             surface.shininess, lights[max(light, 0)], light >= 0, *digitiser.args(), key,
                             want_maps, depth, normals)
         return out, (RenderedMaps(depth, normals) if want_maps else None)

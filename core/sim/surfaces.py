@@ -10,6 +10,7 @@ volume swept by the surfaces is exact to the grid's quadrature (see `mode_volume
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -63,6 +64,16 @@ class HeightField:
 
     def mode(self, k: int) -> np.ndarray:
         return self.fields[..., F_MODES + 3 * k]
+
+    @cached_property
+    def _peaks_mm(self) -> tuple[float, np.ndarray]:
+        return (float(np.nanmax(self.height_mm)),
+                np.array([float(np.max(np.abs(self.mode(k)))) for k in range(self.n_modes)]))
+
+    def front_mm(self, amplitudes: np.ndarray) -> float:
+        """How far the surface can stand out of the mid-plane with these mode amplitudes (mm), at most."""
+        height, modes = self._peaks_mm
+        return height + float(np.abs(amplitudes) @ modes) + 1.0
 
 
 def build_height_field(grid: BodyGrid, height_mm: np.ndarray, albedo: np.ndarray,

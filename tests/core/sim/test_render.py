@@ -148,3 +148,39 @@ def test_binned_pixels_have_the_grey_levels_of_one_and_half_its_noise():
     assert spread["binned"][1] / spread["one"][1] == pytest.approx(0.5, abs=0.07)
     with pytest.raises(ValueError, match="positive"):
         camera.binned(0.0)
+
+
+def test_steep_flanks_are_rendered_up_to_the_silhouette():
+    """A flat-topped dome with steep sides (a superellipsoid of revolution): every pixel whose ray
+    meets the surface where it is tilted less than 75 degrees is rendered, at the depth of the ray's
+    first meeting with the analytic surface (found here by a fine march)."""
+    radius_mm, top_mm, exponent, z_mid = 250.0, 120.0, 2.4, 2000.0
+    grid = BodyGrid.covering(300.0, -300.0, 300.0, 0.5)
+    x, y = grid.coordinates()
+
+    def dome(r):
+        s = np.clip(r / radius_mm, 0.0, 1.0)
+        return np.where(r < radius_mm, top_mm * (1.0 - s**exponent) ** (1.0 / exponent), np.nan)
+
+    surface = build_height_field(grid, dome(np.hypot(x, y)), np.full_like(x, 0.7))
+    head = thesis_head("front", scale=0.25)
+    _, maps = HeightFieldScene({"front": surface}, z_mid, 4000.0).render(head, 0.0, 0, np.uint64(0),
+                                                                         Digitiser(QUIET, 12), want_maps=True)
+    row = int(round(head.cy))
+    u = (np.arange(head.width) - head.cx) / head.fx
+    v = (row - head.cy) / head.fy
+    z = np.arange(z_mid - top_mm - 1.0, z_mid, 0.005)
+    gap = z[:, None] - z_mid + dome(np.hypot(z[:, None] * u, z[:, None] * v))  # < 0 in front of the surface
+    crossed = np.nan_to_num(gap, nan=-1.0) >= 0.0
+    met = crossed.any(axis=0)
+    first = z[np.argmax(crossed, axis=0)]
+    r_hit = np.hypot(first * u, first * v) / radius_mm
+    slope = top_mm / radius_mm * r_hit ** (exponent - 1) * (1 - np.minimum(r_hit, 1 - 1e-9) ** exponent) ** (
+        1 / exponent - 1)
+    gentle = met & (np.degrees(np.arctan(slope)) < 75.0)
+    flank = gentle & (np.degrees(np.arctan(slope)) > 45.0)
+    assert flank.sum() >= 6  # the steep flank is in the test
+    rendered = maps.depth_mm[row]
+    assert np.isfinite(rendered[gentle]).all()
+    np.testing.assert_allclose(rendered[gentle], first[gentle], atol=0.05)
+    assert not np.isfinite(rendered[~met]).any()
