@@ -2,17 +2,17 @@
 
 Each head's maps are compared with its first map in the body's own frame (core/volume.py,
 DisplacementTracker): the current map is resampled so its trunk silhouette lies on the
-reference's, both are referred to the depth of their own rim (so a rigid shift along the axis
-is not breathing), and the displacement of every pixel, weighted by its metric footprint
+reference's, both are referred to the level the trunk has at its sides (so a rigid shift along
+the axis is not breathing), and the displacement of every pixel, weighted by its metric footprint
 (Z / fx)(Z / fy), adds up to the volume the trunk gained on that head's side.
 
-The depth map's absolute scale is the weak point: the surface's relief above its rim (10-25 L per
+The depth map's absolute scale is the weak point: the surface's relief above its sides (10-25 L per
 head for an adult, the neck and shoulders included) scales with it, so a map 1 % too far reads
 0.1-0.25 L too much. The
 scale of every map is therefore set from a distance that does not follow breathing:
 - two heads: the silhouette widths and the baseline (D_f / D_b = W_b / W_f, D_f + D_b = baseline;
   lateral expansion widens both silhouettes alike), smoothed over WIDTH_SMOOTHING_S;
-- one head: the rim depth of the maps themselves, smoothed over SIDE_SMOOTHING_S.
+- one head: the depth of the sides in the maps themselves, smoothed over SIDE_SMOOTHING_S.
 Measured limits on simulated subjects: docs/volume.md.
 """
 

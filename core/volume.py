@@ -1,11 +1,15 @@
 """Volumes from height maps: the thesis' gradient volume, and the building blocks of the metric volume.
 
 Metric volume of one head: each map is compared with a reference map of the same head in the
-body's own frame (resampled so the trunk silhouettes coincide), both referred to the depth of
-their own silhouette (the rim, where the ribs hinge), so a rigid shift of the whole torso (sway,
-along the axis or sideways) is not breathing; every pixel's displacement is weighted by its
-footprint (Z / fx)(Z / fy). What moves the rim itself is not seen: lateral expansion of the ribs
-widens the silhouette, and a rim that moves along the axis is taken for sway.
+body's own frame (resampled so the trunk silhouettes coincide), both referred to the level their
+trunk would have at its sides (RimModel), so a rigid shift of the whole torso (sway, along the axis
+or sideways) is not breathing; every pixel's displacement is weighted by its footprint
+(Z / fx)(Z / fy). The level comes from a model: breathing moves the trunk along the axis in
+proportion to the lateral distance from its side (the ribs hinge there), fitted to the band of
+pixels inside the silhouette and extrapolated to the side, which lies a few mm beyond the
+silhouette on a rounded trunk (rim_side_mm). What moves the sides themselves is not seen:
+lateral expansion of the ribs widens the silhouette, and sides that move along the axis are taken
+for sway.
 
 The result scales with the depth map's absolute scale times the relief above the rim (about
 10 L per head for an adult), so every map's scale is set afterwards from a distance that
@@ -23,10 +27,16 @@ from scipy import ndimage
 
 from core.rig import Head
 
-# The silhouette's outermost pixels left out of the rim's line (rim_depths). On a simulated subject
-# at 2000 mm with sway, with the subject mask grown to the silhouette: r against the true volume
-# 0.9952 with them, 0.9971 without (slope 0.866 both); docs/volume.md.
+# The silhouette's outermost pixels, dim and noisy, left out of the fits near the rim (rim_depths,
+# rim_model; they still place the side). Measured with the earlier straight-line rim on a simulated
+# subject at 2000 mm with sway: r against the true volume 0.9952 with them, 0.9971 without.
 RIM_SKIP_PX = 2
+# How far inside the silhouette the rim's band reaches (rim_model, rim_depths): a wider band steadies
+# the level against sway and noise and leans more on the hinge model's parabola across the row. On
+# a simulated 30 s slow VC at 2000 mm (scale 0.25) with +-50 mm of axial sway, slope against the true
+# volume and rms residual: 30 mm 0.926 / 0.091 L, 50 mm 0.936 / 0.068 L, 70 mm 0.942 / 0.058 L,
+# 100 mm 0.948 / 0.049 L (docs/volume.md).
+RIM_BAND_MM = 70.0
 
 
 def torso_rows(mask: np.ndarray, min_width_fraction: float = 0.6) -> np.ndarray:
@@ -117,11 +127,11 @@ REGIONS = ("upper left", "upper right", "lower left", "lower right")
 class DisplacementSums:
     """One map against the reference map of its head, in footprint-weighted sums (mm^3) over the
     pixels both show, per region ("all" is every such pixel, the neck and shoulders included):
-    reference = sum fp (Z_ref - rim_ref), current = sum fp (z - rim) with z the current map
-    resampled into the reference's body frame and rim each map's silhouette depth (rim_depths).
+    reference = sum fp (Z_ref - level_ref), current = sum fp (z - level) with z the current map
+    resampled into the reference's body frame and level each map's RimModel.level.
     Kept apart so the two maps' scales can be set afterwards (metric_head_volume_l)."""
 
-    side_mm: float  # depth of the trunk's silhouette (rim_depths), at the map's own scale
+    side_mm: float  # depth of the trunk's sides (RimModel.side_depth_mm, followed by rim_depths), at the map's own scale
     width_px: float
     reference: dict[str, float]
     current: dict[str, float]
@@ -157,13 +167,135 @@ def rim_depths(depth_a: np.ndarray, depth_b: np.ndarray, mask: np.ndarray, band_
     return float(at_rim[0]), float(at_rim[1])
 
 
+# Outermost pixels of each trunk row whose depth profile places the body's side (rim_side_mm), the
+# farthest the side may lie beyond the outermost pixel, and the least tilt from the viewing ray, at
+# the outermost pair, of an edge that is an occluding contour.
+SIDE_FIT_PX = 6
+SIDE_MAX_GAP_PX = 4
+CONTOUR_MIN_VIEW_ANGLE_DEG = 60.0
+
+
+def _row_edges(mask: np.ndarray, width: int):
+    """(row, columns from the silhouette inwards) of both sides of every trunk row, `width` long
+    or as long as half the row."""
+    for r in torso_rows(mask):
+        cols = np.nonzero(mask[r])[0]
+        n = min(width, len(cols) // 2)
+        yield r, cols[:n]
+        yield r, cols[::-1][:n]
+
+
+def rim_side_mm(lateral_mm: np.ndarray, depth_mm: np.ndarray, ray_slope: np.ndarray) -> tuple[float, float]:
+    """How far beyond the outermost pixel of one row the body's side lies, and how much deeper (mm):
+    where the surface, which the camera sees up to where its ray grazes it, turns parallel to the
+    axis. A circle through
+    the outermost SIDE_FIT_PX pixels (least squares in the row's plane), its outermost point, when
+    it lies deeper than the edge and within SIDE_MAX_GAP_PX pixels of it. Half a pixel (where the
+    silhouette lies on average) where the edge is no occluding contour (the surface there is tilted
+    less than CONTOUR_MIN_VIEW_ANGLE_DEG from facing the ray) or the circle does not qualify, at the
+    outermost pixel's depth. lateral_mm, depth_mm, ray_slope: from the silhouette inwards, lateral
+    outwards."""
+    step = lateral_mm[0] - lateral_mm[1]
+    if not step > 0:
+        return 0.0, 0.0
+    if len(lateral_mm) < SIDE_FIT_PX:
+        return 0.5 * step, 0.0
+    tangent = np.array([step, depth_mm[0] - depth_mm[1]])
+    ray = np.array([ray_slope[0], 1.0])
+    cos_view = abs(tangent[0] * ray[1] - tangent[1] * ray[0]) / (np.linalg.norm(tangent) * np.linalg.norm(ray))
+    if np.degrees(np.arccos(np.clip(cos_view, 0.0, 1.0))) < CONTOUR_MIN_VIEW_ANGLE_DEG:
+        return 0.5 * step, 0.0
+    x = lateral_mm[:SIDE_FIT_PX] - lateral_mm[0]
+    z = depth_mm[:SIDE_FIT_PX] - depth_mm[0]
+    # x^2 + z^2 + a x + b z + c = 0: centre (-a/2, -b/2)
+    a, b, c = np.linalg.lstsq(np.column_stack([x, z, np.ones_like(x)]), -(x * x + z * z), rcond=None)[0]
+    radius_sq = (a * a + b * b) / 4.0 - c
+    if not radius_sq > 0:
+        return 0.5 * step, 0.0
+    gap, deeper = -a / 2.0 + np.sqrt(radius_sq), -b / 2.0
+    return (float(gap), float(deeper)) if deeper > 0 and 0 < gap < SIDE_MAX_GAP_PX * step else (0.5 * step, 0.0)
+
+
+@dataclass(frozen=True)
+class RimModel:
+    """The band of pixels inside the trunk's silhouette on a reference map, with the breathing model's
+    displacement profile over it: along the axis, in proportion to (half width)^2 - x^2 across the
+    row, zero at both sides (the ribs hinge there), seen along the ray, which a flank near grazing
+    stretches by 1 / (1 - slope * ray slope)."""
+
+    rows: np.ndarray  # (E,) row of each edge (two per trunk row)
+    cols: np.ndarray  # (E, W) columns from the silhouette inwards, -1 where the row is too short
+    regressor: np.ndarray  # (E, W) the hinge model's displacement profile over the stretch (mm); 0 unused
+    side_depth_mm: float = float("nan")  # median depth of the sides on the reference map
+
+    def level(self, depth_mm: np.ndarray, valid: np.ndarray) -> float:
+        """The depth the trunk would have at its side if it only breathed as modelled: the intercept,
+        common to all edges, of depth against the regressor with a slope per edge. Linear in the
+        depths, so the level of a difference is the difference of the levels."""
+        cols = np.maximum(self.cols, 0)
+        y = depth_mm[self.rows[:, None], cols]
+        w = (self.cols >= 0) & (self.regressor > 0) & valid[self.rows[:, None], cols] & np.isfinite(y)
+        x = np.where(w, self.regressor, 0.0)
+        y = np.where(w, y, 0.0)
+        xx = np.sum(x * x, axis=1, keepdims=True)
+        keep = xx[:, 0] > 0
+        x, y, w, xx = x[keep], y[keep], w[keep], xx[keep]
+        ones = w - x * np.sum(x, axis=1, keepdims=True) / xx
+        resid = y - x * np.sum(x * y, axis=1, keepdims=True) / xx
+        denominator = float(np.sum(ones * ones))
+        return float(np.sum(ones * resid)) / denominator if denominator > 0 else float("nan")
+
+
+def rim_model(depth_mm: np.ndarray, mask: np.ndarray, head: Head, band_px: int,
+              skip_px: int = RIM_SKIP_PX) -> RimModel:
+    """The RimModel of a reference map: band_px pixels after the outermost skip_px of both sides of
+    every trunk row; the side of each side of the trunk at the median of its rows' rim_side_mm."""
+    width = skip_px + band_px
+    edges = list(_row_edges(mask, width))
+    if not edges:
+        return RimModel(np.zeros(0, int), np.zeros((0, width), int), np.zeros((0, width)))
+    rows = np.array([r for r, _ in edges])
+    cols = np.full((len(edges), width), -1)
+    for e, (_, c) in enumerate(edges):
+        cols[e, :len(c)] = c
+    used = cols >= 0
+    safe = np.maximum(cols, 0)
+    z = np.where(used, depth_mm[rows[:, None], safe], np.nan)
+    u = (safe - head.cx) / head.fx
+    outward = np.sign(u[:, :1] * z[:, :1] - u[:, -1:] * z[:, -1:])
+    outward[outward == 0] = 1.0
+    lateral = outward * u * z
+    ray_slope = outward * u
+    sides = np.array([rim_side_mm(lat[ok], dep[ok], ray[ok]) if ok.sum() >= 2 else (0.0, 0.0)
+                      for lat, dep, ray, ok in zip(lateral, z, ray_slope, used & np.isfinite(z))])
+    gaps = sides[:, 0]
+    side = np.zeros(len(edges))
+    for parity in (0, 1):  # the image's left and right sides of the trunk
+        on_side = np.arange(len(edges)) % 2 == parity
+        side[on_side] = lateral[on_side, 0] + np.median(gaps[on_side])
+    slope = np.full(z.shape, np.nan)
+    for e in range(len(edges)):
+        ok = np.flatnonzero(used[e] & np.isfinite(z[e]))
+        if len(ok) >= 2:
+            slope[e, ok] = np.gradient(z[e, ok], lateral[e, ok])
+    stretch = np.clip(1.0 - slope * ray_slope, 0.2, None)
+    from_side = side[:, None] - lateral
+    half_width = np.repeat(0.5 * (side[0::2] + side[1::2]), 2)[:, None]  # edges come in pairs, row by row
+    hinge = from_side * (1.0 - from_side / (2.0 * half_width))  # in proportion to half_width^2 - x^2 across the row
+    regressor = np.where(used & np.isfinite(stretch), hinge / stretch, 0.0)
+    regressor[:, :skip_px] = 0.0
+    return RimModel(rows, cols, np.clip(regressor, 0.0, None), float(np.nanmedian(z[:, 0] + sides[:, 1])))
+
+
 class DisplacementTracker:
     """A head's metric volume, map by map: the first map with a trunk becomes the reference."""
 
-    def __init__(self, head: Head, rim_band_px: int = 12) -> None:
+    def __init__(self, head: Head, rim_band_mm: float = RIM_BAND_MM) -> None:
         self.head = head
-        self.rim_band_px = rim_band_px
+        self.rim_band_mm = rim_band_mm
+        self._band_px = 0
         self._reference: tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]] | None = None
+        self._rim: RimModel | None = None
 
     def add(self, depth_mm: np.ndarray, mask: np.ndarray) -> DisplacementSums:
         valid = mask & np.isfinite(depth_mm)
@@ -176,15 +308,21 @@ class DisplacementTracker:
             footprint = (depth_mm / self.head.fx) * (depth_mm / self.head.fy)
             self._reference = (np.where(valid, depth_mm, np.nan), valid, footprint, regions)
             self._reference_width = width
+            self._band_px = max(4, int(round(self.rim_band_mm * self.head.fx / np.median(depth_mm[valid]))))
+            self._rim = rim_model(depth_mm, valid, self.head, self._band_px)
+            rim_of_reference, _ = rim_depths(depth_mm, depth_mm, valid, self._band_px)
+            # the silhouette widths place the sides (the trunk's widest), which lie deeper than its rim
+            self._side_per_rim = self._rim.side_depth_mm / rim_of_reference
         ref_depth, ref_mask, footprint, regions = self._reference
         # the silhouette's width gives the image scale more steadily than the photometric distance
         z = _aligned_depth(depth_mm, valid, ref_mask, self.head, width / self._reference_width)
         both = ref_mask & np.isfinite(z)
-        rim_ref, rim = rim_depths(ref_depth, z, both, self.rim_band_px)
-        reference = np.where(both, footprint * (ref_depth - rim_ref), 0.0)
-        current = np.where(both, footprint * (z - rim), 0.0)
+        _, rim = rim_depths(ref_depth, z, both, self._band_px)
+        level_ref, level = self._rim.level(ref_depth, both), self._rim.level(z, both)
+        reference = np.where(both, footprint * (ref_depth - level_ref), 0.0)
+        current = np.where(both, footprint * (z - level), 0.0)
         parts = dict(regions, all=ref_mask)
-        return DisplacementSums(rim, width, {k: float(reference[m].sum()) for k, m in parts.items()},
+        return DisplacementSums(rim * self._side_per_rim, width, {k: float(reference[m].sum()) for k, m in parts.items()},
                                 {k: float(current[m].sum()) for k, m in parts.items()})
 
 

@@ -46,3 +46,43 @@ def test_the_rim_is_extrapolated_past_the_noisy_outermost_pixels():
     assert abs(rim - 2001.5) < 0.01  # 3 mm per pixel, half a pixel outside the edge
     with_them, _ = rim_depths(noisy, noisy, mask, band_px=12, skip_px=0)
     assert abs(with_them - 2001.5) > 0.1
+
+
+def test_the_side_of_a_round_trunk_lies_beyond_its_silhouette_where_the_surface_turns_parallel():
+    """A circular cross-section 150 mm in radius at 2000 mm: the camera sees it up to the tangent
+    ray; the circle through the outermost pixels puts the side (X = 150 mm) within 0.05 mm."""
+    from core.volume import rim_side_mm
+
+    radius, centre, fx = 150.0, 2000.0, 844.6
+    for offset_px in (0.0, 0.3, 0.6, 0.9):
+        u = (np.arange(40) - offset_px)[::-1] / fx + 0.05  # outermost ray first
+        # nearest meeting of the ray (u Z, Z) with the circle X^2 + (Z - centre)^2 = radius^2
+        a, b, c = u * u + 1.0, -2.0 * centre, centre**2 - radius**2
+        disc = b * b - 4 * a * c
+        hit = disc >= 0
+        z = (-b - np.sqrt(disc[hit])) / (2 * a[hit])
+        lateral, ray = u[hit] * z, u[hit]
+        gap, _ = rim_side_mm(lateral, z, ray)
+        assert gap == pytest.approx(radius - lateral[0], abs=0.05)
+
+
+def test_the_rim_level_of_a_breathing_band_is_its_common_intercept():
+    """Depths that move, edge by edge, in proportion to the regressor plus one common shift: the
+    level of the moved map less the level of the first is the shift."""
+    from core.rig import thesis_head
+    from core.volume import rim_model
+
+    head = thesis_head("front", scale=0.25)
+    rows, cols = np.mgrid[0:head.height, 0:head.width]
+    r2 = ((cols - head.cx) / 120.0) ** 2 + ((rows - head.cy) / 100.0) ** 2
+    mask = r2 < 1.0
+    depth = np.where(mask, 2000.0 - 100.0 * np.sqrt(np.clip(1.0 - r2, 0, None)), np.nan)
+    model = rim_model(depth, mask, head, band_px=12)
+    assert len(model.rows) > 100
+    rng = np.random.default_rng(2)
+    moved = depth.copy()
+    for e, row in enumerate(model.rows):
+        used = model.cols[e] >= 0
+        moved[row, model.cols[e][used]] += -rng.uniform(0.02, 0.08) * model.regressor[e][used]
+    moved += 1.7
+    assert model.level(moved, mask) - model.level(depth, mask) == pytest.approx(1.7, abs=1e-9)
