@@ -94,6 +94,14 @@ def _breaths(t_s: np.ndarray, volume_l: np.ndarray, min_breath_s: float, min_tid
     return t, smooth, flow, list(zip(minima[:-1], minima[1:]))
 
 
+# Quiet breathing expires for longer than it inspires (Ti/Te about 0.4-0.8, 1.0 at most in health,
+# lower in obstruction): a "breath" whose expiration is under 0.3 of its inspiration is a rise into a
+# manoeuvre's deep inspiration that the curve's last samples happen to turn down, which the
+# stretch's end then closes. On the 60 s demo session the optical curve had one (1.848 L, te 0.3 s
+# against ti about 3 s), which doubled its tidal volume.
+MIN_EXPIRATION_PER_INSPIRATION = 0.3
+
+
 def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: int,
                 min_tidal_l: float) -> tuple[float, float, float, float, float, float, float, float] | None:
     """(VT, Ti, Te, tPTEF/tE, IE50, end-expiratory level, end-inspiration time, end-expiration time)
@@ -103,6 +111,8 @@ def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: 
     if vt < min_tidal_l or peak in (a, b):
         return None
     ti, te = t[peak] - t[a], t[b] - t[peak]
+    if te < MIN_EXPIRATION_PER_INSPIRATION * ti:  # a rise cut off by the stretch's end, not a breath
+        return None
     tptef = int(np.argmin(flow[peak:b])) / ANALYSIS_RATE_HZ / te
     half = smooth[a] + 0.5 * vt
     i_half = a + int(np.argmin(np.abs(smooth[a:peak] - half)))

@@ -50,6 +50,19 @@ def test_tidal_values_of_a_known_curve():
     assert values.ie_ratio == pytest.approx(ti / (period - ti), abs=0.03)
 
 
+def test_a_rise_into_a_manoeuvre_cut_off_by_the_stretch_end_is_not_a_breath():
+    """Two quiet breaths, then the deep inspiration before a forced blow, whose last samples dip
+    (noise on an optical curve): the stretch's end would close a 1.8 L "breath" with a 0.3 s
+    expiration; the tidal volume stays that of the quiet breaths."""
+    t = np.arange(0, 11.5, 0.01)
+    quiet = 0.25 * (1 - np.cos(2 * np.pi * np.minimum(t, 8.0) / 4.0))
+    rise = np.clip(t - 8.0, 0, None)
+    v = quiet + 0.6 * rise ** 1.2 - 0.6 * np.clip(t - 11.2, 0, None) / 0.3
+    values = tidal_values([(t, v)])
+    assert values.breaths == 2
+    assert values.tidal_volume_l == pytest.approx(0.5, abs=0.01)
+
+
 @pytest.fixture(scope="module")
 def full_session(tmp_path_factory):
     path = tmp_path_factory.mktemp("analysis") / "full.h5"
