@@ -137,6 +137,16 @@ class DisplacementSums:
     current: dict[str, float]
 
 
+def _row_edges(mask: np.ndarray, width: int):
+    """(row, columns from the silhouette inwards) of both sides of every trunk row, `width` long
+    or as long as half the row."""
+    for r in torso_rows(mask):
+        cols = np.nonzero(mask[r])[0]
+        n = min(width, len(cols) // 2)
+        yield r, cols[:n]
+        yield r, cols[::-1][:n]
+
+
 def rim_depths(depth_a: np.ndarray, depth_b: np.ndarray, mask: np.ndarray, band_px: int,
                skip_px: int = RIM_SKIP_PX) -> tuple[float, float]:
     """Depths of two aligned maps at the trunk's silhouette (the rim), extrapolated from the band of
@@ -151,13 +161,11 @@ def rim_depths(depth_a: np.ndarray, depth_b: np.ndarray, mask: np.ndarray, band_
     the depths, so the rim of a difference is the difference of the rims."""
     width = skip_px + band_px
     sums_a, sums_b, counts = np.zeros(width), np.zeros(width), np.zeros(width)
-    for r in torso_rows(mask):
-        cols = np.nonzero(mask[r])[0]
-        n = min(width, len(cols) // 2)
-        for edge in (cols[:n], cols[::-1][:n]):
-            sums_a[:n] += depth_a[r, edge]
-            sums_b[:n] += depth_b[r, edge]
-            counts[:n] += 1
+    for r, edge in _row_edges(mask, width):
+        n = len(edge)
+        sums_a[:n] += depth_a[r, edge]
+        sums_b[:n] += depth_b[r, edge]
+        counts[:n] += 1
     used = counts > 0
     used[:skip_px] = False
     if used.sum() < 2:
@@ -173,16 +181,6 @@ def rim_depths(depth_a: np.ndarray, depth_b: np.ndarray, mask: np.ndarray, band_
 SIDE_FIT_PX = 6
 SIDE_MAX_GAP_PX = 4
 CONTOUR_MIN_VIEW_ANGLE_DEG = 60.0
-
-
-def _row_edges(mask: np.ndarray, width: int):
-    """(row, columns from the silhouette inwards) of both sides of every trunk row, `width` long
-    or as long as half the row."""
-    for r in torso_rows(mask):
-        cols = np.nonzero(mask[r])[0]
-        n = min(width, len(cols) // 2)
-        yield r, cols[:n]
-        yield r, cols[::-1][:n]
 
 
 def rim_side_mm(lateral_mm: np.ndarray, depth_mm: np.ndarray, ray_slope: np.ndarray) -> tuple[float, float]:
