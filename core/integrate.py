@@ -12,6 +12,16 @@ the mask's own pixel edges (no pull at the mask edge), solved by conjugate gradi
 DCT solve as preconditioner in a few times the DCT's time. The DCT path flattens a surface
 whose outline is not level (a torso's silhouette is deeper at the shoulders than at the flanks):
 5-9 % of a simulated torso's relief, and as much of its breathing.
+
+The masked path is robust to depth discontinuities inside the mask (a chin over the neck, an
+arm against the trunk, a fold at the waist seen along grazing rays): across one, the normals on
+both sides say nothing of the jump, and plain least squares spreads it over the whole surface
+(on the DiLiGenT bear, real normals, the head came out 0.5 mm off its body). After the first
+solve, ROBUST_ITERATIONS reweighted solves give each pixel edge the Cauchy weight
+1 / (1 + (r / s)^2) of its residual r, s = ROBUST_SCALE times the median |r|: the few edges that
+no surface can satisfy stop pulling. Measured (docs/reconstruction.md): the bear's mean absolute
+depth error 0.48 mm -> 0.05 mm; on a simulated torso's full inspiration, the volume integrated
+from true normals -1.6 % -> -0.4 % of the true depth maps'.
 """
 
 from __future__ import annotations
@@ -27,6 +37,10 @@ _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}  # no 'nnan': NaN marks pi
 # silhouette's outermost pixels (partly background) would throw the surface around them
 MAX_VIEW_ANGLE_DEG = 85.0
 MIN_VIEW_COSINE = float(np.cos(np.radians(MAX_VIEW_ANGLE_DEG)))
+# Reweighted solves after the first, and the Cauchy scale in median absolute edge residuals
+# (module doc): more iterations or another scale from 5 to 20 changed the bear's error by < 0.01 mm.
+ROBUST_ITERATIONS = 3
+ROBUST_SCALE = 5.0
 
 
 def log_depth_gradients(normals: np.ndarray, fx: float, fy: float, cx: float, cy: float,
@@ -117,49 +131,86 @@ def log_depth_dct(normals: np.ndarray, mask: np.ndarray, fx: float, fy: float, c
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
-def _masked_divergence(gu, gv, mask, out):
-    """A^T g of the masked least squares: one equation z[next] - z[this] = mean of the two pixels'
-    gradients per pixel edge inside the mask; zero off the mask."""
+def _edge_divergence(du, dv, wu, wv, mask, out):
+    """A^T W d of the weighted least squares z[next] - z[this] = d over the pixel edges (du[i, j]:
+    from (i, j) to (i, j + 1), dv[i, j]: to (i + 1, j); weight 0 where there is no equation);
+    zero off the mask."""
     height, width = mask.shape
     for i in prange(height):
         for j in range(width):
             total = 0.0
             if mask[i, j]:
-                if j + 1 < width and mask[i, j + 1]:
-                    total -= 0.5 * (gu[i, j] + gu[i, j + 1])
-                if j > 0 and mask[i, j - 1]:
-                    total += 0.5 * (gu[i, j - 1] + gu[i, j])
-                if i + 1 < height and mask[i + 1, j]:
-                    total -= 0.5 * (gv[i, j] + gv[i + 1, j])
-                if i > 0 and mask[i - 1, j]:
-                    total += 0.5 * (gv[i - 1, j] + gv[i, j])
+                total -= wu[i, j] * du[i, j] + wv[i, j] * dv[i, j]
+                if j > 0:
+                    total += wu[i, j - 1] * du[i, j - 1]
+                if i > 0:
+                    total += wv[i - 1, j] * dv[i - 1, j]
             out[i, j] = total
 
 
-@njit(fastmath=_FAST, cache=True, nogil=True, inline="always")
-def _laplacian_at(z, mask, i, j):
-    """(A^T A z) at a pixel of the mask: the sum of its differences from its neighbours in the mask."""
+@njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+def _trapezoid_edges(gu, gv, mask, du, dv, wu, wv):
+    """Each pixel edge inside the mask: the mean of its two pixels' gradients, weight 1; elsewhere
+    difference and weight 0."""
     height, width = mask.shape
+    for i in prange(height):
+        for j in range(width):
+            du[i, j] = dv[i, j] = wu[i, j] = wv[i, j] = 0.0
+            if mask[i, j]:
+                if j + 1 < width and mask[i, j + 1]:
+                    du[i, j] = 0.5 * (gu[i, j] + gu[i, j + 1])
+                    wu[i, j] = 1.0
+                if i + 1 < height and mask[i + 1, j]:
+                    dv[i, j] = 0.5 * (gv[i, j] + gv[i + 1, j])
+                    wv[i, j] = 1.0
+
+
+@njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+def _cauchy_weights(z, du, dv, wu, wv, scale):
+    """Reweights the edges that have an equation (weight > 0) by 1 / (1 + (residual / scale)^2)."""
+    height, width = z.shape
+    for i in prange(height):
+        for j in range(width):
+            if wu[i, j] > 0.0:
+                r = (z[i, j + 1] - z[i, j] - du[i, j]) / scale
+                wu[i, j] = 1.0 / (1.0 + r * r)
+            if wv[i, j] > 0.0:
+                r = (z[i + 1, j] - z[i, j] - dv[i, j]) / scale
+                wv[i, j] = 1.0 / (1.0 + r * r)
+
+
+def _median_abs_residual(z: np.ndarray, du: np.ndarray, dv: np.ndarray, used_u: np.ndarray,
+                         used_v: np.ndarray) -> float:
+    ru = (z[:, 1:] - z[:, :-1] - du[:, :-1])[used_u[:, :-1]]
+    rv = (z[1:] - z[:-1] - dv[:-1])[used_v[:-1]]
+    return float(np.median(np.abs(np.concatenate([ru, rv])))) if ru.size + rv.size else 0.0
+
+
+@njit(fastmath=_FAST, cache=True, nogil=True, inline="always")
+def _laplacian_at(z, wu, wv, i, j):
+    """(A^T W A z) at a pixel: its differences from its neighbours, each times its edge's weight
+    (wu[i, j]: the edge to (i, j + 1), wv[i, j]: to (i + 1, j); 0 where there is no equation)."""
+    height, width = wu.shape
     centre = z[i, j]
     total = 0.0
-    if j + 1 < width and mask[i, j + 1]:
-        total += centre - z[i, j + 1]
-    if j > 0 and mask[i, j - 1]:
-        total += centre - z[i, j - 1]
-    if i + 1 < height and mask[i + 1, j]:
-        total += centre - z[i + 1, j]
-    if i > 0 and mask[i - 1, j]:
-        total += centre - z[i - 1, j]
+    if j + 1 < width:
+        total += wu[i, j] * (centre - z[i, j + 1])
+    if j > 0:
+        total += wu[i, j - 1] * (centre - z[i, j - 1])
+    if i + 1 < height:
+        total += wv[i, j] * (centre - z[i + 1, j])
+    if i > 0:
+        total += wv[i - 1, j] * (centre - z[i - 1, j])
     return total
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
-def _masked_laplacian(z, mask, out):
-    """A^T A z on the mask, zero off it."""
+def _masked_laplacian(z, wu, wv, mask, out):
+    """A^T W A z on the mask, zero off it."""
     height, width = mask.shape
     for i in prange(height):
         for j in range(width):
-            out[i, j] = _laplacian_at(z, mask, i, j) if mask[i, j] else 0.0
+            out[i, j] = _laplacian_at(z, wu, wv, i, j) if mask[i, j] else 0.0
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
@@ -176,7 +227,7 @@ def _masked_dot(a, b, mask):
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
-def _cg_direction(direction, product, preconditioned, mask, beta):
+def _cg_direction(direction, product, preconditioned, mask, wu, wv, beta):
     """The new search direction d = M r + beta d and its image A d = A M r + beta A d, in place on
     the mask (zero off it); returns d . A d."""
     height, width = mask.shape
@@ -186,7 +237,7 @@ def _cg_direction(direction, product, preconditioned, mask, beta):
         for j in range(width):
             if mask[i, j]:
                 d = preconditioned[i, j] + beta * direction[i, j]
-                a_d = _laplacian_at(preconditioned, mask, i, j) + beta * product[i, j]
+                a_d = _laplacian_at(preconditioned, wu, wv, i, j) + beta * product[i, j]
                 direction[i, j] = d
                 product[i, j] = a_d
                 row += d * a_d
@@ -234,7 +285,8 @@ def _fast_box(mask: np.ndarray) -> tuple[slice, slice]:
 
 
 def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, tolerance: float = 1e-4,
-                     max_iterations: int = 200, workers: int = -1) -> np.ndarray:
+                     max_iterations: int = 200, workers: int = -1,
+                     robust_iterations: int = ROBUST_ITERATIONS) -> np.ndarray:
     """Least-squares surface over the mask's own pixel edges; NaN off the mask; zero mean over it.
 
     Each pixel edge inside the mask gives one equation z[next] - z[this] = mean of their gradients;
@@ -242,7 +294,9 @@ def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, tolerance
     the DCT path's is (which flattens a torso's relief by 5-9 %, docs/reconstruction.md). The
     normal equations are solved by conjugate gradients preconditioned with the DCT Poisson solve
     of the mask's bounding box, started from the DCT surface; on a torso 5-10 iterations bring
-    the residual to `tolerance` times the right-hand side.
+    the residual to `tolerance` times the right-hand side. Then `robust_iterations` reweighted
+    solves, each started from the last (module doc: depth discontinuities); 0 gives the plain
+    least-squares surface.
     """
     full_mask = mask & np.isfinite(gu) & np.isfinite(gv)
     out = np.full(full_mask.shape, np.nan)
@@ -252,12 +306,29 @@ def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, tolerance
     mask = np.ascontiguousarray(full_mask[box])
     gu = np.ascontiguousarray(np.where(mask, gu[box], 0.0))
     gv = np.ascontiguousarray(np.where(mask, gv[box], 0.0))
-    rhs = np.empty(mask.shape)
-    _masked_divergence(gu, gv, mask, rhs)
-    rhs_norm = np.sqrt(_masked_dot(rhs, rhs, mask))
+    du, dv, wu, wv = (np.empty(mask.shape) for _ in range(4))
+    _trapezoid_edges(gu, gv, mask, du, dv, wu, wv)
+    used_u, used_v = wu > 0, wv > 0
     z = np.where(mask, integrate_dct(gu, gv, workers), 0.0)
+    for robust in range(robust_iterations + 1):
+        if robust:
+            scale = ROBUST_SCALE * _median_abs_residual(z, du, dv, used_u, used_v)
+            if not scale > 0:
+                break
+            _cauchy_weights(z, du, dv, wu, wv, scale)
+        _conjugate_gradients(z, du, dv, wu, wv, mask, tolerance, max_iterations, workers)
+    out[box] = np.where(mask, z - z[mask].mean(), np.nan)
+    return out
+
+
+def _conjugate_gradients(z: np.ndarray, du: np.ndarray, dv: np.ndarray, wu: np.ndarray, wv: np.ndarray,
+                         mask: np.ndarray, tolerance: float, max_iterations: int, workers: int) -> None:
+    """Solves A^T W A z = A^T W d on the mask in place, from z, preconditioned with the DCT solve."""
+    rhs = np.empty(mask.shape)
+    _edge_divergence(du, dv, wu, wv, mask, rhs)
+    rhs_norm = np.sqrt(_masked_dot(rhs, rhs, mask))
     residual = np.empty(mask.shape)
-    _masked_laplacian(z, mask, residual)
+    _masked_laplacian(z, wu, wv, mask, residual)
     residual = np.where(mask, rhs - residual, 0.0)
     residual_norm = np.sqrt(_masked_dot(residual, residual, mask))
     direction, product = np.zeros(mask.shape), np.zeros(mask.shape)
@@ -269,10 +340,8 @@ def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, tolerance
         rho, previous = _masked_dot(residual, preconditioned, mask), rho
         if rho <= 0.0:
             break
-        curvature = _cg_direction(direction, product, preconditioned, mask, rho / previous)
+        curvature = _cg_direction(direction, product, preconditioned, mask, wu, wv, rho / previous)
         residual_norm = np.sqrt(_cg_step(z, residual, direction, product, mask, rho / curvature))
-    out[box] = np.where(mask, z - z[mask].mean(), np.nan)
-    return out
 
 
 def depth_from_normals(normals: np.ndarray, mask: np.ndarray, fx: float, fy: float, cx: float, cy: float,

@@ -29,7 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 from core.distance import DMR_THRESHOLD, DmrEstimate, PhotometricDistance, dmr_distance
-from core.integrate import integrate_dct, integrate_masked, log_depth_gradients
+from core.integrate import ROBUST_ITERATIONS, integrate_dct, integrate_masked, log_depth_gradients
 from core.photometric import distant_light_normals, gradients_from_normals, near_light_normals
 from core.rig import Head
 
@@ -144,12 +144,14 @@ class HeadReconstructor:
         # (PhotometricDistance.scale_and_intensity); None until then or when not fitted
         self.intensity_factors: np.ndarray | None = None
 
-    def _integrate(self, normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    def _integrate(self, normals: np.ndarray, mask: np.ndarray, final: bool) -> np.ndarray:
+        """Log-depth; the masked path's robust reweighting (core/integrate.py) only for a cycle's
+        final depth: the iterations' depths only place the lights' vectors and the distance."""
         h = self.head
         gu, gv = log_depth_gradients(normals, h.fx, h.fy, h.cx, h.cy)
         valid = mask & np.isfinite(gu) & np.isfinite(gv)
         if self.settings.integrator == "masked":
-            return integrate_masked(gu, gv, valid)
+            return integrate_masked(gu, gv, valid, robust_iterations=ROBUST_ITERATIONS if final else 0)
         return np.where(valid, integrate_dct(np.where(valid, gu, 0.0), np.where(valid, gv, 0.0)), np.nan)
 
     @staticmethod
@@ -205,7 +207,7 @@ class HeadReconstructor:
         problem = (PhotometricDistance(signal, mask, h.light_positions_mm, intensity, dark,
                                        max_pixels=s.distance_pixels) if photometric else None)
         normals = pseudo_normals
-        log_depth = self._integrate(normals, mask)
+        log_depth = self._integrate(normals, mask, final=s.method != "near")
         depth, distance = self._scaled(log_depth, dmr, problem, guess, "keep" if tracked else "wide")
         done = 0
         if s.method == "near":
@@ -218,7 +220,7 @@ class HeadReconstructor:
                 near_light_normals(signal, points, h.light_positions_mm, intensity, self._axis, self._mu,
                                    saturated, min_signal, normals, albedo, used)
                 normals[~mask] = np.nan
-                log_depth = self._integrate(normals, mask)
+                log_depth = self._integrate(normals, mask, final=False)
                 last = done == s.iterations
                 searched = last or not tracked
                 new_depth, distance = self._scaled(log_depth, dmr, problem, distance,
@@ -229,6 +231,8 @@ class HeadReconstructor:
                     if not searched:  # settled: one search near the tracked distance, then stop
                         depth, distance = self._scaled(log_depth, dmr, problem, distance, "near")
                     break
+            if s.integrator == "masked" and ROBUST_ITERATIONS > 0:
+                depth, distance = self._scaled(self._integrate(normals, mask, final=True), dmr, problem, distance, "keep")
         if problem is not None and s.fit_intensity and self.intensity_factors is None and np.isfinite(distance):
             scale, factors = problem.scale_and_intensity(self._rays, depth / distance, distance)
             if np.isfinite(scale):
