@@ -180,6 +180,8 @@ def rim_depths(depth_a: np.ndarray, depth_b: np.ndarray, mask: np.ndarray, band_
 # the outermost pair, of an edge that is an occluding contour.
 SIDE_FIT_PX = 6
 SIDE_MAX_GAP_PX = 4
+# Trunk rows that must give both sides for the trunk's width to come from them (trunk_width_px)
+MIN_SIDE_ROWS = 10
 CONTOUR_MIN_VIEW_ANGLE_DEG = 60.0
 
 
@@ -193,25 +195,65 @@ def rim_side_mm(lateral_mm: np.ndarray, depth_mm: np.ndarray, ray_slope: np.ndar
     less than CONTOUR_MIN_VIEW_ANGLE_DEG from facing the ray) or the circle does not qualify, at the
     outermost pixel's depth. lateral_mm, depth_mm, ray_slope: from the silhouette inwards, lateral
     outwards."""
-    step = lateral_mm[0] - lateral_mm[1]
-    if not step > 0:
-        return 0.0, 0.0
-    if len(lateral_mm) < SIDE_FIT_PX:
-        return 0.5 * step, 0.0
-    tangent = np.array([step, depth_mm[0] - depth_mm[1]])
-    ray = np.array([ray_slope[0], 1.0])
-    cos_view = abs(tangent[0] * ray[1] - tangent[1] * ray[0]) / (np.linalg.norm(tangent) * np.linalg.norm(ray))
-    if np.degrees(np.arccos(np.clip(cos_view, 0.0, 1.0))) < CONTOUR_MIN_VIEW_ANGLE_DEG:
-        return 0.5 * step, 0.0
-    x = lateral_mm[:SIDE_FIT_PX] - lateral_mm[0]
-    z = depth_mm[:SIDE_FIT_PX] - depth_mm[0]
-    # x^2 + z^2 + a x + b z + c = 0: centre (-a/2, -b/2)
-    a, b, c = np.linalg.lstsq(np.column_stack([x, z, np.ones_like(x)]), -(x * x + z * z), rcond=None)[0]
-    radius_sq = (a * a + b * b) / 4.0 - c
-    if not radius_sq > 0:
-        return 0.5 * step, 0.0
-    gap, deeper = -a / 2.0 + np.sqrt(radius_sq), -b / 2.0
-    return (float(gap), float(deeper)) if deeper > 0 and 0 < gap < SIDE_MAX_GAP_PX * step else (0.5 * step, 0.0)
+    gap, deeper = rim_sides_mm(*(np.asarray(a, dtype=float)[None, :] for a in (lateral_mm, depth_mm, ray_slope)))
+    return float(gap[0]), float(deeper[0])
+
+
+def rim_sides_mm(lateral_mm: np.ndarray, depth_mm: np.ndarray, ray_slope: np.ndarray,
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """rim_side_mm of many edges at once: (E, n) arrays, NaN-padded past each edge's length."""
+    n_px = np.sum(np.isfinite(lateral_mm) & np.isfinite(depth_mm), axis=1)
+    if lateral_mm.shape[1] < 2:
+        return np.zeros(len(lateral_mm)), np.zeros(len(lateral_mm))
+    step = lateral_mm[:, 0] - lateral_mm[:, 1]
+    tangent_x, tangent_z = step, depth_mm[:, 0] - depth_mm[:, 1]
+    ray_x = ray_slope[:, 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos_view = np.abs(tangent_x - tangent_z * ray_x) / (np.hypot(tangent_x, tangent_z) * np.hypot(ray_x, 1.0))
+        contour = np.degrees(np.arccos(np.clip(cos_view, 0.0, 1.0))) >= CONTOUR_MIN_VIEW_ANGLE_DEG
+    fit = contour & (n_px >= SIDE_FIT_PX) & (step > 0)
+    gap, deeper = np.where(step > 0, 0.5 * step, 0.0), np.zeros(len(step))
+    if fit.any() and lateral_mm.shape[1] >= SIDE_FIT_PX:
+        x = lateral_mm[fit, :SIDE_FIT_PX] - lateral_mm[fit, :1]
+        z = depth_mm[fit, :SIDE_FIT_PX] - depth_mm[fit, :1]
+        # x^2 + z^2 + a x + b z + c = 0: centre (-a/2, -b/2); least squares by the normal equations
+        design = np.stack([x, z, np.ones_like(x)], axis=-1)
+        normal = np.einsum("eki,ekj->eij", design, design)
+        rhs = np.einsum("eki,ek->ei", design, -(x * x + z * z))
+        solvable = np.abs(np.linalg.det(normal)) > 1e-12 * np.einsum("eii->e", normal) ** 3
+        a, b, c = np.full((3, len(x)), np.nan)
+        if solvable.any():
+            a[solvable], b[solvable], c[solvable] = np.linalg.solve(normal[solvable], rhs[solvable][..., None])[..., 0].T
+        radius_sq = (a * a + b * b) / 4.0 - c
+        with np.errstate(invalid="ignore"):
+            g, d = -a / 2.0 + np.sqrt(radius_sq), -b / 2.0
+            ok = (radius_sq > 0) & (d > 0) & (g > 0) & (g < SIDE_MAX_GAP_PX * step[fit])
+        gap[np.flatnonzero(fit)[ok]] = g[ok]
+        deeper[np.flatnonzero(fit)[ok]] = d[ok]
+    return gap, deeper
+
+
+def side_columns(depth_mm: np.ndarray, valid: np.ndarray, head: Head, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), 2): the columns (sub-pixel) where the trunk's left and right sides lie on each of
+    `rows` (rim_sides_mm: beyond the silhouette, where the surface turns parallel to the axis); NaN
+    on a row with fewer than 2 SIDE_FIT_PX pixels."""
+    lateral = np.full((len(rows), 2, SIDE_FIT_PX), np.nan)
+    depth = np.full((len(rows), 2, SIDE_FIT_PX), np.nan)
+    slope = np.full((len(rows), 2, SIDE_FIT_PX), np.nan)
+    for i, r in enumerate(rows):
+        cols = np.nonzero(valid[r])[0]
+        if len(cols) < 2 * SIDE_FIT_PX:
+            continue
+        for k, (edge, outward) in enumerate(((cols[:SIDE_FIT_PX], -1.0), (cols[::-1][:SIDE_FIT_PX], 1.0))):
+            u = (edge - head.cx) / head.fx
+            depth[i, k] = depth_mm[r, edge]
+            lateral[i, k] = outward * u * depth_mm[r, edge]
+            slope[i, k] = outward * u
+    gap, deeper = rim_sides_mm(lateral.reshape(-1, SIDE_FIT_PX), depth.reshape(-1, SIDE_FIT_PX),
+                               slope.reshape(-1, SIDE_FIT_PX))
+    side_lateral = lateral[..., 0] + gap.reshape(-1, 2)
+    side_depth = depth[..., 0] + deeper.reshape(-1, 2)
+    return head.cx + np.array([-1.0, 1.0]) * head.fx * side_lateral / side_depth
 
 
 @dataclass(frozen=True)
@@ -264,9 +306,7 @@ def rim_model(depth_mm: np.ndarray, mask: np.ndarray, head: Head, band_px: int,
     outward[outward == 0] = 1.0
     lateral = outward * u * z
     ray_slope = outward * u
-    sides = np.array([rim_side_mm(lat[ok], dep[ok], ray[ok]) if ok.sum() >= 2 else (0.0, 0.0)
-                      for lat, dep, ray, ok in zip(lateral, z, ray_slope, used & np.isfinite(z))])
-    gaps = sides[:, 0]
+    gaps, deeper = rim_sides_mm(lateral, z, ray_slope)
     side = np.zeros(len(edges))
     for parity in (0, 1):  # the image's left and right sides of the trunk
         on_side = np.arange(len(edges)) % 2 == parity
@@ -282,7 +322,25 @@ def rim_model(depth_mm: np.ndarray, mask: np.ndarray, head: Head, band_px: int,
     hinge = from_side * (1.0 - from_side / (2.0 * half_width))  # in proportion to half_width^2 - x^2 across the row
     regressor = np.where(used & np.isfinite(stretch), hinge / stretch, 0.0)
     regressor[:, :skip_px] = 0.0
-    return RimModel(rows, cols, np.clip(regressor, 0.0, None), float(np.nanmedian(z[:, 0] + sides[:, 1])))
+    return RimModel(rows, cols, np.clip(regressor, 0.0, None), float(np.nanmedian(z[:, 0] + deeper)))
+
+
+def trunk_width_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> float:
+    """The trunk's width in the image: the mean distance between its sides (side_columns) over its
+    rows; the silhouette's mean width where fewer than MIN_SIDE_ROWS rows give both sides.
+
+    It sets the image scale between maps (the sway along the axis) and the two heads' distances.
+    The silhouette's width did that before, but breathing moves it: the steeper a flank gets, the
+    more of its outermost pixels turn past the integrator's grazing limit. On a simulated 30 s slow
+    VC the silhouette narrowed by 0.06 px (of 206) per litre, and resampling the maps by that lost
+    3 % of the volume (docs/volume.md)."""
+    rows = torso_rows(valid)
+    if len(rows) == 0:
+        return float("nan")
+    widths = np.diff(side_columns(depth_mm, valid, head, rows), axis=1)[:, 0]
+    if np.isfinite(widths).sum() < MIN_SIDE_ROWS:
+        return float(np.mean(valid[rows].sum(axis=1)))
+    return float(np.nanmean(widths))
 
 
 class DisplacementTracker:
@@ -297,8 +355,7 @@ class DisplacementTracker:
 
     def add(self, depth_mm: np.ndarray, mask: np.ndarray) -> DisplacementSums:
         valid = mask & np.isfinite(depth_mm)
-        rows = torso_rows(valid)
-        width = float(np.mean(valid[rows].sum(axis=1))) if len(rows) else float("nan")
+        width = trunk_width_px(depth_mm, valid, self.head)
         if self._reference is None:
             regions = trunk_regions(valid, self.head.name)
             if not regions:
@@ -312,7 +369,6 @@ class DisplacementTracker:
             # the silhouette widths place the sides (the trunk's widest), which lie deeper than its rim
             self._side_per_rim = self._rim.side_depth_mm / rim_of_reference
         ref_depth, ref_mask, footprint, regions = self._reference
-        # the silhouette's width gives the image scale more steadily than the photometric distance
         z = _aligned_depth(depth_mm, valid, ref_mask, self.head, width / self._reference_width)
         both = ref_mask & np.isfinite(z)
         _, rim = rim_depths(ref_depth, z, both, self._band_px)

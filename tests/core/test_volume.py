@@ -86,3 +86,34 @@ def test_the_rim_level_of_a_breathing_band_is_its_common_intercept():
         moved[row, model.cols[e][used]] += -rng.uniform(0.02, 0.08) * model.regressor[e][used]
     moved += 1.7
     assert model.level(moved, mask) - model.level(depth, mask) == pytest.approx(1.7, abs=1e-9)
+
+
+def test_the_trunk_width_stays_when_the_flanks_lose_their_outermost_pixels():
+    """A trunk of circular cross-section (150 mm radius, axis vertical at 2000 mm, centred on the
+    view): the circle through each row's outermost pixels places its sides, so losing one or two
+    of them (a flank steepening past the integrator's grazing limit as the chest fills) leaves its
+    width; the silhouette's own width drops by the pixels lost."""
+    from core.rig import thesis_head
+    from core.volume import trunk_width_px
+
+    head = thesis_head("front", scale=0.25)
+    radius, centre = 150.0, 2000.0
+    u = (np.arange(head.width) - head.cx) / head.fx
+    a, b, c = u * u + 1.0, -2.0 * centre, centre**2 - radius**2
+    disc = b * b - 4 * a * c
+    row_depth = np.where(disc >= 0, (-b - np.sqrt(np.clip(disc, 0, None))) / (2 * a), np.nan)
+    depth = np.tile(row_depth, (head.height, 1))
+    full = np.isfinite(depth)
+    sides_px = 2 * head.fx * radius / centre  # the widest points, X = +-radius at Z = centre
+
+    def without_outermost(mask, n):
+        out = mask.copy()
+        for r in range(mask.shape[0]):
+            cols = np.nonzero(mask[r])[0]
+            out[r, cols[:n]] = out[r, cols[len(cols) - n:]] = False
+        return out
+
+    widths = [trunk_width_px(depth, without_outermost(full, n), head) for n in (0, 1, 2)]
+    assert widths == pytest.approx([sides_px] * 3, abs=0.1)
+    silhouettes = [without_outermost(full, n)[0].sum() for n in (0, 1, 2)]
+    assert silhouettes[0] - silhouettes[2] == 4
