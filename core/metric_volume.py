@@ -1,8 +1,8 @@
 """The metric optical volume: litres from the height maps of one or both heads, without a training step.
 
 Each head's maps are compared with its first map in the body's own frame (core/volume.py,
-DisplacementTracker): the current map is resampled so its trunk silhouette lies on the
-reference's, both are referred to the level the trunk has at its sides (so a rigid shift along
+DisplacementTracker): the current map is resampled so its trunk lies on the reference's
+(silhouette centres, widths between the trunk's sides), both are referred to the level the trunk has at its sides (so a rigid shift along
 the axis is not breathing), and the displacement of every pixel, weighted by its metric footprint
 (Z / fx)(Z / fy), adds up to the volume the trunk gained on that head's side.
 
@@ -10,8 +10,8 @@ The depth map's absolute scale is the weak point: the surface's relief above its
 head for an adult, the neck and shoulders included) scales with it, so a map 1 % too far reads
 0.1-0.25 L too much. The
 scale of every map is therefore set from a distance that does not follow breathing:
-- two heads: the silhouette widths and the baseline (D_f / D_b = W_b / W_f, D_f + D_b = baseline;
-  lateral expansion widens both silhouettes alike), smoothed over WIDTH_SMOOTHING_S;
+- two heads: the trunk's widths between its sides and the baseline (D_f / D_b = W_b / W_f,
+  D_f + D_b = baseline; lateral expansion widens both alike), smoothed over WIDTH_SMOOTHING_S;
 - one head: the depth of the sides in the maps themselves, smoothed over SIDE_SMOOTHING_S.
 Measured limits on simulated subjects: docs/volume.md.
 """
@@ -29,7 +29,7 @@ from core.rig import Head
 from core.volume import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l, metric_head_volume_l,
                          smooth_in_time, two_head_distances)
 
-WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of silhouette width is 4 mm of distance
+WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of trunk width is 4 mm of distance
 SIDE_SMOOTHING_S = 3.0
 VOLUME_SMOOTHING_S = 0.03  # the maps' own noise; a forced expiration's volume curve has little above 5 Hz
 
@@ -71,7 +71,7 @@ def side_targets(heads: dict[str, HeadDisplacements], baseline_mm: float | None)
         d_front, _ = two_head_distances(_bridged(front.width_px), back_width, baseline_mm)
         d_front = smooth_in_time(t, d_front, WIDTH_SMOOTHING_S)
         d_back = np.interp(back.timestamp_ns.astype(float) / 1e9, t, baseline_mm - d_front)
-        return {names[0]: d_front, names[1]: d_back}, "silhouette widths and the baseline"
+        return {names[0]: d_front, names[1]: d_back}, "trunk widths and the baseline"
     return ({n: smooth_in_time(h.timestamp_ns.astype(float) / 1e9, h.side_mm, SIDE_SMOOTHING_S)
              for n, h in heads.items()}, "each head's side depth, smoothed")
 
@@ -128,7 +128,7 @@ def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
 
 class LiveMetricVolume:
     """The metric volume map by map, for the live view: causal, so each map's scale comes from the
-    silhouette widths seen so far (two heads) or the rim depth (one head), smoothed by an
+    trunk widths seen so far (two heads) or the rim depth (one head), smoothed by an
     exponential average with the time constants above. Each head's maps come from one thread;
     `add` may be called from a thread per head."""
 

@@ -1,7 +1,8 @@
 """Volumes from height maps: the thesis' gradient volume, and the building blocks of the metric volume.
 
 Metric volume of one head: each map is compared with a reference map of the same head in the
-body's own frame (resampled so the trunk silhouettes coincide), both referred to the level their
+body's own frame (resampled about the trunk silhouettes' centres to the widths between the
+trunk's sides, trunk_width_px), both referred to the level their
 trunk would have at its sides (RimModel), so a rigid shift of the whole torso (sway, along the axis
 or sideways) is not breathing; every pixel's displacement is weighted by its footprint
 (Z / fx)(Z / fy). The level comes from a model: breathing moves the trunk along the axis in
@@ -13,9 +14,9 @@ for sway.
 
 The result scales with the depth map's absolute scale times the relief above the rim (about
 10 L per head for an adult), so every map's scale is set afterwards from a distance that
-breathing does not move (core/metric_volume.py). With both heads it comes from the silhouettes:
-both see the same lateral edges, so their widths in pixels stand in the inverse ratio of the
-distances, D_f / D_b = W_b / W_f, and D_f + D_b is the baseline between the heads.
+breathing does not move (core/metric_volume.py). With both heads it comes from the trunk's widths:
+both see the same sides, so their widths in pixels stand in the inverse ratio of the distances,
+D_f / D_b = W_b / W_f, and D_f + D_b is the baseline between the heads.
 """
 
 from __future__ import annotations
@@ -366,7 +367,7 @@ class DisplacementTracker:
             self._band_px = max(4, int(round(self.rim_band_mm * self.head.fx / np.median(depth_mm[valid]))))
             self._rim = rim_model(depth_mm, valid, self.head, self._band_px)
             rim_of_reference, _ = rim_depths(depth_mm, depth_mm, valid, self._band_px)
-            # the silhouette widths place the sides (the trunk's widest), which lie deeper than its rim
+            # the trunk widths place the sides (the trunk's widest), which lie deeper than its rim
             self._side_per_rim = self._rim.side_depth_mm / rim_of_reference
         ref_depth, ref_mask, footprint, regions = self._reference
         z = _aligned_depth(depth_mm, valid, ref_mask, self.head, width / self._reference_width)
@@ -410,7 +411,8 @@ def smooth_in_time(t_s: np.ndarray, values: np.ndarray, sigma_s: float) -> np.nd
 
 def two_head_distances(width_front_px: np.ndarray, width_back_px: np.ndarray, baseline_mm: float,
                        ) -> tuple[np.ndarray, np.ndarray]:
-    """Silhouette-plane depths of front and back from the two silhouette widths and the baseline."""
+    """Depths of the trunk's sides from front and back, from the two heads' trunk widths
+    (trunk_width_px) and the baseline."""
     ratio = np.asarray(width_front_px) / np.asarray(width_back_px)
     front = baseline_mm / (1.0 + ratio)
     return front, baseline_mm - front

@@ -115,7 +115,7 @@ def test_process_writes_the_metric_volume_and_uses_it_without_a_flow_sensor(tmp_
 
 
 def test_the_live_volume_follows_the_maps_as_they_come():
-    """Causal, map by map: NaN until each head has had a map scaled by both silhouette widths; then the
+    """Causal, map by map: NaN until each head has had a map scaled by both trunk widths; then the
     bulge's volume once both heads have seen it."""
     from core.metric_volume import LiveMetricVolume
 
