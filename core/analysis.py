@@ -89,9 +89,35 @@ def _breaths(t_s: np.ndarray, volume_l: np.ndarray, min_breath_s: float, min_tid
     # The stretch's own ends count as minima when the volume rises from (or falls to) them.
     minima, _ = find_peaks(-np.pad(smooth, 1, constant_values=np.inf), distance=int(min_breath_s * ANALYSIS_RATE_HZ),
                            prominence=min_tidal_l)
-    minima = np.clip(minima - 1, 0, len(smooth) - 1)
+    minima = _without_wiggles(smooth, np.clip(minima - 1, 0, len(smooth) - 1))
     flow = np.gradient(smooth, 1.0 / ANALYSIS_RATE_HZ)
     return t, smooth, flow, list(zip(minima[:-1], minima[1:]))
+
+
+# A "breath" under half the median tidal volume of its stretch whose inspiration or expiration also
+# lasts under half the median's is a wiggle on an expiration (noise, sway on an optical curve), not a
+# breath: the higher of its two end-expiratory minima goes, merging it with its neighbour. On the
+# simulated 2000 mm subject of `photopft bench volume`, a dip 0.3 s before the end of an expiration
+# split a 0.5 L breath into 0.48 L and 0.21 L (inspiration 0.34 s) and took the tidal volume to
+# 0.40 L against 0.51 L. Judged on three or more breaths only.
+WIGGLE_FRACTION = 0.5
+
+
+def _without_wiggles(smooth: np.ndarray, minima: np.ndarray) -> np.ndarray:
+    minima = list(minima)
+    while len(minima) >= 4:
+        pairs = list(zip(minima[:-1], minima[1:]))
+        peaks = [a + int(np.argmax(smooth[a:b])) for a, b in pairs]
+        vt = np.array([smooth[p] - 0.5 * (smooth[a] + smooth[b]) for p, (a, b) in zip(peaks, pairs)])
+        ti = np.array([p - a for p, (a, _) in zip(peaks, pairs)], dtype=float)
+        te = np.array([b - p for p, (_, b) in zip(peaks, pairs)], dtype=float)
+        k = int(np.argmin(vt))
+        short = ti[k] < WIGGLE_FRACTION * np.median(ti) or te[k] < WIGGLE_FRACTION * np.median(te)
+        if not (vt[k] < WIGGLE_FRACTION * np.median(vt) and short):
+            break
+        a, b = pairs[k]
+        minima.remove(a if smooth[a] > smooth[b] else b)
+    return np.array(minima, dtype=int)
 
 
 # Quiet breathing expires for longer than it inspires (Ti/Te about 0.4-0.8, 1.0 at most in health,

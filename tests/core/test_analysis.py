@@ -105,3 +105,15 @@ def test_an_unfinished_manoeuvre_is_left_out_and_named():
     values = analyse_volume(t, v, [(0.0, "tidal-start"), (8.0, "maneuver-end"), (8.0, "vc-start")])
     assert values.vital_capacity is None
     assert any("slow VC from 8.0 s not finished" in p for p in values.problems)
+
+
+def test_a_wiggle_on_an_expiration_is_not_a_breath():
+    """Four quiet breaths of 0.5 L, the third with a 0.2 L dip and rise 1.5 s before its end (noise
+    or sway on an optical curve): the dip splits it into a shortened breath and a small one with a
+    short inspiration (tidal volume 0.42 L without the merge); merged, the tidal volume is 0.5 L."""
+    t = np.arange(0, 16, 0.01)
+    v = 0.25 * (1 - np.cos(2 * np.pi * t / 4.0))
+    dip = 0.2 * np.exp(-0.5 * ((t - 10.5) / 0.12) ** 2)
+    values = tidal_values([(t, v - dip)])
+    assert values.breaths == 4
+    assert values.tidal_volume_l == pytest.approx(0.5, abs=0.02)
