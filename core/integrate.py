@@ -16,12 +16,12 @@ whose outline is not level (a torso's silhouette is deeper at the shoulders than
 The masked path is robust to depth discontinuities inside the mask (a chin over the neck, an
 arm against the trunk, a fold at the waist seen along grazing rays): across one, the normals on
 both sides say nothing of the jump, and plain least squares spreads it over the whole surface
-(on the DiLiGenT bear, real normals, the head came out 0.5 mm off its body). After the first
+(on the DiLiGenT bear, real normals, the head came out lifted off its body). After the first
 solve, ROBUST_ITERATIONS reweighted solves give each pixel edge the Cauchy weight
 1 / (1 + (r / s)^2) of its residual r, s = ROBUST_SCALE times the median |r|: the few edges that
 no surface can satisfy stop pulling. Measured (docs/reconstruction.md): the bear's mean absolute
-depth error 0.48 mm -> 0.05 mm; on a simulated torso's full inspiration, the volume integrated
-from true normals -1.6 % -> -0.4 % of the true depth maps'.
+depth error 0.483 mm -> 0.058 mm; on a simulated torso's full inspiration, the volume integrated
+from true normals -1.6 % -> -0.7 % of the true depth maps'.
 """
 
 from __future__ import annotations
