@@ -44,7 +44,8 @@ def run_gui_bench(scale: float, seconds: float, record: bool, warmup_s: float = 
         f"to its end (GUI alone {f.gui_rss_mb[0]:.0f} -> {f.gui_rss_mb[-1]:.0f} MB); when every head had "
         f"its first map, before the warm-up: {f.rss_first_maps_mb:.0f} MB.",
     ]
-    stalls = ", ".join(f"{ms:.0f} ms at {t:.0f} s" for t, ms in sorted(f.long_stalls, key=lambda x: -x[1])[:5])
+    stalls = ", ".join(f"{s.ms:.0f} ms at {s.at_s:.0f} s (GUI thread busy {s.busy_ms:.0f} ms, preempted {s.preempted}x)"
+                       for s in sorted(f.long_stalls, key=lambda s: -s.ms)[:5])
     rows += ["", f"GUI-thread stalls longer than a display interval (33 ms): {len(f.long_stalls)}"
              + (f"; the longest: {stalls}" if stalls else "")]
     if len(f.rss_mb) > 8:  # sampled every 10 s: a leak grows steadily, a heap settling levels off

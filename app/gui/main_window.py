@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import gc
 import logging
+import resource
 import sys
 import time
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Callable
@@ -44,14 +46,33 @@ def calibration_in_force(info: EngineInfo) -> str:
     return f"{kind} calibrated {oldest[:10]} ({age_text}){warn}"
 
 
+@dataclass(frozen=True)
+class Stall:
+    at_s: float  # since the monitor's last reset
+    ms: float  # how much later than asked the timer ran
+    busy_ms: float  # of which the GUI thread was on a CPU (drawing, Python, a garbage collection)
+    preempted: int  # times the kernel took the CPU from the GUI thread meanwhile (involuntary switches)
+
+
+def _thread_switches() -> int:
+    try:
+        return resource.getrusage(resource.RUSAGE_THREAD).ru_nivcsw
+    except (AttributeError, OSError):  # RUSAGE_THREAD is Linux's
+        return 0
+
+
 class StallMonitor:
-    """How late the GUI thread's event loop runs a 10 ms timer: its longest stall, and when the
-    stalls longer than a display interval happened (seconds since the last reset)."""
+    """How late the GUI thread's event loop runs a 10 ms timer: its longest stall, and the stalls
+    longer than a display interval, each with what the GUI thread did meanwhile: a stall that is
+    mostly busy time is work on the GUI thread; one that is not is a wait (for the GIL held by
+    another thread of this process, or for a CPU the kernel gave to another process)."""
 
     def __init__(self, parent: QObject) -> None:
         self.longest_ms = 0.0
-        self.long_stalls: list[tuple[float, float]] = []  # (s since reset, ms) over DISPLAY_INTERVAL_MS
+        self.long_stalls: list[Stall] = []
         self._last = time.perf_counter()
+        self._last_cpu = time.thread_time()
+        self._last_switches = _thread_switches()
         self._since = self._last
         self._timer = QTimer(parent)
         self._timer.setInterval(10)
@@ -60,15 +81,16 @@ class StallMonitor:
         self._skip = 5  # the first ticks include start-up
 
     def _tick(self) -> None:
-        now = time.perf_counter()
+        now, cpu, switches = time.perf_counter(), time.thread_time(), _thread_switches()
         if self._skip:
             self._skip -= 1
         else:
             stall_ms = (now - self._last) * 1000.0 - 10.0
             self.longest_ms = max(self.longest_ms, stall_ms)
             if stall_ms > DISPLAY_INTERVAL_MS:
-                self.long_stalls.append((self._last - self._since, stall_ms))
-        self._last = now
+                self.long_stalls.append(Stall(self._last - self._since, stall_ms, (cpu - self._last_cpu) * 1000.0,
+                                              switches - self._last_switches))
+        self._last, self._last_cpu, self._last_switches = now, cpu, switches
 
     def reset(self) -> None:
         self.longest_ms = 0.0

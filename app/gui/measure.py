@@ -7,9 +7,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from app.memory import rss_mb
 from drivers.recorder import RecordSummary
+
+if TYPE_CHECKING:
+    from app.gui.main_window import Stall
 
 
 @dataclass
@@ -18,7 +22,7 @@ class LiveFigures:
     elapsed_s: float = 0.0
     updates_per_s: float = 0.0
     longest_stall_ms: float = 0.0
-    long_stalls: list[tuple[float, float]] = field(default_factory=list)  # (s into the measurement, ms)
+    long_stalls: list[Stall] = field(default_factory=list)  # at_s: s into the measurement
     maps_per_s: dict[str, float] = field(default_factory=dict)
     frames_per_s: dict[str, float] = field(default_factory=dict)
     # GUI and engine processes: at the start of the measurement, every 10 s, at the end

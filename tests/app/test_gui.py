@@ -217,3 +217,35 @@ def test_no_top_level_widget_is_left_behind(qtbot):
     qtbot.wait(100)
     left = [x for x in QApplication.topLevelWidgets() if x not in before and x.isVisible()]
     assert left == []
+
+
+def test_the_stall_monitor_tells_work_on_the_gui_thread_from_waiting(qtbot):
+    """A stall spent computing on the GUI thread counts as busy; one spent waiting (here asleep, as
+    when another thread holds the GIL or the kernel runs another process) does not."""
+    import time
+
+    from PySide6.QtWidgets import QWidget
+
+    from app.gui.main_window import StallMonitor
+
+    parent = QWidget()
+    qtbot.addWidget(parent)
+    monitor = StallMonitor(parent)
+    qtbot.wait(200)
+    monitor.reset()
+    qtbot.wait(100)
+
+    def busy() -> None:
+        end = time.thread_time() + 0.08  # 80 ms on the CPU, however long that takes on a loaded machine
+        while time.thread_time() < end:
+            pass
+
+    QTimer.singleShot(0, busy)
+    qtbot.wait(200)
+    QTimer.singleShot(0, lambda: time.sleep(0.08))
+    qtbot.wait(200)
+    assert len(monitor.long_stalls) == 2
+    worked, waited = monitor.long_stalls
+    assert worked.ms >= 60 and worked.busy_ms >= 75
+    assert waited.ms >= 60 and waited.busy_ms < 20
+    assert monitor.longest_ms >= 60
