@@ -238,7 +238,12 @@ def test_recording_goes_on_through_a_camera_that_leaves_and_returns(fake_gv_came
     record = subprocess.Popen([sys.executable, "-m", "app", "record", "--rig", str(DEFAULT_RIG.parent / "fake-gige.toml"),
                                "-o", str(out), "--seconds", "14"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               text=True)
-    time.sleep(5.0)
+    # kill the camera once the recording runs (the file is open), not after a set time: on a loaded
+    # machine start-up took over 5 s and the camera was gone and back before the recording began
+    deadline = time.monotonic() + 60.0
+    while not out.exists() and time.monotonic() < deadline and record.poll() is None:
+        time.sleep(0.1)
+    time.sleep(2.0)
     back.kill()
     back.wait()
     time.sleep(4.0)
