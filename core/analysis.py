@@ -103,14 +103,19 @@ def _breaths(t_s: np.ndarray, volume_l: np.ndarray, min_breath_s: float, min_tid
 WIGGLE_FRACTION = 0.5
 
 
+def _breath_peak(smooth: np.ndarray, a: int, b: int) -> tuple[int, float]:
+    """The end of inspiration of the breath between minima a and b (its sample) and its tidal
+    volume, the peak over the mean of the two minima."""
+    peak = a + int(np.argmax(smooth[a:b]))
+    return peak, float(smooth[peak] - 0.5 * (smooth[a] + smooth[b]))
+
+
 def _without_wiggles(smooth: np.ndarray, minima: np.ndarray) -> np.ndarray:
     minima = list(minima)
     while len(minima) >= 4:
         pairs = list(zip(minima[:-1], minima[1:]))
-        peaks = [a + int(np.argmax(smooth[a:b])) for a, b in pairs]
-        vt = np.array([smooth[p] - 0.5 * (smooth[a] + smooth[b]) for p, (a, b) in zip(peaks, pairs)])
-        ti = np.array([p - a for p, (a, _) in zip(peaks, pairs)], dtype=float)
-        te = np.array([b - p for p, (_, b) in zip(peaks, pairs)], dtype=float)
+        peaks, vt = map(np.array, zip(*(_breath_peak(smooth, a, b) for a, b in pairs)))
+        ti, te = peaks - np.array(minima[:-1]), np.array(minima[1:]) - peaks
         k = int(np.argmin(vt))
         short = ti[k] < WIGGLE_FRACTION * np.median(ti) or te[k] < WIGGLE_FRACTION * np.median(te)
         if not (vt[k] < WIGGLE_FRACTION * np.median(vt) and short):
@@ -132,8 +137,7 @@ def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: 
                 min_tidal_l: float) -> tuple[float, float, float, float, float, float, float, float] | None:
     """(VT, Ti, Te, tPTEF/tE, IE50, end-expiratory level, end-inspiration time, end-expiration time)
     of the breath between minima a and b."""
-    peak = a + int(np.argmax(smooth[a:b]))
-    vt = smooth[peak] - 0.5 * (smooth[a] + smooth[b])
+    peak, vt = _breath_peak(smooth, a, b)
     if vt < min_tidal_l or peak in (a, b):
         return None
     ti, te = t[peak] - t[a], t[b] - t[peak]
