@@ -2,7 +2,8 @@
 
 Each head's maps are compared with its first map in the body's own frame (core/volume.py,
 DisplacementTracker): the current map is resampled so its trunk lies on the reference's
-(silhouette centres, widths between the trunk's sides), both are referred to the level the trunk has at its sides (so a rigid shift along
+(BodySilhouette: widths between the trunk's sides on the same body rows, the blurred silhouettes'
+shift), both are referred to the level the trunk has at its sides (so a rigid shift along
 the axis is not breathing), and the displacement of every pixel, weighted by its metric footprint
 (Z / fx)(Z / fy), adds up to the volume the trunk gained on that head's side.
 

@@ -1,8 +1,8 @@
 """Volumes from height maps: the thesis' gradient volume, and the building blocks of the metric volume.
 
 Metric volume of one head: each map is compared with a reference map of the same head in the
-body's own frame (resampled about the trunk silhouettes' centres to the widths between the
-trunk's sides, trunk_width_px), both referred to the level their
+body's own frame (BodySilhouette: resampled through the scale and shift that carry the
+reference's trunk silhouette onto the map's, sub-pixel), both referred to the level their
 trunk would have at its sides (RimModel), so a rigid shift of the whole torso (sway, along the axis
 or sideways) is not breathing; every pixel's displacement is weighted by its footprint
 (Z / fx)(Z / fy). The level comes from a model: breathing moves the trunk along the axis in
@@ -46,17 +46,6 @@ def torso_rows(mask: np.ndarray, min_width_fraction: float = 0.6) -> np.ndarray:
     return np.nonzero(widths >= min_width_fraction * widths.max())[0] if widths.max() > 0 else np.zeros(0, int)
 
 
-def side_depth_mm(depth_mm: np.ndarray, mask: np.ndarray, edge_px: int = 2) -> float:
-    """Median depth of the trunk's lateral silhouette edges (the sides, which breathing barely moves)."""
-    valid = mask & np.isfinite(depth_mm)
-    z = []
-    for r in torso_rows(valid):
-        cols = np.nonzero(valid[r])[0]
-        z.append(depth_mm[r, cols[:edge_px]])
-        z.append(depth_mm[r, cols[-edge_px:]])
-    return float(np.median(np.concatenate(z))) if z else float("nan")
-
-
 def _silhouette_centre_px(mask: np.ndarray) -> tuple[float, float]:
     rows = torso_rows(mask)
     if len(rows) == 0:
@@ -65,20 +54,125 @@ def _silhouette_centre_px(mask: np.ndarray) -> tuple[float, float]:
     return float(np.mean(centres)), 0.5 * float(rows[0] + rows[-1])
 
 
-def _aligned_depth(depth_a: np.ndarray, mask_a: np.ndarray, mask_b: np.ndarray, head: Head,
-                   ratio: float) -> np.ndarray:
-    """Map a resampled onto map b's pixels through the similarity (scale `ratio`, a's image size over
-    b's, about the principal point, and shift) that carries b's trunk silhouette onto a's."""
-    (ua, va), (ub, vb) = _silhouette_centre_px(mask_a), _silhouette_centre_px(mask_b)
-    if not all(np.isfinite([ratio, ua, ub])):
-        return np.full(mask_b.shape, np.nan)
-    v, u = np.mgrid[0:mask_b.shape[0], 0:mask_b.shape[1]].astype(float)
-    u_a = head.cx + (u - head.cx) * ratio + (ua - head.cx - (ub - head.cx) * ratio)
-    v_a = head.cy + (v - head.cy) * ratio + (va - head.cy - (vb - head.cy) * ratio)
-    valid = mask_a & np.isfinite(depth_a)
-    z = ndimage.map_coordinates(np.where(valid, depth_a, 0.0), [v_a, u_a], order=1, cval=0.0)
-    weight = ndimage.map_coordinates(valid.astype(float), [v_a, u_a], order=1, cval=0.0)
-    return np.where(weight > 0.99, z / np.maximum(weight, 1e-9), np.nan)
+@dataclass(frozen=True)
+class BodyFrame:
+    """The similarity that carries a reference map's pixels (u, v) onto another map's:
+    u' = cx + (u - cx) scale + shift_u_px, likewise v about cy; scale is the other map's image size
+    over the reference's (image size goes as 1 / distance)."""
+
+    scale: float
+    shift_u_px: float
+    shift_v_px: float
+
+    def resampled(self, depth_mm: np.ndarray, valid: np.ndarray, shape: tuple[int, int], head: Head) -> np.ndarray:
+        """The other map's depth on the reference's pixels; NaN where it shows no valid pixel."""
+        if not all(np.isfinite([self.scale, self.shift_u_px, self.shift_v_px])):
+            return np.full(shape, np.nan)
+        v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+        u_other = head.cx + (u - head.cx) * self.scale + self.shift_u_px
+        v_other = head.cy + (v - head.cy) * self.scale + self.shift_v_px
+        z = ndimage.map_coordinates(np.where(valid, depth_mm, 0.0), [v_other, u_other], order=1, cval=0.0)
+        weight = ndimage.map_coordinates(valid.astype(float), [v_other, u_other], order=1, cval=0.0)
+        return np.where(weight > 0.99, z / np.maximum(weight, 1e-9), np.nan)
+
+
+# Body-frame fit (BodySilhouette.frame): the silhouettes are compared blurred by FRAME_BLUR_PX (a
+# smooth function of the shift, so the fit is sub-pixel), and pixels of the reference's outline band
+# that differ by more than FRAME_OUTLIER are parts that came or went (an arm), not the body's shift.
+FRAME_BLUR_PX = 1.0
+FRAME_OUTLIER = 0.5
+# Rows trimmed from each end of the reference's trunk rows for the width ratio, so that every one
+# of them stays on the trunk under +-3 % of scale (+-60 mm at 2000 mm) and a few pixels of shift.
+FRAME_TRIM_ROWS = 8
+
+
+class BodySilhouette:
+    """A reference map's trunk silhouette, to find the body frame of other maps against it.
+
+    The frame used to come from whole-pixel features: the middle of the first and last trunk rows
+    (the first flips between two rows on the rounded shoulders, the last is the image's edge) and
+    the trunk's mean width over its rows (a shoulder row entering the set moves it by 0.3-0.4 px).
+    Each step shifted the resampled map and the volume by about 0.1 L for a few maps (docs/volume.md).
+    Here both are sub-pixel and follow the body continuously:
+    - scale: the ratio of the trunk's widths between its sides (side_columns) on the same body rows,
+      the reference's trunk rows less FRAME_TRIM_ROWS at each end, each carried into the other map
+      (widths interpolated between its rows);
+    - shift: the two silhouettes, blurred, brought onto each other over the band about the
+      reference's outline by least squares (Lucas-Kanade, Gauss-Newton), with the scale held; the
+      image's edge is no part of the outline.
+    Under sway the trunk is nearly rigid, but not flat: its outline lies at different depths (the
+    shoulders' top on the front of the trunk, the sides farther), so a 3 mm vertical sway shifts the
+    outline by fy 3 / Z with Z between those depths; the fit finds that one shift of the whole.
+    """
+
+    def __init__(self, valid: np.ndarray, widths_px: np.ndarray, head: Head) -> None:
+        """valid: the reference map's valid pixels; widths_px: its row_widths_px."""
+        self.head = head
+        rows = torso_rows(valid)
+        if len(rows) > 2 * FRAME_TRIM_ROWS + MIN_SIDE_ROWS:
+            rows = rows[FRAME_TRIM_ROWS:-FRAME_TRIM_ROWS]
+        self._rows = rows.astype(float)
+        self._widths = widths_px[rows]
+        self._centre = _silhouette_centre_px(valid)
+        blurred = _blurred(valid)
+        band = (blurred > 0.01) & (blurred < 0.99)
+        self._band = np.nonzero(band)[::-1]
+        self._band_values = blurred[band]
+
+    def frame(self, valid: np.ndarray, widths_px: np.ndarray, scale: float) -> BodyFrame:
+        """The body frame of a map (its valid pixels and row_widths_px) against the reference, from a
+        first guess of its scale (e.g. the ratio of trunk_width_px)."""
+        (u, v), (u_ref, v_ref) = _silhouette_centre_px(valid), self._centre
+        cx, cy = self.head.cx, self.head.cy
+        frame = BodyFrame(scale, u - cx - (u_ref - cx) * scale, v - cy - (v_ref - cy) * scale)
+        if not all(np.isfinite([scale, u, u_ref])):
+            return frame
+        blurred = _blurred(valid)
+        gradient = np.gradient(blurred)
+        frame = self._shifted(frame, blurred, gradient, iterations=3)
+        frame = BodyFrame(self._width_ratio(widths_px, frame), frame.shift_u_px, frame.shift_v_px)
+        return self._shifted(frame, blurred, gradient, iterations=2)
+
+    def _width_ratio(self, widths_px: np.ndarray, frame: BodyFrame) -> float:
+        """The other map's widths on the reference's rows, carried through the frame, over the reference's."""
+        rows = self.head.cy + (self._rows - self.head.cy) * frame.scale + frame.shift_v_px
+        if len(rows) == 0 or len(widths_px) < 2:
+            return frame.scale
+        below = np.clip(np.floor(rows).astype(int), 0, len(widths_px) - 2)
+        after = rows - below
+        carried = (1.0 - after) * widths_px[below] + after * widths_px[below + 1]
+        carried[(after < 0) | (after > 1)] = np.nan  # rows outside the image
+        both = np.isfinite(carried) & np.isfinite(self._widths)
+        if both.sum() < MIN_SIDE_ROWS:
+            return frame.scale
+        return float(np.sum(carried[both]) / np.sum(self._widths[both]))
+
+    def _shifted(self, frame: BodyFrame, blurred: np.ndarray, gradient: list[np.ndarray], iterations: int) -> BodyFrame:
+        """The shift that brings the other map's blurred silhouette onto the reference's, scale held
+        (Lucas-Kanade on the reference's outline band, Gauss-Newton)."""
+        u, v = self._band
+        if len(u) < 3:
+            return frame
+        cx, cy = self.head.cx, self.head.cy
+        du, dv, s = frame.shift_u_px, frame.shift_v_px, frame.scale
+        gradient_v, gradient_u = gradient
+        for _ in range(iterations):
+            at = [cy + (v - cy) * s + dv, cx + (u - cx) * s + du]  # the band on the other map's pixels
+            residual = ndimage.map_coordinates(blurred, at, order=1, mode="nearest") - self._band_values
+            jacobian = np.stack([ndimage.map_coordinates(g, at, order=1, mode="nearest")
+                                 for g in (gradient_u, gradient_v)], axis=1)
+            near = np.abs(residual) < FRAME_OUTLIER
+            if near.sum() < 3:
+                return frame
+            step = np.linalg.lstsq(jacobian[near], -residual[near], rcond=None)[0]
+            du, dv = du + step[0], dv + step[1]
+        return BodyFrame(s, float(du), float(dv))
+
+
+def _blurred(mask: np.ndarray) -> np.ndarray:
+    """The silhouette blurred by FRAME_BLUR_PX; the image's edge is no part of it (the mask is
+    extended past it)."""
+    return ndimage.gaussian_filter(mask.astype(float), FRAME_BLUR_PX, mode="nearest")
 
 
 def body_aligned_displacement(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: np.ndarray, mask_b: np.ndarray,
@@ -88,15 +182,21 @@ def body_aligned_displacement(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: 
 
     A body that sways farther from the camera looks smaller, and sideways it shifts in the image:
     differencing two maps pixel by pixel would see a sloped surface slide past the pixel and call
-    it breathing. Map a is resampled through the similarity (scale about the principal point and
-    shift) that carries b's trunk silhouette onto a's, and brought to b's distance by the depth of
-    the sides (side_depth_mm).
+    it breathing. Map a is resampled through the body frame (BodySilhouette: scale about the
+    principal point and shift) that carries b's trunk silhouette onto a's, and both are referred to
+    the level of their trunk's sides (RimModel), as the metric volume does (DisplacementTracker).
     """
-    side_a, side_b = side_depth_mm(depth_a, mask_a), side_depth_mm(depth_b, mask_b)
-    z_a = _aligned_depth(depth_a, mask_a, mask_b, head, side_b / side_a)  # image size goes as 1 / distance
+    valid_a, valid_b = mask_a & np.isfinite(depth_a), mask_b & np.isfinite(depth_b)
+    widths_a, widths_b = row_widths_px(depth_a, valid_a, head), row_widths_px(depth_b, valid_b, head)
     out = np.full(depth_b.shape, np.nan)
-    inside = mask_b & np.isfinite(depth_b) & np.isfinite(z_a)
-    out[inside] = depth_b[inside] - (z_a[inside] + side_b - side_a)
+    if not trunk_regions(valid_b, head.name):
+        return out
+    image_size = trunk_width_px(depth_a, valid_a, head, widths_a) / trunk_width_px(depth_b, valid_b, head, widths_b)
+    frame = BodySilhouette(valid_b, widths_b, head).frame(valid_a, widths_a, image_size)
+    z_a = frame.resampled(depth_a, valid_a, mask_b.shape, head)
+    inside = valid_b & np.isfinite(z_a)
+    rim = rim_model(depth_b, valid_b, head, rim_band_px(depth_b, valid_b, head))
+    out[inside] = (depth_b - rim.level(depth_b, inside))[inside] - (z_a - rim.level(z_a, inside))[inside]
     return out
 
 
@@ -238,18 +338,20 @@ def side_columns(depth_mm: np.ndarray, valid: np.ndarray, head: Head, rows: np.n
     """(len(rows), 2): the columns (sub-pixel) where the trunk's left and right sides lie on each of
     `rows` (rim_sides_mm: beyond the silhouette, where the surface turns parallel to the axis); NaN
     on a row with fewer than 2 SIDE_FIT_PX pixels."""
-    lateral = np.full((len(rows), 2, SIDE_FIT_PX), np.nan)
-    depth = np.full((len(rows), 2, SIDE_FIT_PX), np.nan)
-    slope = np.full((len(rows), 2, SIDE_FIT_PX), np.nan)
-    for i, r in enumerate(rows):
-        cols = np.nonzero(valid[r])[0]
-        if len(cols) < 2 * SIDE_FIT_PX:
-            continue
-        for k, (edge, outward) in enumerate(((cols[:SIDE_FIT_PX], -1.0), (cols[::-1][:SIDE_FIT_PX], 1.0))):
-            u = (edge - head.cx) / head.fx
-            depth[i, k] = depth_mm[r, edge]
-            lateral[i, k] = outward * u * depth_mm[r, edge]
-            slope[i, k] = outward * u
+    rows = np.asarray(rows, dtype=int)
+    on_rows = valid[rows]
+    count = np.cumsum(on_rows, axis=1)
+    total = count[:, -1:]
+    # the k-th valid pixel from each end of every row: from the silhouette inwards
+    left = np.stack([np.argmax(on_rows & (count == k + 1), axis=1) for k in range(SIDE_FIT_PX)], axis=1)
+    right = np.stack([np.argmax(on_rows & (count == total - k), axis=1) for k in range(SIDE_FIT_PX)], axis=1)
+    edge = np.stack([left, right], axis=1)  # (rows, 2, SIDE_FIT_PX)
+    depth = depth_mm[rows[:, None, None], edge]
+    slope = np.array([-1.0, 1.0])[None, :, None] * (edge - head.cx) / head.fx
+    lateral = slope * depth
+    too_narrow = total[:, 0] < 2 * SIDE_FIT_PX
+    for a in (depth, lateral, slope):
+        a[too_narrow] = np.nan
     gap, deeper = rim_sides_mm(lateral.reshape(-1, SIDE_FIT_PX), depth.reshape(-1, SIDE_FIT_PX),
                                slope.reshape(-1, SIDE_FIT_PX))
     side_lateral = lateral[..., 0] + gap.reshape(-1, 2)
@@ -326,9 +428,21 @@ def rim_model(depth_mm: np.ndarray, mask: np.ndarray, head: Head, band_px: int,
     return RimModel(rows, cols, np.clip(regressor, 0.0, None), float(np.nanmedian(z[:, 0] + deeper)))
 
 
-def trunk_width_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> float:
+def row_widths_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> np.ndarray:
+    """The distance between the trunk's sides (side_columns) on every row of a map; NaN where a row
+    does not give both."""
+    return np.diff(side_columns(depth_mm, valid, head, np.arange(valid.shape[0])), axis=1)[:, 0]
+
+
+def rim_band_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head, rim_band_mm: float = RIM_BAND_MM) -> int:
+    """The rim's band (rim_model, rim_depths) in pixels on a map: rim_band_mm at its median depth."""
+    return max(4, int(round(rim_band_mm * head.fx / np.median(depth_mm[valid]))))
+
+
+def trunk_width_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head, widths_px: np.ndarray | None = None) -> float:
     """The trunk's width in the image: the mean distance between its sides (side_columns) over its
     rows; the silhouette's mean width where fewer than MIN_SIDE_ROWS rows give both sides.
+    widths_px: the map's row_widths_px, if already known.
 
     It sets the image scale between maps (the sway along the axis) and the two heads' distances.
     The silhouette's width did that before, but breathing moves it: the steeper a flank gets, the
@@ -338,7 +452,10 @@ def trunk_width_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> float
     rows = torso_rows(valid)
     if len(rows) == 0:
         return float("nan")
-    widths = np.diff(side_columns(depth_mm, valid, head, rows), axis=1)[:, 0]
+    if widths_px is None:
+        widths = np.diff(side_columns(depth_mm, valid, head, rows), axis=1)[:, 0]
+    else:
+        widths = widths_px[rows]
     if np.isfinite(widths).sum() < MIN_SIDE_ROWS:
         return float(np.mean(valid[rows].sum(axis=1)))
     return float(np.nanmean(widths))
@@ -356,7 +473,8 @@ class DisplacementTracker:
 
     def add(self, depth_mm: np.ndarray, mask: np.ndarray) -> DisplacementSums:
         valid = mask & np.isfinite(depth_mm)
-        width = trunk_width_px(depth_mm, valid, self.head)
+        row_widths = row_widths_px(depth_mm, valid, self.head)
+        width = trunk_width_px(depth_mm, valid, self.head, row_widths)
         if self._reference is None:
             regions = trunk_regions(valid, self.head.name)
             if not regions:
@@ -364,13 +482,15 @@ class DisplacementTracker:
             footprint = (depth_mm / self.head.fx) * (depth_mm / self.head.fy)
             self._reference = (np.where(valid, depth_mm, np.nan), valid, footprint, regions)
             self._reference_width = width
-            self._band_px = max(4, int(round(self.rim_band_mm * self.head.fx / np.median(depth_mm[valid]))))
+            self._silhouette = BodySilhouette(valid, row_widths, self.head)
+            self._band_px = rim_band_px(depth_mm, valid, self.head, self.rim_band_mm)
             self._rim = rim_model(depth_mm, valid, self.head, self._band_px)
             rim_of_reference, _ = rim_depths(depth_mm, depth_mm, valid, self._band_px)
             # the trunk widths place the sides (the trunk's widest), which lie deeper than its rim
             self._side_per_rim = self._rim.side_depth_mm / rim_of_reference
         ref_depth, ref_mask, footprint, regions = self._reference
-        z = _aligned_depth(depth_mm, valid, ref_mask, self.head, width / self._reference_width)
+        frame = self._silhouette.frame(valid, row_widths, width / self._reference_width)
+        z = frame.resampled(depth_mm, valid, ref_mask.shape, self.head)
         both = ref_mask & np.isfinite(z)
         _, rim = rim_depths(ref_depth, z, both, self._band_px)
         level_ref, level = self._rim.level(ref_depth, both), self._rim.level(z, both)
