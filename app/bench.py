@@ -229,7 +229,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
     lines.append(f"Run time {time.perf_counter() - started:.0f} s on this machine.")
     text = "\n".join(lines)
     if write:
-        write_section("accuracy", text)
+        write_section(f"accuracy-{scale:g}", text)
     return text
 
 

@@ -84,6 +84,7 @@ FRAME_OUTLIER = 0.5
 # Rows trimmed from each end of the reference's trunk rows for the width ratio, so that every one
 # of them stays on the trunk under +-3 % of scale (+-60 mm at 2000 mm) and a few pixels of shift.
 FRAME_TRIM_ROWS = 8
+MIN_TRUNK_ROWS = 4  # fewer trunk rows than this: the map shows no trunk
 
 
 class BodySilhouette:
@@ -187,10 +188,10 @@ def body_aligned_displacement(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: 
     the level of their trunk's sides (RimModel), as the metric volume does (DisplacementTracker).
     """
     valid_a, valid_b = mask_a & np.isfinite(depth_a), mask_b & np.isfinite(depth_b)
-    widths_a, widths_b = row_widths_px(depth_a, valid_a, head), row_widths_px(depth_b, valid_b, head)
     out = np.full(depth_b.shape, np.nan)
-    if not trunk_regions(valid_b, head.name):
+    if len(torso_rows(valid_b)) < MIN_TRUNK_ROWS:
         return out
+    widths_a, widths_b = row_widths_px(depth_a, valid_a, head), row_widths_px(depth_b, valid_b, head)
     image_size = trunk_width_px(depth_a, valid_a, head, widths_a) / trunk_width_px(depth_b, valid_b, head, widths_b)
     frame = BodySilhouette(valid_b, widths_b, head).frame(valid_a, widths_a, image_size)
     z_a = frame.resampled(depth_a, valid_a, mask_b.shape, head)
@@ -206,7 +207,7 @@ def trunk_regions(mask: np.ndarray, head_name: str) -> dict[str, np.ndarray]:
     patient's left on the image's right, the back head on the image's left. Empty if the map
     shows no trunk."""
     rows = torso_rows(mask)
-    if len(rows) < 4:
+    if len(rows) < MIN_TRUNK_ROWS:
         return {}
     mid_row = int(rows[len(rows) // 2])
     mid_col = int(np.round(np.nonzero(mask[rows])[1].mean()))
