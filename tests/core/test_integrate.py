@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.diligent import load_real_surface, mean_abs_depth_error_mm
 from core.integrate import depth_from_normals, integrate_dct, integrate_masked, log_depth_gradients
 
 
@@ -136,26 +137,16 @@ def test_perspective_depth_of_a_sphere_is_metric():
 
 @pytest.fixture(scope="module")
 def bear(shared_data):
-    import cv2
-
-    folder = shared_data / "diligent-integration" / "bear"
-    raw = cv2.imread(str(folder / "normal_map.png"), cv2.IMREAD_UNCHANGED)  # channels B, G, R
-    scaled = raw.astype(float) / np.iinfo(raw.dtype).max * 2 - 1  # the PNG is 16-bit despite its README
-    normals = np.stack([scaled[..., 2], -scaled[..., 1], -scaled[..., 0]], -1)  # OpenCV camera frame
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    mask = cv2.imread(str(folder / "mask.png"), cv2.IMREAD_GRAYSCALE) > 127
-    k = np.loadtxt(folder / "K.txt")
-    depth = np.load(folder / "depth_gt.npz")["depth_gt"].astype(float)
-    return normals, mask, k, depth
+    surface = load_real_surface(shared_data / "diligent-integration" / "bear")
+    return surface.normals, surface.mask, surface.camera_matrix, surface.depth_mm
 
 
 def _mean_abs_error(got, truth, mask):
-    """Mean absolute error after the mean offset, over the mask's pixels given a depth; at most
-    0.1 % of them may be left out (normals past MAX_VIEW_ANGLE_DEG at the silhouette)."""
-    given = mask & np.isfinite(got)
-    assert given.sum() >= 0.999 * mask.sum()
-    err = got[given] - truth[given]
-    return float(np.mean(np.abs(err - err.mean())))
+    """At most 0.1 % of the mask's pixels may be left out (normals past MAX_VIEW_ANGLE_DEG at the
+    silhouette)."""
+    error, given = mean_abs_depth_error_mm(got, truth, mask)
+    assert given >= 0.999
+    return error
 
 
 def test_real_normals_integrate_within_a_tenth_of_a_mm(bear):
