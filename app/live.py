@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 
 from core.flow import btps_factor
+from core.binning import bin_any, bin_mean, binned_head, live_binning
 from core.metric_volume import LiveMetricVolume
 from core.pipeline import HeadReconstructor, ReconstructionSettings
 from core.rig import Rig
@@ -33,6 +34,7 @@ log = logging.getLogger(__name__)
 
 WINDOW_S = 30.0  # what the volume curve shows
 WORKER_NICENESS = 10
+SIMULATED_CAMERA_NICENESS = 19
 NO_LIMIT_NS = 2**63 - 1
 
 
@@ -280,7 +282,10 @@ class LiveRig:
         n = int(WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length * 2) + 10
         self._optical = collections.deque(maxlen=n)
         self._gradient = {h: 0.0 for h in source.cameras}
-        self._metric = LiveMetricVolume({h: self.rig.heads[h] for h in source.cameras}, self.rig.baseline_mm)
+        # each head reconstructed binned to about LIVE_MAP_WIDTH_PX wide (core/binning.py); recordings keep every pixel
+        self._binning = {h: live_binning(self.rig.heads[h]) for h in source.cameras}
+        self._live_heads = {h: binned_head(self.rig.heads[h], self._binning[h]) for h in source.cameras}
+        self._metric = LiveMetricVolume(self._live_heads, self.rig.baseline_mm)
         self._metric_curve = collections.deque(maxlen=n)
         self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
         self._flow_state = {"volume": 0.0, "last_ns": None, "means": collections.deque(maxlen=3000), "sum": 0.0}
@@ -300,17 +305,20 @@ class LiveRig:
             camera.start()
         if self.source.flow is not None:
             self.source.flow.start()
+        # Simulated cameras render their frames on this computer's cores, which a real camera's
+        # capture does not: at a lower priority than the reconstruction, or they starve it.
+        capture_niceness = SIMULATED_CAMERA_NICENESS if self.source.simulated is not None else WORKER_NICENESS
         for head, camera in self.source.cameras.items():
-            self._spawn(self._capture, f"capture-{head}", head, camera)
+            self._spawn(self._capture, f"capture-{head}", head, camera, niceness=capture_niceness)
             self._spawn(self._reconstruct, f"reconstruct-{head}", head)
         if self.source.flow is not None:
             self._spawn(self._capture_flow, "capture-flow")
 
-    def _spawn(self, target, name: str, *args) -> None:
+    def _spawn(self, target, name: str, *args, niceness: int = WORKER_NICENESS) -> None:
         def run() -> None:
             # Workers yield the CPU to the GUI thread: it only draws, but must never wait long.
             try:
-                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WORKER_NICENESS)
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
             except (OSError, AttributeError):
                 pass
             target(*args)
@@ -497,10 +505,11 @@ class LiveRig:
         return None
 
     def _reconstruct(self, head: str) -> None:
-        reconstructor = HeadReconstructor(self.rig.heads[head], None, self.settings)
+        reconstructor = HeadReconstructor(self._live_heads[head], None, self.settings)
         done_id = -1
         condition = self._new_frame[head]
         max_value = self.rig.heads[head].max_value
+        factor = self._binning[head]
         while not self._stop.is_set():
             with condition:
                 condition.wait(timeout=0.2)
@@ -509,10 +518,10 @@ class LiveRig:
                 continue
             done_id = window[-1][0].frame_id
             by_light = {light: frame.image for frame, light in window}
-            dark = by_light[-1].astype(np.float64)
-            raw = [by_light[k] for k in range(4)]
-            signal = np.stack([r.astype(np.float64) for r in raw]) - dark[None]
-            saturated = np.stack([r >= max_value for r in raw])
+            raw = np.stack([by_light[k] for k in range(4)])
+            dark = bin_mean(by_light[-1], factor)
+            signal = bin_mean(raw, factor) - dark[None]
+            saturated = bin_any(raw >= max_value, factor)
             try:
                 result = reconstructor.reconstruct(signal, saturated, dark)
             except Exception as exc:  # a map that cannot be made is skipped, and said once

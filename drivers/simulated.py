@@ -122,8 +122,12 @@ class SimCamera:
         due = s.start_ns + int(round(self._next * period_ns))
         if self.realtime:
             now = time.monotonic_ns()
-            if now - due > MAX_LAG_S * 1e9:  # behind: skip to the frame due now, as a camera drops frames
-                self._next = int((now - s.start_ns) // period_ns)
+            n = s.rig.cycle_length
+            if now - due > MAX_LAG_S * 1e9 and self._next % n == 0:
+                # Behind: skip to the light cycle under way, as a camera drops frames; whole cycles
+                # only, so that a renderer slower than the rig still delivers complete cycles to
+                # reconstruct (one frame skipped here and there would leave none).
+                self._next = int((now - s.start_ns) // period_ns) // n * n
                 due = s.start_ns + int(round(self._next * period_ns))
             wait = (due - now) / 1e9
             if wait > timeout_s:

@@ -95,21 +95,27 @@ def test_simulated_camera_loops_prerendered_cycles_with_ids_running_on():
     assert camera.stats.delivered == 25 and camera.stats.lost == 0
 
 
-def test_a_simulated_camera_that_falls_behind_drops_frames_and_keeps_time():
+def test_a_simulated_camera_that_falls_behind_drops_whole_cycles_and_keeps_time():
     """Like a real camera: frames the renderer cannot deliver in time are skipped (and counted as
-    lost), so every frame's stamp stays within MAX_LAG_S of the clock."""
+    lost), so every frame's stamp stays within MAX_LAG_S and a light cycle of the clock; it skips
+    whole light cycles, so that what it delivers still makes complete cycles."""
     import time
 
     from core.sim.simulate import SimConfig
     from drivers.simulated import MAX_LAG_S, SimCamera, SimulatedRigState
 
     state = SimulatedRigState.build(SimConfig(protocol="tidal", seconds=5.0, scale=0.1))
+    n = state.rig.cycle_length
+    late_by_s = MAX_LAG_S + n / state.rig.frame_rate_hz
     state.start_ns = time.monotonic_ns() - 1_000_000_000  # the clock started a second ago
     camera = SimCamera(state, "front", loop_cycles=1)
     camera.start()
     first = camera.grab()
-    assert first.frame_id >= 100 and abs(time.monotonic_ns() - first.timestamp_ns) < MAX_LAG_S * 1e9
-    time.sleep(0.5)  # a renderer (or a consumer) 0.5 s late
+    assert first.frame_id >= 100 and first.frame_id % n == 0
+    assert abs(time.monotonic_ns() - first.timestamp_ns) < late_by_s * 1e9
+    time.sleep(0.5)  # a renderer (or a consumer) 0.5 s late, in the middle of a cycle
+    rest = [camera.grab() for _ in range(n - 1)]
+    assert [f.frame_id for f in rest] == list(range(first.frame_id + 1, first.frame_id + n))  # the cycle finished
     late = camera.grab()
-    assert abs(time.monotonic_ns() - late.timestamp_ns) < MAX_LAG_S * 1e9
-    assert late.frame_id - first.frame_id >= 50 and camera.stats.lost == late.frame_id - first.frame_id - 1
+    assert late.frame_id % n == 0 and abs(time.monotonic_ns() - late.timestamp_ns) < late_by_s * 1e9
+    assert late.frame_id - first.frame_id >= 50 and camera.stats.lost == late.frame_id - first.frame_id - n
