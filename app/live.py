@@ -20,8 +20,8 @@ from typing import Callable
 
 import numpy as np
 
-from core.flow import btps_factor
 from core.binning import bin_any, bin_mean, binned_head, live_binning
+from core.flow import btps_factor
 from core.metric_volume import LiveMetricVolume
 from core.pipeline import HeadReconstructor, ReconstructionSettings
 from core.rig import Rig
@@ -282,7 +282,8 @@ class LiveRig:
         n = int(WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length * 2) + 10
         self._optical = collections.deque(maxlen=n)
         self._gradient = {h: 0.0 for h in source.cameras}
-        # each head reconstructed binned to about LIVE_MAP_WIDTH_PX wide (core/binning.py); recordings keep every pixel
+        # each head reconstructed binned to about LIVE_MAP_WIDTH_PX wide (core/binning.py);
+        # recordings keep every pixel
         self._binning = {h: live_binning(self.rig.heads[h]) for h in source.cameras}
         self._live_heads = {h: binned_head(self.rig.heads[h], self._binning[h]) for h in source.cameras}
         self._metric = LiveMetricVolume(self._live_heads, self.rig.baseline_mm)
