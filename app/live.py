@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 WINDOW_S = 30.0  # what the volume curve shows
 WORKER_NICENESS = 10
-SIMULATED_CAMERA_NICENESS = 19
+SIMULATED_CAMERA_NICENESS = 14
 NO_LIMIT_NS = 2**63 - 1
 
 

@@ -5,7 +5,7 @@ The live view reconstructs every head at about LIVE_MAP_WIDTH_PX wide: a height 
 a volume curve need no more (`photopft bench volume` measures the volume at 350 x 256), and a
 half-resolution head (700 x 512) costs about 0.5 s of CPU per map on the project's 2-core machine.
 Measured in the live engine on the simulated rig at half resolution (both heads, cameras rendered
-on the same cores): 0.7 maps/s per head unbinned, 1.9-2.0 binned 2 x 2. Recordings and `photopft
+on the same cores): 0.6 maps/s per head unbinned, 1.8 binned 2 x 2. Recordings and `photopft
 process` keep every pixel.
 """
 

@@ -49,9 +49,12 @@ def test_snapshots_and_a_recording_with_events(engine, tmp_path):
     _wait(lambda: engine.flow_reaches(mark + 500_000_000), 30)
     assert engine.recorded_values(30.0) is not None
     summary = engine.stop_recording()
-    assert not engine.recording and min(summary.frames.values()) > 20
+    assert not engine.recording and min(summary.frames.values()) >= 5
     assert validate_session(path) == [], validate_session(path)
     with SessionFile(path) as s:
+        for head in s.heads:  # the frames span the recording in camera time (a busy machine's renderer skips some)
+            ids = s.frame_id(head).astype(int)
+            assert (ids[-1] - ids[0]) / s.rig.frame_rate_hz >= summary.elapsed_s - 0.6, (head, ids, summary.elapsed_s)
         assert [(t, label) for t, label in s.events()] == [(mark, "tidal-start")]
         # the stamp crossed over unchanged, on the monotonic clock (not compared with the frames' stamps:
         # on a loaded machine the simulated cameras' nominal stamps fall seconds behind it)
