@@ -41,14 +41,18 @@ def binned_head(head: Head, factor: int) -> Head:
                    pixel_size_mm=head.pixel_size_mm * factor)
 
 
+def _blocks(array: np.ndarray, factor: int) -> np.ndarray:
+    """The last two axes cut into factor x factor blocks (..., h, factor, w, factor), remainders dropped."""
+    h, w = array.shape[-2] // factor, array.shape[-1] // factor
+    return array[..., :h * factor, :w * factor].reshape(*array.shape[:-2], h, factor, w, factor)
+
+
 def bin_mean(image: np.ndarray, factor: int) -> np.ndarray:
     """The mean over factor x factor blocks of the last two axes (float64), remainders dropped."""
     image = np.asarray(image)
     if factor == 1:
         return image.astype(np.float64)
-    h, w = image.shape[-2] // factor, image.shape[-1] // factor
-    blocks = image[..., :h * factor, :w * factor].reshape(*image.shape[:-2], h, factor, w, factor)
-    return blocks.mean(axis=(-3, -1), dtype=np.float64)
+    return _blocks(image, factor).mean(axis=(-3, -1), dtype=np.float64)
 
 
 def bin_any(flags: np.ndarray, factor: int) -> np.ndarray:
@@ -56,5 +60,4 @@ def bin_any(flags: np.ndarray, factor: int) -> np.ndarray:
     flags = np.asarray(flags, dtype=bool)
     if factor == 1:
         return flags
-    h, w = flags.shape[-2] // factor, flags.shape[-1] // factor
-    return flags[..., :h * factor, :w * factor].reshape(*flags.shape[:-2], h, factor, w, factor).any(axis=(-3, -1))
+    return _blocks(flags, factor).any(axis=(-3, -1))

@@ -47,8 +47,8 @@ def test_sigkill_mid_recording_keeps_the_data(tmp_path):
             ids = s.frame_id(head).astype(int)
             assert np.all(np.diff(ids) >= 1)  # in order, none twice (a busy machine's simulated rig drops some)
             # everything that was in the file before the kill is kept, and at most about a second is lost:
-            # counted in camera time (frame ids run at 110/s), since a busy machine's renderer skips frames
-            covered_s = (ids[n - 1] - ids[seen[head] - 1]) / 110
+            # counted in camera time (frame ids run at the rig's rate), since a busy machine's renderer skips frames
+            covered_s = (ids[n - 1] - ids[seen[head] - 1]) / s.rig.frame_rate_hz
             assert n == kept[head] and n >= seen[head] and covered_s >= recorded_s - 1.5, (head, n, seen, recorded_s,
                                                                                             covered_s)
             last = s.frames(head)[n - 1]
