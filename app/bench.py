@@ -76,7 +76,8 @@ def _cycle(session, head_name: str):
 
 def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ...], seed: int,
                  led_offset_mm: float, write: bool) -> str:
-    from core.light_calibration import calibrate_lights
+    from core.light_calibration import CAPTURE_SECONDS, calibrate_lights
+    from core.rig import thesis_rig
     from core.photometric import near_light_normals
     from core.pipeline import HeadReconstructor, ReconstructionSettings, running_distance
     from core.session import SessionFile
@@ -90,9 +91,12 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
         common = dict(scale=scale, seed=seed, heads=("front",), led_offset_mm=led_offset_mm,
                       led_intensity_spread=0.05)
         calibration_files = []
+        # each placement held as long as a capture records it (the sphere wizard's CAPTURE_SECONDS)
+        rig = thesis_rig(scale, heads=("front",))
+        hold_cycles = int(round(CAPTURE_SECONDS * rig.frame_rate_hz / rig.cycle_length))
         for scene in ("specular-sphere", "matte-sphere"):
             path = folder / f"{scene}.h5"
-            simulate(path, SimConfig(scene=scene, **common))
+            simulate(path, SimConfig(scene=scene, placement_cycles=hold_cycles, **common))
             calibration_files.append(path)
         calibration, reports = calibrate_lights(calibration_files)
         with SessionFile(calibration_files[0]) as s:
@@ -184,7 +188,8 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                  "(`distance_cycles`, as `photopft process` and the live view keep it) at the last cycle. "
                  "The rig as built has every LED "
                  f"{led_offset_mm:g} mm off the drawing and intensities within 5 %; the lights come from a "
-                 "simulated calibration (specular sphere at 7 places, then a matte sphere at the same places), "
+                 "simulated calibration (specular sphere at 7 places, then a matte sphere at the same places, "
+                 f"each held {hold_cycles} light cycles, the {CAPTURE_SECONDS:g} s a capture records), "
                  f"not from the truth. Rig and shapes from seed {seed}; each scene's camera noise drawn anew "
                  "(`noise_seed`), so the one-cycle errors of different scenes are independent draws.")
     lines.append("")

@@ -55,6 +55,11 @@ def bin_mean(image: np.ndarray, factor: int) -> np.ndarray:
     return _blocks(image, factor).mean(axis=(-3, -1), dtype=np.float64)
 
 
+def bin_all(flags: np.ndarray, factor: int) -> np.ndarray:
+    """True where every pixel of a factor x factor block is (a bin wholly inside a region)."""
+    return ~bin_any(~np.asarray(flags, dtype=bool), factor)
+
+
 def bin_any(flags: np.ndarray, factor: int) -> np.ndarray:
     """True where any pixel of a factor x factor block is (a saturated pixel spoils its bin)."""
     flags = np.asarray(flags, dtype=bool)

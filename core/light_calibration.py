@@ -10,6 +10,7 @@ import numpy as np
 
 from core.lights import (CalibrationError, Highlight, MattePlacement, SphereFit, closest_points, detect_highlight,
                          detect_sphere, pixel_rays, refine_on_matte, triangulate)
+from core.binning import bin_all, bin_mean
 from core.photometric import complete_cycles
 from core.profile import HeadCalibration, RigCalibration
 from core.rig import Head
@@ -17,6 +18,13 @@ from core.session import SessionFile, now_iso
 
 DEFAULT_MAX_RESIDUAL_MM = 25.0
 DEFAULT_PRIOR_SIGMA_MM = 15.0
+CAPTURE_SECONDS = 1.0  # how long each placement is recorded: 22 light cycles at 110 frames/s
+# The matte fit's size: a sphere 75 mm in radius at 2 m covers about 86 000 pixels at 1400 x 1024.
+# Binned to at most this many, the fit takes a few seconds and uses every pixel's light; taking
+# every n-th pixel instead (4 000 per placement) threw three quarters of the light away at half
+# resolution and 19 in 20 at full, and left the subject's distance several mm off at 2.2 m
+# (docs/reconstruction.md).
+MATTE_BINS_PER_PLACEMENT = 16000
 
 
 @dataclass
@@ -89,16 +97,37 @@ def specular_placements(session: SessionFile, head_name: str, radius_mm: float) 
     return results
 
 
+def matte_binning(sphere_pixels: int, max_bins: int = MATTE_BINS_PER_PLACEMENT) -> int:
+    """The smallest whole factor whose factor x factor bins cut a sphere of this many pixels into at
+    most max_bins."""
+    return max(1, int(np.ceil(np.sqrt(sphere_pixels / max_bins))))
+
+
+def binned_sphere(head: Head, signal: np.ndarray, mask: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """(unit rays (N, 3), signal (4, N)) of the factor x factor bins wholly on the sphere: each bin's
+    mean signal, and the mean of its pixels' unit rays (the shading is smooth over a bin, so the
+    model at the mean ray is the mean of the model to second order in the bin's size)."""
+    rows, cols = np.nonzero(bin_all(mask, factor))
+    offsets = np.arange(factor)
+    shape = (len(rows), factor, factor)  # bin, row in the bin, column in the bin
+    u = np.broadcast_to(cols[:, None, None] * factor + offsets[None, None, :], shape)
+    v = np.broadcast_to(rows[:, None, None] * factor + offsets[None, :, None], shape)
+    rays = pixel_rays(head, np.column_stack([u.ravel(), v.ravel()]))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    rays = rays.reshape(len(rows), factor * factor, 3).mean(axis=1)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    return rays, bin_mean(signal, factor)[:, rows, cols]
+
+
 def _matte_placements(session: SessionFile, head_name: str, radius_mm: float) -> list[MattePlacement]:
-    """Each placement's matte sphere as detected: its pixels' rays and signals, its centre."""
+    """Each placement's matte sphere as detected: the rays and signals of its pixels, binned so that
+    every pixel's light counts and the fit's size stays bounded at any resolution, and its centre."""
     head = session.rig.heads[head_name]
     out = []
     for placement in placement_images(session, head_name):
         sphere = detect_sphere(placement.signal.sum(0), head, radius_mm)
-        rows, cols = np.nonzero(sphere.mask)
-        rays = pixel_rays(head, np.column_stack([cols, rows]))
-        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-        out.append(MattePlacement(rays, placement.signal[:, rows, cols], sphere.centre_mm, radius_mm))
+        rays, signal = binned_sphere(head, placement.signal, sphere.mask, matte_binning(int(sphere.mask.sum())))
+        out.append(MattePlacement(rays, signal, sphere.centre_mm, radius_mm))
     return out
 
 

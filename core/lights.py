@@ -265,8 +265,7 @@ def sphere_surface(rays: np.ndarray, centre: np.ndarray, radius: float) -> tuple
     return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
-def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
-                    max_pixels_per_placement: int = 4000) -> MatteRefinement:
+def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray) -> MatteRefinement:
     """Positions and relative intensities of all four lights from a matte sphere's shading, with
     each placement's distance along its ray fitted too.
 
@@ -275,14 +274,13 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
     placement. The outline alone leaves the sphere's distance off by a fraction of a pixel of its
     radius (a few mm at 2 m, docs/reconstruction.md), and the lights would absorb that error; the
     shading inside the outline tells the distance too, through how fast the normal turns from
-    pixel to pixel. Pixels near the limb, where the outline's error matters most, are left out
-    (normal within 70 degrees of the view).
+    pixel to pixel. Every pixel (or bin of pixels) facing the camera counts; those near the limb,
+    where the outline's error matters most, are left out (normal within 70 degrees of the view).
     """
     rays, signal, centres, radii = [], [], [], []
     for placement in placements:
         _, normals = sphere_surface(placement.rays, placement.centre_mm, placement.radius_mm)
         facing = np.nonzero(-np.sum(normals * placement.rays, axis=1) > np.cos(np.radians(70.0)))[0]
-        facing = facing[::max(1, len(facing) // max_pixels_per_placement)]
         rays.append(placement.rays[facing])
         signal.append(placement.signal[:, facing])
         centres.append(placement.centre_mm)

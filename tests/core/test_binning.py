@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.binning import bin_any, bin_mean, binned_head, live_binning
+from core.binning import bin_all, bin_any, bin_mean, binned_head, live_binning
 from core.rig import thesis_head
 
 
@@ -29,6 +29,8 @@ def test_bins_average_and_a_saturated_pixel_spoils_its_bin():
     flags = np.zeros((5, 7), bool)
     flags[3, 5] = True
     assert bin_any(flags, 2).tolist() == [[False, False, False], [False, False, True]]
+    inside = ~flags
+    assert bin_all(inside, 2).tolist() == [[True, True, True], [True, True, False]]
 
 
 def test_live_binning_brings_a_head_near_the_live_width():

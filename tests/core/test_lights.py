@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.light_calibration import calibrate_lights
+from core.light_calibration import binned_sphere, calibrate_lights, matte_binning
 from core.lights import (CalibrationError, MattePlacement, sphere_surface, closest_points, detect_highlight,
-                         detect_sphere, refine_on_matte, triangulate)
+                         detect_sphere, pixel_rays, refine_on_matte, triangulate)
 from core.profile import ProfileError, load_profile
 from core.rig import thesis_head
 from core.sim.render import CameraModel
@@ -157,3 +157,24 @@ def test_matte_refinement_finds_the_lights_when_the_outline_puts_the_spheres_too
     np.testing.assert_allclose(fit.positions_mm, lights, atol=0.3)
     np.testing.assert_allclose(fit.intensity, intensity / intensity.mean(), atol=1e-3)
     np.testing.assert_allclose(fit.distance_factors, 1 / 1.003, atol=2e-4)
+
+
+def test_matte_sphere_bins_keep_every_pixel_inside_the_outline():
+    """The matte fit's bins: whole bins inside the sphere only, each with its pixels' mean signal
+    and mean unit ray; the factor keeps a full-resolution sphere under the bound."""
+    head = thesis_head(scale=1.0)
+    rows, cols = np.mgrid[0:head.height, 0:head.width]
+    mask = (cols - 700.3) ** 2 + (rows - 500.6) ** 2 < 40.0**2
+    signal = np.stack([cols * 1.0, rows * 2.0, cols + rows * 1.0, np.full(mask.shape, 7.0)])
+    rays, binned = binned_sphere(head, signal, mask, 3)
+    expected = int(sum(mask[3 * i:3 * i + 3, 3 * j:3 * j + 3].all()
+                       for i in range(head.height // 3) for j in range(head.width // 3)))
+    assert len(rays) == binned.shape[1] == expected
+    # a bin's mean column and row, from its signal, point along its ray
+    u, v = binned[0], binned[1] / 2.0
+    pixel = pixel_rays(head, np.column_stack([u, v]))
+    np.testing.assert_allclose(rays, pixel / np.linalg.norm(pixel, axis=1, keepdims=True), atol=1e-6)
+    np.testing.assert_allclose(binned[3], 7.0)
+    assert matte_binning(int(np.pi * 166**2)) == 3
+    assert matte_binning(int(np.pi * 83**2)) == 2
+    assert matte_binning(4000) == 1

@@ -36,8 +36,10 @@ def capture_simulated(folder: Path, index: int, scale: float, heads: tuple[str, 
 
 
 def capture_from_rig(window):
-    """A capture on a real rig: a second of the sphere recorded from the live engine."""
+    """A capture on a real rig: CAPTURE_SECONDS of the sphere recorded from the live engine."""
     import time
+
+    from core.light_calibration import CAPTURE_SECONDS
 
     def capture(folder: Path, index: int) -> Path:
         wizard = window.findChild(SphereCalibrationWizard)
@@ -47,7 +49,7 @@ def capture_from_rig(window):
         engine.start_recording(path, None, kind="sphere-calibration",
                                root_attrs={"sphere_radius_mm": float(radius), "sphere_finish": "specular"})
         engine.mark("placement")
-        time.sleep(1.0)
+        time.sleep(CAPTURE_SECONDS)
         summary = engine.stop_recording()
         if summary.problems:
             raise OSError("; ".join(summary.problems))
