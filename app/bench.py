@@ -77,6 +77,7 @@ def _cycle(session, head_name: str):
 def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ...], seed: int,
                  led_offset_mm: float, write: bool) -> str:
     from core.light_calibration import CAPTURE_SECONDS, calibrate_lights
+    from core.prefilter import prefilter_sigma_px, prefiltered
     from core.rig import thesis_rig
     from core.photometric import near_light_normals
     from core.pipeline import HeadReconstructor, ReconstructionSettings, running_distance
@@ -111,6 +112,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
 
         rows: list[Row] = []
         lights_effect: list[float] = []
+        sigma_px = prefilter_sigma_px(rig.heads["front"].width)
         ours_settings = ReconstructionSettings(method="near", integrator="masked", iterations=3)
         for scene_number, (shape, distance) in enumerate((s, d) for s in shapes for d in distances):
             path = folder / f"{shape}-{distance}.h5"
@@ -170,12 +172,21 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
             albedo = np.full(true_head.shape, np.nan)
             used = np.zeros(true_head.shape, dtype=np.int64)
             axis, mu = np.tile([0.0, 0.0, 1.0], (4, 1)), np.zeros(4)
-            near_light_normals(signal, points, true_positions, true_intensity, axis, mu, saturated,
+            # the same solver: the images prefiltered as ours has them (core/prefilter.py)
+            solved, solved_saturated = prefiltered(signal, saturated, sigma_px)
+            near_light_normals(solved, points, true_positions, true_intensity, axis, mu, solved_saturated,
                                0.01 * true_head.max_value, floor, albedo, used)
-            near_light_normals(signal, points, cal.light_positions_mm, cal.light_intensity, axis, mu, saturated,
-                               0.01 * true_head.max_value, calibrated, albedo, used)
+            near_light_normals(solved, points, cal.light_positions_mm, cal.light_intensity, axis, mu,
+                               solved_saturated, 0.01 * true_head.max_value, calibrated, albedo, used)
             ok = valid & np.isfinite(floor[..., 2])
             rows.append(Row(shape, distance, "noise floor", _angular_error(floor, true_normals, ok), 0.0, 0.0))
+            if sigma_px > 0:
+                unfiltered = np.full(true_head.shape + (3,), np.nan)
+                near_light_normals(signal, points, true_positions, true_intensity, axis, mu, saturated,
+                                   0.01 * true_head.max_value, unfiltered, albedo, used)
+                rows.append(Row(shape, distance, "noise floor, unfiltered",
+                                _angular_error(unfiltered, true_normals, ok & np.isfinite(unfiltered[..., 2])),
+                                0.0, 0.0))
             both = ok & np.isfinite(calibrated[..., 2])
             lights_effect.append(_angular_error(calibrated, floor, both))
 
@@ -204,14 +215,16 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                  "eq. 3.4-3.7); *thesis*: per-pixel light vectors from the diffused-maxima distance (eq. 4.13); "
                  "*ours*: per-pixel lights with inverse-square falloff and intensities, distance from the "
                  "photometric residual, iterated; *noise floor*: the same solver with the true surface and "
-                 "lights. Distance error: median depth over the subject against the truth. Height error: mean "
+                 "lights" + (f" (all methods see the images prefiltered with a Gaussian of {sigma_px:.2f} px, "
+                             "core/prefilter.py; *unfiltered*: the floor without it)" if sigma_px > 0 else "")
+                 + ". Distance error: median depth over the subject against the truth. Height error: mean "
                  "absolute depth error after removing the mean offset (masked integrator).")
     lines.append("")
     lines.append("| shape | distance (mm) | method | angular error (deg) | distance error (mm) | height error (mm) "
                  f"| distance sd, one cycle (mm) | distance error, {TRACKED_CYCLES} cycles (mm) |")
     lines.append("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        if r.method == "noise floor":
+        if r.method.startswith("noise floor"):
             lines.append(f"| {r.shape} | {r.distance_mm:.0f} | {r.method} | {r.angular_deg:.2f} | | | | |")
         else:
             sd = f"{r.distance_sd_mm:.1f}" if np.isfinite(r.distance_sd_mm) else ""

@@ -31,6 +31,7 @@ from scipy import ndimage
 from core.distance import DMR_THRESHOLD, DmrEstimate, PhotometricDistance, dmr_distance
 from core.integrate import ROBUST_ITERATIONS, integrate_dct, integrate_masked, log_depth_gradients
 from core.photometric import distant_light_normals, gradients_from_normals, near_light_normals
+from core.prefilter import prefilter_sigma_px, prefiltered
 from core.rig import Head
 
 NOMINAL_DISTANCE_MM = 2000.0
@@ -59,6 +60,9 @@ class ReconstructionSettings:
     # averaged exponentially with the previous ones over about this many cycles (1: none). A jump
     # of more than DISTANCE_RESET (a new subject, a replay's start) starts the average again.
     distance_cycles: int = 5
+    # Gaussian sigma (pixels) on the images before the normals are solved (core/prefilter.py);
+    # None: chosen from the head's width (0 up to about 1000 px wide, 0.56 at 1400)
+    prefilter_px: float | None = None
 
     def __post_init__(self) -> None:
         if self.distance not in ("photometric", "dmr"):
@@ -195,7 +199,10 @@ class HeadReconstructor:
         if saturated is None:
             saturated = np.zeros(signal.shape, dtype=np.bool_)
         mask = subject_mask(signal, s.mask_fraction, s.mask_edge_fraction)
-        pseudo_normals, albedo = distant_light_normals(signal, np.zeros(h.shape), self.pseudo_light_vectors)
+        # the normals from filtered images; the distance fit (its own noise model) from the raw ones
+        sigma = prefilter_sigma_px(h.width) if s.prefilter_px is None else s.prefilter_px
+        solved, solved_saturated = prefiltered(signal, saturated, sigma)
+        pseudo_normals, albedo = distant_light_normals(solved, np.zeros(h.shape), self.pseudo_light_vectors)
         pseudo_normals[~mask] = np.nan
         dmr = dmr_distance(pseudo_normals, mask, h.fx, h.fy, h.cx, h.cy, h.light_positions_mm,
                            self.pseudo_light_vectors, s.dmr_threshold)
@@ -217,8 +224,8 @@ class HeadReconstructor:
             used = np.zeros(h.shape, dtype=np.int64)
             for done in range(1, s.iterations + 1):
                 points = np.ascontiguousarray(self._rays * np.nan_to_num(depth, nan=distance)[..., None])
-                near_light_normals(signal, points, h.light_positions_mm, intensity, self._axis, self._mu,
-                                   saturated, min_signal, normals, albedo, used)
+                near_light_normals(solved, points, h.light_positions_mm, intensity, self._axis, self._mu,
+                                   solved_saturated, min_signal, normals, albedo, used)
                 normals[~mask] = np.nan
                 log_depth = self._integrate(normals, mask, final=False)
                 last = done == s.iterations

@@ -1,0 +1,64 @@
+"""The prefilter of full-resolution images: the noise of 2 x 2 bins, every pixel kept in place."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.pipeline import HeadReconstructor, ReconstructionSettings
+from core.prefilter import prefilter_sigma_px, prefiltered
+from core.process import with_true_lights
+from core.session import SessionFile
+from core.sim.breathing import Sway
+from core.sim.simulate import SimConfig, simulate
+from tests.core.test_reconstruction import _cycle
+
+
+def test_only_heads_wider_than_the_reference_are_filtered():
+    assert prefilter_sigma_px(350) == 0.0
+    assert prefilter_sigma_px(700) == 0.0
+    assert prefilter_sigma_px(1400) == pytest.approx(1 / np.sqrt(np.pi))
+
+
+def test_a_ramp_stays_and_the_noise_falls_to_about_a_quarter():
+    rng = np.random.default_rng(5)
+    rows, cols = np.mgrid[0:200, 0:300]
+    ramp = np.stack([1000.0 + 3.0 * cols - 2.0 * rows + 50.0 * k for k in range(4)])
+    noise = rng.normal(0.0, 10.0, ramp.shape)
+    filtered, saturated = prefiltered(ramp + noise, np.zeros(ramp.shape, bool), prefilter_sigma_px(1400))
+    inner = (slice(None), slice(5, -5), slice(5, -5))
+    clean, _ = prefiltered(ramp, np.zeros(ramp.shape, bool), prefilter_sigma_px(1400))
+    np.testing.assert_allclose(clean[inner], ramp[inner], atol=1e-9)
+    ratio = np.var(filtered[inner] - ramp[inner]) / np.var(noise[inner])
+    assert 0.22 < ratio < 0.36
+    assert not saturated.any()
+
+
+def test_a_saturated_pixel_spoils_every_pixel_its_value_reaches():
+    image = np.ones((4, 20, 20))
+    flags = np.zeros(image.shape, bool)
+    flags[2, 10, 10] = True
+    _, spread = prefiltered(image, flags, 0.56)
+    assert spread[2].sum() == 25 and spread[2, 8:13, 8:13].all()
+    assert not spread[[0, 1, 3]].any()
+    unchanged, same = prefiltered(image, flags, 0.0)
+    assert unchanged is image and same is flags
+
+
+def test_full_resolution_normals_are_solved_from_filtered_images(tmp_path):
+    """A sphere at 1400 x 1024: with the prefilter the normals' error against the truth falls to
+    about 0.55 of the unfiltered one (the noise of 2 x 2 bins)."""
+    path = tmp_path / "sphere.h5"
+    simulate(path, SimConfig(scene="sphere", protocol="static", seconds=5 / 110, scale=1.0, heads=("front",),
+                             sway=Sway(0, 0, 0), truth_maps_at=[4], distance_mm=2050.0))
+    with SessionFile(path) as s:
+        head = with_true_lights(s).apply(s.rig).heads["front"]
+        signal, _, _ = _cycle(s, 4)
+        truth = s.truth()["front/normals"][0].astype(float)
+    errors = []
+    for sigma in (None, 0.0):
+        result = HeadReconstructor(head, settings=ReconstructionSettings(iterations=1, prefilter_px=sigma)).reconstruct(
+            signal)
+        ok = result.mask & np.isfinite(truth[..., 2]) & np.isfinite(result.normals[..., 2])
+        errors.append(np.degrees(np.arccos(np.clip(np.sum(result.normals[ok] * truth[ok], -1), -1, 1))).mean())
+    assert errors[0] < 0.7 * errors[1]
