@@ -29,17 +29,26 @@ def prefilter_sigma_px(width_px: int, reference_width_px: int = PREFILTER_REFERE
     return 0.0 if k < 1.5 else float(k / (2.0 * np.sqrt(np.pi)))
 
 
+def _kernel_size(sigma_px: float) -> int:
+    """The Gaussian's kernel: 3 sigma each side, at least one pixel."""
+    return 2 * max(1, int(np.ceil(3.0 * sigma_px))) + 1
+
+
+def prefilter_frame(frame: np.ndarray, sigma_px: float, out: np.ndarray | None = None) -> np.ndarray:
+    """One image filtered with a Gaussian of sigma_px, reflected at the border, in its own type
+    (a camera frame as it arrives: filtering each frame once equals filtering lit minus dark)."""
+    size = _kernel_size(sigma_px)
+    return cv2.GaussianBlur(frame, (size, size), sigma_px, dst=out, borderType=cv2.BORDER_REFLECT)
+
+
 def prefiltered(signal: np.ndarray, saturated: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """(signal, saturated) of a cycle (4, H, W) filtered with a Gaussian of sigma_px (reflected at
-    the border), and a saturated pixel's flag spread over every pixel its value reaches; unchanged
-    when sigma_px is 0."""
+    """(signal, saturated) of a cycle (4, H, W) filtered with a Gaussian of sigma_px, and a
+    saturated pixel's flag spread over every pixel its value reaches; unchanged when sigma_px is 0."""
     if sigma_px <= 0:
         return signal, saturated
-    radius = max(1, int(np.ceil(3.0 * sigma_px)))
-    size = 2 * radius + 1
-    filtered = np.stack([cv2.GaussianBlur(np.ascontiguousarray(channel, dtype=np.float64), (size, size), sigma_px,
-                                          borderType=cv2.BORDER_REFLECT) for channel in signal])
+    filtered = np.stack([prefilter_frame(np.ascontiguousarray(channel, dtype=np.float64), sigma_px)
+                         for channel in signal])
     if saturated.any():
-        reach = np.ones((1, size, size), dtype=bool)
-        saturated = ndimage.binary_dilation(saturated, structure=reach)
+        size = _kernel_size(sigma_px)
+        saturated = ndimage.binary_dilation(saturated, structure=np.ones((1, size, size), dtype=bool))
     return filtered, saturated

@@ -81,3 +81,11 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert main(["analyze", str(tmp_path / "results.h5")]) == 0
     header = next(line for line in capsys.readouterr().out.splitlines() if line.strip().startswith("value"))
     assert "flow sensor" in header and "optical" in header and "truth" in header
+
+
+def test_a_negative_prefilter_is_refused_by_name(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["process", str(tmp_path / "x.h5"), "-o", str(tmp_path / "y.h5"), "--prefilter-px", "-1"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "--prefilter-px" in err and "0 or more pixels" in err
