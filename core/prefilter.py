@@ -30,13 +30,18 @@ def prefilter_sigma_px(width_px: int, reference_width_px: int = PREFILTER_REFERE
 
 
 def _kernel_size(sigma_px: float) -> int:
-    """The Gaussian's kernel: 3 sigma each side, at least one pixel."""
-    return 2 * max(1, int(np.ceil(3.0 * sigma_px))) + 1
+    """The Gaussian's kernel: 2.5 sigma each side, rounded, at least one pixel (3 x 3 at 0.56 px,
+    whose weight beyond is 0.2 %)."""
+    return 2 * max(1, int(round(2.5 * sigma_px))) + 1
 
 
 def prefilter_frame(frame: np.ndarray, sigma_px: float, out: np.ndarray | None = None) -> np.ndarray:
-    """One image filtered with a Gaussian of sigma_px, reflected at the border, in its own type
-    (a camera frame as it arrives: filtering each frame once equals filtering lit minus dark)."""
+    """One image filtered with a Gaussian of sigma_px, reflected at the border (a camera frame as it
+    arrives: filtering each frame once equals filtering lit minus dark). Integer frames come out
+    float32: OpenCV filters those about three times faster than 16-bit ones, and rounding back
+    would add noise."""
+    if not np.issubdtype(frame.dtype, np.floating):
+        frame = frame.astype(np.float32)
     size = _kernel_size(sigma_px)
     return cv2.GaussianBlur(frame, (size, size), sigma_px, dst=out, borderType=cv2.BORDER_REFLECT)
 
