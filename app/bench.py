@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import re
 import tempfile
 import time
@@ -16,7 +17,9 @@ DOCS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
 SHAPES = ("sphere", "torso", "vase", "relief")
 DISTANCES = (1800, 1900, 2000, 2100, 2200)
 # The project's reference data, beside the checkout (never shipped with the application).
-DILIGENT_BEAR = Path(__file__).resolve().parents[2] / "shared" / "data" / "diligent-integration" / "bear"
+# ../shared beside the checkout, or where PHOTOPFT_SHARED says (as the tests read it)
+SHARED = Path(os.environ.get("PHOTOPFT_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+DILIGENT_BEAR = SHARED / "data" / "diligent-integration" / "bear"
 
 
 def write_section(name: str, text: str, path: Path = DOCS) -> None:
