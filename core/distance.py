@@ -16,6 +16,7 @@ from numba import njit, prange
 from scipy import ndimage
 from scipy.optimize import minimize, minimize_scalar
 
+from core.binning import bin_all, bin_mean
 from core.lights import closest_points
 from core.photometric import solve_symmetric3
 
@@ -119,7 +120,16 @@ class PhotometricDistance:
 
     def __init__(self, signal: np.ndarray, mask: np.ndarray, light_positions_mm: np.ndarray,
                  light_intensity: np.ndarray, dark: np.ndarray | None = None, max_pixels: int = 250000,
-                 dn_per_electron: float = 4095.0 / 18000.0, read_noise_dn: float = 2.7) -> None:
+                 dn_per_electron: float = 4095.0 / 18000.0, read_noise_dn: float = 2.7, binning: int = 1) -> None:
+        # binning: the fit on factor x factor bins (each bin's mean signal at its mean point), so
+        # that every pixel's light counts within max_pixels on a wide head. The noise model below,
+        # applied to a bin's mean, overstates its variance by factor^2 in every bin alike, which
+        # leaves the minimum where it is.
+        self.binning = binning
+        self._binned_rays: tuple[np.ndarray, np.ndarray] | None = None  # (rays given, their bins)
+        if binning > 1:
+            signal, mask = bin_mean(signal, binning), bin_all(mask, binning)
+            dark = bin_mean(dark, binning) if dark is not None else None
         inner = ndimage.binary_erosion(mask, iterations=3)
         smooth = np.stack([ndimage.gaussian_filter(channel, 2.0) for channel in signal])
         weakest = np.min(smooth, axis=0)
@@ -137,7 +147,13 @@ class PhotometricDistance:
 
     def _problem(self, rays: np.ndarray, relative_depth: np.ndarray):
         """(points at unit scale, signal, weight) of the chosen pixels where the depth is known; None
-        when fewer than 100."""
+        when fewer than 100. rays (H, W, 3) and relative_depth (H, W) at the head's full size."""
+        if self.binning > 1:
+            if self._binned_rays is None or self._binned_rays[0] is not rays:
+                # a bin's mean ray is exactly the ray through its centre (rays are linear in u, v)
+                self._binned_rays = (rays, np.moveaxis(bin_mean(np.moveaxis(rays, -1, 0), self.binning), 0, -1))
+            rays = self._binned_rays[1]
+            relative_depth = bin_mean(relative_depth, self.binning)  # NaN where any pixel has no depth
         relative = relative_depth[self.rows, self.cols]
         keep = np.isfinite(relative)
         if keep.sum() < 100:

@@ -31,7 +31,7 @@ from scipy import ndimage
 from core.distance import DMR_THRESHOLD, DmrEstimate, PhotometricDistance, dmr_distance
 from core.integrate import ROBUST_ITERATIONS, integrate_dct, integrate_masked, log_depth_gradients
 from core.photometric import distant_light_normals, gradients_from_normals, near_light_normals
-from core.prefilter import prefilter_sigma_px, prefiltered
+from core.prefilter import noise_binning, prefilter_sigma_px, prefiltered
 from core.rig import Head
 
 NOMINAL_DISTANCE_MM = 2000.0
@@ -139,6 +139,8 @@ class HeadReconstructor:
         u = (np.arange(head.width) - head.cx) / head.fx
         v = (np.arange(head.height) - head.cy) / head.fy
         self._rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((head.height, 1))), -1)
+        # a wide head's distance fit on bins of the prefilter's size (core/prefilter.py): every pixel counts
+        self._distance_binning = noise_binning(head.width)
         axis = head.light_axis if head.light_axis is not None else np.tile([0.0, 0.0, 1.0], (4, 1))
         mu = head.light_mu if head.light_mu is not None else np.zeros(4)
         self._axis = np.ascontiguousarray(axis, dtype=np.float64)
@@ -212,7 +214,8 @@ class HeadReconstructor:
         photometric = s.distance == "photometric" and s.method == "near"
         intensity = h.light_intensity * (self.intensity_factors if self.intensity_factors is not None else 1.0)
         problem = (PhotometricDistance(signal, mask, h.light_positions_mm, intensity, dark,
-                                       max_pixels=s.distance_pixels) if photometric else None)
+                                       max_pixels=s.distance_pixels, binning=self._distance_binning)
+                   if photometric else None)
         normals = pseudo_normals
         log_depth = self._integrate(normals, mask, final=s.method != "near")
         depth, distance = self._scaled(log_depth, dmr, problem, guess, "keep" if tracked else "wide")

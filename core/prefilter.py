@@ -29,6 +29,12 @@ def prefilter_sigma_px(width_px: int, reference_width_px: int = PREFILTER_REFERE
     return 0.0 if k < 1.5 else float(k / (2.0 * np.sqrt(np.pi)))
 
 
+def noise_binning(width_px: int, reference_width_px: int = PREFILTER_REFERENCE_WIDTH_PX) -> int:
+    """The whole bin size of the same rule: 1 up to 1.5 times the reference's width, 2 at 1400."""
+    k = width_px / reference_width_px
+    return 1 if k < 1.5 else int(round(k))
+
+
 def _kernel_size(sigma_px: float) -> int:
     """The Gaussian's kernel: 2.5 sigma each side, rounded, at least one pixel (3 x 3 at 0.56 px,
     whose weight beyond is 0.2 %)."""

@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.distance import PhotometricDistance
 from core.pipeline import HeadReconstructor, ReconstructionSettings
 from core.prefilter import prefilter_frame, prefilter_sigma_px, prefiltered
 from core.process import with_true_lights
+from core.rig import thesis_head
 from core.session import SessionFile
 from core.sim.breathing import Sway
 from core.sim.simulate import SimConfig, simulate
@@ -73,3 +75,32 @@ def test_a_camera_frame_filtered_as_it_arrives_equals_the_filtered_signal():
     signal = frames[:4].astype(np.float64) - frames[4]
     whole, _ = prefiltered(signal, np.zeros(signal.shape, bool), sigma)
     np.testing.assert_allclose(np.stack(each[:4]) - each[4], whole, atol=2e-3)
+
+
+def test_the_distance_fit_on_bins_finds_the_distance_of_every_pixel():
+    """A paraboloid 2000 mm away, shaded with the near-light model and no noise: the distance fitted
+    on 2 x 2 bins (a bin's mean signal at its mean point) is the one fitted on every pixel, and the
+    truth."""
+    head = thesis_head(scale=0.5)
+    rays = HeadReconstructor(head)._rays
+    x, y = rays[..., 0] * 2000.0, rays[..., 1] * 2000.0
+    inside = x**2 / 180.0**2 + y**2 / 250.0**2 < 1.0
+    depth = np.where(inside, 2000.0 - 150.0 + (x**2 + y**2) / 600.0, np.nan)
+    gu, gv = np.gradient(depth, axis=1), np.gradient(depth, axis=0)
+    points = rays * depth[..., None]
+    dpu, dpv = np.gradient(points, axis=1), np.gradient(points, axis=0)
+    normals = -np.cross(dpu, dpv)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    to_lights = head.light_positions_mm[:, None, None, :] - points[None]
+    r = np.linalg.norm(to_lights, axis=-1)
+    signal = 2e9 * head.light_intensity[:, None, None] * np.clip(np.sum(normals[None] * to_lights, -1), 0, None) / r**3
+    signal = np.nan_to_num(signal)
+    mask = inside & np.isfinite(gu) & np.isfinite(gv)
+    median = float(np.nanmedian(depth[mask]))
+    relative = np.where(mask, depth / median, np.nan)
+    found = []
+    for binning in (1, 2):
+        problem = PhotometricDistance(signal, mask, head.light_positions_mm, head.light_intensity, binning=binning)
+        found.append(problem.scale(rays, relative, (0.9 * median, 1.1 * median)))
+    assert found[1] == pytest.approx(found[0], abs=0.5)
+    assert found[1] == pytest.approx(median, abs=1.0)
