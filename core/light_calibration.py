@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from core.binning import bin_all, bin_mean
 from core.lights import (CalibrationError, Highlight, MattePlacement, SphereFit, closest_points, detect_highlight,
                          detect_sphere, pixel_rays, refine_on_matte, triangulate)
-from core.binning import bin_all, bin_mean
 from core.photometric import complete_cycles
 from core.profile import HeadCalibration, RigCalibration
 from core.rig import Head

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-# Heads this wide or narrower are left as they are; wider ones are filtered to the noise of a
+# Heads up to 1.5 times this wide are left as they are; wider ones are filtered to the noise of a
 # head this wide (the project's half-resolution head, where the targets are met unfiltered).
 PREFILTER_REFERENCE_WIDTH_PX = 700
 
