@@ -97,7 +97,7 @@ def store_normal(normals, albedo, i, j, m0, m1, m2):
     """Write albedo |m| and normal m / |m| at pixel (i, j); NaN when m vanishes (eqs 3.6, 3.7)."""
     rho = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
     if rho > 0.0:
-        inv = 1.0 / rho
+        inv = np.reciprocal(rho)  # in rho's own precision (float32 in the camera-rate kernel)
         albedo[i, j] = rho
         normals[i, j, 0] = m0 * inv
         normals[i, j, 1] = m1 * inv

@@ -211,3 +211,36 @@ def test_the_subject_mask_reaches_the_dim_silhouette_and_not_the_background():
     assert eroded.sum() < grown.sum() <= disc.sum()
     missing = lambda m: disc.sum() - m.sum()  # noqa: E731
     assert missing(grown) < 0.4 * missing(eroded)
+
+
+def test_the_light_field_solves_a_shadowed_or_saturated_pixel_from_three_lights(sphere_session):
+    """Light 2 blocked over a band and light 0 at full scale over another: the camera-rate kernel
+    solves those pixels from the three lights left, as the per-pixel solve does, and leaves no
+    pixel with four good lights any different from before."""
+    with SessionFile(sphere_session) as s:
+        head = with_true_lights(s).apply(s.rig).heads["front"]
+        _, lit, dark = _cycle(s, 4)
+        truth_d = s.truth()["front/depth_mm"][0].astype(float)
+    field = light_field(head, truth_d)
+    full = float(head.max_value)
+    clean, _ = normals_from_field(lit, dark, field, 40.0, full)
+    blocked = lit.copy()
+    rows = slice(head.height // 2 - 6, head.height // 2 + 6)
+    blocked[2, rows] = dark[rows]
+    blocked[0, :, head.width // 2 - 6:head.width // 2 + 6] = head.max_value
+    normals, _ = normals_from_field(blocked, dark, field, 40.0, full)
+    points = np.ascontiguousarray(HeadReconstructor(head)._rays * np.nan_to_num(truth_d, nan=2000.0)[..., None])
+    signal = blocked.astype(float) - dark.astype(float)
+    exact = np.full(head.shape + (3,), np.nan)
+    used = np.zeros(head.shape, np.int64)
+    near_light_normals(signal, points, head.light_positions_mm, head.light_intensity, np.tile([0, 0, 1.0], (4, 1)),
+                       np.zeros(4), blocked >= full, 40.0, exact, np.empty(head.shape), used)
+    three = (used == 3) & np.isfinite(truth_d)
+    assert three.sum() > 200
+    angle = np.degrees(np.arccos(np.clip(np.sum(normals[three] * exact[three], -1), -1, 1)))
+    # the field's interpolation against the exact per-pixel lights, as for four lights
+    assert angle.mean() < 0.03 and angle.max() < 0.3
+    untouched = np.ones(head.shape, bool)
+    untouched[rows] = False
+    untouched[:, head.width // 2 - 6:head.width // 2 + 6] = False
+    np.testing.assert_array_equal(normals[untouched], clean[untouched])
