@@ -81,10 +81,10 @@ def _cycle(session, head_name: str):
 def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ...], seed: int,
                  led_offset_mm: float, write: bool) -> str:
     from core.light_calibration import CAPTURE_SECONDS, calibrate_lights
-    from core.prefilter import prefilter_sigma_px, prefiltered
-    from core.rig import thesis_rig
     from core.photometric import near_light_normals
     from core.pipeline import HeadReconstructor, ReconstructionSettings, running_distance
+    from core.prefilter import prefilter_sigma_px, prefiltered
+    from core.rig import thesis_rig
     from core.session import SessionFile
     from core.sim.breathing import Sway
     from core.sim.simulate import SimConfig, simulate
@@ -418,7 +418,7 @@ def run_speed(write: bool, repeat: int = 20) -> str:
                                                        head.light_intensity), 2),
         "field": _rate(lambda: light_field(head, depth), 5),
     }
-    # At this width the pipeline solves from prefiltered images (core/prefilter.py): in a stream
+    # At 1400 px wide the pipeline solves from prefiltered images (core/prefilter.py): in a stream
     # each frame is filtered once as it arrives, so a map costs one frame's filter more.
     sigma_px = prefilter_sigma_px(head.width)
     filtered_lit = np.stack([prefilter_frame(frame, sigma_px) for frame in lit])
@@ -430,15 +430,14 @@ def run_speed(write: bool, repeat: int = 20) -> str:
         prefilter_frame(lit[k], sigma_px, out=filtered_lit[k])
         normals_from_field(filtered_lit, filtered_dark, field, min_signal, full, normals, albedo)
 
-    if sigma_px > 0:
-        # OpenCV on one thread: its pool's threads, spinning after each call, held up numba's
-        # (measured in a stream of frames: 96 maps/s with OpenCV's two threads, 106 with one)
-        threads = cv2.getNumThreads()
-        cv2.setNumThreads(1)
-        try:
-            figures["near_prefiltered"] = _rate(near_prefiltered, repeat)
-        finally:
-            cv2.setNumThreads(threads)
+    # OpenCV on one thread: its pool's threads, spinning after each call, held up numba's
+    # (measured in a stream of frames: 96 maps/s with OpenCV's two threads, 106 with one)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        figures["near_prefiltered"] = _rate(near_prefiltered, repeat)
+    finally:
+        cv2.setNumThreads(threads)
     near_normals, _ = normals_from_field(lit, dark, field, min_signal, full)
     figures["depth_fast"] = _rate(lambda: log_depth_dct(near_normals, mask, head.fx, head.fy, head.cx, head.cy),
                                   repeat)
@@ -461,8 +460,8 @@ def run_speed(write: bool, repeat: int = 20) -> str:
              f"{figures['distant'] / figures['distant_numpy']:.1f}x |",
              f"| near-light normal maps (light field on a {field.step}-px grid) | {figures['near']:.1f}/s | "
              f"{figures['near_numpy']:.2f}/s (per-pixel solve) | {figures['near'] / figures['near_numpy']:.0f}x |",
-             *([f"| the same from prefiltered frames (Gaussian, sigma {sigma_px:.2f} px; one frame filtered per map) | "
-                f"{figures['near_prefiltered']:.1f}/s | | |"] if "near_prefiltered" in figures else []),
+             f"| the same from prefiltered frames (Gaussian, sigma {sigma_px:.2f} px; one frame filtered per map) | "
+             f"{figures['near_prefiltered']:.1f}/s | | |",
              f"| light field update (when the depth changes) | {figures['field']:.1f}/s | | |",
              f"| depth maps, fast (DCT, log-depth) | {figures['depth_fast']:.1f}/s | {figures['depth_numpy']:.1f}/s "
              f"(FFT Poisson) | {figures['depth_fast'] / figures['depth_numpy']:.1f}x |",

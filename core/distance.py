@@ -18,7 +18,7 @@ from scipy.optimize import minimize, minimize_scalar
 
 from core.binning import bin_all, bin_mean
 from core.lights import closest_points
-from core.photometric import solve_symmetric3
+from core.photometric import add_row, solve_symmetric3
 
 DMR_THRESHOLD = 0.9
 INTENSITY_TOLERANCE = 0.05  # how far the joint fit may move a light's relative intensity (log scale)
@@ -89,15 +89,7 @@ def _chi_square(signal, weight, points, scale, light_positions, light_intensity)
             rows[k, 1] = y
             rows[k, 2] = z
             b[k] = signal[k, p] * weight[k, p]
-            a00 += x * x
-            a01 += x * y
-            a02 += x * z
-            a11 += y * y
-            a12 += y * z
-            a22 += z * z
-            c0 += x * b[k]
-            c1 += y * b[k]
-            c2 += z * b[k]
+            a00, a01, a02, a11, a12, a22, c0, c1, c2 = add_row(a00, a01, a02, a11, a12, a22, c0, c1, c2, x, y, z, b[k])
         m0, m1, m2 = solve_symmetric3(a00, a01, a02, a11, a12, a22, c0, c1, c2)
         total = 0.0
         for k in range(4):

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from core.photometric import solve_symmetric3, store_missing, store_normal
+from core.photometric import add_row, solve_symmetric3, store_missing, store_normal
 from core.rig import Head
 
 
@@ -73,15 +73,7 @@ def _solve_remaining(lit, i, j, s0, s1, s2, s3, line, ix, tx, min_signal, full_s
         r0 = ux * line[ix, 12 + 3 * k] + tx * line[ix + 1, 12 + 3 * k]
         r1 = ux * line[ix, 13 + 3 * k] + tx * line[ix + 1, 13 + 3 * k]
         r2 = ux * line[ix, 14 + 3 * k] + tx * line[ix + 1, 14 + 3 * k]
-        a00 += r0 * r0
-        a01 += r0 * r1
-        a02 += r0 * r2
-        a11 += r1 * r1
-        a12 += r1 * r2
-        a22 += r2 * r2
-        b0 += r0 * sk
-        b1 += r1 * sk
-        b2 += r2 * sk
+        a00, a01, a02, a11, a12, a22, b0, b1, b2 = add_row(a00, a01, a02, a11, a12, a22, b0, b1, b2, r0, r1, r2, sk)
         used += 1
     if used < 3:
         store_missing(normals, albedo, i, j)

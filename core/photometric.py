@@ -75,6 +75,14 @@ def gradients_from_normals(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]
         return -normals[..., 0] / normals[..., 2], -normals[..., 1] / normals[..., 2]
 
 
+@njit(inline="always")
+def add_row(a00, a01, a02, a11, a12, a22, b0, b1, b2, r0, r1, r2, value):
+    """The normal equations (A^T A, A^T b) of a least squares in three unknowns, with one more row
+    (r0, r1, r2) whose value is `value` (eq. 3.4 builds them from the lights' rows)."""
+    return (a00 + r0 * r0, a01 + r0 * r1, a02 + r0 * r2, a11 + r1 * r1, a12 + r1 * r2, a22 + r2 * r2,
+            b0 + r0 * value, b1 + r1 * value, b2 + r2 * value)
+
+
 @njit(inline="always", fastmath=True)
 def solve_symmetric3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
     """x = A^-1 b for a symmetric 3 x 3 A by its adjugate; NaN when A is singular."""
@@ -153,15 +161,8 @@ def near_light_normals(signal, points, light_positions, light_intensity, light_a
                         continue
                     # I_k / scale = rho * n . l_k: one row of the per-pixel system
                     b = signal[k, i, j] / scale
-                    a00 += lx * lx
-                    a01 += lx * ly
-                    a02 += lx * lz
-                    a11 += ly * ly
-                    a12 += ly * lz
-                    a22 += lz * lz
-                    b0 += lx * b
-                    b1 += ly * b
-                    b2 += lz * b
+                    a00, a01, a02, a11, a12, a22, b0, b1, b2 = add_row(a00, a01, a02, a11, a12, a22, b0, b1, b2,
+                                                                       lx, ly, lz, b)
                     used += 1
             n_lights_used[i, j] = used
             if used < 3:

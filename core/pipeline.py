@@ -139,7 +139,10 @@ class HeadReconstructor:
         u = (np.arange(head.width) - head.cx) / head.fx
         v = (np.arange(head.height) - head.cy) / head.fy
         self._rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((head.height, 1))), -1)
-        # a wide head's distance fit on bins of the prefilter's size (core/prefilter.py): every pixel counts
+        # a wide head's normals from prefiltered images, its distance fit on bins of the same size
+        # (core/prefilter.py): every pixel counts
+        s = self.settings
+        self._prefilter_px = prefilter_sigma_px(head.width) if s.prefilter_px is None else s.prefilter_px
         self._distance_binning = noise_binning(head.width)
         axis = head.light_axis if head.light_axis is not None else np.tile([0.0, 0.0, 1.0], (4, 1))
         mu = head.light_mu if head.light_mu is not None else np.zeros(4)
@@ -202,8 +205,7 @@ class HeadReconstructor:
             saturated = np.zeros(signal.shape, dtype=np.bool_)
         mask = subject_mask(signal, s.mask_fraction, s.mask_edge_fraction)
         # the normals from filtered images; the distance fit (its own noise model) from the raw ones
-        sigma = prefilter_sigma_px(h.width) if s.prefilter_px is None else s.prefilter_px
-        solved, solved_saturated = prefiltered(signal, saturated, sigma)
+        solved, solved_saturated = prefiltered(signal, saturated, self._prefilter_px)
         pseudo_normals, albedo = distant_light_normals(solved, np.zeros(h.shape), self.pseudo_light_vectors)
         pseudo_normals[~mask] = np.nan
         dmr = dmr_distance(pseudo_normals, mask, h.fx, h.fy, h.cx, h.cy, h.light_positions_mm,
