@@ -73,6 +73,27 @@ def _depth_errors(depth: np.ndarray, truth: np.ndarray, valid: np.ndarray) -> tu
     return offset, float(np.mean(np.abs(difference - difference.mean())))
 
 
+def _blank_nan(value: float, spec: str) -> str:
+    return format(value, spec) if np.isfinite(value) else ""
+
+
+def _distance_floor(reconstructor, signal: np.ndarray, dark: np.ndarray, true_depth: np.ndarray,
+                    true_lights: tuple[np.ndarray, np.ndarray]) -> float:
+    """The distance noise floor of one cycle: the error of the same photometric distance fit
+    (the reconstructor's pixels, binning and noise model) handed the true surface and the true
+    lights, so that only the camera noise is left."""
+    from core.distance import PhotometricDistance
+    from core.pipeline import subject_mask
+
+    settings = reconstructor.settings
+    mask = subject_mask(signal, settings.mask_fraction, settings.mask_edge_fraction) & np.isfinite(true_depth)
+    median = float(np.median(true_depth[mask]))
+    fit = PhotometricDistance(signal, mask, true_lights[0], true_lights[1], dark, max_pixels=settings.distance_pixels,
+                               binning=reconstructor._distance_binning)
+    relative = np.where(mask, true_depth / median, np.nan)
+    return fit.scale(reconstructor._rays, relative, (0.97 * median, 1.03 * median), grid_points=7) - median
+
+
 def _cycle(session, head_name: str):
     """The first complete light cycle of a head: (newest frame, signal, saturated, dark)."""
     return next(_cycles(session, head_name))
@@ -82,7 +103,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                  led_offset_mm: float, write: bool) -> str:
     from core.light_calibration import CAPTURE_SECONDS, calibrate_lights
     from core.photometric import near_light_normals
-    from core.pipeline import HeadReconstructor, ReconstructionSettings, running_distance
+    from core.pipeline import HeadReconstructor, ReconstructionSettings, RunningDistance
     from core.prefilter import prefilter_sigma_px, prefiltered
     from core.rig import thesis_rig
     from core.session import SessionFile
@@ -139,16 +160,19 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                 # live view keep it (`distance_cycles`), at the last cycle
                 stream = HeadReconstructor(head, cal.pseudo_light_vectors, replace(ours_settings, distance_cycles=1))
                 last_depth = np.asarray(truth["front/depth_mm"][1], dtype=np.float64)
-                cycle_errors, running = [], None
+                true_lights = (true_positions, true_intensity)
+                cycle_errors, floor_errors = [], []
+                running = RunningDistance(ours_settings.distance_cycles)
                 for newest, cycle_signal, cycle_saturated, cycle_dark in _cycles(session, "front"):
                     streamed = stream.reconstruct(cycle_signal, cycle_saturated, cycle_dark)
                     on_subject = streamed.mask & np.isfinite(last_depth) & np.isfinite(streamed.depth_mm)
                     cycle_errors.append(_depth_errors(streamed.depth_mm, last_depth, on_subject)[0])
                     measured = streamed.distance_mm
-                    running = running_distance(running, measured, ours_settings.distance_cycles)
+                    running.update(measured)
+                    floor_errors.append(_distance_floor(stream, cycle_signal, cycle_dark, last_depth, true_lights))
                 # the depth scales with the distance: the error of the running average's map
                 true_median = float(np.median(last_depth[on_subject]))
-                tracked_error = (cycle_errors[-1] + true_median) * running / measured - true_median
+                tracked_error = (cycle_errors[-1] + true_median) * running.distance_mm / measured - true_median
             true_head = replace(true_head, light_positions_mm=true_positions, light_intensity=true_intensity)
             methods = {
                 "traditional": (head, ReconstructionSettings(method="distant", integrator="masked")),
@@ -183,14 +207,15 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
             near_light_normals(solved, points, cal.light_positions_mm, cal.light_intensity, axis, mu,
                                solved_saturated, 0.01 * true_head.max_value, calibrated, albedo, used)
             ok = valid & np.isfinite(floor[..., 2])
-            rows.append(Row(shape, distance, "noise floor", _angular_error(floor, true_normals, ok), 0.0, 0.0))
+            rows.append(Row(shape, distance, "noise floor", _angular_error(floor, true_normals, ok), floor_errors[0],
+                            float("nan"), distance_sd_mm=float(np.std(floor_errors))))
             if sigma_px > 0:
                 unfiltered = np.full(true_head.shape + (3,), np.nan)
                 near_light_normals(signal, points, true_positions, true_intensity, axis, mu, saturated,
                                    0.01 * true_head.max_value, unfiltered, albedo, used)
                 rows.append(Row(shape, distance, "noise floor, unfiltered",
                                 _angular_error(unfiltered, true_normals, ok & np.isfinite(unfiltered[..., 2])),
-                                0.0, 0.0))
+                                float("nan"), float("nan")))
             both = ok & np.isfinite(calibrated[..., 2])
             lights_effect.append(_angular_error(calibrated, floor, both))
 
@@ -221,30 +246,31 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                  "photometric residual, iterated; *noise floor*: the same solver with the true surface and "
                  "lights" + (f" (all methods see the images prefiltered with a Gaussian of {sigma_px:.2f} px, "
                              "core/prefilter.py; *unfiltered*: the floor without it)" if sigma_px > 0 else "")
-                 + ". Distance error: median depth over the subject against the truth. Height error: mean "
+                 + "; its distance: the same photometric distance fit (same pixels, noise model) handed the "
+                 "true surface and lights, each cycle: the scatter that the camera noise alone leaves in one "
+                 "cycle's distance. Distance error: median depth over the subject against the truth. Height error: mean "
                  "absolute depth error after removing the mean offset (masked integrator).")
     lines.append("")
     lines.append("| shape | distance (mm) | method | angular error (deg) | distance error (mm) | height error (mm) "
                  f"| distance sd, one cycle (mm) | distance error, {TRACKED_CYCLES} cycles (mm) |")
     lines.append("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        if r.method.startswith("noise floor"):
-            lines.append(f"| {r.shape} | {r.distance_mm:.0f} | {r.method} | {r.angular_deg:.2f} | | | | |")
-        else:
-            sd = f"{r.distance_sd_mm:.1f}" if np.isfinite(r.distance_sd_mm) else ""
-            tracked = f"{r.tracked_distance_error_mm:+.1f}" if np.isfinite(r.tracked_distance_error_mm) else ""
-            lines.append(f"| {r.shape} | {r.distance_mm:.0f} | {r.method} | {r.angular_deg:.2f} | "
-                         f"{r.distance_error_mm:+.1f} | {r.height_error_mm:.2f} | {sd} | {tracked} |")
+        lines.append(f"| {r.shape} | {r.distance_mm:.0f} | {r.method} | {r.angular_deg:.2f} | "
+                     f"{_blank_nan(r.distance_error_mm, '+.1f')} | {_blank_nan(r.height_error_mm, '.2f')} | "
+                     f"{_blank_nan(r.distance_sd_mm, '.1f')} | {_blank_nan(r.tracked_distance_error_mm, '+.1f')} |")
     lines.append("")
     ours = [r for r in rows if r.method == "ours"]
-    floors = {(r.shape, r.distance_mm): r.angular_deg for r in rows if r.method == "noise floor"}
+    floor_rows = [r for r in rows if r.method == "noise floor"]
+    floors = {(r.shape, r.distance_mm): r.angular_deg for r in floor_rows}
     above = [r.angular_deg - floors[(r.shape, r.distance_mm)] for r in ours]
     lines.append("Summary (ours): angular error "
                  f"{min(r.angular_deg for r in ours):.2f}-{max(r.angular_deg for r in ours):.2f} deg, "
                  f"{min(above):+.2f} to {max(above):+.2f} deg above the noise floor; distance error "
                  f"{min(r.distance_error_mm for r in ours):+.1f} to {max(r.distance_error_mm for r in ours):+.1f} mm "
                  f"from one cycle (sd {min(r.distance_sd_mm for r in ours):.1f}-{max(r.distance_sd_mm for r in ours):.1f} "
-                 f"mm from cycle to cycle), {min(r.tracked_distance_error_mm for r in ours):+.1f} to "
+                 "mm from cycle to cycle; the noise floor's sd "
+                 f"{min(r.distance_sd_mm for r in floor_rows):.1f}-{max(r.distance_sd_mm for r in floor_rows):.1f} mm), "
+                 f"{min(r.tracked_distance_error_mm for r in ours):+.1f} to "
                  f"{max(r.tracked_distance_error_mm for r in ours):+.1f} mm after {TRACKED_CYCLES}; "
                  f"height error {min(r.height_error_mm for r in ours):.2f}-{max(r.height_error_mm for r in ours):.2f} mm.")
     lines.append("Thesis (Table 4.3, Figure 4.5, real and synthetic data): angular error 4.53 deg (sphere), "

@@ -37,6 +37,7 @@ from core.rig import Head
 NOMINAL_DISTANCE_MM = 2000.0
 EDGE_GROWTH_PX = 3
 DISTANCE_RESET = 0.05  # relative change of the distance from one cycle to the next that is not noise
+MIN_SUBJECT_PIXELS = 100  # fewer lit pixels than this: no subject in the cycle (the distance fit's minimum)
 
 
 @dataclass(frozen=True)
@@ -57,8 +58,7 @@ class ReconstructionSettings:
     # drifted since their calibration; it costs accuracy on small subjects, docs/reconstruction.md)
     fit_intensity: bool = False
     # The distance of one cycle scatters by several mm (camera noise); each cycle's estimate is
-    # averaged exponentially with the previous ones over about this many cycles (1: none). A jump
-    # of more than DISTANCE_RESET (a new subject, a replay's start) starts the average again.
+    # averaged with the previous ones over about this many cycles (1: none; RunningDistance).
     distance_cycles: int = 5
     # Gaussian sigma (pixels) on the images before the normals are solved (core/prefilter.py);
     # None: chosen from the head's width (0 up to about 1000 px wide, 0.56 at 1400)
@@ -100,14 +100,28 @@ def gradient_volume(normals: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sum(np.abs(p[valid]) + np.abs(q[valid])) / k) if k else float("nan")
 
 
-def running_distance(previous_mm: float | None, distance_mm: float, cycles: int) -> float:
-    """The distance after a cycle that estimated `distance_mm`: averaged exponentially with the
-    previous cycles' over about `cycles` of them; a jump of more than DISTANCE_RESET (a new subject,
-    a replay's start), a first cycle or cycles <= 1 take the new estimate as it is."""
-    if (previous_mm is None or cycles <= 1 or not np.isfinite(distance_mm)
-            or abs(distance_mm - previous_mm) >= DISTANCE_RESET * previous_mm):
-        return distance_mm
-    return previous_mm + (distance_mm - previous_mm) / cycles
+@dataclass
+class RunningDistance:
+    """A stream's distance: each cycle's estimate averaged with the previous ones, over about
+    `cycles` of them (1: none). The first `cycles` estimates are averaged alike (their plain mean),
+    then exponentially, each new one weighing 1 / cycles. A jump of more than DISTANCE_RESET (a new
+    subject, a replay's start) starts the average again. A cycle without an estimate (NaN) reads
+    NaN and leaves the average as it was."""
+    cycles: int
+    distance_mm: float | None = None
+    averaged: int = 0  # estimates in the average since it last started
+
+    def update(self, distance_mm: float) -> float:
+        if not np.isfinite(distance_mm):
+            return distance_mm
+        previous = self.distance_mm
+        if (previous is None or self.cycles <= 1
+                or abs(distance_mm - previous) >= DISTANCE_RESET * previous):
+            self.distance_mm, self.averaged = distance_mm, 1
+        else:
+            self.averaged += 1
+            self.distance_mm = previous + (distance_mm - previous) / min(self.averaged, self.cycles)
+        return self.distance_mm
 
 
 def subject_mask(signal: np.ndarray, fraction: float, edge_fraction: float | None = None,
@@ -128,7 +142,8 @@ def subject_mask(signal: np.ndarray, fraction: float, edge_fraction: float | Non
 
 
 class HeadReconstructor:
-    """Reconstructs one head's cycles. Holds the head's calibration; no state between cycles."""
+    """Reconstructs one head's cycles. Holds the head's calibration and, between cycles, the
+    stream's running distance (and the intensities fitted on its first cycle, when asked)."""
 
     def __init__(self, head: Head, pseudo_light_vectors: np.ndarray | None = None,
                  settings: ReconstructionSettings | None = None) -> None:
@@ -148,10 +163,23 @@ class HeadReconstructor:
         mu = head.light_mu if head.light_mu is not None else np.zeros(4)
         self._axis = np.ascontiguousarray(axis, dtype=np.float64)
         self._mu = np.ascontiguousarray(mu, dtype=np.float64)
-        self.last_distance_mm: float | None = None
+        self.running_distance = RunningDistance(self.settings.distance_cycles)
         # the lights' relative intensities as fitted on the first cycle, as factors of the rig's
         # (PhotometricDistance.scale_and_intensity); None until then or when not fitted
         self.intensity_factors: np.ndarray | None = None
+
+    @property
+    def last_distance_mm(self) -> float | None:
+        """The stream's distance after the last cycle that had one; None before any."""
+        return self.running_distance.distance_mm
+
+    def _no_subject(self) -> HeadMap:
+        """A cycle without a subject: empty maps, no distance; the stream's running distance kept."""
+        h = self.head
+        nothing = np.full(4, np.nan)
+        dmr = DmrEstimate(float("nan"), nothing, np.full((4, 2), np.nan), np.full((4, 3), np.nan))
+        return HeadMap(np.full(h.shape + (3,), np.nan), np.full(h.shape, np.nan), np.full(h.shape, np.nan),
+                       np.zeros(h.shape, dtype=bool), float("nan"), dmr, float("nan"))
 
     def _integrate(self, normals: np.ndarray, mask: np.ndarray, final: bool) -> np.ndarray:
         """Log-depth; the masked path's robust reweighting (core/integrate.py) only for a cycle's
@@ -204,6 +232,8 @@ class HeadReconstructor:
         if saturated is None:
             saturated = np.zeros(signal.shape, dtype=np.bool_)
         mask = subject_mask(signal, s.mask_fraction, s.mask_edge_fraction)
+        if mask.sum() < MIN_SUBJECT_PIXELS:  # nobody in front of the head (dark, stepped away)
+            return self._no_subject()
         # the normals from filtered images; the distance fit (its own noise model) from the raw ones
         solved, solved_saturated = prefiltered(signal, saturated, self._prefilter_px)
         pseudo_normals, albedo = distant_light_normals(solved, np.zeros(h.shape), self.pseudo_light_vectors)
@@ -250,11 +280,10 @@ class HeadReconstructor:
             if np.isfinite(scale):
                 depth, distance = depth * (scale / distance), scale
                 self.intensity_factors = factors
-        averaged = running_distance(self.last_distance_mm, distance, s.distance_cycles)
-        if averaged != distance:
+        averaged = self.running_distance.update(distance)
+        if np.isfinite(averaged) and averaged != distance:
             depth, distance = depth * (averaged / distance), averaged
         valid = mask & np.isfinite(depth) & np.isfinite(normals[..., 2])
         depth = np.where(valid, depth, np.nan)
         normals = np.where(valid[..., None], normals, np.nan)
-        self.last_distance_mm = distance
         return HeadMap(normals, depth, albedo, valid, distance, dmr, gradient_volume(normals, valid), done)

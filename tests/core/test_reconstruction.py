@@ -10,7 +10,7 @@ import pytest
 
 from core.lightfield import light_field, normals_from_field
 from core.photometric import complete_cycles, distant_light_normals, near_light_normals
-from core.pipeline import DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, running_distance, subject_mask
+from core.pipeline import DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance, subject_mask
 from core.process import process_session, with_true_lights
 from core.profile import HeadCalibration, RigCalibration
 from core.session import SessionError, SessionFile
@@ -179,20 +179,44 @@ def test_the_distance_does_not_follow_an_intensity_error(torso_2200):
 
 
 def test_running_distance_averages_small_changes_and_restarts_on_a_jump():
-    assert running_distance(None, 2010.0, 5) == 2010.0  # the first cycle as it is
-    assert running_distance(2000.0, 2010.0, 5) == pytest.approx(2002.0)  # a fifth of the way
-    assert running_distance(2000.0, 2010.0, 1) == 2010.0  # no averaging asked
-    jump = 2000.0 * (1 + 1.5 * DISTANCE_RESET)
-    assert running_distance(2000.0, jump, 5) == jump  # a new subject: start again
-    assert np.isnan(running_distance(2000.0, float("nan"), 5))
+    running = RunningDistance(5)
+    assert running.update(2010.0) == 2010.0  # the first cycle as it is
+    assert running.update(2000.0) == pytest.approx(2005.0)  # the first cycles: their plain mean
+    assert running.update(2020.0) == pytest.approx(2010.0)
+    for _ in range(2):
+        running.update(2010.0)
+    assert running.update(2060.0) == pytest.approx(2020.0)  # then a fifth of the way
+    assert RunningDistance(1).update(2010.0) == 2010.0  # no averaging asked
+    jump = running.distance_mm * (1 + 1.5 * DISTANCE_RESET)
+    assert running.update(jump) == jump  # a new subject: start again
+    assert running.update(jump + 10.0) == pytest.approx(jump + 5.0)  # ... with its own plain mean
+    # a cycle without a distance reads NaN and leaves the average as it was
+    assert np.isnan(running.update(float("nan")))
+    assert running.distance_mm == pytest.approx(jump + 5.0)
     # a still subject: the scatter of single cycles falls as the average runs
     rng = np.random.default_rng(0)
     estimates = 2000.0 + 4.0 * rng.standard_normal(400)
-    running, kept = None, []
-    for d in estimates:
-        running = running_distance(running, d, 5)
-        kept.append(running)
+    running = RunningDistance(5)
+    kept = [running.update(d) for d in estimates]
     assert np.std(kept[20:]) < 0.45 * np.std(estimates)
+    # the first five: each the mean of those so far, not weighted towards the first
+    np.testing.assert_allclose(kept[:5], np.cumsum(estimates[:5]) / np.arange(1, 6))
+
+
+def test_a_cycle_without_a_subject_keeps_the_streams_distance(torso_2200):
+    """A dark cycle (the subject stepped away) gives empty maps and no distance, not the nominal
+    2000 mm; the stream's running distance is the one from before it."""
+    with SessionFile(torso_2200) as s:
+        head = with_true_lights(s).apply(s.rig).heads["front"]
+        signal, _, dark = _cycle(s, 4)
+    reconstructor = HeadReconstructor(head, settings=ReconstructionSettings(distance_cycles=5))
+    first = reconstructor.reconstruct(signal, dark=dark).distance_mm
+    assert abs(first - 2200.0) < 50.0
+    empty = reconstructor.reconstruct(np.zeros_like(signal), dark=dark)
+    assert np.isnan(empty.distance_mm) and not empty.mask.any() and np.isnan(empty.depth_mm).all()
+    assert np.isnan(empty.gradient_volume)
+    assert reconstructor.last_distance_mm == first
+    assert reconstructor.reconstruct(signal, dark=dark).distance_mm == pytest.approx(first)
 
 
 def test_the_subject_mask_reaches_the_dim_silhouette_and_not_the_background():
