@@ -21,6 +21,7 @@ from core.lights import closest_points
 from core.photometric import add_row, solve_symmetric3
 
 DMR_THRESHOLD = 0.9
+MIN_FIT_PIXELS = 100  # the photometric distance is not fitted on fewer pixels
 INTENSITY_TOLERANCE = 0.05  # how far the joint fit may move a light's relative intensity (log scale)
 
 
@@ -30,6 +31,11 @@ class DmrEstimate:
     depths_mm: np.ndarray  # (4,) NaN where a light had no region
     centres_px: np.ndarray  # (4, 2) (u, v) of each region's centre
     points_mm: np.ndarray  # (4, 3) the triangulated surface points
+
+    @classmethod
+    def none(cls) -> DmrEstimate:
+        """No region for any light (no subject)."""
+        return cls(float("nan"), np.full(4, np.nan), np.full((4, 2), np.nan), np.full((4, 3), np.nan))
 
 
 def diffused_maxima_regions(pseudo_normals: np.ndarray, mask: np.ndarray, pseudo_light_vectors: np.ndarray,
@@ -139,7 +145,7 @@ class PhotometricDistance:
 
     def _problem(self, rays: np.ndarray, relative_depth: np.ndarray):
         """(points at unit scale, signal, weight) of the chosen pixels where the depth is known; None
-        when fewer than 100. rays (H, W, 3) and relative_depth (H, W) at the head's full size."""
+        when fewer than MIN_FIT_PIXELS. rays (H, W, 3) and relative_depth (H, W) at the head's full size."""
         if self.binning > 1:
             if self._binned_rays is None or self._binned_rays[0] is not rays:
                 # a bin's mean ray is exactly the ray through its centre (rays are linear in u, v)
@@ -148,7 +154,7 @@ class PhotometricDistance:
             relative_depth = bin_mean(relative_depth, self.binning)  # NaN where any pixel has no depth
         relative = relative_depth[self.rows, self.cols]
         keep = np.isfinite(relative)
-        if keep.sum() < 100:
+        if keep.sum() < MIN_FIT_PIXELS:
             return None
         return (np.ascontiguousarray(rays[self.rows[keep], self.cols[keep]] * relative[keep, None]),
                 np.ascontiguousarray(self.signal[:, keep]), np.ascontiguousarray(self.weight[:, keep]))

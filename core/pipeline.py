@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from core.distance import DMR_THRESHOLD, DmrEstimate, PhotometricDistance, dmr_distance
+from core.distance import DMR_THRESHOLD, MIN_FIT_PIXELS, DmrEstimate, PhotometricDistance, dmr_distance
 from core.integrate import ROBUST_ITERATIONS, integrate_dct, integrate_masked, log_depth_gradients
 from core.photometric import distant_light_normals, gradients_from_normals, near_light_normals
 from core.prefilter import noise_binning, prefilter_sigma_px, prefiltered
@@ -37,7 +37,7 @@ from core.rig import Head
 NOMINAL_DISTANCE_MM = 2000.0
 EDGE_GROWTH_PX = 3
 DISTANCE_RESET = 0.05  # relative change of the distance from one cycle to the next that is not noise
-MIN_SUBJECT_PIXELS = 100  # fewer lit pixels than this: no subject in the cycle (the distance fit's minimum)
+MIN_SUBJECT_PIXELS = MIN_FIT_PIXELS  # fewer lit pixels than this: no subject in the cycle
 
 
 @dataclass(frozen=True)
@@ -176,10 +176,8 @@ class HeadReconstructor:
     def _no_subject(self) -> HeadMap:
         """A cycle without a subject: empty maps, no distance; the stream's running distance kept."""
         h = self.head
-        nothing = np.full(4, np.nan)
-        dmr = DmrEstimate(float("nan"), nothing, np.full((4, 2), np.nan), np.full((4, 3), np.nan))
         return HeadMap(np.full(h.shape + (3,), np.nan), np.full(h.shape, np.nan), np.full(h.shape, np.nan),
-                       np.zeros(h.shape, dtype=bool), float("nan"), dmr, float("nan"))
+                       np.zeros(h.shape, dtype=bool), float("nan"), DmrEstimate.none(), float("nan"))
 
     def _integrate(self, normals: np.ndarray, mask: np.ndarray, final: bool) -> np.ndarray:
         """Log-depth; the masked path's robust reweighting (core/integrate.py) only for a cycle's
