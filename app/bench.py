@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from app.args import finite, positive
+
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
 SHAPES = ("sphere", "torso", "vase", "relief")
 DISTANCES = (1800, 1900, 2000, 2100, 2200)
@@ -289,11 +291,11 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                                    "docs/benchmarks.md.")
     what = p.add_subparsers(dest="what", metavar="WHAT")
     a = what.add_parser("accuracy", help="normals, distance and height against the truth (thesis Table 4.3)")
-    a.add_argument("--scale", type=float, default=0.5)
+    a.add_argument("--scale", type=positive, default=0.5)
     a.add_argument("--shapes", default=",".join(SHAPES))
     a.add_argument("--distances", default=",".join(map(str, DISTANCES)))
     a.add_argument("--seed", type=int, default=3)
-    a.add_argument("--led-offset-mm", type=float, default=12.0)
+    a.add_argument("--led-offset-mm", type=finite, default=12.0)
     a.add_argument("--no-write", action="store_true", help="print only")
 
     def run(args: argparse.Namespace) -> int:
@@ -315,13 +317,13 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     mo.add_argument("--no-write", action="store_true", help="print only")
     mo.set_defaults(run=lambda args: print(run_motion(not args.no_write)) or 0)
     rec = what.add_parser("record", help="record from two fake GigE cameras and the simulated rig")
-    rec.add_argument("--seconds", type=float, default=60.0)
-    rec.add_argument("--rate", type=float, default=110.0, help="frames/s asked of the fake cameras")
+    rec.add_argument("--seconds", type=positive, default=60.0)
+    rec.add_argument("--rate", type=positive, default=110.0, help="frames/s asked of the fake cameras")
     rec.add_argument("--no-write", action="store_true", help="print only")
     rec.set_defaults(run=lambda args: print(run_record(args.seconds, not args.no_write, args.rate)) or 0)
     vol = what.add_parser("volume", help="tidal volume, VC, FVC, FEV1 and the optical volume against the truth")
-    vol.add_argument("--scale", type=float, default=0.25)
-    vol.add_argument("--seconds", type=float, default=60.0)
+    vol.add_argument("--scale", type=positive, default=0.25)
+    vol.add_argument("--seconds", type=positive, default=60.0)
     vol.add_argument("--every", type=int, default=2, help="reconstruct every Nth cycle window (1: at the camera rate)")
     vol.add_argument("--no-write", action="store_true", help="print only")
 
@@ -337,10 +339,10 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
 
     vol.set_defaults(run=run_volume)
     gui = what.add_parser("gui", help="the live view: display updates/s, GUI-thread stalls, maps/s, memory")
-    gui.add_argument("--scale", type=float, default=0.5)
-    gui.add_argument("--seconds", type=float, default=20.0)
+    gui.add_argument("--scale", type=positive, default=0.5)
+    gui.add_argument("--seconds", type=positive, default=20.0)
     gui.add_argument("--no-record", action="store_true", help="live view only (no session file written)")
-    gui.add_argument("--warmup", type=float, default=30.0,
+    gui.add_argument("--warmup", type=positive, default=30.0,
                      help="seconds of live view before the measurement (as while positioning the patient)")
     gui.add_argument("--no-write", action="store_true", help="print only")
 

@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
 
 from core import __version__
+from app.args import _positive, finite, positive
+from core.outputs import OutputError, check_output, clear_stop, request_stop
 from core.session import SessionError, SessionFile, validate_session
 
 log = logging.getLogger("photopft")
@@ -19,6 +23,24 @@ BLOW_KINDS = ("good", "slow-start", "early-stop", "cough", "weak")
 
 class UserError(Exception):
     """An error the user can act on: printed as one line, exit status 2."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like Ctrl-C so that every `finally` cleans up."""
+
+
+def _stop(signum, frame) -> None:
+    """SIGTERM and SIGINT: raise in the main thread, and tell every output not to be put in place."""
+    reason = Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+    request_stop(reason)
+    raise reason
+
+
+def _quiet_stop_in_callbacks(unraisable) -> None:
+    """A stop raised inside a C callback is swallowed there (and acted on when the output would be
+    put in place): no traceback for it; anything else is reported as Python would."""
+    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        sys.__unraisablehook__(unraisable)
 
 
 def _float_list(text: str) -> list[int]:
@@ -40,14 +62,6 @@ def _blows(text: str):
     return [table[n] for n in names]
 
 
-def _positive(kind):
-    def parse(text: str):
-        value = kind(text)
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-        return value
-
-    return parse
 
 
 def add_simulate(sub: argparse._SubParsersAction) -> None:
@@ -67,36 +81,38 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--distance-mm", type=_positive(float), default=2000.0,
                    help="front camera to the subject's surface on the optical axis")
     p.add_argument("--distance-back-mm", type=_positive(float), default=2000.0)
-    p.add_argument("--sway-mm", type=float, default=None,
+    p.add_argument("--sway-mm", type=finite, default=None,
                    help="peak postural sway along the optical axis (torso default 50; other scenes 0)")
-    p.add_argument("--lateral-sway-mm", type=float, default=15.0)
+    p.add_argument("--lateral-sway-mm", type=finite, default=15.0)
     s = p.add_argument_group("subject")
     s.add_argument("--subject-id", default="SIM-0001")
     s.add_argument("--sex", choices=("male", "female"), default="male")
-    s.add_argument("--age", type=float, default=30.0, help="years")
-    s.add_argument("--height", type=float, default=175.0, help="cm")
-    s.add_argument("--weight", type=float, default=75.0, help="kg")
+    s.add_argument("--age", type=positive, default=30.0, help="years")
+    s.add_argument("--height", type=positive, default=175.0, help="cm")
+    s.add_argument("--weight", type=positive, default=75.0, help="kg")
     s.add_argument("--fvc", type=_positive(float), help="L (default: predicted)")
     s.add_argument("--fev1", type=_positive(float), help="L (default: predicted)")
     s.add_argument("--pef", type=_positive(float), help="L/s (default: predicted)")
     s.add_argument("--tidal-volume", type=_positive(float), help="L (default 7 mL/kg)")
     s.add_argument("--rate", type=_positive(float), default=14.0, help="breaths per minute")
-    s.add_argument("--chest-share", type=float, default=0.62, help="share of each breath in the chest (0-1)")
+    s.add_argument("--chest-share", type=finite, default=0.62, help="share of each breath in the chest (0-1)")
     s.add_argument("--blows", type=_blows, help=f"forced blows, comma-separated: {', '.join(BLOW_KINDS)}")
     c = p.add_argument_group("camera and lights")
     c.add_argument("--bits", type=int, choices=(8, 10, 12, 16), default=12)
     c.add_argument("--fps", type=_positive(float), default=110.0)
     c.add_argument("--clothing", choices=("tshirt", "skin"), default="tshirt")
-    c.add_argument("--specular", type=float, default=0.0, help="specular weight of the torso's surface")
-    c.add_argument("--led-offset-mm", type=float, default=0.0, help="as built: LEDs this far from the drawing")
-    c.add_argument("--led-intensity-spread", type=float, default=0.0, help="as built: relative intensities 1 +- this")
-    c.add_argument("--led-mu", type=float, default=0.0, help="LED anisotropy exponent (0 = isotropic)")
-    c.add_argument("--drop-rate", type=float, default=0.0, help="fraction of frames lost (gaps in frame_id)")
+    c.add_argument("--specular", type=finite, default=0.0, help="specular weight of the torso's surface")
+    c.add_argument("--led-offset-mm", type=finite, default=0.0, help="as built: LEDs this far from the drawing")
+    c.add_argument("--led-intensity-spread", type=finite, default=0.0, help="as built: relative intensities 1 +- this")
+    c.add_argument("--led-mu", type=finite, default=0.0, help="LED anisotropy exponent (0 = isotropic)")
+    c.add_argument("--drop-rate", type=finite, default=0.0, help="fraction of frames lost (gaps in frame_id)")
     c.add_argument("--no-flow", action="store_true", help="no flow sensor recording")
     c.add_argument("--truth-maps-at", type=_float_list, help="frame indices of the true maps (default: five)")
     k = p.add_argument_group("sphere calibration scenes")
     k.add_argument("--placements", type=int, default=7, help="sphere placements (>= 2)")
     k.add_argument("--sphere-radius-mm", type=_positive(float), default=75.0)
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing file that is not a session (a recorded session is never replaced)")
     p.set_defaults(run=run_simulate)
 
 
@@ -134,6 +150,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         if show:
             print(f"\rsimulating {args.output.name}: {100 * fraction:5.1f} %", end="", file=sys.stderr, flush=True)
 
+    check_output(args.output, force=args.force)
     try:
         summary = simulate(args.output, config, progress)
     except ValueError as exc:
@@ -223,17 +240,20 @@ def run_validate(args: argparse.Namespace) -> int:
 def add_recover(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("recover", help="recover a recording that was cut off (crash, power loss)",
                        description="Copy what every dataset of a cut-off recording reached into a consistent "
-                                   "session file under the same name; the original is kept as NAME.crashed.h5.")
+                                   "session file under the same name; the original is kept as NAME.crashed.h5 "
+                                   "(NAME.crashed-2.h5 and on when that exists). A complete session is refused.")
     p.add_argument("session", type=Path)
     p.set_defaults(run=run_recover)
 
 
 def run_recover(args: argparse.Namespace) -> int:
-    from core.session import recover_session
+    from core.recovery import recover_session
 
-    kept = recover_session(args.session)
-    print(f"recovered {args.session}: " + ", ".join(f"{k} {v}" for k, v in kept.items())
-          + f"; the original is kept as {args.session.with_name(args.session.stem + '.crashed.h5')}")
+    recovery = recover_session(args.session)
+    print(f"recovered {args.session}: " + ", ".join(f"{k} {v}" for k, v in recovery.kept.items())
+          + f"; the original is kept as {recovery.original}")
+    for note in recovery.notes:
+        print(f"  note: {note}")
     problems = validate_session(args.session)
     for problem in problems:
         print(f"  still wrong: {problem}")
@@ -280,17 +300,25 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "run", None):
         parser.print_help()
         return 2
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGTERM, signal.SIGINT)} if in_main_thread else {}
+    clear_stop()
+    sys.unraisablehook = _quiet_stop_in_callbacks
     try:
         return int(args.run(args) or 0)
-    except (UserError, SessionError) as exc:
+    except (UserError, SessionError, OutputError, OSError) as exc:
         print(f"photopft {args.verb}: error: {exc}", file=sys.stderr)
         return 2
-    except OSError as exc:
-        print(f"photopft {args.verb}: error: {exc}", file=sys.stderr)
-        return 2
+    except Terminated:
+        print(f"photopft {args.verb}: terminated; nothing half-written was left", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
-        print(f"photopft {args.verb}: interrupted", file=sys.stderr)
+        print(f"photopft {args.verb}: interrupted; nothing half-written was left", file=sys.stderr)
         return 130
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        sys.unraisablehook = sys.__unraisablehook__
 
 
 if __name__ == "__main__":

@@ -8,6 +8,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from app.args import positive
+from core.outputs import OutputError
 from core.pipeline import ReconstructionSettings
 from core.process import optical_volume, process_session
 from core.session import SessionFile, validate_session
@@ -20,13 +22,16 @@ def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) ->
                        description="Simulate a subject (tidal breathing, slow VC, three forced expirations) on "
                                    "the simulated rig, validate the session file and print its volume summary.")
     p.add_argument("-o", "--output-dir", type=Path, default=Path("photopft-demo"))
-    p.add_argument("--seconds", type=float, default=60.0)
-    p.add_argument("--scale", type=float, default=0.25)
+    p.add_argument("--seconds", type=positive, default=60.0)
+    p.add_argument("--scale", type=positive, default=0.25)
     p.add_argument("--seed", type=int, default=1)
 
     def run(args: argparse.Namespace) -> int:
-        args.output_dir.mkdir(parents=True, exist_ok=True)
         session = args.output_dir / "session.h5"
+        if session.exists():
+            raise OutputError(f"{session} exists (a demo was run there before, and a recorded session is never "
+                              "replaced): choose another folder with -o")
+        args.output_dir.mkdir(parents=True, exist_ok=True)
         from app.cli import build_parser
 
         sim_args = build_parser().parse_args(["simulate", "-o", str(session), "--protocol", "full", "--seconds",

@@ -5,15 +5,17 @@ from __future__ import annotations
 import argparse
 import time
 
+from app.args import finite, positive
+
 
 def add_emulate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("emulate", help="run a serial device emulator on a pseudo-terminal",
                        description="Serve a device's protocol (docs/protocols.md) on a new pseudo-terminal and print "
                                    "its path; runs until interrupted (or for --seconds).")
     p.add_argument("device", choices=("sequencer", "flowsensor"))
-    p.add_argument("--seconds", type=float, help="stop after this long")
-    p.add_argument("--corrupt-rate", type=float, default=0.0, help="flow sensor: share of frames with a bad byte")
-    p.add_argument("--drop-rate", type=float, default=0.0, help="flow sensor: share of frames lost")
+    p.add_argument("--seconds", type=positive, help="stop after this long")
+    p.add_argument("--corrupt-rate", type=finite, default=0.0, help="flow sensor: share of frames with a bad byte")
+    p.add_argument("--drop-rate", type=finite, default=0.0, help="flow sensor: share of frames lost")
     p.set_defaults(run=run_emulate)
 
 

@@ -20,6 +20,7 @@ import h5py
 import numpy as np
 
 from app.report_data import FLOW_SENSOR, OPTICAL, ReportData
+from core.outputs import atomic_output
 from core.session import SessionError, now_iso, validate_session
 
 DROPPED_ROOT_ATTRS = ("operator", "recovered")
@@ -40,7 +41,15 @@ def research_copy(session_path: str | os.PathLike, output: str | os.PathLike, st
     problems = validate_session(session_path)
     if problems:
         raise SessionError(f"{session_path} is not a valid session file: {problems[0]}")
-    partial = output.with_name(output.name + ".partial")
+    with atomic_output(output) as partial:
+        _write_research_copy(session_path, partial, study_key, study)
+        problems = validate_session(partial)
+        if problems:
+            raise SessionError(f"the research copy came out invalid ({problems[0]}); nothing was written")
+    return output
+
+
+def _write_research_copy(session_path: Path, partial: Path, study_key: bytes, study: str) -> None:
     with h5py.File(session_path, "r") as src, h5py.File(partial, "w", libver="latest") as dst:
         for key, value in src.attrs.items():
             if key not in DROPPED_ROOT_ATTRS:
@@ -56,12 +65,6 @@ def research_copy(session_path: str | os.PathLike, output: str | os.PathLike, st
             subject = dst["subject"].attrs
             subject["id"] = study_pseudonym(str(subject["id"]), study_key)
             subject["age_years"] = float(np.round(float(subject["age_years"])))
-    problems = validate_session(partial)
-    if problems:
-        partial.unlink()
-        raise SessionError(f"the research copy came out invalid ({problems[0]}); nothing was written")
-    os.replace(partial, output)
-    return output
 
 
 def volume_csv(data: ReportData, output: str | os.PathLike, rate_hz: float = 100.0) -> Path:
@@ -79,7 +82,7 @@ def volume_csv(data: ReportData, output: str | os.PathLike, rate_hz: float = 100
         values = np.interp(grid, t, v)
         values[(grid < t[0]) | (grid > t[-1])] = np.nan
         columns.append(values)
-    with open(output, "w", newline="", encoding="utf-8") as f:
+    with atomic_output(output) as partial, open(partial, "w", newline="", encoding="utf-8") as f:
         writer = csv.writer(f)
         writer.writerow(["time_s"] + [f"{n.replace(' ', '_')}_volume_l" for n in names])
         for k, t in enumerate(grid):
@@ -90,7 +93,7 @@ def volume_csv(data: ReportData, output: str | os.PathLike, rate_hz: float = 100
 def values_csv(data: ReportData, output: str | os.PathLike) -> Path:
     """One row per value and source, with the predicted value, LLN, z-score and percent predicted."""
     output = Path(output)
-    with open(output, "w", newline="", encoding="utf-8") as f:
+    with atomic_output(output) as partial, open(partial, "w", newline="", encoding="utf-8") as f:
         writer = csv.writer(f)
         writer.writerow(["parameter", "unit", "source", "value", "predicted", "lln", "z", "percent_predicted",
                          "equations"])

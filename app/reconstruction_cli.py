@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from app.args import add_force, positive
 from app.cli import UserError
 
 
@@ -36,10 +37,11 @@ def add_calibrate(sub: argparse._SubParsersAction) -> None:
                                          "given); write the rig calibration profile.")
     lights.add_argument("sessions", nargs="+", type=Path, help="sphere-calibration session files (specular, matte)")
     lights.add_argument("-o", "--output", type=Path, required=True, help="rig calibration profile to write (.json)")
-    lights.add_argument("--prior-sigma-mm", type=float, default=15.0,
+    lights.add_argument("--prior-sigma-mm", type=positive, default=15.0,
                         help="tolerance of the drawn LED positions, used as a prior (default 15)")
-    lights.add_argument("--max-residual-mm", type=float, default=25.0,
+    lights.add_argument("--max-residual-mm", type=positive, default=25.0,
                         help="reject a light whose highlight rays miss each other by more (rms, default 25)")
+    add_force(lights)
     lights.set_defaults(run=run_calibrate_lights)
     flow = what.add_parser("flow", help="the flow sensor's gain and offset from steady flows (thesis eq. 5.4)",
                            description="Fit flow (L/s) = C1 * adc + C0 to steady flows read off a reference "
@@ -47,12 +49,14 @@ def add_calibrate(sub: argparse._SubParsersAction) -> None:
                                        "session whose events are labelled flow=<L/s> (each lasting to the next event).")
     flow.add_argument("source", type=Path, help="pairs.csv or a flow-calibration session (.h5)")
     flow.add_argument("-o", "--output", type=Path, required=True, help="flow calibration profile (.json)")
+    add_force(flow)
     flow.set_defaults(run=run_calibrate_flow)
     volume = what.add_parser("volume", help="the thesis' volume regression from training sessions (eqs 5.1-5.3)",
                              description="Fit phi = (X^T X)^-1 X^T pv, X = [gradient volume, valid pixels, distance], "
                                          "pv the flow-sensor volume, from results files of processed sessions.")
     volume.add_argument("results", nargs="+", type=Path, help="results files (their sessions need a flow sensor)")
     volume.add_argument("-o", "--output", type=Path, required=True, help="volume calibration profile (.json)")
+    add_force(volume)
     volume.set_defaults(run=run_calibrate_volume)
     p.set_defaults(run=lambda args: p.print_help() or 2)
 
@@ -60,7 +64,9 @@ def add_calibrate(sub: argparse._SubParsersAction) -> None:
 def run_calibrate_lights(args: argparse.Namespace) -> int:
     from core.light_calibration import calibrate_lights
     from core.lights import CalibrationError
+    from core.outputs import check_output
 
+    check_output(args.output, args.sessions, force=args.force)
     try:
         calibration, reports = calibrate_lights(args.sessions, args.prior_sigma_mm, args.max_residual_mm)
     except CalibrationError as exc:
@@ -107,14 +113,18 @@ def add_process(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--prefilter-px", type=_non_negative, default=None, metavar="SIGMA",
                    help="Gaussian sigma in pixels on the images before the normals are solved (default: 0.56 "
                         "for a head 1400 px wide, none up to about 1000 px; 0: none)")
+    add_force(p)
     p.set_defaults(run=run_process)
 
 
 def run_process(args: argparse.Namespace) -> int:
     from core.pipeline import ReconstructionSettings
     from core.process import process_session
+    from core.outputs import check_output
     from core.profile import ProfileError, load_profile
 
+    check_output(args.output, [p for p in (args.session, args.rig, args.volume_calibration) if p is not None],
+                 force=args.force)
     volume_calibration = None
     if args.volume_calibration is not None:
         from core.calibration import CalibrationProfileError, VolumeCalibration
@@ -194,8 +204,10 @@ def steady_flows(source: Path) -> tuple[list[float], list[float]]:
 
 def run_calibrate_flow(args: argparse.Namespace) -> int:
     from core.calibration import CalibrationProfileError, fit_flow, save_profile
+    from core.outputs import check_output
     from core.session import now_iso
 
+    check_output(args.output, [args.source], force=args.force)
     means, flows = steady_flows(args.source)
     try:
         profile = fit_flow(means, flows, created=now_iso(), sources=[args.source.name])
@@ -244,8 +256,10 @@ def run_calibrate_volume(args: argparse.Namespace) -> int:
     import numpy as np
 
     from core.calibration import CalibrationProfileError, fit_volume, save_profile
+    from core.outputs import check_output
     from core.session import now_iso
 
+    check_output(args.output, args.results, force=args.force)
     features, volumes, names = [], [], []
     for path in args.results:
         x, pv, name = regression_samples(path)

@@ -8,6 +8,7 @@ import sys
 from contextlib import ExitStack
 from pathlib import Path
 
+from app.args import positive
 from app.cli import UserError
 from core.session import file_write_failed
 
@@ -18,12 +19,12 @@ def add_record(sub: argparse._SubParsersAction) -> None:
                                    "line; capture is never blocked by the writer.")
     p.add_argument("-o", "--output", type=Path, required=True)
     p.add_argument("--rig", type=Path, help="rig configuration (default resources/rigs/simulated.toml)")
-    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--seconds", type=positive, default=10.0)
     p.add_argument("--subject", default="ANON-0001", help="pseudonymous subject id")
     p.add_argument("--sex", choices=("male", "female"), default="male")
-    p.add_argument("--age", type=float, default=30.0)
-    p.add_argument("--height", type=float, default=175.0)
-    p.add_argument("--weight", type=float, default=75.0)
+    p.add_argument("--age", type=positive, default=30.0)
+    p.add_argument("--height", type=positive, default=175.0)
+    p.add_argument("--weight", type=positive, default=75.0)
     p.set_defaults(run=run_record)
     d = sub.add_parser("devices", help="list cameras and serial ports, check the rig's devices",
                        description="List the GigE Vision cameras and serial ports this machine sees, and check "
@@ -107,8 +108,9 @@ def run_record(args: argparse.Namespace) -> int:
     from drivers.rig import RigConfigError, load_rig_config
     from drivers.sequencer import SequencerError
 
-    if args.seconds <= 0:
-        raise UserError("--seconds must be positive")
+    from core.outputs import check_output
+
+    check_output(args.output, [args.rig] if args.rig else [], replaceable=False)
     try:
         config = load_rig_config(args.rig)
         subject = SubjectRecord(args.subject, args.sex, args.age, args.height, args.weight)

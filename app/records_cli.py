@@ -6,6 +6,7 @@ import argparse
 from datetime import date, datetime
 from pathlib import Path
 
+from app.args import add_force, positive
 from app.cli import UserError
 
 
@@ -23,6 +24,7 @@ def add_records_verbs(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--page-size", choices=("a4", "letter"), default="a4")
     r.add_argument("--equations", choices=("gli-global", "gli-2012"), default="gli-global")
     _records_arg(r)
+    add_force(r)
     r.set_defaults(run=run_report)
 
     e = sub.add_parser("export", help="a pseudonymised research copy, or CSV of the volume curves and values",
@@ -34,6 +36,7 @@ def add_records_verbs(sub: argparse._SubParsersAction) -> None:
     what.add_argument("--csv", type=Path, metavar="FOLDER", help="write volume.csv and values.csv here")
     e.add_argument("--study-key-file", type=Path, help="the study's secret key (16 bytes or more; --research)")
     e.add_argument("--study", default="", help="study name stored in the copy")
+    add_force(e)
     e.set_defaults(run=run_export)
 
     p = sub.add_parser("patients", help="patient records: add, list, history, register a session",
@@ -45,8 +48,8 @@ def add_records_verbs(sub: argparse._SubParsersAction) -> None:
     add.add_argument("--given-name", default="")
     add.add_argument("--sex", choices=("male", "female"), required=True)
     add.add_argument("--birth-date", required=True, help="YYYY-MM-DD")
-    add.add_argument("--height", type=float, required=True, help="cm")
-    add.add_argument("--weight", type=float, required=True, help="kg")
+    add.add_argument("--height", type=positive, required=True, help="cm")
+    add.add_argument("--weight", type=positive, required=True, help="kg")
     add.add_argument("--number", help="the hospital's patient number")
     add.add_argument("--pseudonym", help="keep this pseudonym (sessions recorded elsewhere); default: a new one")
     find = verbs.add_parser("list", help="patients whose name, number or pseudonym contains TEXT")
@@ -75,7 +78,9 @@ def _open_records(path: Path | None, create: bool):
 def run_report(args: argparse.Namespace) -> int:
     from app.report_data import build_report
     from app.report_pdf import write_report
+    from core.outputs import check_output
 
+    check_output(args.output, [p for p in (args.input, args.records) if p is not None], force=args.force)
     records = _open_records(args.records, create=False)
     try:
         data = build_report(args.input, records=records, equations=args.equations)
@@ -93,10 +98,12 @@ def run_report(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     from app.export import research_copy, values_csv, volume_csv
     from app.report_data import build_report
+    from core.outputs import check_output
 
     if args.research is not None:
         if args.study_key_file is None:
             raise UserError("--research needs --study-key-file (the study's secret key)")
+        check_output(args.research, [args.input, args.study_key_file], force=args.force)
         try:
             key = args.study_key_file.read_bytes().strip()
             out = research_copy(args.input, args.research, key, args.study)
@@ -104,7 +111,11 @@ def run_export(args: argparse.Namespace) -> int:
             raise UserError(str(exc)) from exc
         print(f"wrote {out}: pseudonymised research copy")
         return 0
+    if args.csv.exists() and not args.csv.is_dir():
+        raise UserError(f"--csv {args.csv} is a file, not a folder")
     args.csv.mkdir(parents=True, exist_ok=True)
+    for name in ("volume.csv", "values.csv"):
+        check_output(args.csv / name, [args.input], force=args.force)
     data = build_report(args.input, with_maps=False)
     try:
         volume = volume_csv(data, args.csv / "volume.csv")

@@ -31,6 +31,7 @@ from reportlab.platypus import (Image, KeepTogether, PageBreak, Paragraph, Simpl
 from app.paths import resources_dir
 from app.report_data import FLOW_SENSOR, OPTICAL, ReportData, ValueRow, best_manoeuvres
 from core import __version__
+from core.outputs import atomic_output
 
 PAGE_SIZES = {"a4": A4, "letter": letter}
 FONT, BOLD = "DejaVuSans", "DejaVuSans-Bold"
@@ -429,8 +430,9 @@ def write_report(data: ReportData, output: str | os.PathLike, page_size: str = "
     story.append(KeepTogether(_regions(data, styles)))
     story.append(Spacer(1, 4))
     story.append(KeepTogether(_tidal(data, styles)))
-    doc = SimpleDocTemplate(str(output), pagesize=size, leftMargin=margin, rightMargin=margin, topMargin=12 * mm,
-                            bottomMargin=14 * mm, title="Pulmonary function report", author=f"photopft {__version__}",
-                            subject=data.session_path.name)
-    doc.build(story, onFirstPage=footer, onLaterPages=footer)
+    with atomic_output(output) as partial:
+        doc = SimpleDocTemplate(str(partial), pagesize=size, leftMargin=margin, rightMargin=margin,
+                                topMargin=12 * mm, bottomMargin=14 * mm, title="Pulmonary function report",
+                                author=f"photopft {__version__}", subject=data.session_path.name)
+        doc.build(story, onFirstPage=footer, onLaterPages=footer)
     return output

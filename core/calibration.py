@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from core.jsonfile import read_json_object
+from core.outputs import write_text_atomic
 
 FLOW_FORMAT = "photopft-flow-calibration"
 VOLUME_FORMAT = "photopft-volume-calibration"
@@ -122,7 +123,7 @@ def fit_volume(features: np.ndarray, volume_l: np.ndarray, created: str = "",
 
 
 def save_profile(profile: FlowCalibration | VolumeCalibration, path: str | os.PathLike) -> None:
-    Path(path).write_text(json.dumps(profile.to_json(), indent=2) + "\n")
+    write_text_atomic(path, json.dumps(profile.to_json(), indent=2) + "\n")
 
 
 def _number(data: dict, key: str, path: Path) -> float:

@@ -15,6 +15,7 @@ from scipy import ndimage
 from core import __version__
 from core.metric_volume import HeadDisplacements, MetricVolume, metric_volume, tidal_compartments
 from core.photometric import CycleWindow, complete_cycles
+from core.outputs import atomic_output
 from core.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.profile import ProfileError, RigCalibration
 from core.session import SessionError, SessionFile
@@ -94,7 +95,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 raise SessionError(f"{session_path} has no head {name!r} (heads: {', '.join(session.heads)})")
         maps_at = sorted(set(maps_at or []))
         counts, distances, displacements = {}, {}, {}
-        with h5py.File(output, "w") as out:
+        with atomic_output(output) as partial, h5py.File(partial, "w") as out:
             out.attrs["format"] = RESULTS_FORMAT
             out.attrs["format_version"] = np.int64(1)
             out.attrs["session"] = str(session_path)

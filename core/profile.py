@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from core.jsonfile import read_json_object
+from core.outputs import write_text_atomic
 
 from core.rig import Rig
 
@@ -53,7 +54,7 @@ class RigCalibration:
                 "heads": heads, **self.extra}
 
     def save(self, path: str | os.PathLike) -> None:
-        Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n")
+        write_text_atomic(path, json.dumps(self.to_json(), indent=2) + "\n")
 
     def apply(self, rig: Rig) -> Rig:
         """The rig with this profile's lights in force on every head it names."""

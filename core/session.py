@@ -151,8 +151,10 @@ class SessionWriter(_OwnsFile):
             raise SessionError(f"kind must be one of {KINDS}, got {kind!r}")
         self.path = Path(path)
         self.rig = rig
+        if self.path.exists():
+            raise SessionError(f"{self.path} exists: a session file is never replaced (choose another name)")
         try:
-            self._file = h5py.File(self.path, "w", libver="latest")
+            self._file = h5py.File(self.path, "w-", libver="latest")
         except OSError as exc:
             raise SessionError(f"cannot create session file {self.path}: {exc}") from exc
         f = self._file
@@ -763,75 +765,3 @@ def validate_session(path: str | os.PathLike) -> list[str]:
     except (OSError, RuntimeError, KeyError) as exc:
         c.add(f"{path} could not be read to the end (truncated or corrupt?): {exc}")
     return c.problems
-
-
-def _written_prefix(timestamp_ns: h5py.Dataset, n: int) -> int:
-    """How many leading entries were really written: a dataset's extent can reach the file before
-    its data does (a full disk), and unwritten entries read back as zeros, so the times stop rising."""
-    stamps = timestamp_ns[:n]
-    if n == 0:
-        return 0
-    bad = np.nonzero((np.diff(stamps) <= 0) | (stamps[1:] == 0))[0]
-    return int(bad[0]) + 1 if len(bad) else n
-
-
-def recover_session(path: str | os.PathLike) -> dict[str, int]:
-    """Recover a session cut off mid-recording (crash, SIGKILL, power loss).
-
-    The file is read in SWMR mode (a killed writer leaves its "open for writing" flags set), and
-    the part every dataset reached is copied into a fresh file that takes the original's name;
-    the original is kept beside it as `<name>.crashed.h5`. Returns the frames (and flow samples)
-    kept per head. The root attribute `recovered` says when.
-    """
-    path = Path(path)
-    try:
-        src = h5py.File(path, "r", swmr=True)
-    except OSError as exc:
-        raise SessionError(f"cannot open {path} to recover it: {exc}") from exc
-    tmp = path.with_name(path.stem + ".recovering.h5")
-    kept: dict[str, int] = {}
-    with src, h5py.File(tmp, "w", libver="latest") as dst:
-        for key, value in src.attrs.items():
-            dst.attrs[key] = value
-        dst.attrs["recovered"] = now_iso()
-        for name in ("rig", "subject"):
-            if name in src:
-                src.copy(src[name], dst, name)
-
-        def trimmed(group: h5py.Group, keys: tuple[str, ...], n: int, block: int = 64) -> None:
-            out = dst.require_group(group.name)
-            for key in keys:
-                d = group[key]
-                new = out.create_dataset(key, shape=(n,) + d.shape[1:], dtype=d.dtype, maxshape=(None,) + d.shape[1:],
-                                         chunks=d.chunks)
-                for start in range(0, n, block):
-                    new[start:min(start + block, n)] = d[start:min(start + block, n)]
-
-        head_keys = ("frames", "light_index", "timestamp_ns", "frame_id")
-        for name in src.get("heads", {}):
-            g = src["heads"][name]
-            n = _written_prefix(g["timestamp_ns"], min(g[k].shape[0] for k in head_keys if k in g))
-            while n > 0:  # the last frames may have been half written: keep the frames that read back
-                try:
-                    if g["frames"][n - 1].any():
-                        break
-                except (OSError, RuntimeError):
-                    pass
-                n -= 1
-            trimmed(g, head_keys, n)
-            kept[name] = n
-        for group, keys in (("flow", ("adc", "timestamp_ns")), ("events", ("timestamp_ns", "label"))):
-            if group in src:
-                g = src[group]
-                n = _written_prefix(g["timestamp_ns"], min(g[k].shape[0] for k in keys))
-                trimmed(g, keys, n)
-                for key, value in g.attrs.items():
-                    dst[group].attrs[key] = value
-                if group == "flow":
-                    kept["flow"] = n
-        for name in ("truth",):
-            if name in src:
-                src.copy(src[name], dst, name)
-    os.replace(path, path.with_name(path.stem + ".crashed.h5"))
-    os.replace(tmp, path)
-    return kept

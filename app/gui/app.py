@@ -8,15 +8,17 @@ import tempfile
 from functools import partial
 from pathlib import Path
 
+from app.args import finite, positive
+
 
 def add_gui(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("gui", help="the desktop application (live view, patient sessions, calibrations)",
                        description="Runs on the simulated rig unless --rig names a real one.")
     p.add_argument("--rig", type=Path, help="rig configuration (default resources/rigs/simulated.toml)")
     p.add_argument("--session", type=Path, help="replay this recorded session in the live view")
-    p.add_argument("--speed", type=float, default=1.0, help="replay speed (1 = real time)")
-    p.add_argument("--scale", type=float, help="simulated rig: sensor scale (default the rig config's)")
-    p.add_argument("--smoke-test", type=float, metavar="SECONDS",
+    p.add_argument("--speed", type=finite, default=1.0, help="replay speed (1 = real time)")
+    p.add_argument("--scale", type=positive, help="simulated rig: sensor scale (default the rig config's)")
+    p.add_argument("--smoke-test", type=finite, metavar="SECONDS",
                    help="record a simulated session for SECONDS in the real window, process it, write its report, "
                         "print the figures and exit (0 when everything worked)")
     p.set_defaults(run=run_gui)

@@ -11,6 +11,7 @@ from typing import Callable
 
 import numpy as np
 
+from core.outputs import atomic_output
 from core.rig import DARK, Head, Rig, thesis_rig
 from core.session import SessionWriter, SubjectRecord
 from core.sim import shapes
@@ -236,8 +237,9 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
     block = rig.cycle_length * 11
     maps: dict[str, dict[int, object]] = {h: {} for h in rig.heads}
 
-    with SessionWriter(path, kind=scene.kind, rig=rig, subject=subject, created=config.created,
-                       root_attrs=root, compression=config.compression) as writer:
+    with atomic_output(path) as partial, SessionWriter(partial, kind=scene.kind, rig=rig, subject=subject,
+                                                       created=config.created, root_attrs=root,
+                                                       compression=config.compression) as writer:
         for t, label in scene.events:
             writer.add_event(CLOCK_START_NS + int(round(t * 1e9)), label)
         errors: list[BaseException] = []

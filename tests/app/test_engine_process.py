@@ -12,7 +12,8 @@ import pytest
 
 from app.engine_process import EngineError, EngineProcess
 from app.live import replay_source, simulated_source
-from core.session import SessionError, SessionFile, SubjectRecord, recover_session, validate_session
+from core.recovery import recover_session
+from core.session import SessionError, SessionFile, SubjectRecord, validate_session
 
 pytestmark = pytest.mark.slow
 
@@ -78,6 +79,6 @@ def test_an_engine_that_dies_is_said_and_the_recording_so_far_is_kept(engine, tm
     _wait(lambda: any("capture engine stopped" in p for p in engine.snapshot().problems), 10)
     with pytest.raises(EngineError, match="stopped"):
         engine.stop_recording()
-    kept = recover_session(path)
+    kept = recover_session(path).kept
     assert validate_session(path) == [], validate_session(path)
     assert min(kept.values()) > 30

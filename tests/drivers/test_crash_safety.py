@@ -12,7 +12,8 @@ import time
 import h5py
 import numpy as np
 
-from core.session import SessionFile, recover_session, validate_session
+from core.recovery import recover_session
+from core.session import SessionFile, validate_session
 
 
 def test_sigkill_mid_recording_keeps_the_data(tmp_path):
@@ -38,7 +39,7 @@ def test_sigkill_mid_recording_keeps_the_data(tmp_path):
     process.send_signal(signal.SIGKILL)
     process.wait()
     assert "photopft recover" in validate_session(out)[0]  # the cut-off file says what to do
-    kept = recover_session(out)
+    kept = recover_session(out).kept
     assert out.with_name("killed.crashed.h5").exists()  # the original is kept
     assert validate_session(out) == [], validate_session(out)
     with SessionFile(out) as s:
@@ -75,7 +76,7 @@ def test_a_full_disk_stops_the_recording_cleanly_and_keeps_the_data(tmp_path):
     assert run.returncode == 1, run.stderr
     assert "the recording stopped" in run.stderr and f"photopft recover {out}" in run.stderr
     assert "Traceback" not in run.stderr
-    kept = recover_session(out)
+    kept = recover_session(out).kept
     assert validate_session(out) == []
     with SessionFile(out) as s:
         for head in ("front", "back"):

@@ -21,6 +21,7 @@ from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayo
 
 from app.calibration_store import RIG_PROFILE, calibration_dir, keep_previous
 from app.gui.errors import show_error
+from core.outputs import next_free_path
 
 MIN_CAPTURES = 3
 
@@ -29,7 +30,7 @@ def capture_simulated(folder: Path, index: int, scale: float, heads: tuple[str, 
     """One placement of the simulated specular sphere (index 0: the centre of the view)."""
     from core.sim.simulate import SimConfig, simulate
 
-    path = folder / f"sphere-{index + 1:02d}.h5"
+    path = next_free_path(folder / f"sphere-{index + 1:02d}.h5")
     simulate(path, SimConfig(scene="specular-sphere", scale=scale, heads=heads, seed=1, placement_only=index,
                              sphere_radius_mm=radius_mm, led_offset_mm=8.0, led_intensity_spread=0.1))
     return path
@@ -44,7 +45,7 @@ def capture_from_rig(window):
     def capture(folder: Path, index: int) -> Path:
         wizard = window.findChild(SphereCalibrationWizard)
         radius = wizard.intro.radius.value() if wizard is not None else 75.0
-        path = folder / f"sphere-{index + 1:02d}.h5"
+        path = next_free_path(folder / f"sphere-{index + 1:02d}.h5")
         engine = window.engine
         engine.start_recording(path, None, kind="sphere-calibration",
                                root_attrs={"sphere_radius_mm": float(radius), "sphere_finish": "specular"})

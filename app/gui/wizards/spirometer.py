@@ -17,6 +17,7 @@ from app.calibration_store import FLOW_PROFILE, VOLUME_PROFILE, calibration_dir,
 from app.gui.errors import show_error
 from core.calibration import CalibrationProfileError, fit_flow, fit_volume
 from core.flow import btps_factor
+from core.outputs import write_text_atomic
 from core.session import now_iso
 
 
@@ -233,13 +234,13 @@ class SpirometerCalibrationWizard(QWizard):
         try:
             target = self.profile_dir / FLOW_PROFILE
             keep_previous(target)
-            target.write_text(json.dumps(flow, indent=2) + "\n")
+            write_text_atomic(target, json.dumps(flow, indent=2) + "\n")
             self.saved = [target]
             volume = self.volume_page.calibration
             if self.volume_page.enabled.isChecked() and volume is not None:
                 target = self.profile_dir / VOLUME_PROFILE
                 keep_previous(target)
-                target.write_text(json.dumps(volume.to_json(), indent=2) + "\n")
+                write_text_atomic(target, json.dumps(volume.to_json(), indent=2) + "\n")
                 self.saved.append(target)
         except OSError as exc:
             show_error(self, "The calibration profiles cannot be saved.", f"{exc}. Check the folder's permissions.")
