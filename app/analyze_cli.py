@@ -30,9 +30,12 @@ def run_analyze(args: argparse.Namespace) -> int:
 
     try:
         wave = read_waveform(args.waveform)
-        v = forced_values(wave.volume_l, wave.rate_hz)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
+    try:
+        v = forced_values(wave.volume_l, wave.rate_hz)
+    except ValueError as exc:
+        raise UserError(f"{args.waveform}: {exc}") from exc
     expected = wave.expected
     rows = [("FVC", "L", v.fvc_l, expected.get("FVC")), ("FEV1", "L", v.fev1_l, expected.get("FEV1")),
             ("FEV0.75", "L", v.fev075_l, None), ("FEV6", "L", v.fev6_l, expected.get("FEV6")),

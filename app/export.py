@@ -49,22 +49,40 @@ def research_copy(session_path: str | os.PathLike, output: str | os.PathLike, st
     return output
 
 
+def _date_only(iso: str) -> str:
+    return datetime.fromisoformat(iso).astimezone(timezone.utc).replace(hour=0, minute=0, second=0,
+                                                                        microsecond=0).isoformat()
+
+
 def _write_research_copy(session_path: Path, partial: Path, study_key: bytes, study: str) -> None:
+    """Every attribute that could lead back is written once, already changed: an attribute written and
+    then overwritten would leave its old bytes in the file."""
     with h5py.File(session_path, "r") as src, h5py.File(partial, "w", libver="latest") as dst:
         for key, value in src.attrs.items():
-            if key not in DROPPED_ROOT_ATTRS:
+            if key not in DROPPED_ROOT_ATTRS + ("created",):
                 dst.attrs[key] = value
-        created = datetime.fromisoformat(str(src.attrs["created"]))
-        dst.attrs["created"] = created.astimezone(timezone.utc).replace(hour=0, minute=0, second=0,
-                                                                         microsecond=0).isoformat()
+        dst.attrs["created"] = _date_only(str(src.attrs["created"]))
         dst.attrs["pseudonymised"] = now_iso()
         dst.attrs["study"] = study
         for name in src:
-            src.copy(src[name], dst, name)
-        if "subject" in dst:
-            subject = dst["subject"].attrs
-            subject["id"] = study_pseudonym(str(subject["id"]), study_key)
-            subject["age_years"] = float(np.round(float(subject["age_years"])))
+            if name == "subject":
+                subject = dst.create_group("subject")
+                for key, value in src["subject"].attrs.items():
+                    if key == "id":
+                        value = study_pseudonym(str(value.decode() if isinstance(value, bytes) else value), study_key)
+                    elif key == "age_years":
+                        value = float(np.round(float(value)))
+                    subject.attrs[key] = value
+            elif name == "rig":
+                rig = dst.create_group("rig")
+                for key, value in src["rig"].attrs.items():
+                    rig.attrs[key] = value
+                for head in src["rig"]:
+                    group = rig.create_group(head)
+                    for key, value in src["rig"][head].attrs.items():
+                        group.attrs[key] = _date_only(str(value)) if key == "calibrated" else value
+            else:
+                src.copy(src[name], dst, name)
 
 
 def volume_csv(data: ReportData, output: str | os.PathLike, rate_hz: float = 100.0) -> Path:

@@ -166,6 +166,14 @@ def run_process(args: argparse.Namespace) -> int:
     return 0
 
 
+def is_hdf5(path: Path) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(8) == b"\x89HDF\r\n\x1a\n"
+    except OSError as exc:
+        raise UserError(f"cannot read {path}: {exc}") from exc
+
+
 def steady_flows(source: Path) -> tuple[list[float], list[float]]:
     """(mean ADC, reference flow) pairs from a CSV or from a flow-calibration session's events."""
     import csv
@@ -173,12 +181,21 @@ def steady_flows(source: Path) -> tuple[list[float], list[float]]:
     import numpy as np
 
     if source.suffix.lower() == ".csv":
-        with open(source, newline="") as fh:
-            rows = list(csv.DictReader(fh))
         try:
-            return [float(r["adc_mean"]) for r in rows], [float(r["reference_lps"]) for r in rows]
-        except (KeyError, ValueError) as exc:
+            with open(source, newline="", encoding="utf-8") as fh:
+                rows = list(csv.DictReader(fh))
+        except UnicodeDecodeError as exc:
+            raise UserError(f"{source} is not a text CSV file ({exc.reason} at byte {exc.start})") from exc
+        try:
+            means, flows = [float(r["adc_mean"]) for r in rows], [float(r["reference_lps"]) for r in rows]
+        except (KeyError, ValueError, TypeError) as exc:
             raise UserError(f"{source}: needs numeric columns reference_lps and adc_mean ({exc})") from exc
+        bad = [k + 2 for k, pair in enumerate(zip(means, flows)) if not np.all(np.isfinite(pair))]
+        if bad:
+            raise UserError(f"{source}: line {bad[0]} holds a value that is not a finite number")
+        return means, flows
+    if not is_hdf5(source):
+        raise UserError(f"{source} is neither a CSV file (.csv) nor a flow-calibration session (HDF5)")
     from core.session import SessionFile
 
     with SessionFile(source) as s:
@@ -228,10 +245,17 @@ def regression_samples(results_path: Path):
 
     from core.session_analysis import analyse_session
 
+    from core.process import RESULTS_FORMAT
+
+    if not is_hdf5(results_path):
+        raise UserError(f"{results_path} is not a results file of `photopft process` (not HDF5)")
     with h5py.File(results_path, "r") as r:
+        if str(r.attrs.get("format", "")) != RESULTS_FORMAT:
+            raise UserError(f"{results_path} is not a results file of `photopft process` (it is "
+                            f"{str(r.attrs.get('format', 'no photopft file'))!r}): process the session first")
         heads = [h for h in ("front", "back") if h in r.get("heads", {})]
         if not heads:
-            raise UserError(f"{results_path} is not a results file with heads")
+            raise UserError(f"{results_path} is a results file without heads (cut off?): process the session again")
         from core.process import session_of_results
 
         session = session_of_results(results_path)

@@ -112,6 +112,17 @@ class SessionRecord:
     summary: dict
 
 
+def _create_private(path: Path) -> None:
+    """A new database readable by its owner only (0600; SQLite gives its -wal and -shm files the same)."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        return
+    except OSError as exc:
+        raise RecordsError(f"{path}: cannot create the records database ({exc})") from exc
+    os.close(fd)
+
+
 def default_path() -> Path:
     return data_dir() / "records.sqlite3"
 
@@ -141,7 +152,12 @@ class Records:
 
     def __init__(self, path: str | os.PathLike | None = None):
         self.path = Path(path) if path is not None else default_path()
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if path is None:
+            self.path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        elif not self.path.parent.is_dir():
+            raise RecordsError(f"{self.path}: the folder {self.path.parent} does not exist (records are never "
+                               "started in a folder made by mistake)")
+        _create_private(self.path)
         try:
             self._db = sqlite3.connect(self.path, isolation_level=None, timeout=10.0)
             self._db.execute("PRAGMA journal_mode=WAL")

@@ -68,6 +68,8 @@ def _open_records(path: Path | None, create: bool):
 
     target = path or default_path()
     if not create and not target.exists():
+        if path is not None:
+            raise UserError(f"--records {path}: no records database there")
         return None
     try:
         return Records(target)

@@ -124,6 +124,8 @@ def open_inputs(path: str | os.PathLike) -> tuple[Path, Path | None]:
     try:
         with h5py.File(path, "r") as f:
             is_results = str(f.attrs.get("format", "")) == RESULTS_FORMAT
+            if is_results and not any(h in f.get("heads", {}) for h in ("front", "back")):
+                raise SessionError(f"{path} is a results file without heads (cut off?): process the session again")
     except OSError as exc:
         raise SessionError(f"cannot open {path}: {exc}") from exc
     return (session_of_results(path), path) if is_results else (path, None)

@@ -137,6 +137,15 @@ def _number(data: dict, key: str, path: Path) -> float:
 
 def load_profile(path: str | os.PathLike) -> FlowCalibration | VolumeCalibration:
     path = Path(path)
+    try:
+        return _load_profile(path)
+    except (TypeError, ValueError, IndexError, AttributeError) as exc:
+        if isinstance(exc, CalibrationProfileError):
+            raise
+        raise CalibrationProfileError(f"{path}: a field has the wrong type or shape ({exc})") from exc
+
+
+def _load_profile(path: Path) -> FlowCalibration | VolumeCalibration:
     data = read_json_object(path, CalibrationProfileError, "calibration profile")
     kind = data.get("format")
     if kind not in (FLOW_FORMAT, VOLUME_FORMAT):

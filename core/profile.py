@@ -13,7 +13,7 @@ import numpy as np
 from core.jsonfile import read_json_object
 from core.outputs import write_text_atomic
 
-from core.rig import Rig
+from core.rig import Rig, light_position_problems
 
 PROFILE_FORMAT = "photopft-rig-calibration"
 
@@ -81,6 +81,15 @@ def _array(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
 
 def load_profile(path: str | os.PathLike) -> RigCalibration:
     path = Path(path)
+    try:
+        return _load_profile(path)
+    except (TypeError, ValueError, IndexError, AttributeError) as exc:
+        if isinstance(exc, ProfileError):
+            raise
+        raise ProfileError(f"{path}: a field has the wrong type or shape ({exc})") from exc
+
+
+def _load_profile(path: Path) -> RigCalibration:
     data = read_json_object(path, ProfileError, "calibration profile")
     if data.get("format") != PROFILE_FORMAT:
         raise ProfileError(f"{path}: 'format' must be {PROFILE_FORMAT!r}")
@@ -99,6 +108,8 @@ def load_profile(path: str | os.PathLike) -> RigCalibration:
         if "light_positions_mm" not in h:
             raise ProfileError(f"{where}.light_positions_mm is missing")
         positions = _array(h["light_positions_mm"], (4, 3), f"{where}.light_positions_mm")
+        if problems := light_position_problems(positions):
+            raise ProfileError(f"{where}.light_positions_mm: {'; '.join(problems)}")
         intensity = _array(h.get("light_intensity", [1, 1, 1, 1]), (4,), f"{where}.light_intensity")
         if np.any(intensity <= 0):
             raise ProfileError(f"{where}.light_intensity must be positive")

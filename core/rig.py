@@ -111,6 +111,24 @@ class Rig:
         return 1e9 / self.frame_rate_hz
 
 
+MIN_LIGHT_SEPARATION_MM = 10.0  # a head's LEDs sit hundreds of mm apart and from the lens; closer is a wrong file
+
+
+def light_position_problems(positions_mm: np.ndarray) -> list[str]:
+    """What makes four light positions impossible: non-finite, at the camera's centre, or two at one place
+    (photometric stereo then has no light direction to solve with, and the distance fit reads 0)."""
+    p = np.asarray(positions_mm, dtype=float)
+    if p.shape != (4, 3):
+        return [f"must be 4 x 3, found {p.shape}"]
+    if not np.all(np.isfinite(p)):
+        return ["holds non-finite values"]
+    problems = [f"light {k} is {np.linalg.norm(p[k]):.1f} mm from the camera's centre"
+                for k in range(4) if np.linalg.norm(p[k]) < MIN_LIGHT_SEPARATION_MM]
+    problems += [f"lights {i} and {j} are {np.linalg.norm(p[i] - p[j]):.1f} mm apart"
+                 for i in range(4) for j in range(i + 1, 4) if np.linalg.norm(p[i] - p[j]) < MIN_LIGHT_SEPARATION_MM]
+    return problems
+
+
 def lens_square_lights(half_side_mm: float = 500.0) -> np.ndarray:
     """Four LEDs at the corners of a square around the lens, in the lens plane (z = 0)."""
     s = half_side_mm

@@ -23,7 +23,7 @@ import h5py
 import numpy as np
 
 from core import __version__
-from core.rig import DARK, Head, Rig
+from core.rig import DARK, Head, Rig, light_position_problems
 
 FORMAT = "photopft-session"
 FORMAT_VERSION = 1
@@ -477,8 +477,9 @@ class _Checker:
                 self.add(f"attribute {where} must have shape {shape}, found {arr.shape}")
                 return None
             value = arr if shape is not None else arr.reshape(()).item()
-            if shape is not None and not np.all(np.isfinite(arr)):
+            if not np.all(np.isfinite(arr)):
                 self.add(f"attribute {where} holds non-finite values")
+                return None
         if choices is not None and value not in choices:
             self.add(f"attribute {where} is {value!r}, must be one of {', '.join(map(str, choices))}")
         return value
@@ -528,6 +529,12 @@ def _check_rig(c: _Checker, f: h5py.File) -> dict[str, tuple[int, int, int]]:
         return {}
     rig = f["rig"]
     c.attr(rig, "name", "str")
+    rate = c.attr(rig, "frame_rate_hz", "float", required=False)
+    if rate is not None and not 0 < rate <= 10_000:
+        c.add(f"attribute /rig@frame_rate_hz must be a positive frame rate, found {rate}")
+    baseline = c.attr(rig, "head_baseline_mm", "float", required=False)
+    if baseline is not None and not 0 < baseline < 100_000:
+        c.add(f"attribute /rig@head_baseline_mm must be a positive distance, found {baseline}")
     sequence = None
     if "sequence" not in rig.attrs:
         c.add("missing attribute /rig@sequence")
@@ -557,7 +564,10 @@ def _check_rig(c: _Checker, f: h5py.File) -> dict[str, tuple[int, int, int]]:
                 c.add(f"attribute /rig/{name}@{key} must be positive, found {value}")
         c.attr(g, "dist_coeffs", "float", shape=(5,))
         bits = c.attr(g, "bit_depth", "int", choices=(8, 10, 12, 16))
-        c.attr(g, "light_positions_mm", "float", shape=(4, 3))
+        positions = c.attr(g, "light_positions_mm", "float", shape=(4, 3))
+        if positions is not None and np.all(np.isfinite(positions)):
+            for problem in light_position_problems(positions):
+                c.add(f"attribute /rig/{name}@light_positions_mm: {problem}")
         intensity = c.attr(g, "light_intensity", "float", shape=(4,))
         if intensity is not None and np.any(np.asarray(intensity) <= 0):
             c.add(f"attribute /rig/{name}@light_intensity must be positive, found {np.asarray(intensity).tolist()}")

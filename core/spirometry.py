@@ -66,6 +66,9 @@ class ForcedValues:
         return self.bev_ok
 
 
+MIN_BLOW_L = 0.1  # below this there is no blow to grade (a small child's FVC is about 1 L)
+
+
 def _at(t: np.ndarray, values: np.ndarray, when: float) -> float:
     return float(np.interp(when, t, values))
 
@@ -73,9 +76,17 @@ def _at(t: np.ndarray, values: np.ndarray, when: float) -> float:
 def forced_values(volume_l: np.ndarray, rate_hz: float) -> ForcedValues:
     """Values of one forced expiration from its exhaled volume-time curve."""
     v = np.asarray(volume_l, dtype=float)
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise ValueError(f"the sample rate must be a positive number, found {rate_hz}")
     if v.ndim != 1 or len(v) < int(rate_hz):
-        raise ValueError("a forced expiration needs at least one second of volume samples")
+        raise ValueError(f"the curve lasts {len(v) / rate_hz:.2f} s: FEV1 needs at least one second of volume "
+                         "samples")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("the curve holds non-finite samples (NaN or infinity)")
     v = v - v[0]
+    if v.max() < MIN_BLOW_L:
+        raise ValueError(f"no forced expiration: the exhaled volume never exceeds {max(v.max(), 0.0):.3f} L "
+                         f"(an empty blow is not graded)")
     t = np.arange(len(v)) / rate_hz
     flow = np.gradient(v, 1.0 / rate_hz)
     # Back extrapolation: the tangent at the steepest part of the curve (over 80 ms, ATS/ERS).
@@ -245,21 +256,33 @@ def read_waveform(path: str | os.PathLike) -> Waveform:
             if section == "header":
                 header[key.lower()] = value
             else:
-                try:
-                    expected[key.upper()] = float(value)
-                except ValueError as exc:
-                    raise ValueError(f"{path}:{number}: parameter {key} is not a number: {value!r}") from exc
+                expected[key.upper()] = _wf_number(value, f"{path}:{number}: parameter {key}")
         elif section == "data":
-            try:
-                data.append(float(line))
-            except ValueError as exc:
-                raise ValueError(f"{path}:{number}: data sample is not a number: {line!r}") from exc
+            data.append(_wf_number(line, f"{path}:{number}: data sample"))
     if "freq" not in header:
         raise ValueError(f"{path}: [Header] has no Freq")
+    rate = _wf_number(header["freq"], f"{path}: [Header] Freq")
+    if not rate > 0:
+        raise ValueError(f"{path}: [Header] Freq must be a positive sample rate, found {header['freq']!r}")
+    zoom = _wf_number(header["fzoom"], f"{path}: [Header] fZoom") if "fzoom" in header else 1.0
+    if not zoom > 0:
+        raise ValueError(f"{path}: [Header] fZoom must be a positive scale factor, found {header['fzoom']!r}")
     kind = header.get("type", "VT").upper()
     if kind not in ("VT", "FT"):
         raise ValueError(f"{path}: Type {kind!r} is neither VT (volume-time) nor FT (flow-time)")
     if len(data) < 10:
         raise ValueError(f"{path}: [Data] holds {len(data)} samples")
-    return Waveform(header.get("group", ""), header.get("name", path.stem), kind, float(header["freq"]),
-                    np.asarray(data), expected)
+    # ISO 23747 files store samples as integers to be multiplied by fZoom
+    return Waveform(header.get("group", ""), header.get("name", path.stem), kind, rate,
+                    zoom * np.asarray(data), expected)
+
+
+def _wf_number(text: str, where: str) -> float:
+    """A number of a .wf file: a decimal comma is read as a point; NaN and infinity are refused."""
+    try:
+        value = float(text.strip().replace(",", "."))
+    except ValueError as exc:
+        raise ValueError(f"{where} is not a number: {text!r}") from exc
+    if not np.isfinite(value):
+        raise ValueError(f"{where} must be a finite number, found {text!r}")
+    return value

@@ -24,6 +24,47 @@ class RigConfigError(ValueError):
     """A rig configuration that cannot be used; the message names the file and the field."""
 
 
+_OPTICS_KEYS = ("focal_length_mm", "pixel_size_um", "fx_px", "fy_px", "cx_px", "cy_px", "dist_coeffs")
+KNOWN_KEYS: dict[str, tuple[str, ...]] = {
+    "": ("name", "camera", "heads", "sequencer", "flowsensor", "simulation", "calibration"),
+    "camera": ("width", "height", "offset_x", "offset_y", "binning", "pixel_format", "exposure_us", "frame_rate_hz",
+               "trigger"),
+    "heads": ("front", "back"),
+    "heads.front": ("camera",) + _OPTICS_KEYS,
+    "heads.back": ("camera",) + _OPTICS_KEYS,
+    "sequencer": ("port",),
+    "flowsensor": ("port", "gain_lps", "offset_lps"),
+    "simulation": ("scale", "seed", "protocol"),
+}
+_TABLES = ("camera", "heads", "heads.front", "heads.back", "sequencer", "flowsensor", "simulation")
+
+
+def _check_keys(path: Path, data: dict, table: str = "") -> None:
+    """Every key known, every table a table: a misspelt key is refused with the nearest valid one,
+    never silently ignored."""
+    import difflib
+
+    known = KNOWN_KEYS[table]
+    for key, value in data.items():
+        where = f"[{table}] " if table else ""
+        if key not in known:
+            near = difflib.get_close_matches(key, known, n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else f"; known keys: {', '.join(known)}"
+            raise RigConfigError(f"{path}: {where}unknown key {key!r}{hint}")
+        inner = f"{table}.{key}" if table else key
+        if inner in _TABLES:
+            if not isinstance(value, dict):
+                raise RigConfigError(f"{path}: {inner} must be a table ([{inner}]), found {value!r}")
+            _check_keys(path, value, inner)
+
+
+def _number(path: Path, table: str, key: str, value: Any, low: float, high: float, integer: bool = False) -> None:
+    kind = int if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kind) or not low <= value <= high:
+        raise RigConfigError(f"{path}: [{table}] {key} must be {'a whole number' if integer else 'a number'} "
+                             f"from {low:g} to {high:g}, found {value!r}")
+
+
 @dataclass(frozen=True)
 class RigConfig:
     path: Path
@@ -51,6 +92,7 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
         raise RigConfigError(f"cannot read rig configuration {path}: {exc}") from exc
     except tomllib.TOMLDecodeError as exc:
         raise RigConfigError(f"{path} is not valid TOML: {exc}") from exc
+    _check_keys(path, data)
     heads = data.get("heads")
     if not isinstance(heads, dict) or "front" not in heads:
         raise RigConfigError(f"{path}: [heads.front] is required")
@@ -81,10 +123,29 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
         raise RigConfigError(f"{path}: [camera] frame_rate_hz must be between 1 and 500, found {rate!r}")
     if camera.get("pixel_format", "Mono12") not in ("Mono8", "Mono12"):
         raise RigConfigError(f"{path}: [camera] pixel_format must be Mono8 or Mono12")
+    for key, low, high, integer in (("width", 1, 100_000, True), ("height", 1, 100_000, True),
+                                    ("offset_x", 0, 100_000, True), ("offset_y", 0, 100_000, True),
+                                    ("binning", 1, 8, True), ("exposure_us", 1, 1_000_000, False)):
+        if key in camera:
+            _number(path, "camera", key, camera[key], low, high, integer)
+    if camera.get("trigger", "free") not in ("free", "line", "software"):
+        raise RigConfigError(f"{path}: [camera] trigger must be free, line or software, found "
+                             f"{camera['trigger']!r}")
+    simulation = data.get("simulation", {})
+    if "scale" in simulation:
+        _number(path, "simulation", "scale", simulation["scale"], 0.01, 1.0)
+    if "seed" in simulation:
+        _number(path, "simulation", "seed", simulation["seed"], 0, 2**32 - 1, integer=True)
+    if "protocol" in simulation:
+        from core.sim.breathing import PROTOCOLS
+
+        if simulation["protocol"] not in PROTOCOLS:
+            raise RigConfigError(f"{path}: [simulation] protocol must be one of {', '.join(PROTOCOLS)}, found "
+                                 f"{simulation['protocol']!r}")
     calibration = data.get("calibration")
     return RigConfig(path, str(data.get("name", path.stem)), cameras, str(sequencer), flow_port,
                      None if gain is None else float(gain), None if offset is None else float(offset), camera,
-                     data.get("simulation", {}), Path(calibration) if calibration else None, optics)
+                     simulation, Path(calibration) if calibration else None, optics)
 
 
 _POSITIVE_OPTICS = ("focal_length_mm", "pixel_size_um", "fx_px", "fy_px")

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import signal
+import stat
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import h5py
+import numpy as np
 import pytest
 
 from app.cli import build_parser, main
@@ -219,3 +222,89 @@ def test_recover_a_file_missing_a_dataset_says_which(session, tmp_path, capsys):
     other.write_text("not HDF5")
     code, err = run(["recover", str(other)], capsys)
     assert code == 2 and "not an HDF5 file" in err and str(other) in err
+
+
+# ------------------------------------------------------------------------- impossible values
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda f: f["rig"].attrs.__setitem__("frame_rate_hz", 0.0), "/rig@frame_rate_hz"),
+    (lambda f: f["rig"].attrs.__setitem__("frame_rate_hz", -110.0), "/rig@frame_rate_hz"),
+    (lambda f: f["rig"].attrs.__setitem__("frame_rate_hz", float("nan")), "/rig@frame_rate_hz"),
+    (lambda f: f["rig/front"].attrs.__setitem__("light_positions_mm", np.zeros((4, 3))), "light_positions_mm"),
+    (lambda f: f["rig/back"].attrs.__setitem__("light_positions_mm", np.full((4, 3), 300.0)), "apart"),
+    (lambda f: f["rig/front"].attrs.__setitem__("fx", float("inf")), "/rig/front@fx"),
+])
+def test_impossible_session_values_are_refused_by_name(session, capsys, change, message):
+    with h5py.File(session, "r+") as f:
+        change(f)
+    for verb in (["validate"], ["info"], ["process", "-o", str(session.with_name("r.h5"))]):
+        code = main([verb[0], str(session)] + verb[1:])
+        captured = capsys.readouterr()
+        assert code in (1, 2) and message in captured.out + captured.err
+        assert "Traceback" not in captured.err
+    assert not session.with_name("r.h5").exists()
+
+
+def test_a_profile_with_coincident_lights_is_refused(tmp_path, session, capsys):
+    from core.profile import PROFILE_FORMAT
+
+    profile = tmp_path / "rig.json"
+    profile.write_text(json.dumps({"format": PROFILE_FORMAT, "format_version": 1, "heads": {
+        "front": {"light_positions_mm": [[0, 0, 0]] * 4}}}))
+    code, err = run(["process", str(session), "--rig", str(profile), "-o", str(tmp_path / "r.h5")], capsys)
+    assert code == 2 and str(profile) in err and "light_positions_mm" in err and "camera's centre" in err
+
+
+@pytest.mark.parametrize("text, message", [
+    ('[camera]\nframe_rate_hz = 110\nexposure_uss = 1000\n[heads.front]\ncamera = "sim"\n',
+     "unknown key 'exposure_uss'; did you mean 'exposure_us'?"),
+    ('nmae = "x"\n[heads.front]\ncamera = "sim"\n', "unknown key 'nmae'; did you mean 'name'?"),
+    ('[heads.front]\ncamera = "sim"\nfocal_lenght_mm = 25\n', "did you mean 'focal_length_mm'?"),
+    ('[heads.front]\ncamera = "sim"\n[simulation]\nscale = 5\n', "[simulation] scale must be a number from"),
+    ('[heads.front]\ncamera = "sim"\n[simulation]\nprotocol = "jog"\n', "[simulation] protocol"),
+    ('[heads.front]\ncamera = "sim"\n[camera]\nframe_rate_hz = 0\n', "frame_rate_hz"),
+    ('camera = 3\n[heads.front]\ncamera = "sim"\n', "camera must be a table"),
+])
+def test_rig_files_with_unknown_keys_or_impossible_values_are_refused(tmp_path, capsys, text, message):
+    rig = tmp_path / "rig.toml"
+    rig.write_text(text)
+    code, err = run(["record", "--rig", str(rig), "--seconds", "1", "-o", str(tmp_path / "s.h5")], capsys)
+    assert code == 2 and message in err and str(rig) in err
+    assert not (tmp_path / "s.h5").exists()
+
+
+def test_records_in_a_missing_folder_are_refused_and_new_ones_are_private(tmp_path, capsys, monkeypatch):
+    missing = tmp_path / "no-such-folder" / "records.sqlite3"
+    args = ["--family-name", "Doe", "--sex", "female", "--birth-date", "1980-01-01", "--height", "165",
+            "--weight", "60"]
+    code, err = run(["patients", "--records", str(missing), "add"] + args, capsys)
+    assert code == 2 and "does not exist" in err and not missing.parent.exists()
+    code, err = run(["report", str(tmp_path / "x.h5"), "-o", str(tmp_path / "r.pdf"), "--records", str(missing)],
+                    capsys)
+    assert code == 2 and str(missing) in err
+    path = tmp_path / "records.sqlite3"
+    assert main(["patients", "--records", str(path), "add"] + args) == 0
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    from app.records import Records
+
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "fresh-home"))
+    Records().close()
+    folder = tmp_path / "fresh-home" / "photopft"
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+    assert stat.S_IMODE((folder / "records.sqlite3").stat().st_mode) == 0o600
+
+
+def test_the_research_copy_holds_no_clinic_pseudonym_or_time_in_its_bytes(session, tmp_path):
+    with SessionFile(session) as s:
+        clinic_id, created = s.subject.id, s.created
+        calibrated = s.rig.heads["front"].calibrated
+    key = tmp_path / "study.key"
+    key.write_bytes(b"0123456789abcdef0123")
+    copy = tmp_path / "research.h5"
+    assert main(["export", str(session), "--research", str(copy), "--study-key-file", str(key)]) == 0
+    raw = copy.read_bytes()
+    assert clinic_id.encode() not in raw
+    assert created.encode() not in raw and created[11:19].encode() not in raw
+    assert calibrated[11:19].encode() not in raw or calibrated[11:19] == "00:00:00"
+    assert validate_session(copy) == []
