@@ -308,3 +308,64 @@ def test_the_research_copy_holds_no_clinic_pseudonym_or_time_in_its_bytes(sessio
     assert created.encode() not in raw and created[11:19].encode() not in raw
     assert calibrated[11:19].encode() not in raw or calibrated[11:19] == "00:00:00"
     assert validate_session(copy) == []
+
+
+# ------------------------------------------------------------------------- waveform and calibration inputs
+
+
+def _wf(tmp_path: Path, header: str, samples: list[str], name: str = "w.wf") -> Path:
+    path = tmp_path / name
+    path.write_text("[Header]\n" + header + "\n[Parameters]\n[Data]\n" + "\n".join(samples) + "\n")
+    return path
+
+
+def _blow(rate: int = 100, seconds: float = 4.0) -> np.ndarray:
+    t = np.arange(int(rate * seconds)) / rate
+    return 4.0 * (1 - np.exp(-t / 0.5))
+
+
+def test_fzoom_and_decimal_commas_are_read(tmp_path, capsys):
+    plain = _wf(tmp_path, "Type=VT\nFreq=100", [f"{v:.5f}" for v in _blow()], "plain.wf")
+    zoomed = _wf(tmp_path, "Type=VT\nFreq=100,0\nfZoom=0,001", [f"{round(v * 1000)}" for v in _blow()], "zoom.wf")
+    outputs = []
+    for path in (plain, zoomed):
+        assert main(["analyze", "--waveform", str(path)]) == 0
+        outputs.append(capsys.readouterr().out)
+    values = [[line.split()[1] for line in out.splitlines() if line.strip().startswith(("FVC", "PEF"))]
+              for out in outputs]
+    plain_values, zoomed_values = ([float(x) for x in v] for v in values)
+    assert zoomed_values == pytest.approx(plain_values, rel=0.01)  # samples rounded to whole mL
+    assert plain_values[0] == pytest.approx(4.0, abs=0.01)
+
+
+@pytest.mark.parametrize("header, samples, message", [
+    ("Type=VT\nFreq=0", None, "Freq must be a positive"),
+    ("Type=VT\nFreq=-100", None, "Freq must be a positive"),
+    ("Type=VT\nFreq=nan", None, "Freq must be a finite number"),
+    ("Type=VT\nFreq=100", ["0.1", "nan"] * 200, "must be a finite number"),
+    ("Type=VT\nFreq=100", ["0"] * 400, "no forced expiration"),
+    ("Type=VT\nFreq=100", [f"{v:.4f}" for v in _blow(seconds=0.6)], "lasts 0.60 s"),
+])
+def test_impossible_waveforms_are_refused_with_the_file_named(tmp_path, capsys, header, samples, message):
+    path = _wf(tmp_path, header, samples or [f"{v:.5f}" for v in _blow()])
+    code, err = run(["analyze", "--waveform", str(path)], capsys)
+    assert code == 2 and message in err and str(path) in err
+
+
+def test_calibration_inputs_of_the_wrong_kind_are_one_line(session, tmp_path, capsys):
+    binary = tmp_path / "flows.csv"
+    binary.write_bytes(bytes(range(256)) * 4)
+    code, err = run(["calibrate", "flow", str(binary), "-o", str(tmp_path / "f.json")], capsys)
+    assert code == 2 and str(binary) in err
+    nan_rows = tmp_path / "nan.csv"
+    nan_rows.write_text("reference_lps,adc_mean\n1,2100\nnan,2200\n3,2300\n")
+    code, err = run(["calibrate", "flow", str(nan_rows), "-o", str(tmp_path / "f.json")], capsys)
+    assert code == 2 and "line 3" in err
+    code, err = run(["calibrate", "volume", str(session), "-o", str(tmp_path / "v.json")], capsys)
+    assert code == 2 and "not a results file" in err and str(session) in err
+    headless = tmp_path / "headless.h5"
+    with h5py.File(headless, "w") as f:
+        f.attrs["format"] = "photopft-results"
+    for verb in (["analyze", str(headless)], ["report", str(headless), "-o", str(tmp_path / "r.pdf")]):
+        code, err = run(verb, capsys)
+        assert code == 2 and "without heads" in err
