@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from core.jsonfile import read_json_object
+from core.jsonfile import load_checked, read_json_object
 from core.outputs import write_text_atomic
 
 FLOW_FORMAT = "photopft-flow-calibration"
@@ -136,13 +136,7 @@ def _number(data: dict, key: str, path: Path) -> float:
 
 
 def load_profile(path: str | os.PathLike) -> FlowCalibration | VolumeCalibration:
-    path = Path(path)
-    try:
-        return _load_profile(path)
-    except (TypeError, ValueError, IndexError, AttributeError) as exc:
-        if isinstance(exc, CalibrationProfileError):
-            raise
-        raise CalibrationProfileError(f"{path}: a field has the wrong type or shape ({exc})") from exc
+    return load_checked(Path(path), _load_profile, CalibrationProfileError)
 
 
 def _load_profile(path: Path) -> FlowCalibration | VolumeCalibration:

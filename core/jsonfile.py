@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TypeVar
+
+T = TypeVar("T")
 
 
 def read_json_object(path: Path, error: type[Exception], what: str = "file") -> dict[str, Any]:
@@ -18,3 +20,14 @@ def read_json_object(path: Path, error: type[Exception], what: str = "file") -> 
     if not isinstance(data, dict):
         raise error(f"{path}: expected a JSON object, found {type(data).__name__}")
     return data
+
+
+def load_checked(path: Path, load: Callable[[Path], T], error: type[Exception]) -> T:
+    """`load(path)`, with a field of the wrong type or shape (a traceback in the loader) turned into
+    `error` naming the file."""
+    try:
+        return load(path)
+    except error:
+        raise
+    except (TypeError, ValueError, IndexError, AttributeError, KeyError) as exc:
+        raise error(f"{path}: a field has the wrong type or shape ({exc})") from exc

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from core.jsonfile import read_json_object
+from core.jsonfile import load_checked, read_json_object
 from core.outputs import write_text_atomic
 
 from core.rig import Rig, light_position_problems
@@ -80,13 +80,7 @@ def _array(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
 
 
 def load_profile(path: str | os.PathLike) -> RigCalibration:
-    path = Path(path)
-    try:
-        return _load_profile(path)
-    except (TypeError, ValueError, IndexError, AttributeError) as exc:
-        if isinstance(exc, ProfileError):
-            raise
-        raise ProfileError(f"{path}: a field has the wrong type or shape ({exc})") from exc
+    return load_checked(Path(path), _load_profile, ProfileError)
 
 
 def _load_profile(path: Path) -> RigCalibration:
