@@ -24,6 +24,7 @@ from app.gui.live_view import WORKING_RANGE_MM
 from app.engine_process import Engine
 from app.paths import data_dir
 from app.records import Patient, Records, RecordsError
+from core.outputs import next_free_path
 from core.session import SubjectRecord
 from core.spirometry import repeatability_tolerance_l
 
@@ -378,7 +379,7 @@ class PatientSessionWizard(QWizard):
         patient = self.patient_page.patient()
         now = datetime.now(timezone.utc)
         self.sessions_dir.mkdir(parents=True, exist_ok=True)
-        self.session_path = self.sessions_dir / f"{patient.pseudonym}-{now:%Y%m%d-%H%M%S}.h5"
+        self.session_path = next_free_path(self.sessions_dir / f"{patient.pseudonym}-{now:%Y%m%d-%H%M%S}.h5")
         subject = SubjectRecord(**patient.subject_attrs(now))
         kind = "simulation" if self.engine.info.simulated else "patient"
         try:
