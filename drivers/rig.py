@@ -47,6 +47,8 @@ def _check_keys(path: Path, data: dict, table: str = "") -> None:
     known = KNOWN_KEYS[table]
     for key, value in data.items():
         where = f"[{table}] " if table else ""
+        if key not in known and table == "heads":
+            raise RigConfigError(f"{path}: unknown head [heads.{key}]: heads are front and back")
         if key not in known:
             near = difflib.get_close_matches(key, known, n=1)
             hint = f"; did you mean {near[0]!r}?" if near else f"; known keys: {', '.join(known)}"
