@@ -286,7 +286,7 @@ def _fast_box(mask: np.ndarray) -> tuple[slice, slice]:
 
 def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, tolerance: float = 1e-4,
                      max_iterations: int = 200, workers: int = -1,
-                     robust_iterations: int = ROBUST_ITERATIONS) -> np.ndarray:
+                     robust_iterations: int = ROBUST_ITERATIONS, start: np.ndarray | None = None) -> np.ndarray:
     """Least-squares surface over the mask's own pixel edges; NaN off the mask; zero mean over it.
 
     Each pixel edge inside the mask gives one equation z[next] - z[this] = mean of their gradients;
@@ -297,6 +297,10 @@ def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, tolerance
     the residual to `tolerance` times the right-hand side. Then `robust_iterations` reweighted
     solves, each started from the last (module doc: depth discontinuities); 0 gives the plain
     least-squares surface.
+
+    `start`, a log-depth near the answer (a cycle's previous iteration, the stream's previous
+    cycle), replaces the DCT surface where it is finite: the same solution, in fewer iterations,
+    and none at all when it already solves these gradients.
     """
     full_mask = mask & np.isfinite(gu) & np.isfinite(gv)
     out = np.full(full_mask.shape, np.nan)
@@ -309,7 +313,7 @@ def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, tolerance
     du, dv, wu, wv = (np.empty(mask.shape) for _ in range(4))
     _trapezoid_edges(gu, gv, mask, du, dv, wu, wv)
     used_u, used_v = wu > 0, wv > 0
-    z = np.where(mask, integrate_dct(gu, gv, workers), 0.0)
+    z = _starting_surface(gu, gv, mask, None if start is None else start[box], workers)
     for robust in range(robust_iterations + 1):
         if robust:
             scale = ROBUST_SCALE * _median_abs_residual(z, du, dv, used_u, used_v)
@@ -319,6 +323,19 @@ def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, tolerance
         _conjugate_gradients(z, du, dv, wu, wv, mask, tolerance, max_iterations, workers)
     out[box] = np.where(mask, z - z[mask].mean(), np.nan)
     return out
+
+
+def _starting_surface(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, start: np.ndarray | None,
+                      workers: int) -> np.ndarray:
+    """The first guess on the mask (zero off it): `start` where it is finite, the DCT surface
+    elsewhere, lifted to meet `start` on average."""
+    known = mask if start is None else mask & np.isfinite(start)
+    if start is not None and known.all(where=mask):
+        return np.where(mask, start, 0.0)
+    z = integrate_dct(gu, gv, workers).astype(np.float64)
+    if start is not None and known.any():
+        z = np.where(known, start, z + np.mean(start[known] - z[known]))
+    return np.where(mask, z, 0.0)
 
 
 def _conjugate_gradients(z: np.ndarray, du: np.ndarray, dv: np.ndarray, wu: np.ndarray, wv: np.ndarray,

@@ -167,6 +167,7 @@ class HeadReconstructor:
         # the lights' relative intensities as fitted on the first cycle, as factors of the rig's
         # (PhotometricDistance.scale_and_intensity); None until then or when not fitted
         self.intensity_factors: np.ndarray | None = None
+        self._last_log_depth: np.ndarray | None = None  # the last cycle's, where the next one starts
 
     @property
     def last_distance_mm(self) -> float | None:
@@ -179,14 +180,17 @@ class HeadReconstructor:
         return HeadMap(np.full(h.shape + (3,), np.nan), np.full(h.shape, np.nan), np.full(h.shape, np.nan),
                        np.zeros(h.shape, dtype=bool), float("nan"), DmrEstimate.none(), float("nan"))
 
-    def _integrate(self, normals: np.ndarray, mask: np.ndarray, final: bool) -> np.ndarray:
+    def _integrate(self, normals: np.ndarray, mask: np.ndarray, final: bool,
+                   start: np.ndarray | None = None) -> np.ndarray:
         """Log-depth; the masked path's robust reweighting (core/integrate.py) only for a cycle's
-        final depth: the iterations' depths only place the lights' vectors and the distance."""
+        final depth: the iterations' depths only place the lights' vectors and the distance.
+        `start`: the log-depth of the cycle's last iteration, or of the stream's last cycle."""
         h = self.head
         gu, gv = log_depth_gradients(normals, h.fx, h.fy, h.cx, h.cy)
         valid = mask & np.isfinite(gu) & np.isfinite(gv)
         if self.settings.integrator == "masked":
-            return integrate_masked(gu, gv, valid, robust_iterations=ROBUST_ITERATIONS if final else 0)
+            return integrate_masked(gu, gv, valid, robust_iterations=ROBUST_ITERATIONS if final else 0,
+                                    start=start)
         return np.where(valid, integrate_dct(np.where(valid, gu, 0.0), np.where(valid, gv, 0.0)), np.nan)
 
     @staticmethod
@@ -247,7 +251,7 @@ class HeadReconstructor:
                                        max_pixels=s.distance_pixels, binning=self._distance_binning)
                    if photometric else None)
         normals = pseudo_normals
-        log_depth = self._integrate(normals, mask, final=s.method != "near")
+        log_depth = self._integrate(normals, mask, final=s.method != "near", start=self._last_log_depth)
         depth, distance = self._scaled(log_depth, dmr, problem, guess, "keep" if tracked else "wide")
         done = 0
         if s.method == "near":
@@ -260,7 +264,7 @@ class HeadReconstructor:
                 near_light_normals(solved, points, h.light_positions_mm, intensity, self._axis, self._mu,
                                    solved_saturated, min_signal, normals, albedo, used)
                 normals[~mask] = np.nan
-                log_depth = self._integrate(normals, mask, final=False)
+                log_depth = self._integrate(normals, mask, final=False, start=log_depth)
                 last = done == s.iterations
                 searched = last or not tracked
                 new_depth, distance = self._scaled(log_depth, dmr, problem, distance,
@@ -272,7 +276,9 @@ class HeadReconstructor:
                         depth, distance = self._scaled(log_depth, dmr, problem, distance, "near")
                     break
             if s.integrator == "masked" and ROBUST_ITERATIONS > 0:
-                depth, distance = self._scaled(self._integrate(normals, mask, final=True), dmr, problem, distance, "keep")
+                log_depth = self._integrate(normals, mask, final=True, start=log_depth)
+                depth, distance = self._scaled(log_depth, dmr, problem, distance, "keep")
+        self._last_log_depth = log_depth
         if problem is not None and s.fit_intensity and self.intensity_factors is None and np.isfinite(distance):
             scale, factors = problem.scale_and_intensity(self._rays, depth / distance, distance)
             if np.isfinite(scale):

@@ -23,6 +23,18 @@ if "PHOTOPFT_SHARED" in os.environ:
     SHARED = Path(os.environ["PHOTOPFT_SHARED"])
 
 
+# fixtures built once per run (_built_once): the tests that use one run on one xdist worker
+# (--dist loadgroup in pyproject.toml), so no other worker sits waiting for the build
+_GROUPED_FIXTURES = ("processed_full_session",)
+
+
+def pytest_collection_modifyitems(items) -> None:
+    for item in items:
+        for name in _GROUPED_FIXTURES:
+            if name in getattr(item, "fixturenames", ()):
+                item.add_marker(pytest.mark.xdist_group(name))
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     data = SHARED / "data"
@@ -63,16 +75,17 @@ def _built_once(tmp_path_factory, name: str, build) -> Path:
 @pytest.fixture(scope="session")
 def processed_full_session(tmp_path_factory) -> tuple[Path, Path]:
     """(session, results with an optical /volume): the full protocol at scale 0.1 with the flow
-    sensor, processed every 11th cycle window, with a volume regression fitted on its own results."""
+    sensor, processed every 22nd cycle window (5 maps/s), with a volume regression fitted on its
+    own results. One xdist worker runs every test that uses it (pytest_collection_modifyitems)."""
     from app.cli import main
 
     def build(folder: Path) -> None:
         from core.sim.simulate import SimConfig, simulate
 
         simulate(folder / "full.h5", SimConfig(protocol="full", scale=0.1, seed=5))
-        assert main(["process", str(folder / "full.h5"), "-o", str(folder / "plain.h5"), "--every", "11"]) == 0
+        assert main(["process", str(folder / "full.h5"), "-o", str(folder / "plain.h5"), "--every", "22"]) == 0
         assert main(["calibrate", "volume", str(folder / "plain.h5"), "-o", str(folder / "volume.json")]) == 0
-        assert main(["process", str(folder / "full.h5"), "-o", str(folder / "results.h5"), "--every", "11",
+        assert main(["process", str(folder / "full.h5"), "-o", str(folder / "results.h5"), "--every", "22",
                      "--volume-calibration", str(folder / "volume.json")]) == 0
 
     folder = _built_once(tmp_path_factory, "processed-full", build)

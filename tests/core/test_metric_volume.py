@@ -100,13 +100,13 @@ def test_process_writes_the_metric_volume_and_uses_it_without_a_flow_sensor(tmp_
     session, results = tmp_path / "s.h5", tmp_path / "r.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=12.0, scale=0.15, seed=5, flow_sensor=None,
                                 sway=Sway(20.0, 5.0, 1.0, seed=5)))
-    process_session(session, results, every=3)
+    process_session(session, results, every=5)  # each light cycle once
     with h5py.File(results, "r") as r, SessionFile(session) as s:
         assert r["parameters"].attrs["source"].startswith("optical: metric")
         assert r["parameters"].attrs["TV_l"] > 0.1
         t, volume = r["volume/timestamp_ns"][:], r["volume/volume_l"][:]
         truth = np.interp(t, s.truth()["timestamp_ns"][:], s.truth()["volume_l"][:])
-        assert np.corrcoef(volume, truth)[0, 1] > 0.6  # 0.72 measured: tidal breaths at scale 0.15 are noisy
+        assert np.corrcoef(volume, truth)[0, 1] > 0.9  # 0.975 measured
         metric = r["metric_volume"]
         assert set(metric["regions"]) == {"upper left", "upper right", "lower left", "lower right"}
         assert np.isfinite(metric.attrs["phase_angle_deg"])
