@@ -609,7 +609,8 @@ def run_record(seconds: float, write: bool, rate_hz: float = 110.0) -> str:
     from core.session import SubjectRecord
     from drivers.camera import AravisCamera, CameraSettings, find_aravis_device
     from drivers.flowsensor import FlowSensor, FlowSensorEmulator
-    from drivers.recorder import Recorder, sequence_light_of
+    from drivers.light_phase import LightPhase
+    from drivers.recorder import Recorder
 
     def cpu_s() -> float:
         usage = resource.getrusage(resource.RUSAGE_SELF)
@@ -631,7 +632,7 @@ def run_record(seconds: float, write: bool, rate_hz: float = 110.0) -> str:
             rig = Rig("bench-aravis", heads, frame_rate_hz=rate_hz)
             with FlowSensorEmulator() as emulator:
                 flow = FlowSensor(emulator.port)
-                recorder = Recorder(folder / "aravis.h5", rig, cameras, sequence_light_of(rig), flow,
+                recorder = Recorder(folder / "aravis.h5", rig, cameras, LightPhase(rig, first_trigger=0), flow,
                                     (0.0075, -15.36), SubjectRecord("BENCH", "male", 30, 175, 75), queue_items=4000)
                 cpu0 = cpu_s()
                 summary = recorder.run(seconds)
@@ -677,7 +678,7 @@ def run_record(seconds: float, write: bool, rate_hz: float = 110.0) -> str:
             for camera in cameras.values():
                 camera.start()
             state.start_ns = time.monotonic_ns()  # the clock starts once the loops are rendered
-            recorder = Recorder(folder / "sim.h5", state.rig, cameras, sequence_light_of(state.rig),
+            recorder = Recorder(folder / "sim.h5", state.rig, cameras, LightPhase(state.rig),
                                 SimFlowSensor(state), (0.0075, -15.36), SubjectRecord("BENCH", "male", 30, 175, 75),
                                 kind="simulation", queue_items=4000)
             cpu0 = cpu_s()

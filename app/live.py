@@ -28,6 +28,7 @@ from core.rig import Rig
 from core.session import SessionFile, SubjectRecord
 from drivers.camera import CameraError, CameraStats, Frame, capture_frames
 from drivers.flowsensor import FlowBlock
+from drivers.light_phase import LightPhase, LightPhaseError, RecordedLights
 from drivers.recorder import Recorder, RecordSummary
 
 log = logging.getLogger(__name__)
@@ -44,7 +45,7 @@ class Source:
     rig: Rig
     cameras: dict
     flow: object | None
-    light_of: Callable[[str, int], int]
+    lights: LightPhase | RecordedLights  # which light lit each frame (drivers/light_phase.py)
     flow_calibration: tuple[float, float] | None
     name: str
     conditions: str = "ATPS"
@@ -59,7 +60,6 @@ def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "ba
     """The simulated rig, breathing quietly (the default everywhere)."""
     from core.sim.breathing import Subject, Sway
     from core.sim.simulate import SimConfig
-    from drivers.recorder import sequence_light_of
     from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
 
     config = SimConfig(scene="torso", protocol=protocol, seconds=seconds, scale=scale, seed=seed, heads=heads,
@@ -68,7 +68,7 @@ def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "ba
     cameras = {h: SimCamera(state, h) for h in heads}
     flow = SimFlowSensor(state)
     model = config.flow_sensor
-    return Source(state.rig, cameras, flow, sequence_light_of(state.rig), (model.gain_lps, model.offset_lps),
+    return Source(state.rig, cameras, flow, LightPhase(state.rig), (model.gain_lps, model.offset_lps),
                   f"simulated rig (scale {scale:g})", simulated=state)
 
 
@@ -174,7 +174,7 @@ def replay_source(path: str | Path, speed: float = 1.0) -> Source:
         a = session.flow.attrs
         room = (float(a.get("room_temperature_c", 23.0)), float(a.get("room_pressure_hpa", 1013.0)),
                 float(a.get("room_humidity_pct", 50.0)))
-    return Source(session.rig, cameras, flow, lambda head, frame_id: int(lights[head].get(frame_id, -2)),
+    return Source(session.rig, cameras, flow, RecordedLights(lights),
                   calibration, f"replay of {Path(path).name}" + (f" at {speed:g}x" if speed != 1 else ""),
                   conditions, room, replay=True, closers=[session.close])
 
@@ -304,6 +304,10 @@ class LiveRig:
     def start(self) -> None:
         for camera in self.source.cameras.values():
             camera.start()
+        try:
+            self.source.lights.begin()  # the sequencer starts once the cameras wait for its triggers
+        except LightPhaseError as exc:
+            self._problem(str(exc))
         if self.source.flow is not None:
             self.source.flow.start()
         # Simulated cameras render their frames on this computer's cores, which a real camera's
@@ -366,7 +370,7 @@ class LiveRig:
         heads = heads or list(self.source.cameras)
         rig = self.rig if len(heads) == len(self.rig.heads) else replace(
             self.rig, heads={h: self.rig.heads[h] for h in heads}, baseline_mm=None)
-        recorder = Recorder(path, rig, {h: self.source.cameras[h] for h in heads}, self.source.light_of,
+        recorder = Recorder(path, rig, {h: self.source.cameras[h] for h in heads}, self.source.lights,
                             self.source.flow, self.source.flow_calibration, subject, kind=kind)
         for key, value in (root_attrs or {}).items():
             recorder.writer.set_root_attr(key, value)
@@ -450,8 +454,12 @@ class LiveRig:
             recorder.submit_frame(head, frame)
         self._rates[head].tick()
         condition = self._new_frame[head]
+        try:
+            self.source.lights.observe(head, frame.frame_id, frame.image)
+        except LightPhaseError as exc:
+            self._problem(str(exc))
         with condition:
-            self._cycles[head].append((frame, self.source.light_of(head, frame.frame_id)))
+            self._cycles[head].append((frame, self.source.lights.light_of(head, frame.frame_id)))
             condition.notify()
 
     def _capture_flow(self) -> None:
@@ -583,7 +591,6 @@ def rig_source(config_path: str | Path | None = None, scale: float | None = None
 
     from app.record_cli import open_hardware
     from core.profile import load_profile
-    from drivers.recorder import sequence_light_of
     from drivers.rig import load_rig_config
 
     config = load_rig_config(config_path)
@@ -595,12 +602,13 @@ def rig_source(config_path: str | Path | None = None, scale: float | None = None
     else:
         stack = ExitStack()
         try:
-            rig, cameras, flow, calibration = open_hardware(config, stack)
+            rig, cameras, flow, calibration, lights = open_hardware(config, stack)
         except Exception:
             stack.close()
             raise
-        source = Source(rig, cameras, flow, sequence_light_of(rig), calibration, config.name,
+        source = Source(rig, cameras, flow, lights, calibration, config.name,
                         closers=[stack.close])
     if config.calibration is not None:
         source.rig = load_profile(config.calibration).apply(source.rig)
+        source.lights.rig = source.rig
     return source

@@ -11,6 +11,7 @@ from pathlib import Path
 from app.args import positive
 from app.cli import UserError
 from core.session import file_write_failed
+from drivers.light_phase import LightPhase
 
 
 def add_record(sub: argparse._SubParsersAction) -> None:
@@ -47,10 +48,12 @@ def _simulated(config, seconds: float, stack: ExitStack):
     cameras = {h: SimCamera(state, h) for h in config.cameras}
     flow = SimFlowSensor(state) if config.flow_port is not None else None
     calibration = (sim_config.flow_sensor.gain_lps, sim_config.flow_sensor.offset_lps)
-    return state.rig, cameras, flow, calibration
+    return state.rig, cameras, flow, calibration, LightPhase(state.rig)  # frame ids are trigger numbers
 
 
 def open_hardware(config, stack: ExitStack):
+    """The rig's cameras, flow sensor and sequencer, opened and configured; the sequencer armed,
+    started by the returned LightPhase once the cameras wait for its triggers."""
     from core.rig import Rig
     from drivers.camera import AravisCamera, CameraSettings, bandwidth_advice
     from drivers.flowsensor import FlowSensor, FlowSensorEmulator
@@ -77,6 +80,7 @@ def open_hardware(config, stack: ExitStack):
                                   settings.binning, 8 if settings.pixel_format == "Mono8" else 12)
     rig = Rig(config.name, heads, frame_rate_hz=settings.frame_rate_hz)
     port = config.sequencer_port
+    sequencer = None
     if port != "sim":
         if port == "emulator":
             emulator = stack.enter_context(SequencerEmulator())
@@ -85,7 +89,6 @@ def open_hardware(config, stack: ExitStack):
         stack.callback(sequencer.close)
         sequencer.configure(rig.sequence, int(settings.exposure_us), settings.frame_rate_hz)
         sequencer.arm()
-        sequencer.start()
         stack.callback(sequencer.stop)
     flow = None
     if config.flow_port is not None:
@@ -96,7 +99,7 @@ def open_hardware(config, stack: ExitStack):
         flow = FlowSensor(port)
         stack.callback(flow.close)
     calibration = (config.flow_gain_lps, config.flow_offset_lps) if config.flow_gain_lps is not None else None
-    return rig, cameras, flow, calibration
+    return rig, cameras, flow, calibration, LightPhase(rig, first_trigger=0, sequencer=sequencer)
 
 
 def run_record(args: argparse.Namespace) -> int:
@@ -104,7 +107,7 @@ def run_record(args: argparse.Namespace) -> int:
     from core.session import SubjectRecord
     from drivers.camera import CameraError
     from drivers.flowsensor import FlowSensorError
-    from drivers.recorder import Recorder, sequence_light_of
+    from drivers.recorder import Recorder
     from drivers.rig import RigConfigError, load_rig_config
     from drivers.sequencer import SequencerError
 
@@ -119,19 +122,13 @@ def run_record(args: argparse.Namespace) -> int:
     with ExitStack() as stack:
         try:
             if config.simulated:
-                rig, cameras, flow, flow_calibration = _simulated(config, args.seconds, stack)
+                rig, cameras, flow, flow_calibration, lights = _simulated(config, args.seconds, stack)
             else:
-                rig, cameras, flow, flow_calibration = open_hardware(config, stack)
+                rig, cameras, flow, flow_calibration, lights = open_hardware(config, stack)
             if config.calibration is not None:
-                rig = load_profile(config.calibration).apply(rig)
+                rig = lights.rig = load_profile(config.calibration).apply(rig)
         except (CameraError, SequencerError, FlowSensorError, ProfileError) as exc:
             raise UserError(str(exc)) from exc
-        first_ids: dict[str, int] = {}
-
-        def light_of(head: str, frame_id: int) -> int:
-            first_ids.setdefault(head, frame_id - frame_id % rig.cycle_length if config.simulated else frame_id)
-            return sequence_light_of(rig, first_ids)(head, frame_id)
-
         show = sys.stderr.isatty()
 
         def progress(elapsed: float, counts: dict) -> None:
@@ -140,7 +137,7 @@ def run_record(args: argparse.Namespace) -> int:
                 print(f"\rrecording {args.output.name}: {elapsed:5.1f} / {args.seconds:g} s, frames {frames}",
                       end="", file=sys.stderr, flush=True)
 
-        recorder = Recorder(args.output, rig, cameras, light_of, flow, flow_calibration, subject,
+        recorder = Recorder(args.output, rig, cameras, lights, flow, flow_calibration, subject,
                             kind="simulation" if config.simulated else "patient")
         summary = recorder.run(args.seconds, progress)
     if show:

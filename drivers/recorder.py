@@ -23,6 +23,7 @@ import numpy as np
 from core.rig import Rig
 from core.session import SessionWriter, SubjectRecord
 from drivers.camera import Camera, CameraError, capture_frames
+from drivers.light_phase import LightPhase, LightPhaseError, RecordedLights
 
 
 BATCH_ITEMS = 500  # queue items written in one batch at most
@@ -51,13 +52,14 @@ class RecordSummary:
 
 class Recorder:
     def __init__(self, path: str | Path, rig: Rig, cameras: dict[str, Camera],
-                 light_of: Callable[[str, int], int], flow=None, flow_calibration: tuple[float, float] | None = None,
+                 lights: LightPhase | RecordedLights, flow=None, flow_calibration: tuple[float, float] | None = None,
                  subject: SubjectRecord | None = None, kind: str = "patient", queue_items: int = 2000,
                  flow_sensor_name: str = "pneumotachometer (12-bit ADC)") -> None:
         self.path = Path(path)
         self.rig = rig
         self.cameras = cameras
-        self.light_of = light_of
+        self.lights = lights
+        self._pending: dict[str, list] = {h: [] for h in cameras}  # frames held until the head's light phase is checked
         self.flow = flow
         self._queue: queue.Queue = queue.Queue(maxsize=queue_items)
         self._stop = threading.Event()
@@ -153,15 +155,18 @@ class Recorder:
         batch instead of eight h5py calls a frame (h5py holds the GIL throughout each call, so fewer
         calls leave the GUI thread and the capture threads more of it)."""
         last_flush = time.monotonic()
-        while not (self._stop.is_set() and self._queue.empty()):
+        final = False
+        while not final:
+            final = self._stop.is_set()  # one more pass after the stop: what is queued and held
             items = []
             try:
                 while len(items) < BATCH_ITEMS:
                     items.append(self._queue.get_nowait())
             except queue.Empty:
                 pass
+            final = final and self._queue.empty()
             try:
-                self._write_batch(items)
+                self._write_batch(items, final)
                 if time.monotonic() - last_flush > 1.0:
                     self.writer.flush()
                     last_flush = time.monotonic()
@@ -172,23 +177,34 @@ class Recorder:
                                         f"`photopft recover {self.path}`")
                 self._stop.set()
                 return
-            if len(items) < BATCH_ITEMS:
+            if len(items) < BATCH_ITEMS and not final:
                 self._stop.wait(BATCH_INTERVAL_S)
 
-    def _write_batch(self, items: list) -> None:
-        """Frames per head in arrival order, flow blocks joined, events one by one."""
-        frames: dict[str, list] = {}
+    def _write_batch(self, items: list, final: bool = False) -> None:
+        """Frames per head in arrival order, flow blocks joined, events one by one. A head's frames
+        are held until the images have checked its light phase (two cycles, drivers/light_phase.py),
+        so that none is written with a light the check would correct."""
         flow = []
         for item in items:
             if item[0] == "frame":
-                frames.setdefault(item[1], []).append(item[2])
+                head, frame = item[1], item[2]
+                try:
+                    self.lights.observe(head, frame.frame_id, frame.image)
+                except LightPhaseError as exc:
+                    with self._lock:
+                        self._errors.append(f"{exc}; the recording stopped")
+                    self._stop.set()
+                self._pending.setdefault(head, []).append(frame)
             elif item[0] == "flow":
                 flow.append(item[1])
             else:
                 self.writer.add_event(item[1], item[2])
-        for head, batch in frames.items():
+        for head, batch in self._pending.items():
+            if not batch or not (final or self.lights.ready(head)):
+                continue
+            self._pending[head] = []
             self.writer.append_frames(head, np.stack([f.image for f in batch]),
-                                      [self.light_of(head, f.frame_id) for f in batch],
+                                      [self.lights.light_of(head, f.frame_id) for f in batch],
                                       [f.timestamp_ns for f in batch], [f.frame_id for f in batch])
             self._counts[head] += len(batch)
             self._written_bytes += sum(f.image.nbytes for f in batch)
@@ -216,6 +232,8 @@ class Recorder:
                 if not any("cannot write" in e for e in self._errors):
                     self._errors.append(f"cannot close {self.path} ({write_failure_reason(exc)}); what was "
                                         f"written before is kept: run `photopft recover {self.path}`")
+        for notice in self.lights.summary():
+            self._notice(notice)
         stats = stats or {}
         elapsed = time.monotonic() - self._started
         return RecordSummary(self.path, dict(self._counts), {h: s.failed for h, s in stats.items()},
@@ -228,6 +246,7 @@ class Recorder:
         """Record from the recorder's own cameras and flow sensor for `seconds`."""
         for head, camera in self.cameras.items():
             camera.start()
+        self.lights.begin()
         if self.flow is not None:
             self.flow.start()
         self.begin(events)
@@ -263,13 +282,3 @@ def write_failure_reason(exc: Exception) -> str:
             return "the disk is full" if known in ("No space left on device", "Disk quota exceeded") else known.lower()
     return text.splitlines()[0][:200]
 
-
-def sequence_light_of(rig: Rig, first_ids: dict[str, int] | None = None) -> Callable[[str, int], int]:
-    """Light of a frame when frame id 0 (or the head's first id) was the cycle's first trigger."""
-    sequence = np.asarray(rig.sequence)
-    first = first_ids or {}
-
-    def light_of(head: str, frame_id: int) -> int:
-        return int(sequence[(frame_id - first.get(head, 0)) % len(sequence)])
-
-    return light_of

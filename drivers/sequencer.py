@@ -1,7 +1,7 @@
 """The LED and trigger sequencer on a serial line (protocol: docs/protocols.md), and its emulator.
 
 The sequencer fires each LED in turn and triggers both cameras; its trigger counter and the
-cameras' frame ids give every frame's light, so a lost frame is a gap, never a shifted light.
+cameras' frame ids give every frame's light (drivers/light_phase.py).
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ import threading
 import time
 from dataclasses import dataclass
 
-import numpy as np
 import serial
 
 from drivers.framing import FrameReader, encode
@@ -33,13 +32,6 @@ class SequencerStatus:
     state: str
     trigger_count: int
     errors: int
-
-
-def light_index_for(frame_id: np.ndarray, first_frame_id: int, first_trigger: int,
-                    sequence: tuple[int, ...]) -> np.ndarray:
-    """The light of each frame from the trigger that exposed it: trigger = first_trigger + (frame_id - first)."""
-    triggers = first_trigger + (np.asarray(frame_id, dtype=np.int64) - int(first_frame_id))
-    return np.asarray(sequence, dtype=np.int8)[np.mod(triggers, len(sequence))]
 
 
 class Sequencer:

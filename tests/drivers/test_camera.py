@@ -258,3 +258,9 @@ def test_recording_goes_on_through_a_camera_that_leaves_and_returns(fake_gv_came
         assert session.flow_samples()[0].size > 10_000
     assert np.all(front >= 1) and np.all(back_ids >= 1)
     assert back_ids.max() > 100, "the back camera's gap does not show in its frame ids"
+    # the emulated sequencer started once the cameras waited: the first frame was its first trigger,
+    # and each id after counts one trigger; the fake cameras' test pattern cannot confirm it, and says so
+    with SessionFile(out) as session:
+        ids = session.frame_id("front").astype(np.int64)
+        np.testing.assert_array_equal(session.light_index("front"), np.array(session.rig.sequence)[(ids - ids[0]) % 5])
+    assert "could not confirm the light phase" in stderr, stderr

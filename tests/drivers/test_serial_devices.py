@@ -9,7 +9,7 @@ import pytest
 
 from drivers.flowsensor import FlowSensor, FlowSensorEmulator, FlowSensorError
 from drivers.framing import FrameReader, crc16_ccitt, encode
-from drivers.sequencer import Sequencer, SequencerEmulator, SequencerError, light_index_for
+from drivers.sequencer import Sequencer, SequencerEmulator, SequencerError
 
 
 def test_crc_and_framing_resynchronise():
@@ -56,12 +56,6 @@ def test_sequencer_that_stops_answering_gives_a_clear_error():
                 seq.identify()
         finally:
             seq.close()
-
-
-def test_light_index_comes_from_triggers_not_positions():
-    frame_ids = np.array([100, 101, 102, 104, 105, 106])  # frame 103 lost
-    lights = light_index_for(frame_ids, 100, 7, (0, 1, 2, 3, -1))  # frame 100 was trigger 7
-    np.testing.assert_array_equal(lights, [2, 3, -1, 1, 2, 3])
 
 
 def _collect(sensor: FlowSensor, seconds: float):
