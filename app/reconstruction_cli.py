@@ -229,7 +229,7 @@ def run_calibrate_flow(args: argparse.Namespace) -> int:
     try:
         profile = fit_flow(means, flows, created=now_iso(), sources=[args.source.name])
     except CalibrationProfileError as exc:
-        raise UserError(str(exc)) from exc
+        raise UserError(f"{args.source}: {exc}") from exc
     save_profile(profile, args.output)
     print(f"flow (L/s) = {profile.gain_lps:.6g} * adc {profile.offset_lps:+.6g}; R^2 {profile.r_squared:.5f}; "
           f"{profile.points} steady flows from {profile.range_lps[0]:g} to {profile.range_lps[1]:g} L/s; "
@@ -245,18 +245,14 @@ def regression_samples(results_path: Path):
 
     from core.session_analysis import analyse_session
 
-    from core.process import RESULTS_FORMAT
+    from core.process import session_of_results
+    from core.results import check_results, is_results_file
 
-    if not is_hdf5(results_path):
-        raise UserError(f"{results_path} is not a results file of `photopft process` (not HDF5)")
+    if not is_hdf5(results_path) or not is_results_file(results_path):
+        raise UserError(f"{results_path} is not a results file of `photopft process`: process the session first")
+    check_results(results_path)
     with h5py.File(results_path, "r") as r:
-        if str(r.attrs.get("format", "")) != RESULTS_FORMAT:
-            raise UserError(f"{results_path} is not a results file of `photopft process` (it is "
-                            f"{str(r.attrs.get('format', 'no photopft file'))!r}): process the session first")
-        heads = [h for h in ("front", "back") if h in r.get("heads", {})]
-        if not heads:
-            raise UserError(f"{results_path} is a results file without heads (cut off?): process the session again")
-        from core.process import session_of_results
+        heads = [h for h in ("front", "back") if h in r["heads"]]
 
         session = session_of_results(results_path)
         t = r[f"heads/{heads[0]}/timestamp_ns"][:]
@@ -293,7 +289,7 @@ def run_calibrate_volume(args: argparse.Namespace) -> int:
     try:
         profile = fit_volume(np.vstack(features), np.concatenate(volumes), created=now_iso(), sessions=names)
     except CalibrationProfileError as exc:
-        raise UserError(str(exc)) from exc
+        raise UserError(f"{args.source}: {exc}") from exc
     save_profile(profile, args.output)
     print(f"phi = {np.array2string(profile.phi, precision=6)}; r = {profile.correlation:.4f}, "
           f"R^2 = {profile.r_squared:.4f} over {profile.samples} samples from {len(names)} session(s)")

@@ -72,6 +72,26 @@ class RecordsError(ValueError):
     """A record that cannot be stored or found; the message names the field or the row."""
 
 
+def _first_line(exc: Exception) -> str:
+    return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+
+def _check_intact(path: Path) -> None:
+    """SQLite's own quick check, on a read-only connection: a damaged database is refused before
+    anything (a journal mode, a migration) is written to it."""
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+        try:
+            result = str(db.execute("PRAGMA quick_check").fetchone()[0])
+        finally:
+            db.close()
+    except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
+        raise RecordsError(f"{path}: not a usable records database ({_first_line(exc)})") from exc
+    if result != "ok":
+        raise RecordsError(f"{path}: the records database is damaged ({result.splitlines()[0]}); restore it from "
+                           f"its backup")
+
+
 @dataclass(frozen=True)
 class Patient:
     id: int
@@ -150,13 +170,20 @@ def _check_patient(family_name: str, sex: str, birth_date: date, height_cm: floa
 class Records:
     """The records database. One connection per thread: open a Records where it is used."""
 
-    def __init__(self, path: str | os.PathLike | None = None):
+    def __init__(self, path: str | os.PathLike | None = None, read_only: bool = False):
+        """`read_only`: for commands that only look (a list, a history, a report's names): nothing,
+        not even the journal mode or a schema upgrade, is written to the file."""
         self.path = Path(path) if path is not None else default_path()
         if path is None:
             self.path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         elif not self.path.parent.is_dir():
             raise RecordsError(f"{self.path}: the folder {self.path.parent} does not exist (records are never "
                                "started in a folder made by mistake)")
+        if self.path.is_file() and self.path.stat().st_size:
+            _check_intact(self.path)
+        if read_only:
+            self._open_read_only()
+            return
         _create_private(self.path)
         try:
             self._db = sqlite3.connect(self.path, isolation_level=None, timeout=10.0)
@@ -167,6 +194,19 @@ class Records:
             self._migrate()
         except sqlite3.DatabaseError as exc:
             raise RecordsError(f"{self.path}: not a usable records database ({exc})") from exc
+
+    def _open_read_only(self) -> None:
+        try:
+            self._db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True, isolation_level=None, timeout=10.0)
+            self._db.create_function("fold", 1, lambda text: text.casefold() if text else "", deterministic=True)
+            version = self.schema_version
+        except sqlite3.DatabaseError as exc:
+            raise RecordsError(f"{self.path}: not a usable records database ({_first_line(exc)})") from exc
+        if version != SCHEMA_VERSION:
+            self._db.close()
+            raise RecordsError(f"{self.path}: schema version {version}, this photopft reads {SCHEMA_VERSION}: "
+                               + ("update photopft" if version > SCHEMA_VERSION else
+                                  "any command that writes records (patients add or register) upgrades it"))
 
     def close(self) -> None:
         self._db.close()
@@ -240,9 +280,12 @@ class Records:
     _PATIENT_COLUMNS = ("id, pseudonym, patient_number, family_name, given_name, sex, birth_date, height_cm, "
                         "weight_kg")
 
-    @staticmethod
-    def _patient(row) -> Patient:
-        return Patient(row[0], row[1], row[2], row[3], row[4], row[5], date.fromisoformat(row[6]), row[7], row[8])
+    def _patient(self, row) -> Patient:
+        try:
+            return Patient(row[0], row[1], row[2], row[3], row[4], row[5], date.fromisoformat(row[6]), row[7], row[8])
+        except (TypeError, ValueError) as exc:
+            raise RecordsError(f"{self.path}: the record of patient {row[0]!r} is damaged ({exc}); restore the "
+                               f"database from its backup") from exc
 
     def patient(self, patient_id: int) -> Patient:
         row = self._db.execute(f"SELECT {self._PATIENT_COLUMNS} FROM patients WHERE id = ?",

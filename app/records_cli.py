@@ -63,7 +63,7 @@ def add_records_verbs(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run_patients)
 
 
-def _open_records(path: Path | None, create: bool):
+def _open_records(path: Path | None, create: bool, read_only: bool = False):
     from app.records import Records, RecordsError, default_path
 
     target = path or default_path()
@@ -72,7 +72,7 @@ def _open_records(path: Path | None, create: bool):
             raise UserError(f"--records {path}: no records database there")
         return None
     try:
-        return Records(target)
+        return Records(target, read_only=read_only)
     except RecordsError as exc:
         raise UserError(str(exc)) from exc
 
@@ -83,7 +83,7 @@ def run_report(args: argparse.Namespace) -> int:
     from core.outputs import check_output
 
     check_output(args.output, [p for p in (args.input, args.records) if p is not None], force=args.force)
-    records = _open_records(args.records, create=False)
+    records = _open_records(args.records, create=False, read_only=True)
     try:
         data = build_report(args.input, records=records, equations=args.equations)
     finally:
@@ -138,7 +138,13 @@ def _parse_date(text: str) -> date:
 def run_patients(args: argparse.Namespace) -> int:
     from app.records import RecordsError
 
-    records = _open_records(args.records, create=True)
+    looks = args.patients_verb in ("list", "history")
+    records = _open_records(args.records, create=not looks, read_only=looks)
+    if records is None:
+        if args.patients_verb == "list":
+            print("no patients on record yet: `photopft patients add` starts the records")
+            return 0
+        raise UserError("no records database yet: `photopft patients add` starts one")
     try:
         with records:
             return _patients(records, args)

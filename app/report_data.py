@@ -15,7 +15,8 @@ import numpy as np
 from app.records import Patient, Records
 from core.analysis import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.pipeline import ReconstructionSettings
-from core.process import RESULTS_FORMAT, maps_at, optical_volume, session_of_results
+from core.process import maps_at, optical_volume, session_of_results
+from core.results import READ_ERRORS, RESULTS_FORMAT, check_results
 from core.reference import Reference
 from core.session import SessionError, SessionFile
 from core.session_analysis import analyse_session
@@ -124,11 +125,12 @@ def open_inputs(path: str | os.PathLike) -> tuple[Path, Path | None]:
     try:
         with h5py.File(path, "r") as f:
             is_results = str(f.attrs.get("format", "")) == RESULTS_FORMAT
-            if is_results and not any(h in f.get("heads", {}) for h in ("front", "back")):
-                raise SessionError(f"{path} is a results file without heads (cut off?): process the session again")
-    except OSError as exc:
-        raise SessionError(f"cannot open {path}: {exc}") from exc
-    return (session_of_results(path), path) if is_results else (path, None)
+    except READ_ERRORS as exc:
+        raise SessionError(f"cannot open {path}: {str(exc).splitlines()[0] if str(exc) else exc!r}") from exc
+    if not is_results:
+        return path, None
+    check_results(path)
+    return session_of_results(path), path
 
 
 def _optical_curve(results: Path, start_ns: int) -> tuple[np.ndarray, np.ndarray] | None:

@@ -19,9 +19,9 @@ from core.outputs import atomic_output
 from core.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.profile import ProfileError, RigCalibration
 from core.session import SessionError, SessionFile
+from core.results import RESULTS_FORMAT
 from core.volume import DisplacementTracker
 
-RESULTS_FORMAT = "photopft-results"
 MOTION_SMOOTHING_PX = 2.0
 
 

@@ -90,6 +90,8 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
     path = Path(path) if path is not None else DEFAULT_RIG
     try:
         data = tomllib.loads(path.read_text())
+    except UnicodeDecodeError as exc:
+        raise RigConfigError(f"{path} is not a text file ({exc.reason} at byte {exc.start})") from exc
     except OSError as exc:
         raise RigConfigError(f"cannot read rig configuration {path}: {exc}") from exc
     except tomllib.TOMLDecodeError as exc:
