@@ -29,6 +29,14 @@ def request_stop(reason: BaseException) -> None:
     _stop_requested.append(reason)
 
 
+def stop_if_requested() -> None:
+    """Raises the stop a signal asked for, where the handler's own exception was swallowed: long
+    loops call this once a step, so a stop never waits for the end of the work."""
+    if _stop_requested:
+        reason = _stop_requested[-1]
+        raise reason if isinstance(reason, BaseException) else KeyboardInterrupt()
+
+
 def clear_stop() -> None:
     _stop_requested.clear()
 

@@ -15,7 +15,7 @@ from scipy import ndimage
 from core import __version__
 from core.metric_volume import HeadDisplacements, MetricVolume, metric_volume, tidal_compartments
 from core.photometric import CycleWindow, complete_cycles
-from core.outputs import atomic_output
+from core.outputs import atomic_output, stop_if_requested
 from core.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.profile import ProfileError, RigCalibration
 from core.session import SessionError, SessionFile
@@ -137,6 +137,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 saved_normals, saved_depth, saved_index = [], [], []
                 cache: dict[int, np.ndarray] = {}
                 for window in plans[name]:
+                    stop_if_requested()
                     for stale in [k for k in cache if k < window.newest - 2 * rig.cycle_length]:
                         del cache[stale]
                     previous = (all_windows.get(int(ids[window.newest]) - rig.cycle_length)

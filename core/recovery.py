@@ -19,7 +19,7 @@ import re
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import h5py
 import numpy as np
@@ -102,22 +102,14 @@ def _diagnose(path: Path) -> str | None:
     return None
 
 
-def _readable_prefix(dataset: h5py.Dataset, n: int) -> int:
-    """How many leading entries read back (a truncated file loses its tail, and so may any chunk)."""
-    good = 0
-    while good < n:
-        stop = min(good + BLOCK, n)
+def _first_unreadable(dataset: h5py.Dataset, start: int, stop: int) -> int:
+    """The first entry from `start` that does not read back (`stop` if all do)."""
+    for i in range(start, stop):
         try:
-            dataset[good:stop]
-            good = stop
+            dataset[i]
         except _READ_ERRORS:
-            for i in range(good, stop):
-                try:
-                    dataset[i]
-                except _READ_ERRORS:
-                    return i
-            good = stop
-    return good
+            return i
+    return stop
 
 
 def _written_prefix(timestamp_ns: np.ndarray) -> int:
@@ -132,19 +124,34 @@ def _written_prefix(timestamp_ns: np.ndarray) -> int:
     return int(bad[0]) + 1 if len(bad) else n
 
 
-def _kept_length(group: h5py.Group, keys: tuple[str, ...]) -> int:
-    n = min(group[k].shape[0] for k in keys)
-    n = min(_readable_prefix(group[k], n) for k in keys)
-    return _written_prefix(np.asarray(group["timestamp_ns"][:n]))
-
-
-def _copy_prefix(source: h5py.Group, target: h5py.Group, keys: tuple[str, ...], n: int) -> None:
-    for key in keys:
-        d = source[key]
-        new = target.create_dataset(key, shape=(n,) + d.shape[1:], dtype=d.dtype, maxshape=(None,) + d.shape[1:],
-                                    chunks=d.chunks)
-        for start in range(0, n, BLOCK):
-            new[start:min(start + BLOCK, n)] = d[start:min(start + BLOCK, n)]
+def _copy_readable(source: h5py.Group, target: h5py.Group, keys: tuple[str, ...], limit: int,
+                   entry_written: Callable[[dict, int], bool] | None = None) -> int:
+    """Copies the keys' leading entries in one pass, block by block and all keys alike: up to
+    `limit`, up to the first entry any key cannot read back (a truncated file loses its tail, and so
+    may any chunk), and then only the entries really written (_written_prefix of the times, and
+    `entry_written` tested from the end). Returns how many were kept."""
+    sources = {k: source[k] for k in keys}
+    copies = {k: target.create_dataset(k, shape=(0,) + d.shape[1:], dtype=d.dtype, maxshape=(None,) + d.shape[1:],
+                                       chunks=d.chunks) for k, d in sources.items()}
+    n = 0
+    while n < limit:
+        stop = min(n + BLOCK, limit)
+        try:
+            blocks = {k: d[n:stop] for k, d in sources.items()}
+        except _READ_ERRORS:
+            stop = limit = min(_first_unreadable(d, n, stop) for d in sources.values())
+            blocks = {k: d[n:stop] for k, d in sources.items()}
+        for k, block in blocks.items():
+            copies[k].resize(stop, axis=0)
+            copies[k][n:stop] = block
+        n = stop
+    if "timestamp_ns" in copies:
+        n = _written_prefix(copies["timestamp_ns"][:n])
+    while entry_written is not None and n > 0 and not entry_written(copies, n - 1):
+        n -= 1
+    for copy in copies.values():
+        copy.resize(n, axis=0)
+    return n
 
 
 def _copy_head(src: h5py.Group, dst: h5py.File, name: str, notes: list[str]) -> int:
@@ -152,7 +159,7 @@ def _copy_head(src: h5py.Group, dst: h5py.File, name: str, notes: list[str]) -> 
     out = dst.require_group(src.name)
     if missing:
         notes.append(f"head {name}: {', '.join(missing)} lost; none of its frames can be kept")
-        _copy_prefix(src, out, tuple(k for k in HEAD_KEYS if k in src), 0)
+        _copy_readable(src, out, tuple(k for k in HEAD_KEYS if k in src), 0)
         rig = dst[f"rig/{name}"].attrs
         shapes = {"frames": ((0, int(rig["height"]), int(rig["width"])),
                              np.uint8 if int(rig["bit_depth"]) <= 8 else np.uint16),
@@ -161,19 +168,11 @@ def _copy_head(src: h5py.Group, dst: h5py.File, name: str, notes: list[str]) -> 
             shape, dtype = shapes[key]
             out.create_dataset(key, shape=shape, dtype=dtype, maxshape=(None,) + shape[1:])
         return 0
-    n = _kept_length(src, HEAD_KEYS)
-    frames = src["frames"]
-    while n > 0:  # the last frames may have been half written: keep the frames that read back
-        try:
-            if frames[n - 1].any():
-                break
-        except _READ_ERRORS:
-            pass
-        n -= 1
-    total = frames.shape[0]
-    if n < total:
-        notes.append(f"head {name}: {n} of {total} frames kept" + ("" if n else " (none read back)"))
-    _copy_prefix(src, out, HEAD_KEYS, n)
+    total = min(src[k].shape[0] for k in HEAD_KEYS)
+    # the last frames may have been half written: keep the frames that read back and are not blank
+    n = _copy_readable(src, out, HEAD_KEYS, total, lambda copies, i: bool(copies["frames"][i].any()))
+    if n < src["frames"].shape[0]:
+        notes.append(f"head {name}: {n} of {src['frames'].shape[0]} frames kept" + ("" if n else " (none read back)"))
     return n
 
 
@@ -226,8 +225,9 @@ def recover_session(path: str | os.PathLike) -> Recovery:
                             events.create_dataset("label", shape=(0,), dtype=h5py.string_dtype(), maxshape=(None,))
                         continue
                     g = src[group]
-                    n = _kept_length(g, keys) if all(k in g for k in keys) else 0
-                    _copy_prefix(g, dst.require_group(group), tuple(k for k in keys if k in g), n)
+                    present = tuple(k for k in keys if k in g)
+                    n = _copy_readable(g, dst.require_group(group), present,
+                                       min(g[k].shape[0] for k in keys) if present == keys else 0)
                     for key, value in g.attrs.items():
                         dst[group].attrs[key] = value
                     if group == "flow":

@@ -67,16 +67,17 @@ def _check_volume(path: Path, f: h5py.File) -> None:
     if "metric_volume" in f:
         metric = f["metric_volume"]
         length = _group_of_series(path, metric, {"timestamp_ns": "i", "volume_l": "f"})
-        for part, series in (("heads", ("side_distance_mm", "volume_l")), ("regions", ("volume_l",))):
+        for part in ("heads", "regions"):
             for name in metric.get(part, {}):
-                for key in series:
-                    _series(path, metric[f"{part}/{name}"], key, "f", length)
+                _series(path, metric[f"{part}/{name}"], "volume_l", "f", length)
+        for name in metric.get("heads", {}):  # one per map of the head, not on the volume's times
+            _series(path, metric[f"heads/{name}"], "side_distance_mm", "f", None)
 
 
 def _check_parameters(path: Path, f: h5py.File) -> None:
     for key, value in f["parameters"].attrs.items() if "parameters" in f else ():
         if isinstance(value, (bytes, str)):
-            if key.endswith(("_l", "_lps", "_bpm", "_s", "_FVC", "_pct")):
+            if key == "FEV1_FVC" or key.endswith(("_l", "_lps", "_bpm", "_s", "_pct")):
                 raise SessionError(f"{path}: /parameters {key} must be a number, found {value!r}")
             continue
         number = np.asarray(value)

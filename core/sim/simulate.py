@@ -11,7 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from core.outputs import atomic_output
+from core.outputs import atomic_output, stop_if_requested
 from core.rig import DARK, Head, Rig, thesis_rig
 from core.session import SessionWriter, SubjectRecord
 from core.sim import shapes
@@ -257,6 +257,7 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
         thread.start()
         try:
             for start in range(0, n_frames, block):
+                stop_if_requested()
                 indices = [i for i in range(start, min(start + block, n_frames))]
                 for name, head in true_heads.items():
                     frames, ids, lights, stamps = [], [], [], []

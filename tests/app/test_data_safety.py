@@ -369,3 +369,25 @@ def test_calibration_inputs_of_the_wrong_kind_are_one_line(session, tmp_path, ca
     for verb in (["analyze", str(headless)], ["report", str(headless), "-o", str(tmp_path / "r.pdf")]):
         code, err = run(verb, capsys)
         assert code == 2 and "without heads" in err
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[heads.front]\ncamera='NOSUCH01'\n[sequencer]\nport='emulator'\n", "NOSUCH01"),
+    ("[heads.front]\ncamera='NOSUCH01'\n[sequencer]\nport='/dev/photopft-no-such-port'\n", "NOSUCH01"),
+])
+def test_a_missing_device_is_one_line_naming_it(tmp_path, capsys, text, message):
+    """A rig whose camera is not on the network: `record` ends at once with exit 2, no file left."""
+    rig = tmp_path / "rig.toml"
+    rig.write_text("name = 'clinic'\n" + text)
+    out = tmp_path / "s.h5"
+    code, err = run(["record", "--rig", str(rig), "-o", str(out), "--seconds", "1"], capsys)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and message in lines[0], err
+    assert not out.exists()
+
+
+def test_a_missing_sequencer_port_is_one_line_naming_it(tmp_path):
+    from drivers.sequencer import Sequencer, SequencerError
+
+    with pytest.raises(SequencerError, match="cannot open the sequencer on /dev/photopft-no-such-port"):
+        Sequencer("/dev/photopft-no-such-port")
