@@ -10,6 +10,10 @@ import pytest
 # Qt draws offscreen, and the application's settings, records and logs go to a folder of this
 # test run, never the user's own.
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+# numba's OpenMP threads sleep when idle instead of spinning: with two xdist workers, their
+# subprocesses and the GUI tests' threads on two cores, spinning threads took the CPU from the work
+# (two heavy tests side by side: 138 s by default, 64 s passive)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 _HOME = Path(os.environ.get("PHOTOPFT_TEST_HOME", "")) if os.environ.get("PHOTOPFT_TEST_HOME") else None
 if _HOME is None:
     import tempfile
