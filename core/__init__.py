@@ -1,3 +1,11 @@
 """photopft core: the science, free of Qt and of drivers."""
 
+import os
+
 __version__ = "0.1.0"
+
+# numba's parallel kernels run on OpenMP threads; left spinning between kernels they take the cores
+# from scipy's FFT threads, h5py and, in the application, the capture and GUI threads. Waiting
+# passively, `photopft process` on a 1 s full-resolution session took 84 s instead of 95 s here
+# (docs/benchmarks.md). Set before any kernel loads OpenMP; a value already set is kept.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
