@@ -101,7 +101,9 @@ def add_process(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--integrator", choices=("dct", "masked"), default="masked",
                    help="masked: least squares on the subject only (default); dct: faster, flattens the relief "
                         "and the breathing by 5-9 %%")
-    p.add_argument("--every", type=int, default=1, help="reconstruct every n-th cycle window (default 1: all)")
+    p.add_argument("--every", type=int, default=None,
+                   help="slide the cycle window by N frames (default: a cycle's length, each light cycle once; "
+                        "1: a map at every frame)")
     p.add_argument("--heads", choices=("front", "back", "both"), default="both")
     p.add_argument("--no-motion-compensation", action="store_true",
                    help="use each light's frame as captured (the thesis' static assumption)")

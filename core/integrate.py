@@ -41,6 +41,9 @@ MIN_VIEW_COSINE = float(np.cos(np.radians(MAX_VIEW_ANGLE_DEG)))
 # (module doc): more iterations or another scale from 5 to 20 changed the bear's error by < 0.01 mm.
 ROBUST_ITERATIONS = 3
 ROBUST_SCALE = 5.0
+# The relative residual of the solves before the last reweighting: they only set the weights
+# (the bear: 0.058 mm error at 1e-4, 0.059 at 3e-4, 0.077 at 1e-3; 125, 85, 68 ms)
+WEIGHTS_TOLERANCE = 3e-4
 
 
 def log_depth_gradients(normals: np.ndarray, fx: float, fy: float, cx: float, cy: float,
@@ -320,7 +323,10 @@ def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, tolerance
             if not scale > 0:
                 break
             _cauchy_weights(z, du, dv, wu, wv, scale)
-        _conjugate_gradients(z, du, dv, wu, wv, mask, tolerance, max_iterations, workers)
+        last = robust == robust_iterations
+        # a solve that only sets the next weights need not be exact
+        _conjugate_gradients(z, du, dv, wu, wv, mask, tolerance if last else max(tolerance, WEIGHTS_TOLERANCE),
+                             max_iterations, workers)
     out[box] = np.where(mask, z - z[mask].mean(), np.nan)
     return out
 

@@ -167,7 +167,9 @@ class HeadReconstructor:
         # the lights' relative intensities as fitted on the first cycle, as factors of the rig's
         # (PhotometricDistance.scale_and_intensity); None until then or when not fitted
         self.intensity_factors: np.ndarray | None = None
-        self._last_log_depth: np.ndarray | None = None  # the last cycle's, where the next one starts
+        # the last cycle's log-depth from its distant-light normals, where the next cycle's first
+        # solve starts
+        self._last_pseudo_log_depth: np.ndarray | None = None
 
     @property
     def last_distance_mm(self) -> float | None:
@@ -251,7 +253,8 @@ class HeadReconstructor:
                                        max_pixels=s.distance_pixels, binning=self._distance_binning)
                    if photometric else None)
         normals = pseudo_normals
-        log_depth = self._integrate(normals, mask, final=s.method != "near", start=self._last_log_depth)
+        log_depth = self._integrate(normals, mask, final=s.method != "near", start=self._last_pseudo_log_depth)
+        self._last_pseudo_log_depth = log_depth
         depth, distance = self._scaled(log_depth, dmr, problem, guess, "keep" if tracked else "wide")
         done = 0
         if s.method == "near":
@@ -278,7 +281,6 @@ class HeadReconstructor:
             if s.integrator == "masked" and ROBUST_ITERATIONS > 0:
                 log_depth = self._integrate(normals, mask, final=True, start=log_depth)
                 depth, distance = self._scaled(log_depth, dmr, problem, distance, "keep")
-        self._last_log_depth = log_depth
         if problem is not None and s.fit_intensity and self.intensity_factors is None and np.isfinite(distance):
             scale, factors = problem.scale_and_intensity(self._rays, depth / distance, distance)
             if np.isfinite(scale):

@@ -66,19 +66,21 @@ def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindo
 def process_session(session_path: str | os.PathLike, output: str | os.PathLike, *,
                     calibration: RigCalibration | None = None, maps_at: list[int] | None = None,
                     settings: ReconstructionSettings | None = None, heads: list[str] | None = None,
-                    every: int = 1, motion_compensation: bool = True, volume_calibration=None,
+                    every: int | None = None, motion_compensation: bool = True, volume_calibration=None,
                     progress: Callable[[float], None] | None = None) -> ProcessSummary:
-    """Reconstruct every complete light cycle (sliding by `every` frames) of each head.
+    """Reconstruct every complete light cycle of each head: windows of one cycle's frames, sliding
+by `every` frames (default: the cycle's length, each cycle once; 1: a map at every frame).
 
     Maps "at frame i" come from the newest complete cycle ending at frame i; frames asked for
     in `maps_at` that end no complete cycle are reported as an error.
     """
     started = time.perf_counter()
     settings = settings or ReconstructionSettings()
-    if every < 1:
+    if every is not None and every < 1:
         raise ValueError("every must be 1 or more")
     with SessionFile(session_path) as session:
         rig = session.rig
+        every = every or rig.cycle_length
         if calibration is not None:
             try:
                 rig = calibration.apply(rig)

@@ -82,19 +82,23 @@ def test_near_light_reconstruction_of_a_sphere(sphere_session):
 
 def test_process_writes_the_results_file(sphere_session, tmp_path):
     out = tmp_path / "r.h5"
-    summary = process_session(sphere_session, out, maps_at=[9])
-    assert summary.maps["front"] == 6
+    summary = process_session(sphere_session, out, maps_at=[9])  # each light cycle once: frames 0-4, 5-9
+    assert summary.maps["front"] == 2
     with h5py.File(out) as f:
         assert f.attrs["format"] == "photopft-results" and f.attrs["format_version"] == 1
         assert f.attrs["session"] == str(sphere_session)
         g = f["heads/front"]
         for name in ("timestamp_ns", "frame_index", "distance_mm", "gradient_volume"):
-            assert g[name].shape == (6,)
-        assert list(g["frame_index"][:]) == [4, 5, 6, 7, 8, 9]
+            assert g[name].shape == (2,)
+        assert list(g["frame_index"][:]) == [4, 9]
         assert list(g["maps/frame_index"][:]) == [9]
         assert g["maps/normals"].shape == (1, 256, 350, 3) and g["maps/depth_mm"].shape == (1, 256, 350)
         assert np.all(np.isfinite(g["distance_mm"][:])) and np.all(g["gradient_volume"][:] > 0)
         assert "parameters" in f
+    sliding = process_session(sphere_session, tmp_path / "every-frame.h5", every=1)  # a map at every frame
+    assert sliding.maps["front"] == 6
+    with h5py.File(tmp_path / "every-frame.h5") as f:
+        assert list(f["heads/front/frame_index"][:]) == [4, 5, 6, 7, 8, 9]
 
 
 def test_process_refuses_bad_inputs(sphere_session, tmp_path):
