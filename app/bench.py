@@ -338,6 +338,25 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         return 0
 
     vol.set_defaults(run=run_volume)
+    pr = what.add_parser("process", help="the whole `photopft process` at the camera's resolution, against real time")
+    pr.add_argument("--seconds", type=positive, default=2.0)
+    pr.add_argument("--scale", type=positive, default=1.0)
+    pr.add_argument("--workers", default=None, help="worker counts to time, comma-separated (default 1,2,...,cores)")
+    pr.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_process(args: argparse.Namespace) -> int:
+        from app.bench_process import run_process_bench
+
+        counts = (tuple(int(w) for w in args.workers.split(",")) if args.workers
+                  else tuple(range(1, min(os.cpu_count() or 1, 2) + 1)))
+        text = run_process_bench(args.seconds, args.scale, counts)
+        print(text)
+        if not args.no_write:
+            write_section("process", f"## Process (`photopft bench process --seconds {args.seconds:g}"
+                                     f"{'' if args.scale == 1 else f' --scale {args.scale:g}'}`)\n\n{text}\n")
+        return 0
+
+    pr.set_defaults(run=run_process)
     gui = what.add_parser("gui", help="the live view: display updates/s, GUI-thread stalls, maps/s, memory")
     gui.add_argument("--scale", type=positive, default=0.5)
     gui.add_argument("--seconds", type=positive, default=20.0)

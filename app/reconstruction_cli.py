@@ -105,6 +105,9 @@ def add_process(sub: argparse._SubParsersAction) -> None:
                    help="slide the cycle window by N frames (default: a cycle's length, each light cycle once; "
                         "1: a map at every frame)")
     p.add_argument("--heads", choices=("front", "back", "both"), default="both")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes reconstructing at once, one head each (default: one per core for a "
+                        "session long enough to repay starting them)")
     p.add_argument("--no-motion-compensation", action="store_true",
                    help="use each light's frame as captured (the thesis' static assumption)")
     p.add_argument("--volume-calibration", type=Path,
@@ -157,7 +160,7 @@ def run_process(args: argparse.Namespace) -> int:
         summary = process_session(args.session, args.output, calibration=calibration, maps_at=args.maps_at,
                                   settings=settings, heads=heads, every=args.every,
                                   motion_compensation=not args.no_motion_compensation,
-                                  volume_calibration=volume_calibration, progress=progress)
+                                  volume_calibration=volume_calibration, progress=progress, workers=args.workers)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     if show:

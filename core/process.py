@@ -23,6 +23,10 @@ from core.results import RESULTS_FORMAT
 from core.volume import DisplacementTracker
 
 MOTION_SMOOTHING_PX = 2.0
+# Work (maps times pixels) from which worker processes pay: starting one (imports, numba's cached
+# kernels) takes about 3 s; this much work takes about 10 s on this 2-core host (300 maps at scale
+# 0.1, 3 at full resolution)
+AUTO_WORKERS_PIXEL_MAPS = 5e6
 
 
 @dataclass
@@ -67,9 +71,11 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                     calibration: RigCalibration | None = None, maps_at: list[int] | None = None,
                     settings: ReconstructionSettings | None = None, heads: list[str] | None = None,
                     every: int | None = None, motion_compensation: bool = True, volume_calibration=None,
-                    progress: Callable[[float], None] | None = None) -> ProcessSummary:
+                    progress: Callable[[float], None] | None = None, workers: int | None = 1) -> ProcessSummary:
     """Reconstruct every complete light cycle of each head: windows of one cycle's frames, sliding
 by `every` frames (default: the cycle's length, each cycle once; 1: a map at every frame).
+`workers` > 1 reconstructs the heads in that many processes at once (one head each, at most);
+None: one per core when the work repays starting them (AUTO_WORKERS_PIXEL_MAPS).
 
     Maps "at frame i" come from the newest complete cycle ending at frame i; frames asked for
     in `maps_at` that end no complete cycle are reported as an error.
@@ -120,61 +126,35 @@ by `every` frames (default: the cycle's length, each cycle once; 1: a map at eve
                 chosen.sort(key=lambda w: w.newest)
                 plans[name] = chosen
                 total_windows += len(chosen)
-            done = 0
+            jobs = []
             for name in names:
-                head = rig.heads[name]
                 pseudo = calibration.heads[name].pseudo_light_vectors if calibration is not None else None
                 if pseudo is not None and not np.any(pseudo):
                     pseudo = None
-                reconstructor = HeadReconstructor(head, pseudo, settings)
-                tracker = DisplacementTracker(head)
-                sums = []
-                frames = session.frames(name)
-                stamps = session.timestamp_ns(name)
-                ids = session.frame_id(name)
-                all_windows = {int(ids[w.newest]): w for w in complete_cycles(
-                    session.light_index(name), ids, rig.cycle_length)}
-                rows = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": [],
-                        "valid_pixels": []}
-                saved_normals, saved_depth, saved_index = [], [], []
-                cache: dict[int, np.ndarray] = {}
-                for window in plans[name]:
-                    stop_if_requested()
-                    for stale in [k for k in cache if k < window.newest - 2 * rig.cycle_length]:
-                        del cache[stale]
-                    previous = (all_windows.get(int(ids[window.newest]) - rig.cycle_length)
-                                if motion_compensation else None)
-                    signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids)
-                    result = reconstructor.reconstruct(signal, saturated, dark)
-                    rows["timestamp_ns"].append(stamps[window.newest])
-                    rows["frame_index"].append(window.newest)
-                    rows["distance_mm"].append(result.distance_mm)
-                    rows["gradient_volume"].append(result.gradient_volume)
-                    rows["valid_pixels"].append(int(result.mask.sum()))
-                    sums.append(tracker.add(result.depth_mm, result.mask))
-                    if window.newest in maps_at:
-                        saved_index.append(window.newest)
-                        saved_normals.append(result.normals.astype(np.float32))
-                        saved_depth.append(result.depth_mm.astype(np.float32))
-                    done += 1
-                    if progress is not None and done % 50 == 0:
-                        progress(done / total_windows)
+                jobs.append(_HeadJob(Path(session_path), rig, name, plans[name], settings, pseudo,
+                                     motion_compensation, tuple(maps_at)))
+            if workers is None:
+                work = sum(len(plans[n]) * rig.heads[n].width * rig.heads[n].height for n in names)
+                workers = (os.cpu_count() or 1) if work >= AUTO_WORKERS_PIXEL_MAPS else 1
+            for result in _run_heads(jobs, workers, total_windows, progress):
+                name, head = result.name, rig.heads[result.name]
                 g = out.create_group(f"heads/{name}")
-                g.create_dataset("timestamp_ns", data=np.asarray(rows["timestamp_ns"], dtype=np.int64))
-                g.create_dataset("frame_index", data=np.asarray(rows["frame_index"], dtype=np.int64))
-                g.create_dataset("distance_mm", data=np.asarray(rows["distance_mm"], dtype=np.float64))
-                g.create_dataset("gradient_volume", data=np.asarray(rows["gradient_volume"], dtype=np.float64))
-                g.create_dataset("valid_pixels", data=np.asarray(rows["valid_pixels"], dtype=np.int64))
+                g.create_dataset("timestamp_ns", data=result.timestamp_ns)
+                g.create_dataset("frame_index", data=result.frame_index)
+                g.create_dataset("distance_mm", data=result.distance_mm)
+                g.create_dataset("gradient_volume", data=result.gradient_volume)
+                g.create_dataset("valid_pixels", data=result.valid_pixels)
                 m = g.create_group("maps")
-                m.create_dataset("frame_index", data=np.asarray(saved_index, dtype=np.int64))
+                m.create_dataset("frame_index", data=np.asarray(result.saved_index, dtype=np.int64))
                 shape = (0, head.height, head.width)
-                m.create_dataset("normals", data=np.stack(saved_normals) if saved_normals
+                m.create_dataset("normals", data=np.stack(result.saved_normals) if result.saved_normals
                                  else np.zeros(shape + (3,), np.float32), compression="gzip")
-                m.create_dataset("depth_mm", data=np.stack(saved_depth) if saved_depth
+                m.create_dataset("depth_mm", data=np.stack(result.saved_depth) if result.saved_depth
                                  else np.zeros(shape, np.float32), compression="gzip")
-                counts[name] = len(rows["frame_index"])
-                displacements[name] = HeadDisplacements(np.asarray(rows["timestamp_ns"], dtype=np.int64), sums)
-                distances[name] = float(np.nanmean(rows["distance_mm"])) if rows["distance_mm"] else float("nan")
+                counts[name] = len(result.frame_index)
+                displacements[name] = HeadDisplacements(result.timestamp_ns, result.sums)
+                distances[name] = (float(np.nanmean(result.distance_mm)) if len(result.distance_mm)
+                                   else float("nan"))
             metric = metric_volume(displacements, rig.baseline_mm) if all(counts.values()) else None
             if metric is not None and np.isfinite(metric.volume_l).all():  # a trunk in every head's view
                 _write_metric_volume(out, metric, session)
@@ -185,6 +165,122 @@ by `every` frames (default: the cycle's length, each cycle once; 1: a map at eve
             parameters = out.create_group("parameters")
             _write_parameters(session_path, parameters, out)
     return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances)
+
+
+@dataclass(frozen=True)
+class _HeadJob:
+    """One head's share of `process_session`, picklable for a worker process."""
+    session_path: Path
+    rig: object  # core.rig.Rig
+    name: str
+    windows: list[CycleWindow]
+    settings: ReconstructionSettings
+    pseudo_light_vectors: np.ndarray | None
+    motion_compensation: bool
+    maps_at: tuple[int, ...]
+
+
+@dataclass
+class _HeadResult:
+    name: str
+    timestamp_ns: np.ndarray
+    frame_index: np.ndarray
+    distance_mm: np.ndarray
+    gradient_volume: np.ndarray
+    valid_pixels: np.ndarray
+    saved_index: list[int]
+    saved_normals: list[np.ndarray]
+    saved_depth: list[np.ndarray]
+    sums: list
+
+
+def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
+    """Reconstructs one head's windows in order (the running distance and the displacement tracker
+    follow the stream); `tick` after each."""
+    rig, name = job.rig, job.name
+    head = rig.heads[name]
+    reconstructor = HeadReconstructor(head, job.pseudo_light_vectors, job.settings)
+    tracker = DisplacementTracker(head)
+    rows: dict[str, list] = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": [],
+                             "valid_pixels": []}
+    saved_index, saved_normals, saved_depth, sums = [], [], [], []
+    with SessionFile(job.session_path) as session:
+        frames = session.frames(name)
+        stamps = session.timestamp_ns(name)
+        ids = session.frame_id(name)
+        all_windows = {int(ids[w.newest]): w for w in complete_cycles(session.light_index(name), ids,
+                                                                       rig.cycle_length)}
+        cache: dict[int, np.ndarray] = {}
+        for window in job.windows:
+            stop_if_requested()
+            for stale in [k for k in cache if k < window.newest - 2 * rig.cycle_length]:
+                del cache[stale]
+            previous = (all_windows.get(int(ids[window.newest]) - rig.cycle_length)
+                        if job.motion_compensation else None)
+            signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids)
+            result = reconstructor.reconstruct(signal, saturated, dark)
+            rows["timestamp_ns"].append(stamps[window.newest])
+            rows["frame_index"].append(window.newest)
+            rows["distance_mm"].append(result.distance_mm)
+            rows["gradient_volume"].append(result.gradient_volume)
+            rows["valid_pixels"].append(int(result.mask.sum()))
+            sums.append(tracker.add(result.depth_mm, result.mask))
+            if window.newest in job.maps_at:
+                saved_index.append(window.newest)
+                saved_normals.append(result.normals.astype(np.float32))
+                saved_depth.append(result.depth_mm.astype(np.float32))
+            tick()
+    return _HeadResult(name, np.asarray(rows["timestamp_ns"], dtype=np.int64),
+                       np.asarray(rows["frame_index"], dtype=np.int64),
+                       np.asarray(rows["distance_mm"], dtype=np.float64),
+                       np.asarray(rows["gradient_volume"], dtype=np.float64),
+                       np.asarray(rows["valid_pixels"], dtype=np.int64), saved_index, saved_normals, saved_depth, sums)
+
+
+_worker_ticks = None  # in a worker process: the queue its progress goes to
+
+
+def _start_worker(ticks, threads: int) -> None:
+    import numba
+
+    global _worker_ticks
+    _worker_ticks = ticks
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+
+
+def _process_head_in_worker(job: _HeadJob) -> _HeadResult:
+    return _process_head(job, lambda: _worker_ticks.put(1))
+
+
+def _run_heads(jobs: list[_HeadJob], workers: int, total: int,
+               progress: Callable[[float], None] | None) -> list[_HeadResult]:
+    """Each head's reconstruction, here or, with workers > 1, in spawned worker processes (fork is
+    unsafe once OpenMP threads run), each with its share of the cores."""
+    done = 0
+
+    def tick(count: int = 1) -> None:
+        nonlocal done
+        done += count
+        if progress is not None and total:
+            progress(done / total)
+
+    if workers <= 1 or len(jobs) <= 1:
+        return [_process_head(job, tick) for job in jobs]
+    import multiprocessing
+    import queue
+
+    context = multiprocessing.get_context("spawn")
+    ticks = context.Queue()
+    count = min(workers, len(jobs))
+    with context.Pool(count, initializer=_start_worker, initargs=(ticks, max(1, (os.cpu_count() or 1) // count))) as pool:
+        pending = pool.map_async(_process_head_in_worker, jobs, chunksize=1)
+        while not pending.ready():
+            stop_if_requested()
+            try:
+                tick(ticks.get(timeout=0.2))
+            except queue.Empty:
+                pass
+        return pending.get()
 
 
 def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list[int], *,

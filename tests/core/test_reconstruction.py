@@ -272,3 +272,18 @@ def test_the_light_field_solves_a_shadowed_or_saturated_pixel_from_three_lights(
     untouched[rows] = False
     untouched[:, head.width // 2 - 6:head.width // 2 + 6] = False
     np.testing.assert_array_equal(normals[untouched], clean[untouched])
+
+
+def test_worker_processes_give_the_same_results(small_session, tmp_path):
+    """Heads reconstructed in two spawned workers: the same values as in this process (to the last
+    digits, where numba's parallel sums run on another number of threads)."""
+    one = process_session(small_session, tmp_path / "one.h5", workers=1)
+    two = process_session(small_session, tmp_path / "two.h5", workers=2)
+    assert one.maps == two.maps
+    with h5py.File(tmp_path / "one.h5") as a, h5py.File(tmp_path / "two.h5") as b:
+        for head in ("front", "back"):
+            for key in ("timestamp_ns", "frame_index", "valid_pixels"):
+                np.testing.assert_array_equal(a[f"heads/{head}/{key}"][:], b[f"heads/{head}/{key}"][:])
+            for key in ("distance_mm", "gradient_volume"):
+                np.testing.assert_allclose(a[f"heads/{head}/{key}"][:], b[f"heads/{head}/{key}"][:], rtol=1e-9)
+        np.testing.assert_allclose(a["volume/volume_l"][:], b["volume/volume_l"][:], rtol=1e-7, atol=1e-9)

@@ -1,0 +1,47 @@
+"""`photopft bench process`: the whole `photopft process`, as a user runs it, on a simulated
+two-head session at the camera's resolution, timed end to end with 1, 2, ... worker processes."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from pathlib import Path
+
+
+def run_process_bench(seconds: float, scale: float, worker_counts: tuple[int, ...]) -> str:
+    from app.cli import main
+    from core.session import SessionFile
+    from core.sim.simulate import SimConfig, simulate
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        session = folder / "session.h5"
+        simulate(session, SimConfig(protocol="tidal", seconds=seconds, scale=scale, seed=7))
+        with SessionFile(session) as s:
+            head = s.rig.heads["front"]
+            frames = sum(s.n_frames(h) for h in s.heads)
+            recorded_s = max((s.timestamp_ns(h)[-1] - s.timestamp_ns(h)[0]) / 1e9 for h in s.heads) \
+                + 1.0 / s.rig.frame_rate_hz
+        rows = []
+        for workers in worker_counts:
+            out = folder / f"results-{workers}.h5"
+            started = time.perf_counter()
+            code = main(["process", str(session), "-o", str(out), "--workers", str(workers)])
+            elapsed = time.perf_counter() - started
+            if code != 0:
+                raise RuntimeError(f"process with {workers} workers exited {code}")
+            with SessionFile(session) as s, __import__("h5py").File(out, "r") as r:
+                maps = sum(len(r[f"heads/{h}/frame_index"]) for h in s.heads)
+            rows.append((workers, elapsed, maps))
+            out.unlink()
+    lines = [f"{seconds:g} s of tidal breathing, two heads of {head.width} x {head.height} pixels at "
+             f"{frames / recorded_s / 2:.0f} frames/s ({frames} frames in all), `photopft process S.h5 -o R.h5 "
+             f"--workers N` with every other setting at its default (each light cycle once, masked "
+             f"integration, motion compensation, the metric volume), timed from the command's start to its "
+             f"results file; {os.cpu_count()} cores.", "",
+             "| workers | wall time | maps | maps/s | × real time |", "|---|---|---|---|---|"]
+    for workers, elapsed, maps in rows:
+        lines.append(f"| {workers} | {elapsed:.1f} s | {maps} | {maps / elapsed:.2f} | {elapsed / recorded_s:.1f} |")
+    lines += ["", "Target (issue 25): at most 6 × real time on this 2-core machine."]
+    return "\n".join(lines)
