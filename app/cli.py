@@ -144,19 +144,14 @@ def run_simulate(args: argparse.Namespace) -> int:
         led_intensity_spread=args.led_intensity_spread, led_mu=args.led_mu,
         flow_sensor=None if args.no_flow else FlowSensorModel(), drop_rate=args.drop_rate,
         truth_maps_at=args.truth_maps_at, sphere_radius_mm=args.sphere_radius_mm, placements=args.placements)
-    show = sys.stderr.isatty()
-
-    def progress(fraction: float) -> None:
-        if show:
-            print(f"\rsimulating {args.output.name}: {100 * fraction:5.1f} %", end="", file=sys.stderr, flush=True)
+    from app.progress import Progress
 
     check_output(args.output, force=args.force)
     try:
-        summary = simulate(args.output, config, progress)
+        with Progress(f"simulating {args.output.name}") as progress:
+            summary = simulate(args.output, config, progress)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
-    if show:
-        print(file=sys.stderr)
     frames = ", ".join(f"{h} {n}" for h, n in summary.frames.items())
     print(f"wrote {summary.path}: {summary.duration_s:.1f} s, frames {frames}, "
           f"flow samples {summary.flow_samples}, simulated in {summary.elapsed_s:.1f} s")

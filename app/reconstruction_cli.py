@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from app.args import add_force, positive
@@ -147,24 +146,20 @@ def run_process(args: argparse.Namespace) -> int:
             calibration = load_profile(args.rig)
         except ProfileError as exc:
             raise UserError(str(exc)) from exc
-    show = sys.stderr.isatty()
-
-    def progress(fraction: float) -> None:
-        if show:
-            print(f"\rprocessing {args.session.name}: {100 * fraction:5.1f} %", end="", file=sys.stderr, flush=True)
+    from app.progress import Progress
 
     heads = None if args.heads == "both" else [args.heads]
     try:
         settings = ReconstructionSettings(method=args.method, integrator=args.integrator, track=not args.no_tracking,
                                           prefilter_px=args.prefilter_px)
-        summary = process_session(args.session, args.output, calibration=calibration, maps_at=args.maps_at,
-                                  settings=settings, heads=heads, every=args.every,
-                                  motion_compensation=not args.no_motion_compensation,
-                                  volume_calibration=volume_calibration, progress=progress, workers=args.workers)
+        with Progress(f"processing {args.session.name}") as progress:
+            summary = process_session(args.session, args.output, calibration=calibration, maps_at=args.maps_at,
+                                      settings=settings, heads=heads, every=args.every,
+                                      motion_compensation=not args.no_motion_compensation,
+                                      volume_calibration=volume_calibration, progress=progress,
+                                      workers=args.workers)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
-    if show:
-        print(file=sys.stderr)
     for name, n in summary.maps.items():
         print(f"{name}: {n} maps, mean subject distance {summary.mean_distance_mm[name]:.1f} mm")
     print(f"wrote {summary.path} in {summary.elapsed_s:.1f} s")

@@ -11,6 +11,7 @@ from pathlib import Path
 from app.args import positive
 from app.cli import UserError
 from core.session import file_write_failed
+from app.progress import Progress
 from drivers.light_phase import LightPhase
 
 
@@ -129,19 +130,14 @@ def run_record(args: argparse.Namespace) -> int:
                 rig = lights.rig = load_profile(config.calibration).apply(rig)
         except (CameraError, SequencerError, FlowSensorError, ProfileError) as exc:
             raise UserError(str(exc)) from exc
-        show = sys.stderr.isatty()
+        bar = stack.enter_context(Progress(f"recording {args.output.name}"))
 
         def progress(elapsed: float, counts: dict) -> None:
-            if show:
-                frames = ", ".join(f"{h} {n}" for h, n in counts.items())
-                print(f"\rrecording {args.output.name}: {elapsed:5.1f} / {args.seconds:g} s, frames {frames}",
-                      end="", file=sys.stderr, flush=True)
+            bar(elapsed / args.seconds, "frames " + ", ".join(f"{h} {n}" for h, n in counts.items()))
 
         recorder = Recorder(args.output, rig, cameras, lights, flow, flow_calibration, subject,
                             kind="simulation" if config.simulated else "patient")
         summary = recorder.run(args.seconds, progress)
-    if show:
-        print(file=sys.stderr)
     frames = ", ".join(f"{h} {n}" for h, n in summary.frames.items())
     camera = ", ".join(f"{h} {summary.camera_failed[h]} failed / {summary.camera_lost[h]} lost"
                        for h in summary.frames)
