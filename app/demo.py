@@ -46,7 +46,7 @@ def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) ->
         print(describe_session(session))
         results = args.output_dir / "results.h5"
         print(f"reconstructing every 11th light cycle window (10 maps/s per head) into {results} ...")
-        summary = process_session(session, results, every=11,
+        summary = process_session(session, results, every=11, workers=None,
                                   settings=ReconstructionSettings(track=True))
         print(f"reconstructed {sum(summary.maps.values())} maps in {summary.elapsed_s:.0f} s")
         print(volume_summary(session, results))
