@@ -285,6 +285,14 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
     return text
 
 
+def _publish(args: argparse.Namespace, section: str, heading: str, text: str) -> int:
+    """Print a bench's table and, unless --no-write, put it in its section of docs/benchmarks.md."""
+    print(text)
+    if not args.no_write:
+        write_section(section, f"## {heading}\n\n{text}\n")
+    return 0
+
+
 def add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="measure accuracy and speed (writes docs/benchmarks.md)",
                        description="Benchmarks on the simulated rig; each prints its table and writes it to "
@@ -331,11 +339,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         from app.bench_volume import run_volume_bench
 
         text = run_volume_bench(args.scale, args.seconds, every=args.every)
-        print(text)
-        if not args.no_write:
-            write_section("volume", f"## Volume (`photopft bench volume --scale {args.scale:g} --seconds "
-                                    f"{args.seconds:g} --every {args.every}`)\n\n{text}\n")
-        return 0
+        return _publish(args, "volume", f"Volume (`photopft bench volume --scale {args.scale:g} --seconds "
+                                        f"{args.seconds:g} --every {args.every}`)", text)
 
     vol.set_defaults(run=run_volume)
     pr = what.add_parser("process", help="the whole `photopft process` at the camera's resolution, against real time")
@@ -350,11 +355,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         counts = (tuple(int(w) for w in args.workers.split(",")) if args.workers
                   else tuple(range(1, min(os.cpu_count() or 1, 2) + 1)))
         text = run_process_bench(args.seconds, args.scale, counts)
-        print(text)
-        if not args.no_write:
-            write_section("process", f"## Process (`photopft bench process --seconds {args.seconds:g}"
-                                     f"{'' if args.scale == 1 else f' --scale {args.scale:g}'}`)\n\n{text}\n")
-        return 0
+        return _publish(args, "process", f"Process (`photopft bench process --seconds {args.seconds:g}"
+                                         f"{'' if args.scale == 1 else f' --scale {args.scale:g}'}`)", text)
 
     pr.set_defaults(run=run_process)
     gui = what.add_parser("gui", help="the live view: display updates/s, GUI-thread stalls, maps/s, memory")
@@ -369,12 +371,9 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         from app.gui.bench_gui import run_gui_bench
 
         text = run_gui_bench(args.scale, args.seconds, not args.no_record, args.warmup)
-        print(text)
-        if not args.no_write:
-            write_section(f"gui-{args.scale:g}-{'live' if args.no_record else 'recording'}",
-                          f"## Live view (`photopft bench gui --scale {args.scale:g} --seconds {args.seconds:g}"
-                          f"{' --no-record' if args.no_record else ''}`)\n\n{text}\n")
-        return 0
+        return _publish(args, f"gui-{args.scale:g}-{'live' if args.no_record else 'recording'}",
+                        f"Live view (`photopft bench gui --scale {args.scale:g} --seconds {args.seconds:g}"
+                        f"{' --no-record' if args.no_record else ''}`)", text)
 
     gui.set_defaults(run=run_gui)
     p.set_defaults(run=lambda args: p.print_help() or 2)
