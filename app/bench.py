@@ -359,6 +359,19 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                                          f"{'' if args.scale == 1 else f' --scale {args.scale:g}'}`)", text)
 
     pr.set_defaults(run=run_process)
+    co = what.add_parser("compression", help="lossless HDF5 filters on the rig's frames: ratio, MB/s, GB a minute")
+    co.add_argument("--scale", type=positive, default=1.0)
+    co.add_argument("--frames", type=int, default=110)
+    co.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_compression(args: argparse.Namespace) -> int:
+        from app.bench_compression import run_compression_bench
+
+        text = run_compression_bench(args.scale, max(1, args.frames))
+        return _publish(args, "compression", "Compression (`photopft bench compression`"
+                        + (f" --scale {args.scale:g}" if args.scale != 1 else "") + ")", text)
+
+    co.set_defaults(run=run_compression)
     gui = what.add_parser("gui", help="the live view: display updates/s, GUI-thread stalls, maps/s, memory")
     gui.add_argument("--scale", type=positive, default=0.5)
     gui.add_argument("--seconds", type=positive, default=20.0)
