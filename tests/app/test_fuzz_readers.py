@@ -4,13 +4,15 @@ removed, of the wrong dtype or shape, values extreme, numbers in text files made
 Each run of the command that reads the file ends with a result (exit 0, or 1 where the command
 reports problems it found, as `validate` does) or with exit 2 and one line naming the file; never
 a traceback, never a hang (an alarm bounds each run), never a changed input. The examples are
-derandomised: the same cases every run, so a failure reproduces.
+derandomised: the same cases every run of this file, so a failure reproduces (see `fuzz` for a
+deeper search by hand).
 """
 
 from __future__ import annotations
 
 import hashlib
 import io
+import os
 import re
 import shutil
 import signal
@@ -29,7 +31,11 @@ RUN_LIMIT_S = 60
 
 
 def fuzz(examples: int):
-    return settings(max_examples=examples, deadline=None, derandomize=True, database=None,
+    """The suite's examples; PHOTOPFT_FUZZ_SCALE=10 runs ten times as many, and PHOTOPFT_FUZZ_RANDOM=1
+    draws new ones each run (for a deeper search by hand)."""
+    scale = int(os.environ.get("PHOTOPFT_FUZZ_SCALE", "1"))
+    return settings(max_examples=examples * scale, deadline=None,
+                    derandomize=not os.environ.get("PHOTOPFT_FUZZ_RANDOM"), database=None,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 
@@ -116,16 +122,20 @@ def damage_hdf5(path: Path, damage: tuple) -> None:
             return
         datasets = [n for n in names if isinstance(f[n], h5py.Dataset)]
         name = datasets[int(where * (len(datasets) - 1))]
-        data = f[name][()]
+        data = np.asarray(f[name][()])
         attrs = dict(f[name].attrs)
+        text = data.dtype.kind in "OSU"  # the events' labels
         del f[name]
         if kind == "dtype":
-            f[name] = np.array(["text"] * max(1, np.size(data)), dtype=h5py.string_dtype())
+            f[name] = (np.zeros(max(1, data.size)) if text
+                       else np.array(["text"] * max(1, data.size), dtype=h5py.string_dtype()))
         elif kind == "shape":
-            f[name] = np.zeros((3, 3, 3) if np.ndim(data) < 3 else (2,), dtype=np.asarray(data).dtype)
+            shape = (3, 3, 3) if data.ndim < 3 else (2,)
+            f[name] = (np.full(shape, "x", dtype=h5py.string_dtype()) if text else np.zeros(shape, dtype=data.dtype))
         else:
-            data = np.asarray(data)
-            if data.dtype.kind == "f":
+            if text:
+                data = np.full(data.shape, "\u00e9" * 10000, dtype=h5py.string_dtype())
+            elif data.dtype.kind == "f":
                 data = np.full(data.shape, value, dtype=data.dtype)
             elif data.dtype.kind in "iu":
                 info = np.iinfo(data.dtype)
@@ -159,6 +169,16 @@ def damage_text(text: str, damage: tuple) -> str:
     if kind == "double-line":
         return "".join(lines[:k + 1] + lines[k:])
     return text[:int(where * len(text))]
+
+
+def damage_file(path: Path, damage: tuple) -> None:
+    """One drawn damage, in place: bytes (4 fields), text (its value a string) or HDF5 structure."""
+    if len(damage) == 4:
+        path.write_bytes(damage_bytes(path.read_bytes(), damage))
+    elif isinstance(damage[2], str):
+        path.write_text(damage_text(path.read_text(errors="replace"), damage))
+    else:
+        damage_hdf5(path, damage)
 
 
 def scratch(tmp_path_factory, source: Path, name: str | None = None) -> Path:
@@ -207,10 +227,7 @@ def rig_profile(tiny_session, tmp_path_factory) -> Path:
 @given(damage=st.one_of(byte_damage(), hdf5_damage()))
 def test_a_damaged_session_file(tiny_session, tmp_path_factory, damage):
     path = scratch(tmp_path_factory, tiny_session)
-    if len(damage) == 4:
-        path.write_bytes(damage_bytes(path.read_bytes(), damage))
-    else:
-        damage_hdf5(path, damage)
+    damage_file(path, damage)
     for verb in (["info"], ["validate"], ["analyze"]):
         run(verb + [str(path)], [path])
     run(["process", str(path), "-o", str(path.with_name("r.h5")), "--every", "5"], [path])
@@ -224,10 +241,7 @@ def test_a_damaged_results_file(tiny_session, tiny_results, tmp_path_factory, da
     shutil.copyfile(tiny_session, session)
     with h5py.File(path, "r+") as f:
         f.attrs["session"] = str(session)
-    if len(damage) == 4:
-        path.write_bytes(damage_bytes(path.read_bytes(), damage))
-    else:
-        damage_hdf5(path, damage)
+    damage_file(path, damage)
     run(["analyze", str(path)], [path, session])
     run(["report", str(path), "-o", str(path.with_name("r.pdf"))], [path, session])
 
@@ -236,10 +250,7 @@ def test_a_damaged_results_file(tiny_session, tiny_results, tmp_path_factory, da
 @given(damage=st.one_of(byte_damage(), text_damage()))
 def test_a_damaged_light_calibration_profile(tiny_session, rig_profile, tmp_path_factory, damage):
     path = scratch(tmp_path_factory, rig_profile)
-    if len(damage) == 4:
-        path.write_bytes(damage_bytes(path.read_bytes(), damage))
-    else:
-        path.write_text(damage_text(path.read_text(), damage))
+    damage_file(path, damage)
     run(["process", str(tiny_session), "-o", str(path.with_name("r.h5")), "--rig", str(path), "--every", "5"],
         [path, tiny_session])
 
@@ -250,10 +261,7 @@ def test_a_damaged_waveform_file(shared_data, tmp_path_factory, damage, which):
     folder = shared_data / "spirometry-waveforms"
     source = folder / which if which.endswith(".wf") else sorted((folder / which).glob("*.wf"))[0]
     path = scratch(tmp_path_factory, source)
-    if len(damage) == 4:
-        path.write_bytes(damage_bytes(path.read_bytes(), damage))
-    else:
-        path.write_text(damage_text(path.read_text(errors="replace"), damage))
+    damage_file(path, damage)
     run(["analyze", "--waveform", str(path)], [path])
 
 
@@ -264,10 +272,7 @@ def test_a_damaged_flow_calibration_table(tmp_path_factory, damage):
     path = folder / "pairs.csv"
     rows = "\n".join(f"{q:.2f},{2048 + q / 0.0075:.1f}" for q in (-8, -4, -1, 0, 1, 4, 8))
     path.write_text("reference_lps,adc_mean\n" + rows + "\n")
-    if len(damage) == 4:
-        path.write_bytes(damage_bytes(path.read_bytes(), damage))
-    else:
-        path.write_text(damage_text(path.read_text(), damage))
+    damage_file(path, damage)
     run(["calibrate", "flow", str(path), "-o", str(folder / "flow.json")], [path])
 
 
@@ -277,10 +282,7 @@ def test_a_damaged_rig_configuration(tmp_path_factory, damage):
     from drivers.rig import DEFAULT_RIG
 
     path = scratch(tmp_path_factory, DEFAULT_RIG, "rig.toml")
-    if len(damage) == 4:
-        path.write_bytes(damage_bytes(path.read_bytes(), damage))
-    else:
-        path.write_text(damage_text(path.read_text(), damage))
+    damage_file(path, damage)
     run(["record", "--rig", str(path), "-o", str(path.with_name("rec.h5")), "--seconds", "0.2"], [path])
 
 
@@ -308,9 +310,6 @@ def test_a_damaged_volume_calibration_profile(tiny_session, tmp_path_factory, da
     folder = tmp_path_factory.mktemp("fuzz")
     path = folder / "volume.json"
     save_profile(VolumeCalibration(np.array([29.8, 1e-4, -0.016]), 0.99, 0.995, 570, "2026-11-25", ["t.h5"]), path)
-    if len(damage) == 4:
-        path.write_bytes(damage_bytes(path.read_bytes(), damage))
-    else:
-        path.write_text(damage_text(path.read_text(), damage))
+    damage_file(path, damage)
     run(["process", str(tiny_session), "-o", str(folder / "r.h5"), "--every", "5", "--volume-calibration", str(path)],
         [path, tiny_session])
