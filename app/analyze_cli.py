@@ -74,7 +74,7 @@ def run_analyze_session(args: argparse.Namespace) -> int:
         optical = optical_volume(results) if results is not None else None
         report = analyse_session(session, args.equations, optical_volume=optical)
     except (SessionError, ValueError, OSError, KeyError) as exc:
-        raise UserError(f"{args.session}: {exc}") from exc
+        raise UserError(str(exc) if str(args.session) in str(exc) else f"{args.session}: {exc}") from exc
     named = (("flow sensor", report.flow_sensor), ("optical", report.optical), ("truth (simulation)", report.truth))
     sources = [(name, values.parameters()) for name, values in named if values]
     if not sources:

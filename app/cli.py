@@ -287,6 +287,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line_naming_the_input(exc: Exception, args: argparse.Namespace) -> str:
+    """The error in one line that names the file: a read that failed deep in a library (HDF5's
+    words for a damaged file) is prefixed with the command's input."""
+    lines = str(exc).splitlines()
+    message = lines[0] if lines else type(exc).__name__
+    named = [str(v) for k, v in vars(args).items() if isinstance(v, Path) and k != "output"]
+    if named and not any(name in message or Path(name).name in message for name in named):
+        message = f"{named[0]}: {message}"
+    return message
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -302,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.run(args) or 0)
     except (UserError, SessionError, OutputError, OSError) as exc:
-        print(f"photopft {args.verb}: error: {exc}", file=sys.stderr)
+        print(f"photopft {args.verb}: error: {_one_line_naming_the_input(exc, args)}", file=sys.stderr)
         return 2
     except Terminated:
         print(f"photopft {args.verb}: terminated; nothing half-written was left", file=sys.stderr)

@@ -16,6 +16,7 @@ from app.records import Patient, Records
 from core.analysis import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.pipeline import ReconstructionSettings
 from core.process import maps_at, optical_volume, session_of_results
+from core.hdf5_probe import probe
 from core.results import READ_ERRORS, RESULTS_FORMAT, check_results
 from core.reference import Reference
 from core.session import SessionError, SessionFile
@@ -122,6 +123,7 @@ class ReportData:
 def open_inputs(path: str | os.PathLike) -> tuple[Path, Path | None]:
     """(session, results or None) for a session file or a results file."""
     path = Path(path)
+    probe(path)
     try:
         with h5py.File(path, "r") as f:
             is_results = str(f.attrs.get("format", "")) == RESULTS_FORMAT

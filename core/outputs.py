@@ -52,6 +52,9 @@ def is_session_file(path: str | os.PathLike) -> bool:
         return False
     import h5py
 
+    from core.hdf5_probe import probe
+
+    probe(path)
     try:
         with h5py.File(path, "r", locking=False) as f:
             value = f.attrs.get("format", b"")

@@ -87,7 +87,10 @@ def _check_parameters(path: Path, f: h5py.File) -> None:
 
 def check_results(path: str | os.PathLike) -> None:
     """Refuses a results file that any reader would stumble on (see the module doc)."""
+    from core.hdf5_probe import probe
+
     path = Path(path)
+    probe(path)
     try:
         with h5py.File(path, "r") as f:
             if str(f.attrs.get("format", "")) != RESULTS_FORMAT:
@@ -112,6 +115,9 @@ def check_results(path: str | os.PathLike) -> None:
 
 def is_results_file(path: str | os.PathLike) -> bool:
     """True for an HDF5 file that says it is a results file (whether or not it is whole)."""
+    from core.hdf5_probe import probe
+
+    probe(path)
     try:
         with h5py.File(path, "r") as f:
             return str(f.attrs.get("format", "")) == RESULTS_FORMAT

@@ -733,9 +733,12 @@ def _check_truth(c: _Checker, f: h5py.File, heads: dict[str, tuple[int, int, int
 
 def validate_session(path: str | os.PathLike) -> list[str]:
     """Every way the file departs from the spec, each naming the item; empty when it conforms."""
+    from core.hdf5_probe import probe
+
     path = Path(path)
     if not path.exists():
         return [f"{path}: no such file"]
+    probe(path)
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
