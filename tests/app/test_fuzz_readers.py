@@ -313,3 +313,21 @@ def test_a_damaged_volume_calibration_profile(tiny_session, tmp_path_factory, da
     damage_file(path, damage)
     run(["process", str(tiny_session), "-o", str(folder / "r.h5"), "--every", "5", "--volume-calibration", str(path)],
         [path, tiny_session])
+
+
+def test_a_file_whose_reading_never_ends_is_refused_in_time(tiny_session, tmp_path, monkeypatch):
+    """The HDF5 library looping for ever inside one call on a damaged file (the fuzz test found one:
+    reading a results file's root attribute): the probe's child is stopped and the file refused."""
+    import time
+
+    from core import hdf5_probe
+    from core.session import SessionError
+
+    path = tmp_path / "loops.h5"
+    shutil.copyfile(tiny_session, path)
+    monkeypatch.setattr(hdf5_probe, "_walk", lambda _: time.sleep(3600))  # as HDF5 stuck in C
+    monkeypatch.setattr(hdf5_probe, "PROBE_TIMEOUT_S", 1.0)
+    started = time.monotonic()
+    with pytest.raises(SessionError, match="loops.h5: reading its structure did not end within 1 s"):
+        hdf5_probe.probe(path)
+    assert time.monotonic() - started < 5
