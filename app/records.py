@@ -72,6 +72,11 @@ class RecordsError(ValueError):
     """A record that cannot be stored or found; the message names the field or the row."""
 
 
+def _fold(text: str | None) -> str:
+    """Case-folded text for searches (SQLite's own lower() knows ASCII only)."""
+    return text.casefold() if text else ""
+
+
 def _first_line(exc: Exception) -> str:
     return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
 
@@ -190,7 +195,7 @@ class Records:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
-            self._db.create_function("fold", 1, lambda text: text.casefold() if text else "", deterministic=True)
+            self._db.create_function("fold", 1, _fold, deterministic=True)
             self._migrate()
         except sqlite3.DatabaseError as exc:
             raise RecordsError(f"{self.path}: not a usable records database ({exc})") from exc
@@ -198,7 +203,7 @@ class Records:
     def _open_read_only(self) -> None:
         try:
             self._db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True, isolation_level=None, timeout=10.0)
-            self._db.create_function("fold", 1, lambda text: text.casefold() if text else "", deterministic=True)
+            self._db.create_function("fold", 1, _fold, deterministic=True)
             version = self.schema_version
         except sqlite3.DatabaseError as exc:
             raise RecordsError(f"{self.path}: not a usable records database ({_first_line(exc)})") from exc

@@ -73,9 +73,9 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                     every: int | None = None, motion_compensation: bool = True, volume_calibration=None,
                     progress: Callable[[float], None] | None = None, workers: int | None = 1) -> ProcessSummary:
     """Reconstruct every complete light cycle of each head: windows of one cycle's frames, sliding
-by `every` frames (default: the cycle's length, each cycle once; 1: a map at every frame).
-`workers` > 1 reconstructs the heads in that many processes at once (one head each, at most);
-None: one per core when the work repays starting them (AUTO_WORKERS_PIXEL_MAPS).
+    by `every` frames (default: the cycle's length, each cycle once; 1: a map at every frame).
+    `workers` > 1 reconstructs the heads in that many processes at once (one head each, at most);
+    None: one per core when the work repays starting them (AUTO_WORKERS_PIXEL_MAPS).
 
     Maps "at frame i" come from the newest complete cycle ending at frame i; frames asked for
     in `maps_at` that end no complete cycle are reported as an error.

@@ -25,12 +25,13 @@ import h5py
 import numpy as np
 
 from core.outputs import atomic_output, next_free_path
+from core.results import READ_ERRORS
 from core.session import SessionError, now_iso, validate_session
 
 READ_ATTEMPTS = 2
 HEAD_KEYS = ("frames", "light_index", "timestamp_ns", "frame_id")
 BLOCK = 64
-_READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError)
+_READ_ERRORS = READ_ERRORS  # what h5py raises for a damaged part (core/results.py)
 
 
 @dataclass
