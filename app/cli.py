@@ -70,7 +70,7 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("simulate", help="simulate a session on the simulated rig",
                        description="Render a session of the simulated rig into a session file (with /truth).")
-    p.add_argument("-o", "--output", required=True, type=Path, help="session file to write (.h5)")
+    p.add_argument("-o", "--output", type=Path, help="session file to write (.h5); required unless --list-bodies")
     p.add_argument("--scene", choices=SCENES, default="torso", help="what stands between the heads (default torso)")
     p.add_argument("--protocol", choices=PROTOCOLS, default="full",
                    help="torso manoeuvres: tidal, vc (slow vital capacity), forced, full (all three), static")
@@ -85,6 +85,9 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
                    help="peak postural sway along the optical axis (torso default 50; other scenes 0)")
     p.add_argument("--lateral-sway-mm", type=finite, default=15.0)
     s = p.add_argument_group("subject")
+    s.add_argument("--body", help="the trunk: 'random' (drawn with --seed), a preset (photopft simulate --list-bodies) "
+                   "or a body .toml file; its sex, age, height and weight replace those below (default: our own torso)")
+    s.add_argument("--list-bodies", action="store_true", help="list the body presets and exit")
     s.add_argument("--subject-id", default="SIM-0001")
     s.add_argument("--sex", choices=("male", "female"), default="male")
     s.add_argument("--age", type=positive, default=30.0, help="years")
@@ -100,6 +103,12 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
     c = p.add_argument_group("camera and lights")
     c.add_argument("--bits", type=int, choices=(8, 10, 12, 16), default=12)
     c.add_argument("--fps", type=_positive(float), default=110.0)
+    c.add_argument("--world", choices=("ideal", "clinic"), default="ideal",
+                   help="realism: ideal (today's rig as drawn) or clinic (LEDs as built with cos^mu falloff, tilt and "
+                        "drift, mains flicker, oily skin, lens distortion and vignetting, steps, lost frames); "
+                        "the clinic's values replace the options below")
+    c.add_argument("--skin-type", type=int, choices=range(1, 7), metavar="1-6",
+                   help="Fitzpatrick skin type of a --body's bare skin (default: albedo 0.45)")
     c.add_argument("--clothing", choices=("tshirt", "skin"), default="tshirt")
     c.add_argument("--specular", type=finite, default=0.0, help="specular weight of the torso's surface")
     c.add_argument("--led-offset-mm", type=finite, default=0.0, help="as built: LEDs this far from the drawing")
@@ -119,8 +128,16 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
 def run_simulate(args: argparse.Namespace) -> int:
     from core.sim.breathing import Subject, Sway
     from core.sim.flowsensor import FlowSensorModel
-    from core.sim.simulate import SimConfig, simulate
+    from core.sim.bodies import PRESETS, body_named
+    from core.sim.simulate import SimConfig, in_world, simulate
 
+    if args.list_bodies:
+        for name, b in PRESETS.items():
+            print(f"{name:18s} {b.sex:6s} {b.age_years:4.0f} y {b.height_cm:5.1f} cm {b.weight_kg:5.1f} kg "
+                  f"BMI {b.bmi:4.1f}  arms {b.arms}")
+        return 0
+    if args.output is None:
+        raise UserError("simulate needs -o/--output FILE.h5")
     if args.placements < 2:
         raise UserError("--placements must be 2 or more")
     if not 0.0 <= args.drop_rate < 0.5:
@@ -132,18 +149,24 @@ def run_simulate(args: argparse.Namespace) -> int:
                           chest_share=args.chest_share)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
+    try:
+        body = body_named(args.body, args.seed) if args.body else None
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
     sway_default = 50.0 if args.scene == "torso" else 0.0
     axial = sway_default if args.sway_mm is None else args.sway_mm
     lateral = args.lateral_sway_mm if (args.scene == "torso" or args.sway_mm) else 0.0
     sway = Sway(axial, lateral, 3.0 if axial or lateral else 0.0, seed=args.seed)
     config = SimConfig(
-        scene=args.scene, protocol=args.protocol, seconds=args.seconds, scale=args.scale, seed=args.seed,
+        scene=args.scene, body=body, protocol=args.protocol, seconds=args.seconds, scale=args.scale, seed=args.seed,
         heads=("front",) if args.heads == "front" else ("front", "back"), distance_mm=args.distance_mm,
         distance_back_mm=args.distance_back_mm, sway=sway, subject=subject, blows=args.blows, bit_depth=args.bits,
         frame_rate_hz=args.fps, clothing=args.clothing, specular=args.specular, led_offset_mm=args.led_offset_mm,
         led_intensity_spread=args.led_intensity_spread, led_mu=args.led_mu,
         flow_sensor=None if args.no_flow else FlowSensorModel(), drop_rate=args.drop_rate,
-        truth_maps_at=args.truth_maps_at, sphere_radius_mm=args.sphere_radius_mm, placements=args.placements)
+        truth_maps_at=args.truth_maps_at, sphere_radius_mm=args.sphere_radius_mm, placements=args.placements,
+        skin_type=args.skin_type)
+    config = in_world(config, args.world)
     from app.progress import Progress
 
     check_output(args.output, force=args.force)

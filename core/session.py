@@ -271,9 +271,13 @@ class SessionWriter(_OwnsFile):
         self._append(self._event_label, np.array([label], dtype=object))
 
     def write_truth(self, timestamp_ns: np.ndarray, volume_l: np.ndarray,
-                    heads: dict[str, dict[str, np.ndarray]], extra: dict[str, np.ndarray] | None = None) -> None:
-        """/truth: volume and, per head, true light positions and maps (keys as in the spec)."""
+                    heads: dict[str, dict[str, np.ndarray]], extra: dict[str, np.ndarray] | None = None,
+                    attrs: dict[str, object] | None = None) -> None:
+        """/truth: volume and, per head, true light positions and maps (keys as in the spec);
+        `attrs` describe the simulated world (e.g. the body's parameters as JSON)."""
         g = self._file.require_group("truth")
+        for key, value in (attrs or {}).items():
+            g.attrs[key] = value
         g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
         g.create_dataset("volume_l", data=np.asarray(volume_l, dtype=np.float64))
         for key, value in (extra or {}).items():

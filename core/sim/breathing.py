@@ -48,7 +48,14 @@ class Subject:
 
     @property
     def predicted(self) -> dict[str, float]:
+        """ECSC 1993 for adults; under 18, Polgar and Promadhat (1971) for FVC, FEV1 and PEF, with
+        TLC = FVC / 0.8, RV the rest and FRC 45 % of TLC (children's usual ratios)."""
         h, a = self._h, self.age_years
+        if a < 18:
+            fvc = 4.4e-6 * self.height_cm**2.67
+            tlc = fvc / 0.8
+            return {"FVC": fvc, "FEV1": 2.1e-6 * self.height_cm**2.80, "PEF": (5.175 * self.height_cm - 407) / 60,
+                    "TLC": tlc, "FRC": 0.45 * tlc, "RV": tlc - fvc}
         if self.sex == "male":
             return {"FVC": 5.76 * h - 0.026 * a - 4.34, "FEV1": 4.30 * h - 0.029 * a - 2.49,
                     "PEF": 6.14 * h - 0.043 * a + 0.15, "TLC": 7.99 * h - 7.08,
@@ -298,6 +305,8 @@ class Sway:
     lateral_mm: float = 15.0
     vertical_mm: float = 3.0
     seed: int = 0
+    steps: int = 0  # steps of 20-50 mm, each within 0.5 s, at random times
+    steps_span_s: float = 60.0  # the steps fall within this time from the start
 
     def at(self, t_s: np.ndarray | float) -> np.ndarray:
         """(..., 3) shift in the front camera frame: x lateral, y vertical, z along the axis."""
@@ -310,4 +319,12 @@ class Sway:
             weights = rng.uniform(0.5, 1.0, 4)
             s = sum(w * np.sin(2 * np.pi * f * t + p) for w, f, p in zip(weights, freqs, phases))
             out.append(amplitude * s / weights.sum())
-        return np.stack(out, axis=-1)
+        shift = np.stack(out, axis=-1)
+        for k in range(self.steps):
+            start = rng.uniform(0.1, 0.9) * self.steps_span_s
+            angle = rng.uniform(0, 2 * np.pi)
+            size = rng.uniform(20.0, 50.0)
+            progress = np.clip((t - start) / 0.5, 0.0, 1.0)
+            progress = progress * progress * (3.0 - 2.0 * progress)
+            shift = shift + size * progress[..., None] * np.array([np.sin(angle), 0.0, np.cos(angle)])
+        return shift

@@ -2,11 +2,12 @@
 
     I_k = rho * E_k * A_k * max(0, n . l_k) / r_k**2 (+ specular) + ambient + noise
 
-Rays are cast through every pixel centre (OpenCV pinhole, no distortion) and met with the
+Rays are cast through every pixel centre (OpenCV pinhole and, when the head has them, its radial
+and tangential distortion, inverted per pixel) and met with the
 surface by Newton's method on a height field, warm-started from the previous frame (and, where
 it fails on a flank the ray nearly grazes, by marching from the front), or analytically for
 spheres. Noise: shot noise (Gaussian with the Poisson variance) and read
-noise, drawn from a counter-based hash of (seed, frame, pixel) so that frames are the same
+noise (after the lens' vignetting), drawn from a counter-based hash of (seed, frame, pixel) so that frames are the same
 whatever the number of threads (the normal deviate is the Irwin-Hall sum of four uniforms:
 cheap, with tails cut at 3.46 sigma); then full-well saturation and quantisation.
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 from numba import njit, prange
 
@@ -36,6 +38,7 @@ class CameraModel:
     ambient_level: float = 0.04  # fraction of full well added by room light on a white surface
     background_level: float = 0.01  # fraction of full well from the dark background
     reference_distance_mm: float = 2000.0
+    vignetting: float = 0.0  # relative loss of light at the sensor's corners (quadratic in the radius)
     noise: bool = True  # False: the exact expected signal, only quantised (for physics tests)
 
     @property
@@ -50,6 +53,26 @@ class CameraModel:
         if factor <= 0:
             raise ValueError(f"binning factor must be positive, got {factor}")
         return replace(self, full_well_e=self.full_well_e * factor**2, read_noise_e=self.read_noise_e * factor)
+
+
+def camera_rays(head: Head) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel centre's ray (x/z, y/z), each (H, W): the lens' distortion inverted (OpenCV's model)."""
+    u, v = head.pixel_rays()
+    if np.any(head.dist_coeffs != 0):
+        pixels = np.stack(np.meshgrid(np.arange(head.width, dtype=np.float64), np.arange(head.height, dtype=np.float64)),
+                          -1).reshape(-1, 1, 2)
+        xy = cv2.undistortPoints(pixels, head.camera_matrix, head.dist_coeffs,
+                                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12))
+        u = np.ascontiguousarray(xy[:, 0, 0].reshape(head.shape))
+        v = np.ascontiguousarray(xy[:, 0, 1].reshape(head.shape))
+    return u, v
+
+
+def vignette_map(head: Head, vignetting: float) -> np.ndarray:
+    """Relative light reaching each pixel: 1 on the axis, 1 - vignetting in the corners."""
+    yy, xx = np.mgrid[0:head.height, 0:head.width]
+    r2 = ((xx - head.cx) ** 2 + (yy - head.cy) ** 2) / (head.cx**2 + head.cy**2)
+    return np.ascontiguousarray(1.0 - vignetting * r2)
 
 
 def pack_lights(head: Head) -> np.ndarray:
@@ -201,7 +224,7 @@ def _first_hit(fields, amps, gx0, gy0, inv_step, uj, vi, sign_x, sx, sy, z0, z_f
 
 
 @njit(parallel=True, fastmath=_FAST, nogil=True, cache=True)
-def render_height_field(out, z_state, u, v, fields, gx0, gy0, step, amps, sign_x, sx, sy, z0, front_mm,
+def render_height_field(out, z_state, ray_u, ray_v, vignette, fields, gx0, gy0, step, amps, sign_x, sx, sy, z0, front_mm,
                         spec, shin, light, lit, gain, ambient_e, background_e, read_e, dn_per_e, max_dn,
                         key0, want_maps, depth_out, normal_out):
     """Render one frame of a height field `Z = z0 - h(sign_x * X - sx, Y - sy)`; returns nothing.
@@ -212,9 +235,9 @@ def render_height_field(out, z_state, u, v, fields, gx0, gy0, step, amps, sign_x
     height, width = out.shape
     inv_step = 1.0 / step
     for i in prange(height):
-        vi = v[i]
         for j in range(width):
-            uj = u[j]
+            uj = ray_u[i, j]
+            vi = ray_v[i, j]
             zc = z_state[i, j]
             if not np.isfinite(zc):
                 zc = z0
@@ -251,7 +274,7 @@ def render_height_field(out, z_state, u, v, fields, gx0, gy0, step, amps, sign_x
                 signal = ambient_e * alb
                 if lit:
                     signal += gain * _radiance(px, py, zc, nxx, nyy, nzz, alb, light, spec, shin)
-                out[i, j] = _digitise(signal, read_e, dn_per_e, max_dn, key)
+                out[i, j] = _digitise(signal * vignette[i, j], read_e, dn_per_e, max_dn, key)
                 if want_maps:
                     depth_out[i, j] = zc
                     normal_out[i, j, 0] = nxx
@@ -259,7 +282,7 @@ def render_height_field(out, z_state, u, v, fields, gx0, gy0, step, amps, sign_x
                     normal_out[i, j, 2] = nzz
             else:
                 z_state[i, j] = np.nan
-                out[i, j] = _digitise(background_e, read_e, dn_per_e, max_dn, key)
+                out[i, j] = _digitise(background_e * vignette[i, j], read_e, dn_per_e, max_dn, key)
                 if want_maps:
                     depth_out[i, j] = np.nan
                     normal_out[i, j, 0] = np.nan
@@ -289,7 +312,7 @@ def _sphere_hit(du, dv, spheres):
 
 
 @njit(parallel=True, fastmath=_FAST, nogil=True, cache=True)
-def render_spheres(out, u, v, du_sub, spheres, light, lit, gain, ambient_e, background_e, read_e, dn_per_e,
+def render_spheres(out, ray_u, ray_v, vignette, du_sub, spheres, light, lit, gain, ambient_e, background_e, read_e, dn_per_e,
                    max_dn, key0, supersample, want_maps, depth_out, normal_out):
     """Render spheres (rows: centre xyz, radius, albedo, specular, shininess, -) with pixel-area sampling."""
     height, width = out.shape
@@ -299,8 +322,8 @@ def render_spheres(out, u, v, du_sub, spheres, light, lit, gain, ambient_e, back
             signal = 0.0
             for si in range(ss):
                 for sj in range(ss):
-                    du = u[j] + du_sub * ((sj + 0.5) / ss - 0.5)
-                    dv = v[i] + du_sub * ((si + 0.5) / ss - 0.5)
+                    du = ray_u[i, j] + du_sub * ((sj + 0.5) / ss - 0.5)
+                    dv = ray_v[i, j] + du_sub * ((si + 0.5) / ss - 0.5)
                     s, t = _sphere_hit(du, dv, spheres)
                     if s < 0:
                         signal += background_e
@@ -317,10 +340,10 @@ def render_spheres(out, u, v, du_sub, spheres, light, lit, gain, ambient_e, back
                     if lit:
                         signal += gain * _radiance(px, py, pz, nxx, nyy, nzz, alb, light, spheres[s, 5],
                                                    spheres[s, 6])
-            signal /= ss * ss
+            signal *= vignette[i, j] / (ss * ss)
             out[i, j] = _digitise(signal, read_e, dn_per_e, max_dn, key0 + np.uint64(i * width + j))
             if want_maps:
-                s, t = _sphere_hit(u[j], v[i], spheres)
+                s, t = _sphere_hit(ray_u[i, j], ray_v[i, j], spheres)
                 if s < 0:
                     depth_out[i, j] = np.nan
                     for c in range(3):
@@ -328,6 +351,6 @@ def render_spheres(out, u, v, du_sub, spheres, light, lit, gain, ambient_e, back
                 else:
                     depth_out[i, j] = t
                     r = spheres[s, 3]
-                    normal_out[i, j, 0] = (t * u[j] - spheres[s, 0]) / r
-                    normal_out[i, j, 1] = (t * v[i] - spheres[s, 1]) / r
+                    normal_out[i, j, 0] = (t * ray_u[i, j] - spheres[s, 0]) / r
+                    normal_out[i, j, 1] = (t * ray_v[i, j] - spheres[s, 1]) / r
                     normal_out[i, j, 2] = (t - spheres[s, 2]) / r

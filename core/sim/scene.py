@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from core.rig import Head
-from core.sim.render import CameraModel, pack_lights, render_height_field, render_spheres
+from core.sim.render import CameraModel, camera_rays, pack_lights, render_height_field, render_spheres, vignette_map
 from core.sim.surfaces import F_H, HeightField, Sphere, mode_volumes_mm3
 
 HEAD_KEYS = {"front": 0, "back": 1}
@@ -27,6 +27,7 @@ class Digitiser:
 
     camera: CameraModel
     bit_depth: int
+    ambient_scale: float = 1.0  # the room light's level at this frame against its mean (mains flicker)
 
     @property
     def max_dn(self) -> float:
@@ -38,12 +39,25 @@ class Digitiser:
 
     def args(self) -> tuple:
         c = self.camera
-        return (c.exposure_gain, c.ambient_level * c.full_well_e, c.background_level * c.full_well_e,
+        return (c.exposure_gain, c.ambient_level * c.full_well_e * self.ambient_scale, c.background_level * c.full_well_e,
                 c.read_noise_e if c.noise else -1.0, self.dn_per_e, self.max_dn)
 
 
 def noise_key(seed: int, head: str, frame_index: int, n_pixels: int) -> np.uint64:
     return np.uint64(((seed * 1_000_003 + HEAD_KEYS[head]) * (1 << 40) + frame_index * n_pixels) % (1 << 64))
+
+
+class _Optics:
+    """Each head's pixel rays and vignetting, computed once."""
+
+    def __init__(self) -> None:
+        self._cache: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def of(self, head: Head, camera: CameraModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        key = (head.name, head.shape, head.fx, head.fy, head.cx, head.cy, tuple(head.dist_coeffs), camera.vignetting)
+        if key not in self._cache:
+            self._cache[key] = (*camera_rays(head), vignette_map(head, camera.vignetting))
+        return self._cache[key]
 
 
 @dataclass
@@ -98,7 +112,7 @@ class HeightFieldScene(Scene):
         self.kind = kind
         self.root_attrs = {}
         self._z_state: dict[str, np.ndarray] = {}
-        self._rays: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._optics = _Optics()
 
     def sway_mm(self, t_s: np.ndarray) -> np.ndarray:
         if self._sway is None:
@@ -112,11 +126,9 @@ class HeightFieldScene(Scene):
     def render(self, head: Head, t_s: float, light: int, key: np.uint64, digitiser: Digitiser,
                want_maps: bool = False) -> tuple[np.ndarray, RenderedMaps | None]:
         surface = self.surfaces[head.name]
-        if head.name not in self._rays:
-            self._rays[head.name] = ((np.arange(head.width) - head.cx) / head.fx,
-                                     (np.arange(head.height) - head.cy) / head.fy)
+        if head.name not in self._z_state:
             self._z_state[head.name] = np.full(head.shape, np.nan)
-        u, v = self._rays[head.name]
+        u, v, vignette = self._optics.of(head, digitiser.camera)
         sx, sy, sz = self.sway_mm(np.array(t_s))
         if head.name == "front":
             sign_x, z0 = 1.0, self.z_mid_mm + sz
@@ -127,7 +139,7 @@ class HeightFieldScene(Scene):
         lights = pack_lights(head)
         g = surface.grid
         amps = self.amplitudes(t_s).astype(np.float64)
-        render_height_field(out, self._z_state[head.name], u, v, surface.fields, g.x0, g.y0, g.step,
+        render_height_field(out, self._z_state[head.name], u, v, vignette, surface.fields, g.x0, g.y0, g.step,
                             amps, sign_x, sx, sy, z0, surface.front_mm(amps), surface.specular,
                             surface.shininess, lights[max(light, 0)], light >= 0, *digitiser.args(), key,
                             want_maps, depth, normals)
@@ -176,6 +188,7 @@ class SphereScene(Scene):
     supersample: int = 3
     events: list[tuple[float, str]] = field(default_factory=list)
     root_attrs: dict[str, object] = field(default_factory=dict)
+    _optics: "_Optics" = field(default_factory=lambda: _Optics(), repr=False)
 
     def __post_init__(self) -> None:
         if not self.events:
@@ -192,11 +205,10 @@ class SphereScene(Scene):
     def render(self, head: Head, t_s: float, light: int, key: np.uint64, digitiser: Digitiser,
                want_maps: bool = False) -> tuple[np.ndarray, RenderedMaps | None]:
         rows = np.array([s.as_row() for s in self.spheres_in(head.name, t_s)])
-        u = (np.arange(head.width) - head.cx) / head.fx
-        v = (np.arange(head.height) - head.cy) / head.fy
+        u, v, vignette = self._optics.of(head, digitiser.camera)
         out = np.empty(head.shape, dtype=head.frame_dtype)
         depth, normals = _empty_maps(head, want_maps)
         lights = pack_lights(head)
-        render_spheres(out, u, v, 1.0 / head.fx, rows, lights[max(light, 0)], light >= 0, *digitiser.args(), key,
+        render_spheres(out, u, v, vignette, 1.0 / head.fx, rows, lights[max(light, 0)], light >= 0, *digitiser.args(), key,
                        self.supersample, want_maps, depth, normals)
         return out, (RenderedMaps(depth, normals) if want_maps else None)

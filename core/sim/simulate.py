@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import queue
 import threading
 import time
@@ -15,6 +16,8 @@ from core.outputs import atomic_output, stop_if_requested
 from core.rig import DARK, Head, Rig, thesis_rig
 from core.session import SessionWriter, SubjectRecord
 from core.sim import shapes
+from core.sim.bodies import Body, body_surfaces
+from core.sim.textures import fitzpatrick_albedo
 from core.sim.breathing import RATE_HZ, ForcedBlow, Subject, Sway, Waveform, protocol_waveform
 from core.sim.flowsensor import FlowSensorModel
 from core.sim.render import CameraModel
@@ -32,6 +35,7 @@ class SimConfig:
     """Everything that defines a simulated session; defaults are the thesis rig and a healthy adult."""
 
     scene: str = "torso"
+    body: Body | None = None  # None: our own torso (shapes.torso); else a parametric body (core/sim/bodies.py)
     protocol: str = "full"
     seconds: float | None = None  # None: the protocol's natural length
     scale: float = 0.25
@@ -51,6 +55,14 @@ class SimConfig:
     led_offset_mm: float = 0.0  # as built: each LED this far (random direction) from the drawing
     led_intensity_spread: float = 0.0  # as built: relative intensities 1 +- this (uniform)
     led_mu: float = 0.0  # LED anisotropy exponent (0: isotropic), axes along the optical axis
+    led_mu_spread: float = 0.0  # as built: each LED's exponent led_mu +- this (uniform)
+    led_tilt_deg: float = 0.0  # as built: each LED's axis up to this far from the optical axis
+    led_drift: float = 0.0  # thermal drift: each LED's intensity 1 +- this, over periods of 3-10 minutes
+    ambient_flicker: float = 0.0  # room light modulated +- this at twice the mains frequency
+    mains_hz: float = 50.0
+    lens_k1: float = 0.0  # radial distortion (OpenCV k1) of every camera; written to /rig, as a calibrated lens
+    steps: int = 0  # the subject steps 20-50 mm (within 0.5 s) this many times
+    skin_type: int | None = None  # Fitzpatrick I-VI of a body's bare skin (None: albedo 0.45)
     flow_sensor: FlowSensorModel | None = field(default_factory=FlowSensorModel)
     drop_rate: float = 0.0  # fraction of frames lost on the way (gaps in frame_id)
     truth_maps_at: list[int] | None = None  # frame indices; None: five spread over the session
@@ -92,16 +104,89 @@ def as_built_heads(rig: Rig, config: SimConfig) -> dict[str, Head]:
         intensity = 1.0 + config.led_intensity_spread * rng.uniform(-1, 1, 4)
         axis = mu = None
         if config.led_mu > 0:
-            axis = np.tile([0.0, 0.0, 1.0], (4, 1))
-            mu = np.full(4, config.led_mu)
+            tilt = np.radians(config.led_tilt_deg) * rng.uniform(0, 1, 4)
+            azimuth = rng.uniform(0, 2 * np.pi, 4)
+            axis = np.column_stack([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)])
+            mu = config.led_mu + config.led_mu_spread * rng.uniform(-1, 1, 4)
         out[name] = replace(head, light_positions_mm=positions, light_intensity=intensity, light_axis=axis,
                             light_mu=mu)
     return out
 
 
+class Drift:
+    """Slow thermal drift of every LED's output and the mains flicker of the room light."""
+
+    def __init__(self, config: SimConfig) -> None:
+        rng = np.random.default_rng(config.seed + 71)
+        self.amplitude = config.led_drift
+        self.periods_s = rng.uniform(180.0, 600.0, 4)
+        self.phases = rng.uniform(0, 2 * np.pi, 4)
+        self.flicker = config.ambient_flicker
+        self.flicker_hz = 2.0 * config.mains_hz
+        self.flicker_phase = float(rng.uniform(0, 2 * np.pi))
+
+    def head_at(self, head: Head, t_s: float) -> Head:
+        if self.amplitude == 0:
+            return head
+        factor = 1.0 + self.amplitude * np.sin(2 * np.pi * t_s / self.periods_s + self.phases)
+        return replace(head, light_intensity=head.light_intensity * factor)
+
+    def relative_intensity(self, t_s: np.ndarray) -> np.ndarray:
+        """(T, 4) each LED's output against its mean."""
+        t = np.asarray(t_s, dtype=float)[:, None]
+        return 1.0 + self.amplitude * np.sin(2 * np.pi * t / self.periods_s + self.phases)
+
+    def ambient_at(self, t_s: float) -> float:
+        return 1.0 + self.flicker * float(np.sin(2 * np.pi * self.flicker_hz * t_s + self.flicker_phase))
+
+
+WORLDS: dict[str, dict[str, float]] = {
+    "ideal": {},
+    # the issue's clinic: LEDs as built, room light, oily skin, a real lens, a subject who moves
+    "clinic": {"led_offset_mm": 10.0, "led_intensity_spread": 0.10, "led_mu": 2.0, "led_mu_spread": 1.0,
+               "led_tilt_deg": 10.0, "led_drift": 0.02, "ambient_flicker": 0.3, "specular": 0.15,
+               "lens_k1": -0.08, "steps": 2, "drop_rate": 0.002},
+}
+WORLD_CAMERA = {"ideal": {}, "clinic": {"vignetting": 0.15}}
+
+
+def in_world(config: SimConfig, world: str) -> SimConfig:
+    """The config with a named world's realism switches set (see WORLDS)."""
+    if world not in WORLDS:
+        raise ValueError(f"unknown world {world!r}: one of {', '.join(WORLDS)}")
+    return replace(config, camera=replace(config.camera, **WORLD_CAMERA[world]), **WORLDS[world])
+
+
+def world_json(config: SimConfig) -> str:
+    """The simulated world's realism settings, for /truth."""
+    keys = ("led_offset_mm", "led_intensity_spread", "led_mu", "led_mu_spread", "led_tilt_deg", "led_drift",
+            "ambient_flicker", "mains_hz", "specular", "clothing", "skin_type", "lens_k1", "steps", "drop_rate", "distance_mm",
+            "distance_back_mm", "scale", "seed")
+    values = {k: getattr(config, k) for k in keys}
+    values["vignetting"] = config.camera.vignetting
+    return json.dumps(values, sort_keys=True)
+
+
+def breathing_subject(config: SimConfig) -> Subject:
+    """The subject who breathes: the config's, with a body's sex, age, stature and mass when it has one."""
+    body = config.body
+    if body is None:
+        return config.subject
+    return replace(config.subject, sex=body.sex, age_years=body.age_years, height_cm=body.height_cm,
+                   weight_kg=body.weight_kg)
+
+
+def _torso_surfaces(config: SimConfig):
+    if config.body is None:
+        return shapes.torso(config.grid_step_mm, config.clothing, config.seed, config.specular)
+    skin = 0.45 if config.skin_type is None else fitzpatrick_albedo(config.skin_type)
+    return body_surfaces(config.body, config.grid_step_mm, config.clothing, config.seed, skin_albedo=skin,
+                         specular=config.specular)
+
+
 def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> HeightFieldScene:
-    surfaces = shapes.torso(config.grid_step_mm, config.clothing, config.seed, config.specular)
-    subject = config.subject
+    surfaces = _torso_surfaces(config)
+    subject = breathing_subject(config)
     shares = subject.compartment_shares()
     names = surfaces["front"].mode_names
     per_mode_l = (mode_volumes_mm3(surfaces["front"]) + mode_volumes_mm3(surfaces["back"])) * 1e-6
@@ -119,13 +204,16 @@ def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> Heig
         return sum(share[k] * waveform.flow_at(np.clip(t - lags[k], 0, None)) for k in range(len(names)))
 
     sway = config.sway if config.sway is not None else Sway(seed=config.seed)
+    if config.steps:
+        sway = replace(sway, steps=config.steps, steps_span_s=waveform.duration_s)
     probe = HeightFieldScene(surfaces, 0.0, baseline)
     z_mid = config.distance_mm + probe.on_axis_height_mm("front")
     baseline = z_mid + probe.on_axis_height_mm("back") + config.distance_back_mm
     scene = HeightFieldScene(surfaces, z_mid, baseline, amplitudes, sway.at, compartments, flow, waveform.events,
                              kind="simulation")
     scene.root_attrs = {"simulated_scene": "torso", "simulated_protocol": config.protocol,
-                        "compartments": ",".join(names)}
+                        "compartments": ",".join(names),
+                        "simulated_body": "ours" if config.body is None else config.body.name}
     return scene
 
 
@@ -161,7 +249,7 @@ def build_scene(config: SimConfig, rig: Rig) -> tuple[Scene, Waveform | None]:
         raise ValueError(f"unknown scene {config.scene!r}: one of {', '.join(SCENES)}")
     baseline = config.distance_mm + config.distance_back_mm + 230.0
     if config.scene == "torso":
-        waveform = protocol_waveform(config.subject, config.protocol, config.seconds, config.seed, config.blows)
+        waveform = protocol_waveform(breathing_subject(config), config.protocol, config.seconds, config.seed, config.blows)
         return _torso_scene(config, waveform, baseline), waveform
     if config.scene in ("plane", "vase", "relief"):
         return _object_scene(config), None
@@ -210,6 +298,10 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
     """Render the session described by `config` into a session file at `path`."""
     started = time.perf_counter()
     rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
+    if config.lens_k1:
+        rig = replace(rig, heads={n: replace(h, dist_coeffs=np.array([config.lens_k1, 0, 0, 0, 0]))
+                                  for n, h in rig.heads.items()})
+    drift = Drift(config)
     scene, waveform = build_scene(config, rig)
     if len(rig.heads) == 2:
         rig = replace(rig, baseline_mm=float(scene.baseline_mm))
@@ -230,7 +322,7 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
 
     subject = None
     if scene.kind in ("simulation", "patient"):
-        s = config.subject
+        s = breathing_subject(config)
         subject = SubjectRecord(s.id, s.sex, s.age_years, s.height_cm, s.weight_kg)
     root = dict(scene.root_attrs)
     root["simulated_seed"] = int(config.seed)
@@ -264,7 +356,9 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
                     for i in indices:
                         light = rig.sequence[i % rig.cycle_length]
                         key = noise_key(config.noise_draw, name, i, head.width * head.height)
-                        frame, rendered = scene.render(head, i / rig.frame_rate_hz, light, key, digitisers[name],
+                        t_i = i / rig.frame_rate_hz
+                        frame, rendered = scene.render(drift.head_at(head, t_i), t_i, light, key,
+                                                       replace(digitisers[name], ambient_scale=drift.ambient_at(t_i)),
                                                        want_maps=i in map_frames)
                         if rendered is not None:
                             maps[name][i] = rendered
@@ -298,12 +392,20 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
                 if indices else np.zeros((0, head.height, head.width), np.float32),
             }
             truth_heads[name]["light_intensity"] = head.light_intensity
+            if head.light_axis is not None:
+                truth_heads[name]["light_axis"] = head.light_axis
+                truth_heads[name]["light_mu"] = head.light_mu
+            if drift.amplitude:
+                truth_heads[name]["light_drift"] = drift.relative_intensity(truth_t)
         extra = {"sway_mm": scene.sway_mm(truth_t), "flow_lps": scene.truth_flow_lps(truth_t)}
         if isinstance(scene, HeightFieldScene) and scene.compartment_volumes_l(truth_t) is not None:
             extra["compartment_volume_l"] = scene.compartment_volumes_l(truth_t)
         truth_volume = scene.truth_volume_l(truth_t)
+        truth_attrs = {"world": world_json(config)}
+        if config.body is not None and config.scene == "torso":
+            truth_attrs["body"] = config.body.as_json()
         writer.write_truth(CLOCK_START_NS + np.round(truth_t * 1e9).astype(np.int64), truth_volume, truth_heads,
-                           extra)
+                           extra, truth_attrs)
 
         flow_samples = 0
         if config.flow_sensor is not None and scene.kind == "simulation" and waveform is not None:

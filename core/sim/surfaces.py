@@ -53,6 +53,9 @@ class HeightField:
     mode_names: tuple[str, ...] = ()
     specular: float = 0.0  # Blinn-Phong weight relative to a white Lambertian surface
     shininess: float = 1.0
+    # what each mode sweeps on the object itself, where the rendered modes are hidden in places
+    # (arms in front of the trunk's sides); None: the rendered modes' own quadrature
+    swept_mode_volumes_mm3: tuple[float, ...] | None = None
 
     @property
     def n_modes(self) -> int:
@@ -103,7 +106,10 @@ def build_height_field(grid: BodyGrid, height_mm: np.ndarray, albedo: np.ndarray
 
 
 def mode_volumes_mm3(surface: HeightField) -> np.ndarray:
-    """Volume (mm^3) swept by each mode at unit amplitude: the grid quadrature of the rendered surface."""
+    """Volume (mm^3) swept by each mode at unit amplitude: the grid quadrature of the rendered
+    surface, or of the object's own where something hides part of it."""
+    if surface.swept_mode_volumes_mm3 is not None:
+        return np.array(surface.swept_mode_volumes_mm3, dtype=float)
     return np.array([float(np.sum(surface.mode(k), dtype=np.float64)) * surface.grid.cell_area_mm2
                      for k in range(surface.n_modes)])
 
