@@ -359,6 +359,33 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                                          f"{'' if args.scale == 1 else f' --scale {args.scale:g}'}`)", text)
 
     pr.set_defaults(run=run_process)
+    po = what.add_parser("population", help="clinical values of simulated subjects in a clinic-like world, "
+                                            "against the truth (Bland-Altman)")
+    po.add_argument("--subjects", type=int, default=30)
+    po.add_argument("--scale", type=positive, default=0.5)
+    po.add_argument("--seed", type=int, default=1)
+    po.add_argument("--quick", action="store_true", help="two small subjects and 14 s each (what the tests run)")
+    po.add_argument("--workers", type=int, default=None, help="subjects at once (default: one per core)")
+    po.add_argument("--waveforms", type=Path, default=SHARED / "data" / "spirometry-waveforms",
+                    help="the standard test waveforms the blows follow (default ../shared/data/spirometry-waveforms)")
+    po.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_population(args: argparse.Namespace) -> int:
+        from app.bench_population import run_population_bench
+
+        if args.subjects < 1:
+            from app.cli import UserError
+
+            raise UserError("--subjects must be 1 or more")
+        subjects = 2 if args.quick else args.subjects
+        workers = max(1, min(subjects, args.workers or os.cpu_count() or 1))
+        images = None if args.no_write else DOCS.parent / "images"
+        text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images)
+        return _publish(args, f"population-{args.scale:g}", f"Population (`photopft bench population --subjects "
+                                                             f"{subjects} --scale {args.scale:g} --seed {args.seed}`)",
+                        text)
+
+    po.set_defaults(run=run_population)
     co = what.add_parser("compression", help="lossless HDF5 filters on the rig's frames: ratio, MB/s, GB a minute")
     co.add_argument("--scale", type=positive, default=1.0)
     co.add_argument("--frames", type=int, default=110)

@@ -99,6 +99,11 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--tidal-volume", type=_positive(float), help="L (default 7 mL/kg)")
     s.add_argument("--rate", type=_positive(float), default=14.0, help="breaths per minute")
     s.add_argument("--chest-share", type=finite, default=0.62, help="share of each breath in the chest (0-1)")
+    s.add_argument("--blow-waveform", type=Path, metavar="FILE.wf",
+                   help="the forced blows follow this standard volume-time waveform (ATS-24, ISO 26782 .wf), "
+                        "scaled to the subject's FVC")
+    s.add_argument("--irregular", action="store_true",
+                   help="tidal breathing with an irregular rate (15 %% spread) and a sigh every dozen breaths")
     s.add_argument("--blows", type=_blows, help=f"forced blows, comma-separated: {', '.join(BLOW_KINDS)}")
     c = p.add_argument_group("camera and lights")
     c.add_argument("--bits", type=int, choices=(8, 10, 12, 16), default=12)
@@ -146,9 +151,22 @@ def run_simulate(args: argparse.Namespace) -> int:
         subject = Subject(id=args.subject_id, sex=args.sex, age_years=args.age, height_cm=args.height,
                           weight_kg=args.weight, fvc_l=args.fvc, fev1_l=args.fev1, pef_lps=args.pef,
                           tidal_volume_l=args.tidal_volume, respiratory_rate_bpm=args.rate,
-                          chest_share=args.chest_share)
+                          chest_share=args.chest_share, rate_variability=0.15 if args.irregular else 0.06,
+                          sigh_every=12 if args.irregular else 0)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
+    blows = args.blows
+    if args.blow_waveform is not None:
+        from core.sim.breathing import ForcedBlow, standard_curve
+        from core.spirometry import read_waveform
+
+        try:
+            standard = read_waveform(args.blow_waveform)
+        except ValueError as exc:
+            raise UserError(str(exc)) from exc
+        curve = standard_curve(standard.volume_l, standard.rate_hz)
+        blows = [ForcedBlow(effort=e, standard=curve) for e in ((1.0, 0.97, 1.02) if blows is None else
+                                                                 [b.effort for b in blows])]
     try:
         body = body_named(args.body, args.seed) if args.body else None
     except ValueError as exc:
@@ -160,7 +178,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     config = SimConfig(
         scene=args.scene, body=body, protocol=args.protocol, seconds=args.seconds, scale=args.scale, seed=args.seed,
         heads=("front",) if args.heads == "front" else ("front", "back"), distance_mm=args.distance_mm,
-        distance_back_mm=args.distance_back_mm, sway=sway, subject=subject, blows=args.blows, bit_depth=args.bits,
+        distance_back_mm=args.distance_back_mm, sway=sway, subject=subject, blows=blows, bit_depth=args.bits,
         frame_rate_hz=args.fps, clothing=args.clothing, specular=args.specular, led_offset_mm=args.led_offset_mm,
         led_intensity_spread=args.led_intensity_spread, led_mu=args.led_mu,
         flow_sensor=None if args.no_flow else FlowSensorModel(), drop_rate=args.drop_rate,

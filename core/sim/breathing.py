@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.interpolate import PchipInterpolator
 from scipy.optimize import brentq
 
 RATE_HZ = 1000.0  # sampling of the generated waveforms
@@ -33,6 +34,8 @@ class Subject:
     chest_share: float = 0.62  # of each breath; the abdomen has the rest
     left_share: float = 0.5  # of the chest's share
     abdomen_lag_s: float = 0.08  # abdomen after chest (thoraco-abdominal phase)
+    rate_variability: float = 0.06  # breath-to-breath spread of the period (and of the tidal volume, 4/3 of it)
+    sigh_every: int = 0  # a sigh (2-3 tidal volumes) about every this many breaths; 0: none
 
     def __post_init__(self) -> None:
         if self.sex not in ("male", "female"):
@@ -104,6 +107,9 @@ class ForcedBlow:
     stop_after_s: float | None = None  # early stop: expiration ends here
     cough_at_s: float | None = None  # a cough: flow stops for 80 ms at this time
     effort: float = 1.0  # scales PEF (and FEV1 a little)
+    # a standard volume-time waveform (exhaled L at RATE_HZ, core/sim/breathing.standard_curve) that the blow
+    # follows, scaled to the subject's FVC; None: the two-exponential model
+    standard: np.ndarray | None = field(default=None, compare=False)
 
 
 @dataclass
@@ -157,8 +163,12 @@ def tidal(subject: Subject, duration_s: float, rng: np.random.Generator, level_l
     parts: list[np.ndarray] = [np.zeros(0)]
     total = int(round(duration_s * RATE_HZ))
     while sum(len(p) for p in parts) < total:
-        period = 60.0 / subject.respiratory_rate_bpm * (1 + 0.06 * rng.standard_normal())
-        vt = subject.tidal_volume * (1 + 0.08 * rng.standard_normal())
+        spread = subject.rate_variability
+        period = 60.0 / subject.respiratory_rate_bpm * float(np.clip(1 + spread * rng.standard_normal(), 0.5, 1.8))
+        vt = subject.tidal_volume * float(np.clip(1 + 4 / 3 * spread * rng.standard_normal(), 0.4, 2.0))
+        if subject.sigh_every and rng.random() < 1.0 / subject.sigh_every:
+            vt *= rng.uniform(2.0, 3.0)
+            period *= 1.6
         ti = period / (1 + subject.ie_ratio)
         te = period - ti
         inspiration = level_l + vt * 0.5 * (1 - np.cos(np.pi * _samples(ti) / ti))
@@ -241,7 +251,11 @@ def forced(subject: Subject, blow: ForcedBlow, rng: np.random.Generator, blow_s:
     lead = tidal(subject, lead_breaths * 60.0 / subject.respiratory_rate_bpm, rng)
     inhale = _ramp(0.0, ic, 1.6)
     hold = np.full(int(0.4 * RATE_HZ), ic)
-    exhaled = forced_expiration_curve(subject.fvc, subject.fev1, subject.pef, blow, blow_s)
+    if blow.standard is not None:
+        # a weaker blow of a standard shape empties a little less (1.5 % at 97 % effort)
+        exhaled = blow.standard * (subject.fvc * (1.0 - 0.5 * (1.0 - blow.effort)) / float(blow.standard[-1]))
+    else:
+        exhaled = forced_expiration_curve(subject.fvc, subject.fev1, subject.pef, blow, blow_s)
     blow_part = ic - exhaled
     recover = _ramp(blow_part[-1], 0.0, 1.5)
     start = (len(lead) + len(inhale) + len(hold)) / RATE_HZ
@@ -250,7 +264,22 @@ def forced(subject: Subject, blow: ForcedBlow, rng: np.random.Generator, blow_s:
     return np.concatenate(parts), [(start, "forced-start"), (end, "maneuver-end")]
 
 
-PROTOCOLS = ("tidal", "vc", "forced", "full", "static")
+def standard_curve(volume_l: np.ndarray, rate_hz: float) -> np.ndarray:
+    """A standard test waveform's exhaled volume (ATS-24, ISO 26782) at RATE_HZ: from its start to
+    one second after it comes within 1 mL of its final volume (the files pad with a long plateau),
+    held to at least 6 s; shape-preserving (PCHIP) between its samples."""
+    volume = np.asarray(volume_l, dtype=float)
+    volume = volume - volume[0]
+    end = int(np.argmax(volume >= volume[-1] - 0.001)) + int(round(rate_hz))
+    volume = volume[: min(end, len(volume) - 1) + 1]
+    t = np.arange(len(volume)) / rate_hz
+    out = PchipInterpolator(t, volume)(np.arange(int(t[-1] * RATE_HZ) + 1) / RATE_HZ)
+    out = np.maximum.accumulate(np.clip(out, 0.0, None))
+    return np.concatenate([out, np.full(max(0, int(6 * RATE_HZ) - len(out)), out[-1])])
+
+
+PROTOCOLS = ("tidal", "vc", "forced", "full", "short", "static")
+TIDAL_SECONDS = {"full": 8.0, "short": 20.0}  # the tidal part that opens a whole protocol
 
 
 def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, seed: int,
@@ -258,6 +287,7 @@ def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, se
     """The lung volume of a whole protocol; `seconds` trims or pads (with tidal breathing) the end.
 
     full (57 s): 8 s tidal breathing, a slow VC, then forced expirations (three good blows by default).
+    short (about 55 s, the population benchmark's): 20 s tidal breathing, a slow VC, the first two blows.
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"unknown protocol {protocol!r}: one of {', '.join(PROTOCOLS)}")
@@ -274,15 +304,17 @@ def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, se
     if protocol == "static":
         add(np.zeros(int(round((seconds or 5.0) * RATE_HZ))))
         return Waveform(np.concatenate(parts), events)
-    if protocol in ("tidal", "full"):
-        add(tidal(subject, 8.0 if protocol == "full" else (seconds or 30.0), rng), [(0.0, "tidal-start")])
-        if protocol == "full":
-            events.append((8.0, "maneuver-end"))
-    if protocol in ("vc", "full"):
-        add(*slow_vc(subject, rng, lead_breaths=0 if protocol == "full" else 1))
-    if protocol in ("forced", "full"):
-        for k, blow in enumerate(blows):
-            add(*forced(subject, blow, rng, lead_breaths=0 if k == 0 and protocol == "full" else 1))
+    whole = protocol in TIDAL_SECONDS
+    if protocol == "tidal" or whole:
+        tidal_s = TIDAL_SECONDS.get(protocol, seconds or 30.0)
+        add(tidal(subject, tidal_s, rng), [(0.0, "tidal-start")])
+        if whole:
+            events.append((tidal_s, "maneuver-end"))
+    if protocol == "vc" or whole:
+        add(*slow_vc(subject, rng, lead_breaths=0 if whole else 1))
+    if protocol == "forced" or whole:
+        for k, blow in enumerate(blows[:2] if protocol == "short" else blows):
+            add(*forced(subject, blow, rng, lead_breaths=0 if k == 0 and whole else 1))
     volume = np.concatenate(parts)
     if seconds is not None:
         n = int(round(seconds * RATE_HZ))

@@ -40,6 +40,7 @@ class SimConfig:
     seconds: float | None = None  # None: the protocol's natural length
     scale: float = 0.25
     seed: int = 1
+    rig_seed: int | None = None  # draws the LEDs as built (None: seed); one rig for its calibration and its subjects
     noise_seed: int | None = None  # the camera noise's draw (None: seed); the rest of the scene keeps `seed`
     heads: tuple[str, ...] = ("front", "back")
     distance_mm: float = 2000.0  # front camera to the surface on its optical axis, at rest
@@ -93,7 +94,7 @@ class SimSummary:
 
 def as_built_heads(rig: Rig, config: SimConfig) -> dict[str, Head]:
     """The heads as built: LEDs off their drawn positions and intensities, as the config says."""
-    rng = np.random.default_rng(config.seed + 41)
+    rng = np.random.default_rng((config.seed if config.rig_seed is None else config.rig_seed) + 41)
     out = {}
     for name, head in rig.heads.items():
         positions = head.light_positions_mm.copy()
