@@ -58,3 +58,41 @@ def test_sway_bounds():
 def test_subject_validation():
     with pytest.raises(ValueError, match="height_cm"):
         Subject(height_cm=20)
+
+
+def test_blows_follow_a_standard_waveform_scaled_to_the_subject(shared_data):
+    from core.sim.breathing import standard_curve
+    from core.spirometry import forced_values, read_waveform
+
+    failures = []
+    for path in sorted((shared_data / "spirometry-waveforms" / "ISO26782").glob("*.wf")):
+        standard = read_waveform(path)
+        expected = forced_values(standard.volume_l, standard.rate_hz)
+        curve = standard_curve(standard.volume_l, standard.rate_hz)
+        subject = Subject(sex="female", age_years=11, height_cm=145)  # a child: the standard shrinks to her lungs
+        wave = protocol_waveform(subject, "forced", None, 3, [ForcedBlow(standard=curve)])
+        start = next(t for t, label in wave.events if label == "forced-start")
+        end = next(t for t, label in wave.events if label == "maneuver-end")
+        exhaled = wave.at(start) - wave.volume_l[int(start * RATE_HZ): int(end * RATE_HZ)]
+        got = forced_values(exhaled, RATE_HZ)
+        if abs(got.fvc_l - subject.fvc) > 0.005 * subject.fvc:
+            failures.append(f"{path.name} FVC {got.fvc_l:.3f} against the subject's {subject.fvc:.3f}")
+        if abs(got.fev1_l / got.fvc_l - expected.fev1_l / expected.fvc_l) > 0.01:
+            failures.append(f"{path.name} FEV1/FVC {got.fev1_l / got.fvc_l:.3f} against the standard's "
+                            f"{expected.fev1_l / expected.fvc_l:.3f}")
+    assert not failures, failures
+
+
+def test_irregular_breathing_varies_and_sighs():
+    from scipy.signal import find_peaks
+
+    from core.sim.breathing import tidal
+
+    subject = Subject(rate_variability=0.15, sigh_every=6, tidal_volume_l=0.5)
+    volume = tidal(subject, 240.0, np.random.default_rng(1))
+    peaks, _ = find_peaks(volume, distance=int(1.5 * RATE_HZ), prominence=0.1)
+    sizes, periods = volume[peaks], np.diff(peaks) / RATE_HZ
+    assert sizes.max() > 1.8 * np.median(sizes)  # sighs
+    assert 0.1 < periods.std() / periods.mean() < 0.4  # an irregular rate
+    regular = tidal(Subject(tidal_volume_l=0.5), 240.0, np.random.default_rng(1))
+    assert regular.max() < 1.5 * 0.5

@@ -1,0 +1,98 @@
+"""The population's bodies: presets and random draws within anthropometric ranges, body files,
+breathing that moves the rib cage's sides, and the truth of what the trunk sweeps under the arms."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import h5py
+import numpy as np
+import pytest
+
+from core.sim.bodies import PRESETS, Body, body_from_toml, body_named, body_surfaces, random_body
+from core.sim.breathing import Subject
+from core.sim.simulate import SimConfig, simulate
+from core.sim.surfaces import mode_volumes_mm3
+
+
+def test_at_least_eight_presets_span_the_clinic():
+    assert len(PRESETS) >= 8
+    bmis = [b.bmi for b in PRESETS.values()]
+    assert min(bmis) < 18.5 and max(bmis) > 35  # thin to obese
+    assert any(b.age_years < 13 for b in PRESETS.values()) and any(b.kyphosis_mm > 20 for b in PRESETS.values())
+    assert {b.arms for b in PRESETS.values()} == {"away", "close"} and {b.sex for b in PRESETS.values()} == {"male", "female"}
+
+
+def test_random_bodies_are_plausible_reproducible_and_various():
+    bodies = [random_body(seed) for seed in range(60)]
+    assert random_body(7) == random_body(7) and random_body(7) != random_body(8)
+    for b in bodies:
+        assert 13 <= b.bmi <= 43 and 100 <= b.height_cm <= 205
+        assert b.chest_width_mm <= b.shoulder_width_mm + 40
+    assert len({b.sex for b in bodies}) == 2 and len({b.arms for b in bodies}) == 2
+    assert sum(b.age_years < 13 for b in bodies) >= 3
+
+
+def test_a_body_file_takes_any_field_and_names_a_wrong_one(tmp_path):
+    good = tmp_path / "tall.toml"
+    good.write_text('[body]\nsex = "female"\nheight_cm = 190.0\nweight_kg = 70.0\nbreast_mm = 55.0\narms = "close"\n')
+    body = body_from_toml(good)
+    assert (body.name, body.sex, body.height_cm, body.breast_mm, body.arms) == ("tall", "female", 190.0, 55.0, "close")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[body]\nchest_widht_mm = 300.0\n")
+    with pytest.raises(ValueError, match=r"bad.toml: unknown key 'chest_widht_mm'"):
+        body_from_toml(bad)
+    with pytest.raises(ValueError, match="weight_kg 500 outside"):
+        replace(PRESETS["average-man"], weight_kg=500.0)
+    with pytest.raises(ValueError, match="unknown body 'giant'"):
+        body_named("giant")
+
+
+def test_breathing_moves_the_rib_cage_forward_and_its_sides_outward():
+    surfaces = body_surfaces(PRESETS["average-man"], 2.0)
+    front = surfaces["front"]
+    chest = front.mode(front.mode_names.index("chest_left")) + front.mode(front.mode_names.index("chest_right"))
+    x, y = front.grid.coordinates()
+    level = np.argmin(np.abs(y[:, 0] - (-60.0)))  # a row through the rib cage
+    row = chest[level]
+    on = np.isfinite(front.height_mm[level])
+    middle = row[np.abs(x[level]) < 20].mean()
+    side = row[on & (np.abs(x[level]) > 0.9 * PRESETS["average-man"].chest_width_mm / 2)
+               & (np.abs(x[level]) < PRESETS["average-man"].chest_width_mm / 2)]
+    assert middle == pytest.approx(1.0, abs=0.05)  # 1 mm forward at unit amplitude
+    assert side.size and side.max() > 1.5  # the trunk's sides move out: their height changes more than the middle's
+
+
+def test_arms_close_hide_the_sides_but_the_truth_counts_what_the_trunk_sweeps():
+    away = body_surfaces(PRESETS["average-man"], 2.0)
+    close = body_surfaces(PRESETS["arms-close"], 2.0)
+
+    def seen(surfaces):
+        return sum(float(np.sum(s.mode(k))) * s.grid.cell_area_mm2 for s in surfaces.values() for k in range(3))
+
+    truth_away = sum(mode_volumes_mm3(s).sum() for s in away.values())
+    truth_close = sum(mode_volumes_mm3(s).sum() for s in close.values())
+    assert truth_close == pytest.approx(truth_away, rel=1e-6)  # the same trunk breathes the same
+    assert seen(away) == pytest.approx(truth_away, rel=0.01)
+    assert seen(close) < 0.97 * truth_close  # what the cameras can see of it is less
+
+
+def test_children_have_childrens_lungs():
+    child = Subject(age_years=8, height_cm=128, weight_kg=26)
+    adult = Subject(age_years=30, height_cm=176)
+    assert 1.5 < child.predicted["FVC"] < 2.3 < adult.predicted["FVC"]
+    assert child.predicted["RV"] > 0 and child.predicted["FEV1"] < child.predicted["FVC"]
+
+
+def test_a_session_of_a_body_carries_it_in_the_truth_and_the_subject(tmp_path):
+    path = tmp_path / "child.h5"
+    body = PRESETS["child"]
+    simulate(path, SimConfig(body=body, protocol="tidal", seconds=0.2, scale=0.08, skin_type=6))
+    with h5py.File(path) as f:
+        stored = json.loads(f["truth"].attrs["body"])
+        world = json.loads(f["truth"].attrs["world"])
+        assert stored["name"] == "child" and stored["height_cm"] == body.height_cm
+        assert world["skin_type"] == 6
+        assert f["subject"].attrs["height_cm"] == body.height_cm and f.attrs["simulated_body"] == "child"
+    assert Body(**stored) == body
