@@ -102,7 +102,7 @@ def _cycle(session, head_name: str):
 
 
 def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ...], seed: int,
-                 led_offset_mm: float, write: bool) -> str:
+                 led_offset_mm: float, write: bool, world: str = "ideal") -> str:
     from core.light_calibration import CAPTURE_SECONDS, calibrate_lights
     from core.photometric import near_light_normals
     from core.pipeline import HeadReconstructor, ReconstructionSettings, RunningDistance
@@ -110,7 +110,11 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
     from core.rig import thesis_rig
     from core.session import SessionFile
     from core.sim.breathing import Sway
-    from core.sim.simulate import SimConfig, simulate
+    from core.sim.simulate import SimConfig, in_world, simulate
+
+    def config(**settings) -> SimConfig:
+        """A scene in the bench's world, its LEDs the bench's distance off the drawing."""
+        return replace(in_world(SimConfig(**settings), world), led_offset_mm=led_offset_mm)
 
     started = time.perf_counter()
     lines: list[str] = []
@@ -124,12 +128,16 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
         hold_cycles = int(round(CAPTURE_SECONDS * rig.frame_rate_hz / rig.cycle_length))
         for scene in ("specular-sphere", "matte-sphere"):
             path = folder / f"{scene}.h5"
-            simulate(path, SimConfig(scene=scene, placement_cycles=hold_cycles, **common))
+            simulate(path, config(scene=scene, placement_cycles=hold_cycles, **common))
             calibration_files.append(path)
         calibration, reports = calibrate_lights(calibration_files)
         with SessionFile(calibration_files[0]) as s:
             true_positions = np.asarray(s.truth()["front/light_positions_mm"])
             true_intensity = np.asarray(s.truth()["front/light_intensity"])
+            # the floor's lights as built: with their falloff and axes where the world has them
+            true_axis = np.asarray(s.truth()["front/light_axis"]) if "front/light_axis" in s.truth() \
+                else np.tile([0.0, 0.0, 1.0], (4, 1))
+            true_mu = np.asarray(s.truth()["front/light_mu"]) if "front/light_mu" in s.truth() else np.zeros(4)
             drawn = s.rig.heads["front"].light_positions_mm
         cal = calibration.heads["front"]
         position_error = np.linalg.norm(cal.light_positions_mm - true_positions, axis=1)
@@ -146,7 +154,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
             last_frame = 5 * TRACKED_CYCLES - 1
             # the same rig and shapes for every scene (seed), the camera noise drawn anew for each:
             # with one draw for all, the one-cycle errors of every scene were one sample, not many
-            simulate(path, SimConfig(scene=shape, protocol="static", seconds=5 * TRACKED_CYCLES / 110,
+            simulate(path, config(scene=shape, protocol="static", seconds=5 * TRACKED_CYCLES / 110,
                                      distance_mm=float(distance), sway=Sway(0, 0, 0),
                                      truth_maps_at=[4, last_frame], noise_seed=1000 * seed + scene_number,
                                      **common))
@@ -204,7 +212,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
             axis, mu = np.tile([0.0, 0.0, 1.0], (4, 1)), np.zeros(4)
             # the same solver: the images prefiltered as ours has them (core/prefilter.py)
             solved, solved_saturated = prefiltered(signal, saturated, sigma_px)
-            near_light_normals(solved, points, true_positions, true_intensity, axis, mu, solved_saturated,
+            near_light_normals(solved, points, true_positions, true_intensity, true_axis, true_mu, solved_saturated,
                                0.01 * true_head.max_value, floor, albedo, used)
             near_light_normals(solved, points, cal.light_positions_mm, cal.light_intensity, axis, mu,
                                solved_saturated, 0.01 * true_head.max_value, calibrated, albedo, used)
@@ -213,7 +221,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                             float("nan"), distance_sd_mm=float(np.std(floor_errors))))
             if sigma_px > 0:
                 unfiltered = np.full(true_head.shape + (3,), np.nan)
-                near_light_normals(signal, points, true_positions, true_intensity, axis, mu, saturated,
+                near_light_normals(signal, points, true_positions, true_intensity, true_axis, true_mu, saturated,
                                    0.01 * true_head.max_value, unfiltered, albedo, used)
                 rows.append(Row(shape, distance, "noise floor, unfiltered",
                                 _angular_error(unfiltered, true_normals, ok & np.isfinite(unfiltered[..., 2])),
@@ -221,7 +229,10 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
             both = ok & np.isfinite(calibrated[..., 2])
             lights_effect.append(_angular_error(calibrated, floor, both))
 
-    lines.append(f"## Accuracy (`photopft bench accuracy --scale {scale:g}`)")
+    lines.append(f"## Accuracy (`photopft bench accuracy --scale {scale:g}"
+                 + (f" --world {world}`)" if world != "ideal" else "`)"))
+    lines.append("")
+    lines.append(f"World: {world} ({_world_words(world)}).")
     lines.append("")
     lines.append(f"Simulated 12-bit camera (18 000 e- full well, 12 e- read noise, shot noise), {scale:g} x "
                  f"1400 x 1024, front head; every method on the first light cycle, and ours also on a stream of "
@@ -281,8 +292,18 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
     lines.append(f"Run time {time.perf_counter() - started:.0f} s on this machine.")
     text = "\n".join(lines)
     if write:
-        write_section(f"accuracy-{scale:g}", text)
+        write_section(f"accuracy-{scale:g}" + ("" if world == "ideal" else f"-{world}"), text)
     return text
+
+
+def _world_words(world: str) -> str:
+    """What a named world of the simulator holds, for a bench's table."""
+    from core.sim.simulate import WORLD_CAMERA, WORLDS
+
+    settings = {**WORLDS[world], **WORLD_CAMERA[world]}
+    if not settings:
+        return "the rig as drawn: isotropic point LEDs, matte surfaces, a pinhole camera"
+    return ", ".join(f"{k} {v:g}" for k, v in settings.items())
 
 
 def _publish(args: argparse.Namespace, section: str, heading: str, text: str) -> int:
@@ -304,11 +325,12 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--distances", default=",".join(map(str, DISTANCES)))
     a.add_argument("--seed", type=int, default=3)
     a.add_argument("--led-offset-mm", type=finite, default=12.0)
+    a.add_argument("--world", choices=("ideal", "clinic"), default="ideal", help="realism of the simulated rig")
     a.add_argument("--no-write", action="store_true", help="print only")
 
     def run(args: argparse.Namespace) -> int:
         text = run_accuracy(args.scale, tuple(args.shapes.split(",")), tuple(int(d) for d in args.distances.split(",")),
-                            args.seed, args.led_offset_mm, not args.no_write)
+                            args.seed, args.led_offset_mm, not args.no_write, args.world)
         print(text)
         return 0
 
@@ -333,14 +355,18 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     vol.add_argument("--scale", type=positive, default=0.25)
     vol.add_argument("--seconds", type=positive, default=60.0)
     vol.add_argument("--every", type=int, default=2, help="reconstruct every Nth cycle window (1: at the camera rate)")
+    vol.add_argument("--world", choices=("ideal", "clinic"), default="ideal", help="realism of the simulated rig")
     vol.add_argument("--no-write", action="store_true", help="print only")
 
     def run_volume(args: argparse.Namespace) -> int:
         from app.bench_volume import run_volume_bench
 
-        text = run_volume_bench(args.scale, args.seconds, every=args.every)
-        return _publish(args, "volume", f"Volume (`photopft bench volume --scale {args.scale:g} --seconds "
-                                        f"{args.seconds:g} --every {args.every}`)", text)
+        text = run_volume_bench(args.scale, args.seconds, every=args.every, world=args.world)
+        section = "volume" if args.world == "ideal" else f"volume-{args.world}"
+        return _publish(args, section, f"Volume (`photopft bench volume --scale {args.scale:g} --seconds "
+                                       f"{args.seconds:g} --every {args.every}"
+                                       + (f" --world {args.world}" if args.world != "ideal" else "") + "`)",
+                        f"World: {args.world} ({_world_words(args.world)}).\n\n{text}")
 
     vol.set_defaults(run=run_volume)
     pr = what.add_parser("process", help="the whole `photopft process` at the camera's resolution, against real time")

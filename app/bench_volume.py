@@ -68,7 +68,7 @@ def _cell(measured: float | None, truth: float) -> tuple[str, str]:
 
 
 def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ...] = SCENARIOS,
-                     every: int = 2) -> str:
+                     every: int = 2, world: str = "ideal") -> str:
     from app.cli import build_parser, run_simulate
 
     started = time.perf_counter()
@@ -79,7 +79,8 @@ def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ..
             run_simulate(build_parser().parse_args([
                 "simulate", "-o", str(session), "--protocol", "full", "--seconds", f"{seconds:g}", "--scale",
                 f"{scale:g}", "--seed", str(scenario.seed), "--distance-mm", f"{scenario.distance_mm:g}",
-                "--distance-back-mm", f"{scenario.distance_mm:g}", "--sway-mm", f"{scenario.axial_sway_mm:g}"]))
+                "--distance-back-mm", f"{scenario.distance_mm:g}", "--sway-mm", f"{scenario.axial_sway_mm:g}",
+                "--world", world]))
             process_session(session, results, every=every, settings=ReconstructionSettings(track=True))
             report = analyse_session(session, optical_volume=optical_volume(results))
             truth = report.truth.parameters()
