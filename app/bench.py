@@ -298,9 +298,9 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
 
 def _world_words(world: str) -> str:
     """What a named world of the simulator holds, for a bench's table."""
-    from core.sim.simulate import WORLD_CAMERA, WORLDS
+    from core.sim.simulate import WORLDS
 
-    settings = {**WORLDS[world], **WORLD_CAMERA[world]}
+    settings = WORLDS[world]
     if not settings:
         return "the rig as drawn: isotropic point LEDs, matte surfaces, a pinhole camera"
     return ", ".join(f"{k} {v:g}" for k, v in settings.items())

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from app.args import add_force, positive
 from app.cli import UserError
 
@@ -80,7 +82,9 @@ def run_calibrate_lights(args: argparse.Namespace) -> int:
             sx, sy, sz = cal.light_position_sigma_mm[k]
             print(f"  light {k}: ({x:8.1f}, {y:8.1f}, {z:7.1f}) mm  +-({sx:.1f}, {sy:.1f}, {sz:.1f})  "
                   f"ray residual {cal.residual_mm[k]:.2f} mm  thesis E {report.thesis_pair_error_mm[k]:.2f} mm  "
-                  f"intensity {cal.light_intensity[k]:.3f}")
+                  f"intensity {cal.light_intensity[k]:.3f}"
+                  + (f"  falloff cos^{cal.light_mu[k]:.2f}, axis tilted "
+                     f"{np.degrees(np.arccos(cal.light_axis[k, 2])):.1f} deg" if cal.light_mu is not None else ""))
         for problem in report.problems:
             print(f"  note: {problem}")
     print(f"wrote {args.output}")

@@ -25,6 +25,9 @@ CAPTURE_SECONDS = 1.0  # how long each placement is recorded: 22 light cycles at
 # resolution and 19 in 20 at full, and left the subject's distance several mm off at 2.2 m
 # (docs/reconstruction.md).
 MATTE_BINS_PER_PLACEMENT = 16000
+# LEDs whose fitted falloff is below this are point sources to within 1 % over +-15 degrees
+# (cos(15 deg)^0.25 = 0.991): the isotropic model, with fewer unknowns, places them better
+ISOTROPIC_MU = 0.25
 
 
 @dataclass
@@ -126,7 +129,9 @@ def _matte_placements(session: SessionFile, head_name: str, radius_mm: float) ->
     out = []
     for placement in placement_images(session, head_name):
         sphere = detect_sphere(placement.signal.sum(0), head, radius_mm)
-        rays, signal = binned_sphere(head, placement.signal, sphere.mask, matte_binning(int(sphere.mask.sum())))
+        # the shading as the light left the sphere: the lens' relative illumination divided out
+        shading = placement.signal / head.relative_illumination()[None] if head.vignetting else placement.signal
+        rays, signal = binned_sphere(head, shading, sphere.mask, matte_binning(int(sphere.mask.sum())))
         out.append(MattePlacement(rays, signal, sphere.centre_mm, radius_mm))
     return out
 
@@ -183,12 +188,18 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
     refined = False
     if matte:
         placements = [p for session, radius in matte for p in _matte_placements(session, head.name, radius)]
-        fit = refine_on_matte(placements, triangulated)
+        fit = refine_on_matte(placements, triangulated, anisotropic=True)
+        if np.all(fit.mu < ISOTROPIC_MU):
+            fit = refine_on_matte(placements, triangulated, anisotropic=False)
         positions, intensity = fit.positions_mm, fit.intensity
         refined = True
         extra["matte_fit_rms"] = np.round(fit.rms, 6).tolist()
         extra["matte_distance_factors"] = np.round(fit.distance_factors, 6).tolist()
-    calibration = HeadCalibration(positions, intensity, sigma, residual, pseudo, extra)
+
+    axis = mu = None
+    if refined and fit.mu is not None:
+        axis, mu = fit.axis, fit.mu
+    calibration = HeadCalibration(positions, intensity, sigma, residual, pseudo, extra, axis, mu)
     report = HeadReport(head.name, len(results), pair_error, triangulated, refined, problems)
     return calibration, report
 

@@ -254,6 +254,8 @@ class MatteRefinement:
     intensity: np.ndarray  # (4,) relative, mean 1
     distance_factors: np.ndarray  # per placement: the fitted centre over the outline's (along its ray)
     rms: np.ndarray  # (4,) relative rms residual per light
+    axis: np.ndarray | None = None  # (4, 3) unit vectors each LED points along (anisotropic model)
+    mu: np.ndarray | None = None  # (4,) exponent of each LED's cos^mu falloff about its axis
 
 
 def sphere_surface(rays: np.ndarray, centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -265,17 +267,57 @@ def sphere_surface(rays: np.ndarray, centre: np.ndarray, radius: float) -> tuple
     return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
-def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray) -> MatteRefinement:
-    """Positions and relative intensities of all four lights from a matte sphere's shading, with
-    each placement's distance along its ray fitted too.
+# The anisotropic model's LED axes: within this of the optical axis (tangent of the tilt), and
+# exponents within these bounds (an isotropic point source is 0, a Lambertian emitter 1).
+MAX_AXIS_TILT = np.tan(np.radians(30.0))
+MU_BOUNDS = (0.0, 8.0)
+COARSE_BINS_PER_PLACEMENT = 400
 
-    Model: signal_k = s_k * max(0, n . (P_k - X)) / |P_k - X|^3 (Lambertian, inverse square), X and n
-    where the pixel's ray meets the sphere (known radius) at its centre c * f, f fitted per
-    placement. The outline alone leaves the sphere's distance off by a fraction of a pixel of its
-    radius (a few mm at 2 m, docs/reconstruction.md), and the lights would absorb that error; the
-    shading inside the outline tells the distance too, through how fast the normal turns from
-    pixel to pixel. Every pixel (or bin of pixels) facing the camera counts; those near the limb,
-    where the outline's error matters most, are left out (normal within 70 degrees of the view).
+
+def _placement_major(misfit: np.ndarray, sizes: list[int]) -> np.ndarray:
+    """(4, all pixels) residuals in the order placement, light, pixel."""
+    blocks = np.split(misfit, np.cumsum(sizes)[:-1], axis=1)
+    return np.concatenate([b.ravel() for b in blocks])
+
+
+def _sparsity(sizes: list[int], anisotropic: bool):
+    """Which parameters move which residuals: a light's own (position, intensity, axis, falloff)
+    only its pixels, a placement's distance only that placement's. Finite differences then
+    perturb the four lights (and all placements) at once."""
+    from scipy.sparse import lil_matrix
+
+    n_placements = len(sizes)
+    n_base = 16 + n_placements
+    columns = n_base + (12 if anisotropic else 0)
+    out = lil_matrix((4 * sum(sizes), columns), dtype=np.int8)
+    row = 0
+    for p, size in enumerate(sizes):
+        for k in range(4):
+            rows = slice(row, row + size)
+            own = list(range(3 * k, 3 * k + 3)) + [12 + k, 16 + p]
+            if anisotropic:
+                own += [n_base + 2 * k, n_base + 2 * k + 1, n_base + 8 + k]
+            for c in own:
+                out[rows, c] = 1
+            row += size
+    return out
+
+
+def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
+                    anisotropic: bool = True) -> MatteRefinement:
+    """Positions, relative intensities and (anisotropic) each LED's axis and falloff exponent from
+    a matte sphere's shading, with each placement's distance along its ray fitted too.
+
+    Model: signal_k = s_k * cos(a_k, X - P_k)^mu_k * max(0, n . (P_k - X)) / |P_k - X|^3 (Lambertian,
+    inverse square, an LED's radiant intensity falling off as cos^mu of the angle from its own axis
+    a_k; the thesis' point source is mu = 0), X and n where the pixel's ray meets the sphere (known
+    radius) at its centre c * f, f fitted per placement. The outline alone leaves the sphere's
+    distance off by a fraction of a pixel of its radius (a few mm at 2 m, docs/reconstruction.md),
+    and the lights would absorb that error; the shading inside the outline tells the distance too,
+    through how fast the normal turns from pixel to pixel. Every pixel (or bin of pixels) facing
+    the camera counts; those near the limb, where the outline's error matters most, are left out
+    (normal within 70 degrees of the view). An isotropic model fitted to LEDs that are not moves
+    them hundreds of millimetres to mimic their falloff: the falloff belongs in the model.
     """
     rays, signal, centres, radii = [], [], [], []
     for placement in placements:
@@ -286,34 +328,61 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray) ->
         centres.append(placement.centre_mm)
         radii.append(placement.radius_mm)
     n_placements = len(rays)
+    sizes = [len(r) for r in rays]
     typical = float(np.median(np.concatenate([s[s > 0] for s in signal]))) if signal else 1.0
 
-    def shading(positions: np.ndarray, factors: np.ndarray) -> list[np.ndarray]:
+    def shading(positions: np.ndarray, factors: np.ndarray, axes: np.ndarray, mus: np.ndarray,
+                every: int = 1) -> list[np.ndarray]:
         out = []
         for r, c, radius, f in zip(rays, centres, radii, factors):
-            points, normals = sphere_surface(r, c * f, radius)
+            points, normals = sphere_surface(r[::every], c * f, radius)
             d = positions[:, None, :] - points[None]  # (4, N, 3)
             distance = np.linalg.norm(d, axis=2)
-            out.append(np.clip(np.sum(normals[None] * d, axis=2), 0.0, None) / distance**3)
+            value = np.clip(np.sum(normals[None] * d, axis=2), 0.0, None) / distance**3
+            if anisotropic:
+                cosine = np.clip(-np.sum(d * axes[:, None, :], axis=2) / distance, 1e-6, None)
+                value = value * cosine ** mus[:, None]
+            out.append(value)
         return out
 
     initial = np.asarray(initial_mm, float)
-    model0 = shading(initial, np.ones(n_placements))
+    nominal_axes = np.tile([0.0, 0.0, 1.0], (4, 1))
+    model0 = shading(initial, np.ones(n_placements), nominal_axes, np.zeros(4))
     scale0 = np.array([sum(m[k] @ s[k] for m, s in zip(model0, signal)) / sum(m[k] @ m[k] for m in model0)
                        for k in range(4)])
+    n_base = 16 + n_placements
 
     def unpack(x: np.ndarray):
-        return x[:12].reshape(4, 3), scale0 * x[12:16], x[16:]
+        positions, scales, factors = x[:12].reshape(4, 3), scale0 * x[12:16], x[16:n_base]
+        if not anisotropic:
+            return positions, scales, factors, nominal_axes, np.zeros(4)
+        axes = np.column_stack([x[n_base:n_base + 8].reshape(4, 2), np.ones(4)])
+        return positions, scales, factors, axes / np.linalg.norm(axes, axis=1, keepdims=True), x[n_base + 8:]
 
-    def misfit(x: np.ndarray) -> np.ndarray:
-        """(4, all pixels) model minus signal, relative to the typical signal."""
-        positions, scales, factors = unpack(x)
-        return np.concatenate([scales[:, None] * m - s for m, s in zip(shading(positions, factors), signal)],
-                              axis=1) / typical
+    def misfit(x: np.ndarray, every: int = 1) -> np.ndarray:
+        """(4, all pixels, or every so many) model minus signal, relative to the typical signal."""
+        positions, scales, factors, axes, mus = unpack(x)
+        model = shading(positions, factors, axes, mus, every)
+        return np.concatenate([scales[:, None] * m - s[:, ::every] for m, s in zip(model, signal)], axis=1) / typical
 
     x0 = np.r_[initial.ravel(), np.ones(4), np.ones(n_placements)]
     x_scale = np.r_[np.full(12, 10.0), np.full(4, 0.01), np.full(n_placements, 0.001)]
-    fit = least_squares(lambda x: misfit(x).ravel(), x0, x_scale=x_scale)
-    positions, scales, factors = unpack(fit.x)
+    lower, upper = np.full(n_base, -np.inf), np.full(n_base, np.inf)
+    if anisotropic:
+        x0 = np.r_[x0, np.zeros(8), np.ones(4)]
+        x_scale = np.r_[x_scale, np.full(8, 0.02), np.full(4, 0.3)]
+        lower = np.r_[lower, np.full(8, -MAX_AXIS_TILT), np.full(4, MU_BOUNDS[0])]
+        upper = np.r_[upper, np.full(8, MAX_AXIS_TILT), np.full(4, MU_BOUNDS[1])]
+    # first on a sample of the bins (where most of the iterations are spent), then on all of them
+    every = max(1, int(np.ceil(max(sizes) / COARSE_BINS_PER_PLACEMENT)))
+    stages = [every, 1] if every > 1 else [1]
+    for stride in stages:
+        sampled = [len(range(0, n, stride)) for n in sizes]
+        fit = least_squares(lambda x: _placement_major(misfit(x, stride), sampled), x0, x_scale=x_scale,
+                            bounds=(lower, upper), jac_sparsity=_sparsity(sampled, anisotropic), tr_solver="lsmr")
+        x0 = fit.x
+    positions, scales, factors, axes, mus = unpack(fit.x)
     rms = np.sqrt(np.mean(misfit(fit.x) ** 2, axis=1))
-    return MatteRefinement(positions, scales / scales.mean(), factors, rms)
+    if not anisotropic:
+        return MatteRefinement(positions, scales / scales.mean(), factors, rms)
+    return MatteRefinement(positions, scales / scales.mean(), factors, rms, axes, mus)

@@ -30,6 +30,7 @@ from scipy import ndimage
 
 from core.distance import DMR_THRESHOLD, MIN_FIT_PIXELS, DmrEstimate, PhotometricDistance, dmr_distance
 from core.integrate import ROBUST_ITERATIONS, integrate_dct, integrate_masked, log_depth_gradients
+from core.lens import LensCorrection, needs_correction
 from core.photometric import distant_light_normals, gradients_from_normals, near_light_normals
 from core.prefilter import noise_binning, prefilter_sigma_px, prefiltered
 from core.rig import Head
@@ -164,6 +165,7 @@ class HeadReconstructor:
         self._axis = np.ascontiguousarray(axis, dtype=np.float64)
         self._mu = np.ascontiguousarray(mu, dtype=np.float64)
         self.running_distance = RunningDistance(self.settings.distance_cycles)
+        self._lens = LensCorrection(head) if needs_correction(head) else None
         # the lights' relative intensities as fitted on the first cycle, as factors of the rig's
         # (PhotometricDistance.scale_and_intensity); None until then or when not fitted
         self.intensity_factors: np.ndarray | None = None
@@ -235,6 +237,8 @@ class HeadReconstructor:
         signal = np.ascontiguousarray(signal, dtype=np.float64)
         if saturated is None:
             saturated = np.zeros(signal.shape, dtype=np.bool_)
+        if self._lens is not None:
+            signal, saturated, dark = self._lens.correct(signal, saturated, dark)
         mask = subject_mask(signal, s.mask_fraction, s.mask_edge_fraction)
         if mask.sum() < MIN_SUBJECT_PIXELS:  # nobody in front of the head (dark, stepped away)
             return self._no_subject()

@@ -30,6 +30,8 @@ class HeadCalibration:
     residual_mm: np.ndarray  # (4,)
     pseudo_light_vectors: np.ndarray  # (4, 3)
     extra: dict[str, Any] = field(default_factory=dict)
+    light_axis: np.ndarray | None = None  # (4, 3) each LED's axis; None: isotropic point sources
+    light_mu: np.ndarray | None = None  # (4,) each LED's cos^mu falloff about its axis
 
 
 @dataclass
@@ -50,6 +52,9 @@ class RigCalibration:
                 "pseudo_light_vectors": np.round(h.pseudo_light_vectors, 8).tolist(),
                 **h.extra,
             }
+            if h.light_axis is not None and h.light_mu is not None:
+                heads[name]["light_axis"] = np.round(h.light_axis, 8).tolist()
+                heads[name]["light_mu"] = np.round(h.light_mu, 6).tolist()
         return {"format": PROFILE_FORMAT, "format_version": 1, "created": self.created, "sessions": self.sessions,
                 "heads": heads, **self.extra}
 
@@ -62,7 +67,8 @@ class RigCalibration:
         if missing:
             raise ProfileError(f"the calibration profile has no head {missing[0]!r} (it has {', '.join(self.heads)})")
         heads = {name: replace(head, light_positions_mm=self.heads[name].light_positions_mm,
-                               light_intensity=self.heads[name].light_intensity, calibrated=self.created)
+                               light_intensity=self.heads[name].light_intensity, light_axis=self.heads[name].light_axis,
+                               light_mu=self.heads[name].light_mu, calibrated=self.created)
                  for name, head in rig.heads.items()}
         return replace(rig, heads=heads)
 
@@ -94,7 +100,7 @@ def _load_profile(path: Path) -> RigCalibration:
         raise ProfileError(f"{path}: 'heads' must name at least one head")
     heads = {}
     known = ("light_positions_mm", "light_intensity", "light_position_sigma_mm", "residual_mm",
-             "pseudo_light_vectors")
+             "pseudo_light_vectors", "light_axis", "light_mu")
     for name, h in heads_data.items():
         if name not in ("front", "back"):
             raise ProfileError(f"{path}: unknown head {name!r}")
@@ -108,11 +114,21 @@ def _load_profile(path: Path) -> RigCalibration:
         if np.any(intensity <= 0):
             raise ProfileError(f"{where}.light_intensity must be positive")
         pseudo = _array(h.get("pseudo_light_vectors", np.zeros((4, 3))), (4, 3), f"{where}.pseudo_light_vectors")
+        axis = mu = None
+        if ("light_axis" in h) != ("light_mu" in h):
+            raise ProfileError(f"{where}: light_axis and light_mu go together (an LED's axis and its falloff)")
+        if "light_axis" in h:
+            axis = _array(h["light_axis"], (4, 3), f"{where}.light_axis")
+            mu = _array(h["light_mu"], (4,), f"{where}.light_mu")
+            if np.any(axis[:, 2] <= 0) or np.any(np.abs(np.linalg.norm(axis, axis=1) - 1) > 1e-3):
+                raise ProfileError(f"{where}.light_axis must be unit vectors pointing at the subject (z > 0)")
+            if np.any(mu < 0) or np.any(mu > 20):
+                raise ProfileError(f"{where}.light_mu must be in 0-20, found {mu.tolist()}")
         heads[name] = HeadCalibration(
             positions, intensity,
             _array(h.get("light_position_sigma_mm", np.zeros((4, 3))), (4, 3), f"{where}.light_position_sigma_mm"),
             _array(h.get("residual_mm", np.zeros(4)), (4,), f"{where}.residual_mm"), pseudo,
-            {k: v for k, v in h.items() if k not in known})
+            {k: v for k, v in h.items() if k not in known}, axis, mu)
     return RigCalibration(str(data.get("created", "")), list(data.get("sessions", [])), heads,
                           {k: v for k, v in data.items() if k not in ("format", "format_version", "created",
                                                                        "sessions", "heads")})

@@ -32,6 +32,9 @@ class Head:
     light_axis: np.ndarray | None = None  # (4, 3) unit vectors, None = isotropic
     light_mu: np.ndarray | None = None  # (4,) anisotropy exponents
     dist_coeffs: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    # the lens' relative illumination: 1 - vignetting * (r / r_corner)^2, r from the principal point
+    # (measured with the lens, as its distortion is; 0: none)
+    vignetting: float = 0.0
     calibrated: str = ""
 
     def __post_init__(self) -> None:
@@ -46,6 +49,8 @@ class Head:
             object.__setattr__(self, "light_axis", axis / np.linalg.norm(axis, axis=1, keepdims=True))
         if self.light_mu is not None:
             object.__setattr__(self, "light_mu", np.asarray(self.light_mu, dtype=float).reshape(4))
+        if not (np.isfinite(self.vignetting) and 0.0 <= self.vignetting < 0.9):
+            raise ValueError(f"head {self.name!r}: vignetting must be in [0, 0.9), got {self.vignetting}")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"head {self.name!r}: sensor size must be positive, got {self.width} x {self.height}")
         if self.bit_depth not in (8, 10, 12, 16):
@@ -76,6 +81,12 @@ class Head:
         u = (np.arange(self.width) - self.cx) / self.fx
         v = (np.arange(self.height) - self.cy) / self.fy
         return np.broadcast_to(u[None, :], self.shape).copy(), np.broadcast_to(v[:, None], self.shape).copy()
+
+    def relative_illumination(self) -> np.ndarray:
+        """(H, W) the share of the light the lens brings to each pixel, against the principal point's."""
+        yy, xx = np.mgrid[0:self.height, 0:self.width]
+        r2 = ((xx - self.cx) ** 2 + (yy - self.cy) ** 2) / (self.cx**2 + self.cy**2)
+        return 1.0 - self.vignetting * r2
 
     def with_lights(self, light_positions_mm: np.ndarray, light_intensity: np.ndarray | None = None) -> "Head":
         intensity = self.light_intensity if light_intensity is None else light_intensity

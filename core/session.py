@@ -89,6 +89,8 @@ def _write_head_attrs(group: h5py.Group, head: Head) -> None:
     for name in ("fx", "fy", "cx", "cy", "pixel_size_mm"):
         group.attrs[name] = float(getattr(head, name))
     group.attrs["dist_coeffs"] = np.asarray(head.dist_coeffs, dtype=np.float64)
+    if head.vignetting:
+        group.attrs["vignetting"] = float(head.vignetting)
     group.attrs["bit_depth"] = int(head.bit_depth)
     group.attrs["light_positions_mm"] = np.asarray(head.light_positions_mm, dtype=np.float64)
     group.attrs["light_intensity"] = np.asarray(head.light_intensity, dtype=np.float64)
@@ -332,6 +334,7 @@ def read_head(name: str, attrs: h5py.AttributeManager) -> Head:
         light_positions_mm=np.asarray(attrs["light_positions_mm"], dtype=float),
         light_intensity=np.asarray(attrs["light_intensity"], dtype=float),
         dist_coeffs=np.asarray(attrs["dist_coeffs"], dtype=float),
+        vignetting=float(attrs.get("vignetting", 0.0)),
         calibrated=_str(attrs.get("calibrated", "")),
         **optional,
     )
@@ -577,6 +580,9 @@ def _check_rig(c: _Checker, f: h5py.File) -> dict[str, tuple[int, int, int]]:
             c.add(f"attribute /rig/{name}@light_intensity must be positive, found {np.asarray(intensity).tolist()}")
         c.attr(g, "light_axis", "float", shape=(4, 3), required=False)
         c.attr(g, "light_mu", "float", shape=(4,), required=False)
+        vignetting = c.attr(g, "vignetting", "float", required=False)
+        if vignetting is not None and not 0.0 <= float(np.asarray(vignetting)) < 0.9:
+            c.add(f"attribute /rig/{name}@vignetting must be in [0, 0.9), found {float(np.asarray(vignetting))}")
         calibrated = c.attr(g, "calibrated", "str")
         if calibrated is not None:
             try:

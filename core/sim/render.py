@@ -38,7 +38,6 @@ class CameraModel:
     ambient_level: float = 0.04  # fraction of full well added by room light on a white surface
     background_level: float = 0.01  # fraction of full well from the dark background
     reference_distance_mm: float = 2000.0
-    vignetting: float = 0.0  # relative loss of light at the sensor's corners (quadratic in the radius)
     noise: bool = True  # False: the exact expected signal, only quantised (for physics tests)
 
     @property
@@ -66,13 +65,6 @@ def camera_rays(head: Head) -> tuple[np.ndarray, np.ndarray]:
         u = np.ascontiguousarray(xy[:, 0, 0].reshape(head.shape))
         v = np.ascontiguousarray(xy[:, 0, 1].reshape(head.shape))
     return u, v
-
-
-def vignette_map(head: Head, vignetting: float) -> np.ndarray:
-    """Relative light reaching each pixel: 1 on the axis, 1 - vignetting in the corners."""
-    yy, xx = np.mgrid[0:head.height, 0:head.width]
-    r2 = ((xx - head.cx) ** 2 + (yy - head.cy) ** 2) / (head.cx**2 + head.cy**2)
-    return np.ascontiguousarray(1.0 - vignetting * r2)
 
 
 def pack_lights(head: Head) -> np.ndarray:

@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from core.rig import Head
-from core.sim.render import CameraModel, camera_rays, pack_lights, render_height_field, render_spheres, vignette_map
+from core.sim.render import CameraModel, camera_rays, pack_lights, render_height_field, render_spheres
 from core.sim.surfaces import F_H, HeightField, Sphere, mode_volumes_mm3
 
 HEAD_KEYS = {"front": 0, "back": 1}
@@ -48,15 +48,15 @@ def noise_key(seed: int, head: str, frame_index: int, n_pixels: int) -> np.uint6
 
 
 class _Optics:
-    """Each head's pixel rays and vignetting, computed once."""
+    """Each head's pixel rays and relative illumination, computed once."""
 
     def __init__(self) -> None:
         self._cache: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
-    def of(self, head: Head, camera: CameraModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        key = (head.name, head.shape, head.fx, head.fy, head.cx, head.cy, tuple(head.dist_coeffs), camera.vignetting)
+    def of(self, head: Head) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        key = (head.name, head.shape, head.fx, head.fy, head.cx, head.cy, tuple(head.dist_coeffs), head.vignetting)
         if key not in self._cache:
-            self._cache[key] = (*camera_rays(head), vignette_map(head, camera.vignetting))
+            self._cache[key] = (*camera_rays(head), np.ascontiguousarray(head.relative_illumination()))
         return self._cache[key]
 
 
@@ -128,7 +128,7 @@ class HeightFieldScene(Scene):
         surface = self.surfaces[head.name]
         if head.name not in self._z_state:
             self._z_state[head.name] = np.full(head.shape, np.nan)
-        u, v, vignette = self._optics.of(head, digitiser.camera)
+        u, v, vignette = self._optics.of(head)
         sx, sy, sz = self.sway_mm(np.array(t_s))
         if head.name == "front":
             sign_x, z0 = 1.0, self.z_mid_mm + sz
@@ -205,7 +205,7 @@ class SphereScene(Scene):
     def render(self, head: Head, t_s: float, light: int, key: np.uint64, digitiser: Digitiser,
                want_maps: bool = False) -> tuple[np.ndarray, RenderedMaps | None]:
         rows = np.array([s.as_row() for s in self.spheres_in(head.name, t_s)])
-        u, v, vignette = self._optics.of(head, digitiser.camera)
+        u, v, vignette = self._optics.of(head)
         out = np.empty(head.shape, dtype=head.frame_dtype)
         depth, normals = _empty_maps(head, want_maps)
         lights = pack_lights(head)

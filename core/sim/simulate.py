@@ -62,6 +62,7 @@ class SimConfig:
     ambient_flicker: float = 0.0  # room light modulated +- this at twice the mains frequency
     mains_hz: float = 50.0
     lens_k1: float = 0.0  # radial distortion (OpenCV k1) of every camera; written to /rig, as a calibrated lens
+    vignetting: float = 0.0  # the lenses' light loss at the corners; written to /rig, as a calibrated lens
     steps: int = 0  # the subject steps 20-50 mm (within 0.5 s) this many times
     skin_type: int | None = None  # Fitzpatrick I-VI of a body's bare skin (None: albedo 0.45)
     flow_sensor: FlowSensorModel | None = field(default_factory=FlowSensorModel)
@@ -146,25 +147,23 @@ WORLDS: dict[str, dict[str, float]] = {
     # the issue's clinic: LEDs as built, room light, oily skin, a real lens, a subject who moves
     "clinic": {"led_offset_mm": 10.0, "led_intensity_spread": 0.10, "led_mu": 2.0, "led_mu_spread": 1.0,
                "led_tilt_deg": 10.0, "led_drift": 0.02, "ambient_flicker": 0.3, "specular": 0.15,
-               "lens_k1": -0.08, "steps": 2, "drop_rate": 0.002},
+               "lens_k1": -0.08, "vignetting": 0.15, "steps": 2, "drop_rate": 0.002},
 }
-WORLD_CAMERA = {"ideal": {}, "clinic": {"vignetting": 0.15}}
 
 
 def in_world(config: SimConfig, world: str) -> SimConfig:
     """The config with a named world's realism switches set (see WORLDS)."""
     if world not in WORLDS:
         raise ValueError(f"unknown world {world!r}: one of {', '.join(WORLDS)}")
-    return replace(config, camera=replace(config.camera, **WORLD_CAMERA[world]), **WORLDS[world])
+    return replace(config, **WORLDS[world])
 
 
 def world_json(config: SimConfig) -> str:
     """The simulated world's realism settings, for /truth."""
     keys = ("led_offset_mm", "led_intensity_spread", "led_mu", "led_mu_spread", "led_tilt_deg", "led_drift",
-            "ambient_flicker", "mains_hz", "specular", "clothing", "skin_type", "lens_k1", "steps", "drop_rate", "distance_mm",
+            "ambient_flicker", "mains_hz", "specular", "clothing", "skin_type", "lens_k1", "vignetting", "steps", "drop_rate", "distance_mm",
             "distance_back_mm", "scale", "seed")
     values = {k: getattr(config, k) for k in keys}
-    values["vignetting"] = config.camera.vignetting
     return json.dumps(values, sort_keys=True)
 
 
@@ -299,8 +298,9 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
     """Render the session described by `config` into a session file at `path`."""
     started = time.perf_counter()
     rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
-    if config.lens_k1:
-        rig = replace(rig, heads={n: replace(h, dist_coeffs=np.array([config.lens_k1, 0, 0, 0, 0]))
+    if config.lens_k1 or config.vignetting:
+        rig = replace(rig, heads={n: replace(h, dist_coeffs=np.array([config.lens_k1, 0, 0, 0, 0]),
+                                             vignetting=config.vignetting)
                                   for n, h in rig.heads.items()})
     drift = Drift(config)
     scene, waveform = build_scene(config, rig)

@@ -70,8 +70,8 @@ def test_lens_distortion_puts_a_sphere_where_opencv_projects_it():
 
 
 def test_vignetting_darkens_the_corners_by_its_fraction():
-    head = thesis_head("front", scale=0.1)
-    camera = replace(QUIET, vignetting=0.2, ambient_level=0.3)
+    head = replace(thesis_head("front", scale=0.1), vignetting=0.2)
+    camera = replace(QUIET, ambient_level=0.3)
     scene = HeightFieldScene({"front": _board(0.8)}, 1000.0, 4000.0)
     dark, _ = scene.render(head, 0.0, -1, np.uint64(0), Digitiser(camera, 16))
     centre = dark[head.height // 2, head.width // 2]
