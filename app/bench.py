@@ -91,7 +91,8 @@ def _distance_floor(reconstructor, signal: np.ndarray, dark: np.ndarray, true_de
     mask = subject_mask(signal, settings.mask_fraction, settings.mask_edge_fraction) & np.isfinite(true_depth)
     median = float(np.median(true_depth[mask]))
     fit = PhotometricDistance(signal, mask, true_lights[0], true_lights[1], dark, max_pixels=settings.distance_pixels,
-                               binning=reconstructor._distance_binning)
+                               binning=reconstructor._distance_binning, light_axis=true_lights[2],
+                               light_mu=true_lights[3])
     relative = np.where(mask, true_depth / median, np.nan)
     return fit.scale(reconstructor._rays, relative, (0.97 * median, 1.03 * median), grid_points=7) - median
 
@@ -170,7 +171,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                 # live view keep it (`distance_cycles`), at the last cycle
                 stream = HeadReconstructor(head, cal.pseudo_light_vectors, replace(ours_settings, distance_cycles=1))
                 last_depth = np.asarray(truth["front/depth_mm"][1], dtype=np.float64)
-                true_lights = (true_positions, true_intensity)
+                true_lights = (true_positions, true_intensity, true_axis, true_mu)
                 cycle_errors, floor_errors = [], []
                 running = RunningDistance(ours_settings.distance_cycles)
                 for newest, cycle_signal, cycle_saturated, cycle_dark in _cycles(session, "front"):

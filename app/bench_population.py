@@ -104,7 +104,7 @@ def _distance_errors(session: Path, results: Path, after_cycles: int) -> list[fl
 
 def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: str, seconds: float | None) -> dict:
     """One subject end to end; what each stage gave or why it refused."""
-    from core.light_calibration import calibrate_lights
+    from core.light_calibration import CAPTURE_SECONDS, calibrate_lights
     from core.process import optical_volume, process_session
     from core.session import SessionFile
     from core.session_analysis import analyse_session
@@ -116,7 +116,10 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     work = Path(folder)
     out: dict = {"subject": asdict(subject), "stage_seconds": {}}
     stages = out["stage_seconds"]
-    hold = 3
+    from core.rig import thesis_rig
+
+    rig = thesis_rig(scale)
+    hold = int(round(CAPTURE_SECONDS * rig.frame_rate_hz / rig.cycle_length))  # as long as the wizard records
     spheres = []
     for scene in ("specular-sphere", "matte-sphere"):
         path = work / f"{subject.index}-{scene}.h5"

@@ -76,7 +76,7 @@ def dmr_distance(pseudo_normals: np.ndarray, mask: np.ndarray, fx: float, fy: fl
 
 
 @njit(parallel=True, fastmath=True, cache=True, nogil=True)
-def _chi_square(signal, weight, points, scale, light_positions, light_intensity):
+def _chi_square(signal, weight, points, scale, light_positions, light_intensity, light_axis, light_mu):
     n = signal.shape[1]
     partial = np.zeros(n)
     for p in prange(n):
@@ -90,6 +90,9 @@ def _chi_square(signal, weight, points, scale, light_positions, light_intensity)
             dz = light_positions[k, 2] - points[p, 2] * scale
             r2 = dx * dx + dy * dy + dz * dz
             f = light_intensity[k] * weight[k, p] / (r2 * np.sqrt(r2))
+            if light_mu[k] > 0.0:
+                c = -(dx * light_axis[k, 0] + dy * light_axis[k, 1] + dz * light_axis[k, 2]) / np.sqrt(r2)
+                f *= c ** light_mu[k] if c > 0.0 else 0.0
             x, y, z = dx * f, dy * f, dz * f
             rows[k, 0] = x
             rows[k, 1] = y
@@ -118,7 +121,8 @@ class PhotometricDistance:
 
     def __init__(self, signal: np.ndarray, mask: np.ndarray, light_positions_mm: np.ndarray,
                  light_intensity: np.ndarray, dark: np.ndarray | None = None, max_pixels: int = 250000,
-                 dn_per_electron: float = 4095.0 / 18000.0, read_noise_dn: float = 2.7, binning: int = 1) -> None:
+                 dn_per_electron: float = 4095.0 / 18000.0, read_noise_dn: float = 2.7, binning: int = 1,
+                 light_axis: np.ndarray | None = None, light_mu: np.ndarray | None = None) -> None:
         # binning: the fit on factor x factor bins (each bin's mean signal at its mean point), so
         # that every pixel's light counts within max_pixels on a wide head. The noise model below,
         # applied to a bin's mean, overstates its variance by factor^2 in every bin alike, which
@@ -142,6 +146,9 @@ class PhotometricDistance:
         self.signal = np.ascontiguousarray(signal[:, self.rows, self.cols], np.float64)
         self.lights = np.ascontiguousarray(light_positions_mm, np.float64)
         self.intensity = np.ascontiguousarray(light_intensity, np.float64)
+        self.axis = np.ascontiguousarray(np.tile([0.0, 0.0, 1.0], (4, 1)) if light_axis is None else light_axis,
+                                         np.float64)
+        self.mu = np.ascontiguousarray(np.zeros(4) if light_mu is None else light_mu, np.float64)
 
     def _problem(self, rays: np.ndarray, relative_depth: np.ndarray):
         """(points at unit scale, signal, weight) of the chosen pixels where the depth is known; None
@@ -168,7 +175,7 @@ class PhotometricDistance:
         base, signal, weight = problem
 
         def cost(scale: float) -> float:
-            return _chi_square(signal, weight, base, scale, self.lights, self.intensity)
+            return _chi_square(signal, weight, base, scale, self.lights, self.intensity, self.axis, self.mu)
 
         lo, hi = scale_range
         grid = np.linspace(lo, hi, grid_points)
@@ -197,7 +204,8 @@ class PhotometricDistance:
             return np.exp(np.clip(np.r_[0.0, x[1:]], -tolerance, tolerance))
 
         def cost(x: np.ndarray) -> float:
-            return _chi_square(signal, weight, base, x[0], self.lights, self.intensity * factors(x))
+            return _chi_square(signal, weight, base, x[0], self.lights, self.intensity * factors(x), self.axis,
+                               self.mu)
 
         fit = minimize(cost, np.r_[scale_mm, 0.0, 0.0, 0.0], method="Nelder-Mead",
                        options={"xatol": 0.05, "fatol": 1e-6, "maxiter": 1500})

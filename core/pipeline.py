@@ -254,7 +254,8 @@ class HeadReconstructor:
         photometric = s.distance == "photometric" and s.method == "near"
         intensity = h.light_intensity * (self.intensity_factors if self.intensity_factors is not None else 1.0)
         problem = (PhotometricDistance(signal, mask, h.light_positions_mm, intensity, dark,
-                                       max_pixels=s.distance_pixels, binning=self._distance_binning)
+                                       max_pixels=s.distance_pixels, binning=self._distance_binning,
+                                       light_axis=self._axis, light_mu=self._mu)
                    if photometric else None)
         normals = pseudo_normals
         log_depth = self._integrate(normals, mask, final=s.method != "near", start=self._last_pseudo_log_depth)
