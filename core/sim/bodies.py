@@ -272,10 +272,11 @@ def _smooth_union(a: np.ndarray, b: np.ndarray, k_mm: float) -> tuple[np.ndarray
 
 
 def body_surfaces(body: Body, grid_step_mm: float = 1.0, clothing: str = "skin", seed: int = 0,
-                  skin_albedo: float = 0.45, specular: float = 0.0, shininess: float = 30.0
-                  ) -> dict[str, HeightField]:
+                  skin_albedo: float = 0.45, specular: float = 0.0, shininess: float = 30.0,
+                  arm_motion: bool = False) -> dict[str, HeightField]:
     """Front and back height fields of a body's trunk and arms, with breathing modes
-    (chest_left, chest_right, abdomen; 1 mm peak forward motion of the front at unit amplitude)."""
+    (chest_left, chest_right, abdomen; 1 mm peak forward motion of the front at unit amplitude)
+    and, with `arm_motion`, a mode "arms": both arms 1 mm outwards (no volume: not breathing)."""
     s = body.stature_scale
     lm = _Landmarks(s)
     half_span = max(body.shoulder_width_mm, body.hip_width_mm) / 2 + 2.6 * body.arm_radius_mm + 40.0
@@ -343,6 +344,13 @@ def body_surfaces(body: Body, grid_step_mm: float = 1.0, clothing: str = "skin",
                   for n in modes_front)
     seen_front = {n: m * front_w for n, m in modes_front.items()}
     seen_back = {n: m * back_w for n, m in modes_back.items()}
+    if arm_motion:
+        # an arm moved outwards by e changes its height by -e sign(x) dh/dx, where it is on top
+        for seen, arm, weight in ((seen_front, arm_front, front_w), (seen_back, arm_back, back_w)):
+            outwards = -np.sign(x) * np.gradient(np.nan_to_num(arm), grid.step, axis=1)
+            seen["arms"] = np.where(np.isfinite(arm), np.clip(outwards, -MAX_LATERAL_SLOPE, MAX_LATERAL_SLOPE),
+                                    0.0) * (1.0 - weight)
+        swept = swept + (0.0,)
 
     on_arm_front = np.isfinite(arm_front) & (front_w < 0.5)
     on_arm_back = np.isfinite(arm_back) & (back_w < 0.5)
@@ -351,6 +359,7 @@ def body_surfaces(body: Body, grid_step_mm: float = 1.0, clothing: str = "skin",
     front = build_height_field(grid, front_h, a_front, seen_front, specular=specular, shininess=shininess)
     back = build_height_field(grid, back_h, a_back, seen_back, specular=specular, shininess=shininess)
     front_swept = tuple(float(np.sum(m, dtype=np.float64)) * grid.cell_area_mm2 for m in modes_front.values())
+    front_swept = front_swept + (0.0,) * (len(swept) - len(front_swept))
     back_swept = tuple(v - f for v, f in zip(swept, front_swept))
     return {"front": replace(front, swept_mode_volumes_mm3=front_swept),
             "back": replace(back, swept_mode_volumes_mm3=back_swept)}

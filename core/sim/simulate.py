@@ -64,6 +64,7 @@ class SimConfig:
     lens_k1: float = 0.0  # radial distortion (OpenCV k1) of every camera; written to /rig, as a calibrated lens
     vignetting: float = 0.0  # the lenses' light loss at the corners; written to /rig, as a calibrated lens
     steps: int = 0  # the subject steps 20-50 mm (within 0.5 s) this many times
+    arm_swing_mm: float = 0.0  # a body's arms move sideways by up to this (slowly), hiding and showing its sides
     skin_type: int | None = None  # Fitzpatrick I-VI of a body's bare skin (None: albedo 0.45)
     flow_sensor: FlowSensorModel | None = field(default_factory=FlowSensorModel)
     drop_rate: float = 0.0  # fraction of frames lost on the way (gaps in frame_id)
@@ -115,6 +116,20 @@ def as_built_heads(rig: Rig, config: SimConfig) -> dict[str, Head]:
     return out
 
 
+class ArmSwing:
+    """Slow sideways movements of both arms (mm outwards), a few each minute, within +-peak."""
+
+    def __init__(self, peak_mm: float, seed: int) -> None:
+        rng = np.random.default_rng(seed + 83)
+        self.peak_mm = peak_mm
+        self.freqs = rng.uniform(0.02, 0.15, 3)
+        self.phases = rng.uniform(0, 2 * np.pi, 3)
+
+    def at(self, t_s: float) -> float:
+        wave = np.mean(np.sin(2 * np.pi * self.freqs * t_s + self.phases)) * np.sqrt(2.0)
+        return float(self.peak_mm * np.clip(wave, -1.0, 1.0))
+
+
 class Drift:
     """Slow thermal drift of every LED's output and the mains flicker of the room light."""
 
@@ -147,7 +162,7 @@ WORLDS: dict[str, dict[str, float]] = {
     # the issue's clinic: LEDs as built, room light, oily skin, a real lens, a subject who moves
     "clinic": {"led_offset_mm": 10.0, "led_intensity_spread": 0.10, "led_mu": 2.0, "led_mu_spread": 1.0,
                "led_tilt_deg": 10.0, "led_drift": 0.02, "ambient_flicker": 0.3, "specular": 0.15,
-               "lens_k1": -0.08, "vignetting": 0.15, "steps": 2, "drop_rate": 0.002},
+               "lens_k1": -0.08, "vignetting": 0.15, "steps": 2, "arm_swing_mm": 10.0, "drop_rate": 0.002},
 }
 
 
@@ -161,7 +176,8 @@ def in_world(config: SimConfig, world: str) -> SimConfig:
 def world_json(config: SimConfig) -> str:
     """The simulated world's realism settings, for /truth."""
     keys = ("led_offset_mm", "led_intensity_spread", "led_mu", "led_mu_spread", "led_tilt_deg", "led_drift",
-            "ambient_flicker", "mains_hz", "specular", "clothing", "skin_type", "lens_k1", "vignetting", "steps", "drop_rate", "distance_mm",
+            "ambient_flicker", "mains_hz", "specular", "clothing", "skin_type", "lens_k1", "vignetting", "steps",
+            "arm_swing_mm", "drop_rate", "distance_mm",
             "distance_back_mm", "scale", "seed")
     values = {k: getattr(config, k) for k in keys}
     return json.dumps(values, sort_keys=True)
@@ -181,24 +197,31 @@ def _torso_surfaces(config: SimConfig):
         return shapes.torso(config.grid_step_mm, config.clothing, config.seed, config.specular)
     skin = 0.45 if config.skin_type is None else fitzpatrick_albedo(config.skin_type)
     return body_surfaces(config.body, config.grid_step_mm, config.clothing, config.seed, skin_albedo=skin,
-                         specular=config.specular)
+                         specular=config.specular, arm_motion=config.arm_swing_mm > 0)
 
 
 def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> HeightFieldScene:
     surfaces = _torso_surfaces(config)
     subject = breathing_subject(config)
     shares = subject.compartment_shares()
-    names = surfaces["front"].mode_names
-    per_mode_l = (mode_volumes_mm3(surfaces["front"]) + mode_volumes_mm3(surfaces["back"])) * 1e-6
+    modes = surfaces["front"].mode_names
+    names = tuple(n for n in modes if n in shares)  # the breathing modes; "arms" moves without volume
+    breathing = np.array([modes.index(n) for n in names])
+    per_mode_l = ((mode_volumes_mm3(surfaces["front"]) + mode_volumes_mm3(surfaces["back"])) * 1e-6)[breathing]
     lags = np.array([subject.abdomen_lag_s if n == "abdomen" else 0.0 for n in names])
     share = np.array([shares[n] for n in names])
+    swing = ArmSwing(config.arm_swing_mm, config.seed) if "arms" in modes else None
 
     def compartments(t: np.ndarray) -> np.ndarray:
         t = np.asarray(t, dtype=float)
         return np.stack([share[k] * waveform.at(np.clip(t - lags[k], 0, None)) for k in range(len(names))], -1)
 
     def amplitudes(t: float) -> np.ndarray:
-        return compartments(np.array(t)) / per_mode_l
+        out = np.zeros(len(modes))
+        out[breathing] = compartments(np.array(t)) / per_mode_l
+        if swing is not None:
+            out[modes.index("arms")] = swing.at(t)
+        return out
 
     def flow(t: np.ndarray) -> np.ndarray:
         return sum(share[k] * waveform.flow_at(np.clip(t - lags[k], 0, None)) for k in range(len(names)))

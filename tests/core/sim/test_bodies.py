@@ -96,3 +96,15 @@ def test_a_session_of_a_body_carries_it_in_the_truth_and_the_subject(tmp_path):
         assert world["skin_type"] == 6
         assert f["subject"].attrs["height_cm"] == body.height_cm and f.attrs["simulated_body"] == "child"
     assert Body(**stored) == body
+
+
+def test_moving_arms_change_the_images_but_not_the_true_volume(tmp_path):
+    # at 5 s the arms have swung about 3 mm (their motion is slow: a few moves a minute)
+    config = SimConfig(body=PRESETS["arms-close"], protocol="tidal", seconds=5.1, scale=0.1, truth_maps_at=[4, 549])
+    simulate(tmp_path / "still.h5", config)
+    simulate(tmp_path / "moving.h5", replace(config, arm_swing_mm=10.0))
+    with h5py.File(tmp_path / "still.h5") as still, h5py.File(tmp_path / "moving.h5") as moving:
+        np.testing.assert_allclose(moving["truth/volume_l"][:], still["truth/volume_l"][:], atol=1e-12)
+        changed = np.isfinite(moving["truth/front/depth_mm"][1]) != np.isfinite(still["truth/front/depth_mm"][1])
+        depth_change = np.nan_to_num(moving["truth/front/depth_mm"][1] - still["truth/front/depth_mm"][1])
+        assert changed.sum() + np.count_nonzero(np.abs(depth_change) > 1.0) > 20  # the arms are elsewhere
