@@ -316,8 +316,9 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
         lines.append(f"| {label}{f' ({unit})' if unit else ''} | {'optical' if source == 'optical' else 'flow sensor'} | "
                      f"{n} | {missing} | {bias:+.3f} | {low:+.3f} to {high:+.3f} | {share:.0%} (±{tolerance}) |")
     lines += ["", "Distance: the worst median depth error on the subject over the truth's maps after 10 cycles, per subject.",
-              "", "| # | body | sex, age, height, BMI | arms | distance (mm) | skin | blow | LED error (mm, worst) | "
-              "optical TV / truth (L) | optical FVC / truth (L) | distance error (mm) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "", "| # | body | sex, age, height, BMI | arms | distance (mm) | skin | sheen | blow | LED error (mm, worst) | "
+              "optical TV / truth (L) | optical FVC / truth (L) | distance error (mm) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         s = row["subject"]
         body = row.get("body", {})
@@ -328,7 +329,8 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
         lines.append(f"| {s['index']} | {body.get('name', s['body'])} | {body.get('sex', '?')}, "
                      f"{body.get('age_years', float('nan')):.0f} y, {body.get('height_cm', float('nan')):.0f} cm, "
                      f"{body.get('bmi', float('nan')):.1f} | {body.get('arms', '?')} | {s['distance_mm']:.0f} | "
-                     f"{s['skin_type']} | {Path(s['standard']).stem if s['standard'] else 'model'} | {led:.1f} | "
+                     f"{s['skin_type']} | {s['specular']:.2f} | {Path(s['standard']).stem if s['standard'] else 'model'} | "
+                     f"{led:.1f} | "
                      f"{' | '.join(cells)} | {max(errors, key=abs) if errors else float('nan'):+.1f} |"
                      + (f" refused: {row['refused']}" if "refused" in row else ""))
     lines += ["", f"{len(refused)} of {len(rows)} subjects refused before analysis. Run time {elapsed:.0f} s with "
