@@ -208,47 +208,29 @@ def _gauss(*terms: np.ndarray) -> np.ndarray:
     return np.exp(-0.5 * sum(t * t for t in terms))
 
 
+# The trunk's levels for an adult of 176 cm, mm down from the xiphoid; other statures in proportion.
+_LEVELS_MM = {"neck": -265.0, "acromion": -215.0, "axilla": -135.0, "nipples": -85.0, "costal_margin": 70.0,
+              "waist": 150.0, "navel": 175.0, "waistband": 250.0, "hips": 340.0}
+
+
 @dataclass(frozen=True)
 class _Landmarks:
     """Heights (y, mm, down from the xiphoid) of the trunk's levels for one stature."""
 
     s: float
+    neck: float
+    acromion: float
+    axilla: float
+    nipples: float
+    costal_margin: float
+    waist: float
+    navel: float
+    waistband: float
+    hips: float
 
-    @property
-    def neck(self) -> float:
-        return -265.0 * self.s
-
-    @property
-    def acromion(self) -> float:
-        return -215.0 * self.s
-
-    @property
-    def axilla(self) -> float:
-        return -135.0 * self.s
-
-    @property
-    def nipples(self) -> float:
-        return -85.0 * self.s
-
-    @property
-    def costal_margin(self) -> float:
-        return 70.0 * self.s
-
-    @property
-    def waist(self) -> float:
-        return 150.0 * self.s
-
-    @property
-    def navel(self) -> float:
-        return 175.0 * self.s
-
-    @property
-    def waistband(self) -> float:
-        return 250.0 * self.s
-
-    @property
-    def hips(self) -> float:
-        return 340.0 * self.s
+    @classmethod
+    def of(cls, stature_scale: float) -> "_Landmarks":
+        return cls(stature_scale, **{name: y * stature_scale for name, y in _LEVELS_MM.items()})
 
 
 def _profile(y: np.ndarray, knots: list[tuple[float, float]]) -> np.ndarray:
@@ -278,7 +260,7 @@ def body_surfaces(body: Body, grid_step_mm: float = 1.0, clothing: str = "skin",
     (chest_left, chest_right, abdomen; 1 mm peak forward motion of the front at unit amplitude)
     and, with `arm_motion`, a mode "arms": both arms 1 mm outwards (no volume: not breathing)."""
     s = body.stature_scale
-    lm = _Landmarks(s)
+    lm = _Landmarks.of(s)
     half_span = max(body.shoulder_width_mm, body.hip_width_mm) / 2 + 2.6 * body.arm_radius_mm + 40.0
     grid = BodyGrid.covering(half_span, lm.neck - 70.0 * s, lm.hips + 60.0 * s, grid_step_mm)
     x, y = grid.coordinates()
