@@ -65,7 +65,7 @@ REFERENCE_OF = {"FVC_l": "FVC", "FEV1_l": "FEV1", "FEV1_FVC": "FEV1_FVC", "FEF25
 def run_analyze_session(args: argparse.Namespace) -> int:
     """A session file (flow sensor and truth), or a results file (its session, and its optical volume)."""
     from app.report_data import open_inputs
-    from core.process import optical_volume
+    from core.process import optical_refusal, optical_volume
     from core.session import SessionError
     from core.session_analysis import analyse_session
 
@@ -101,6 +101,8 @@ def run_analyze_session(args: argparse.Namespace) -> int:
                   f"{values['manoeuvres']} blows")
     if report.reference_problem:
         print(f"  no predicted values: {report.reference_problem}")
+    if results is not None and (refused := optical_refusal(results)):
+        print(f"  optical values refused: {refused}")
     for name, values in named:
         if values is not None:
             for problem in values.problems:

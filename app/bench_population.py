@@ -105,7 +105,7 @@ def _distance_errors(session: Path, results: Path, after_cycles: int) -> list[fl
 def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: str, seconds: float | None) -> dict:
     """One subject end to end; what each stage gave or why it refused."""
     from core.light_calibration import CAPTURE_SECONDS, calibrate_lights
-    from core.process import optical_volume, process_session
+    from core.process import optical_refusal, optical_volume, process_session
     from core.session import SessionFile
     from core.session_analysis import analyse_session
     from core.sim.breathing import ForcedBlow, standard_curve
@@ -168,6 +168,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     out["flow"] = _numbers(report.flow_sensor.parameters()) if report.flow_sensor is not None else {}
     out["optical"] = _numbers(report.optical.parameters()) if report.optical is not None else {}
     out["optical_problems"] = list(report.optical.problems) if report.optical is not None else []
+    out["optical_refused"] = optical_refusal(results)
     out["distance_errors_mm"] = _distance_errors(session, results, after_cycles=10)
     stages["analyse"] = time.perf_counter() - started - sum(stages.values())
     out["seconds"] = time.perf_counter() - started
@@ -332,7 +333,8 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
                      f"{s['skin_type']} | {s['specular']:.2f} | {Path(s['standard']).stem if s['standard'] else 'model'} | "
                      f"{led:.1f} | "
                      f"{' | '.join(cells)} | {max(errors, key=abs) if errors else float('nan'):+.1f} |"
-                     + (f" refused: {row['refused']}" if "refused" in row else ""))
+                     + (f" refused: {row['refused']}" if "refused" in row else "")
+                     + (f" optical refused: {row['optical_refused']}" if row.get("optical_refused") else ""))
     lines += ["", f"{len(refused)} of {len(rows)} subjects refused before analysis. Run time {elapsed:.0f} s with "
               f"{workers} subject(s) at once on {os.cpu_count()} cores."]
     if pngs:

@@ -166,6 +166,8 @@ def run_process(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     for name, n in summary.maps.items():
         print(f"{name}: {n} maps, mean subject distance {summary.mean_distance_mm[name]:.1f} mm")
+    if summary.optical_refused:
+        print(f"no optical volume: {summary.optical_refused}")
     print(f"wrote {summary.path} in {summary.elapsed_s:.1f} s")
     return 0
 

@@ -15,7 +15,7 @@ import numpy as np
 from app.records import Patient, Records
 from core.analysis import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.pipeline import ReconstructionSettings
-from core.process import maps_at, optical_volume, session_of_results
+from core.process import maps_at, optical_refusal, optical_volume, session_of_results
 from core.hdf5_probe import probe
 from core.results import READ_ERRORS, RESULTS_FORMAT, check_results
 from core.reference import Reference
@@ -166,7 +166,9 @@ def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tupl
     t_flow, v_flow = curves[FLOW_SENSOR]
     gradient = _gradient_correlation(results, start_ns, t_flow, v_flow) if results is not None else {}
     if OPTICAL not in curves:
-        note = ("no optical volume in litres in this results file (it needs a volume calibration profile); the "
+        refused = optical_refusal(results) if results is not None else None
+        note = (f"optical values refused: {refused}" if refused else
+                "no optical volume in litres in this results file (it needs a volume calibration profile); the "
                 "normalised gradient volume is compared instead") if results is not None else \
             "the session has not been processed: run `photopft process` to compare the optical method"
         return Comparison(None, [], gradient, note)

@@ -27,6 +27,11 @@ MOTION_SMOOTHING_PX = 2.0
 # kernels) takes about 3 s; this much work takes about 10 s on this 2-core host (300 maps at scale
 # 0.1, 3 at full resolution)
 AUTO_WORKERS_PIXEL_MAPS = 5e6
+# Where a head's subject may stand (mm from its camera): the rig is built for 1800-2200 mm and
+# its lights calibrated there; a distance measured outside this is not a subject standing too
+# near or too far but a measurement gone wrong (glossy skin put it 800 mm short,
+# docs/reconstruction.md), and no volume is reported from it.
+WORKING_RANGE_MM = (1500.0, 2600.0)
 
 
 @dataclass
@@ -35,6 +40,20 @@ class ProcessSummary:
     maps: dict[str, int]
     elapsed_s: float
     mean_distance_mm: dict[str, float]
+    optical_refused: str | None = None  # why no optical volume was written, when one was not
+
+
+def distance_refusal(distances_mm: dict[str, float]) -> str | None:
+    """Why the optical volume cannot be reported from these heads' subject distances, or None."""
+    lo, hi = WORKING_RANGE_MM
+    for name, distance in distances_mm.items():
+        if not np.isfinite(distance):
+            return f"head {name}: no subject distance was measured"
+        if not lo <= distance <= hi:
+            return (f"head {name}: the subject measured at {distance:.0f} mm, outside the rig's working range "
+                    f"{lo:.0f}-{hi:.0f} mm (a subject out of place, or skin or lights the calibration does not "
+                    "describe)")
+    return None
 
 
 def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindow | None, max_value: int,
@@ -155,7 +174,11 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 displacements[name] = HeadDisplacements(result.timestamp_ns, result.sums)
                 distances[name] = (float(np.nanmean(result.distance_mm)) if len(result.distance_mm)
                                    else float("nan"))
-            metric = metric_volume(displacements, rig.baseline_mm) if all(counts.values()) else None
+            refused = distance_refusal(distances)
+            if refused is not None:
+                out.attrs["optical_refused"] = refused
+            metric = (metric_volume(displacements, rig.baseline_mm) if all(counts.values()) and refused is None
+                      else None)
             if metric is not None and np.isfinite(metric.volume_l).all():  # a trunk in every head's view
                 _write_metric_volume(out, metric, session)
             if volume_calibration is not None:
@@ -164,7 +187,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 _write_volume(out, metric.timestamp_ns, metric.volume_l, METRIC_METHOD + metric.scale_from)
             parameters = out.create_group("parameters")
             _write_parameters(session_path, parameters, out)
-    return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances)
+    return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances, refused)
 
 
 @dataclass(frozen=True)
@@ -315,6 +338,13 @@ def optical_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] 
     """A results file's /volume as (timestamp_ns, litres), or None if it has none."""
     with h5py.File(results, "r") as f:
         return (f["volume/timestamp_ns"][:], f["volume/volume_l"][:].astype(float)) if "volume" in f else None
+
+
+def optical_refusal(results: str | os.PathLike) -> str | None:
+    """Why a results file holds no optical volume, when `process` refused one."""
+    with h5py.File(results, "r") as f:
+        reason = f.attrs.get("optical_refused")
+    return None if reason is None else str(reason)
 
 
 def session_of_results(results: str | os.PathLike) -> Path:

@@ -287,3 +287,22 @@ def test_worker_processes_give_the_same_results(small_session, tmp_path):
             for key in ("distance_mm", "gradient_volume"):
                 np.testing.assert_allclose(a[f"heads/{head}/{key}"][:], b[f"heads/{head}/{key}"][:], rtol=1e-9)
         np.testing.assert_allclose(a["volume/volume_l"][:], b["volume/volume_l"][:], rtol=1e-7, atol=1e-9)
+
+
+def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp_path):
+    """A distance outside 1500-2600 mm is a measurement gone wrong or a subject out of place: the
+    results say so and hold no volume to report. (A subject 3300 mm away measures about 2650 mm:
+    the distance search does not follow a subject far outside the working range either.)"""
+    from core.process import WORKING_RANGE_MM, distance_refusal, optical_refusal, optical_volume, process_session
+    from core.sim.simulate import SimConfig, simulate
+
+    assert distance_refusal({"front": 2000.0, "back": 2100.0}) is None
+    assert "front: no subject distance" in distance_refusal({"front": float("nan"), "back": 2000.0})
+    session, results = tmp_path / "far.h5", tmp_path / "far-r.h5"
+    simulate(session, SimConfig(protocol="tidal", seconds=0.5, scale=0.1, distance_mm=3300.0,
+                                distance_back_mm=3300.0))
+    process_session(session, results, workers=1)
+    reason = optical_refusal(results)
+    assert reason is not None and "outside the rig's working range" in reason
+    assert f"{WORKING_RANGE_MM[0]:.0f}-{WORKING_RANGE_MM[1]:.0f} mm" in reason
+    assert optical_volume(results) is None
