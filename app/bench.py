@@ -395,6 +395,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     po.add_argument("--workers", type=int, default=None, help="subjects at once (default: one per core)")
     po.add_argument("--waveforms", type=Path, default=SHARED / "data" / "spirometry-waveforms",
                     help="the standard test waveforms the blows follow (default ../shared/data/spirometry-waveforms)")
+    po.add_argument("--max-sheen", type=finite, default=None,
+                    help="skin sheen drawn from 0 to this (default 0.3; 0: matte skin)")
     po.add_argument("--no-write", action="store_true", help="print only")
 
     def run_population(args: argparse.Namespace) -> int:
@@ -407,10 +409,15 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         subjects = 2 if args.quick else args.subjects
         workers = max(1, min(subjects, args.workers or os.cpu_count() or 1))
         images = None if args.no_write else DOCS.parent / "images"
-        text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images)
-        return _publish(args, f"population-{args.scale:g}", f"Population (`photopft bench population --subjects "
-                                                             f"{subjects} --scale {args.scale:g} --seed {args.seed}`)",
-                        text)
+        from app.bench_population import MAX_SHEEN
+
+        sheen = MAX_SHEEN if args.max_sheen is None else args.max_sheen
+        text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images,
+                                       sheen)
+        suffix = "" if sheen == MAX_SHEEN else f" --max-sheen {sheen:g}"
+        section = f"population-{args.scale:g}" + ("" if sheen == MAX_SHEEN else f"-sheen{sheen:g}")
+        return _publish(args, section, f"Population (`photopft bench population --subjects {subjects} --scale "
+                                       f"{args.scale:g} --seed {args.seed}{suffix}`)", text)
 
     po.set_defaults(run=run_population)
     co = what.add_parser("compression", help="lossless HDF5 filters on the rig's frames: ratio, MB/s, GB a minute")

@@ -48,8 +48,12 @@ def standard_blows(folder: Path | None) -> list[Path]:
     return sorted(p for name in STANDARD_SETS for p in (folder / name).glob("*.wf"))
 
 
-def draw_subjects(count: int, seed: int, blows: list[Path], quick: bool = False) -> list[VirtualSubject]:
-    """The population: random bodies, distances 1700-2300 mm, Fitzpatrick I-VI, skin sheen 0-0.3,
+MAX_SHEEN = 0.3  # the population's skin sheen is drawn from 0 (matte) to this (oily skin)
+
+
+def draw_subjects(count: int, seed: int, blows: list[Path], quick: bool = False,
+                  max_sheen: float = MAX_SHEEN) -> list[VirtualSubject]:
+    """The population: random bodies, distances 1700-2300 mm, Fitzpatrick I-VI, skin sheen 0-max_sheen,
     LEDs 0-15 mm off the drawing, a standard blow each (in turn, from a shuffled list)."""
     rng = np.random.default_rng(seed + 777)
     order = rng.permutation(len(blows)) if blows else []
@@ -58,7 +62,7 @@ def draw_subjects(count: int, seed: int, blows: list[Path], quick: bool = False)
         subjects.append(VirtualSubject(
             index=k, seed=1000 * seed + k, body=("average-woman", "arms-close")[k % 2] if quick else "random",
             distance_mm=float(rng.uniform(1700, 2300)), skin_type=int(rng.integers(1, 7)),
-            specular=float(rng.uniform(0.0, 0.3)), led_offset_mm=float(rng.uniform(0.0, 15.0)),
+            specular=float(rng.uniform(0.0, 1.0)) * max_sheen, led_offset_mm=float(rng.uniform(0.0, 15.0)),
             standard=str(blows[order[k % len(blows)]]) if blows else None))
     return subjects
 
@@ -275,12 +279,13 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
 
 
 def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, workers: int,
-                         standards: Path | None, images: Path | None) -> tuple[str, list[dict]]:
+                         standards: Path | None, images: Path | None,
+                         max_sheen: float = MAX_SHEEN) -> tuple[str, list[dict]]:
     from core.sim.simulate import WORLDS
 
     started = time.perf_counter()
     blows = standard_blows(standards)
-    population = draw_subjects(subjects, seed, blows, quick)
+    population = draw_subjects(subjects, seed, blows, quick, max_sheen)
     protocol, seconds = ("short", 10.0) if quick else ("short", None)
     with tempfile.TemporaryDirectory() as tmp:
         if workers > 1:
@@ -292,12 +297,13 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
             rows = [run_subject(s, scale, protocol, tmp, seconds) for s in population]
     elapsed = time.perf_counter() - started
     describe_bodies(rows)
-    pngs = bland_altman_pngs(rows, images, f"population-{scale:g}") if images is not None else []
-    return _table(rows, scale, seed, quick, blows, elapsed, workers, pngs, WORLDS["clinic"]), rows
+    stem = f"population-{scale:g}" + ("" if max_sheen == MAX_SHEEN else f"-sheen{max_sheen:g}")
+    pngs = bland_altman_pngs(rows, images, stem) if images is not None else []
+    return _table(rows, scale, seed, quick, blows, elapsed, workers, pngs, WORLDS["clinic"], max_sheen), rows
 
 
 def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[Path], elapsed: float,
-           workers: int, pngs: list[Path], world: dict) -> str:
+           workers: int, pngs: list[Path], world: dict, max_sheen: float = MAX_SHEEN) -> str:
     from core.rig import thesis_head
 
     head = thesis_head(scale=scale)
@@ -306,7 +312,7 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
              f"{head.height} pixels; protocol: {'its first 10 s' if quick else '20 s tidal (irregular, sighs), one slow VC, two forced blows'}; "
              f"blows following {'the standard waveforms (' + ', '.join(STANDARD_SETS) + f', {len(blows)} files)' if blows else 'the simulator own model (no standard waveforms found)'}, "
              "scaled to each subject's predicted FVC. The world: random bodies (core/sim/bodies.py), distance 1700-2300 mm, "
-             "Fitzpatrick I-VI, skin sheen 0-0.3, LEDs 0-15 mm off the drawing, and the clinic's "
+             f"Fitzpatrick I-VI, skin sheen 0-{max_sheen:g}, LEDs 0-15 mm off the drawing, and the clinic's "
              + ", ".join(f"{k} {v:g}" for k, v in world.items() if k not in ("led_offset_mm", "specular"))
              + ". Lights calibrated from each rig's simulated sphere sessions (specular and matte); processed with "
              "`photopft process` defaults; no calibration on the subject. Truth read only to compare.", "",
