@@ -15,7 +15,6 @@ import json
 import os
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
@@ -289,10 +288,10 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
     protocol, seconds = ("short", 10.0) if quick else ("short", None)
     with tempfile.TemporaryDirectory() as tmp:
         if workers > 1:
-            with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-                rows = list(pool.map(run_subject, population, [scale] * len(population),
-                                     [protocol] * len(population), [tmp] * len(population),
-                                     [seconds] * len(population)))
+            # a Pool, not an executor: leaving the block (done, or Ctrl-C / SIGTERM) terminates the workers
+            # instead of waiting for the subjects they are on
+            with get_context("spawn").Pool(workers) as pool:
+                rows = pool.starmap(run_subject, [(s, scale, protocol, tmp, seconds) for s in population])
         else:
             rows = [run_subject(s, scale, protocol, tmp, seconds) for s in population]
     elapsed = time.perf_counter() - started
