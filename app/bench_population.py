@@ -285,7 +285,7 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
     started = time.perf_counter()
     blows = standard_blows(standards)
     population = draw_subjects(subjects, seed, blows, quick, max_sheen)
-    protocol, seconds = ("short", 10.0) if quick else ("short", None)
+    protocol, seconds = ("short", 8.0) if quick else ("short", None)
     with tempfile.TemporaryDirectory() as tmp:
         if workers > 1:
             # a Pool, not an executor: leaving the block (done, or Ctrl-C / SIGTERM) terminates the workers
@@ -308,7 +308,7 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
     head = thesis_head(scale=scale)
     refused = [r for r in rows if "refused" in r]
     lines = [f"{len(rows)} simulated subjects (seed {seed}{', quick' if quick else ''}), two heads of {head.width} x "
-             f"{head.height} pixels; protocol: {'its first 10 s' if quick else '20 s tidal (irregular, sighs), one slow VC, two forced blows'}; "
+             f"{head.height} pixels; protocol: {'its first 8 s' if quick else '20 s tidal (irregular, sighs), one slow VC, two forced blows'}; "
              f"blows following {'the standard waveforms (' + ', '.join(STANDARD_SETS) + f', {len(blows)} files)' if blows else 'the simulator own model (no standard waveforms found)'}, "
              "scaled to each subject's predicted FVC. The world: random bodies (core/sim/bodies.py), distance 1700-2300 mm, "
              f"Fitzpatrick I-VI, skin sheen 0-{max_sheen:g}, LEDs 0-15 mm off the drawing, and the clinic's "

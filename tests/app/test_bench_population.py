@@ -12,11 +12,14 @@ from app.bench_population import agreement, run_population_bench
 
 @pytest.mark.slow
 def test_the_quick_population_runs_end_to_end_and_reports_what_it_found(tmp_path, shared_data):
-    text, rows = run_population_bench(2, 0.08, 1, True, 1, SHARED / "data" / "spirometry-waveforms", tmp_path)
+    # scale 0.1: at 0.08 the specular sphere's highlights are too small to triangulate in the clinic's light
+    text, rows = run_population_bench(2, 0.1, 1, True, 1, SHARED / "data" / "spirometry-waveforms", tmp_path)
     assert len(rows) == 2
     for row in rows:
         # each subject either gave its values or says at which stage and why it stopped
         assert "truth" in row or row["refused"].startswith(("light calibration:", "process:"))
+        refused = row.get("optical_refused")
+        assert refused is None or "outside the rig's working range" in refused
         assert row["body"]["name"] in ("average-woman", "arms-close")
     analysed = [r for r in rows if "truth" in r]
     assert analysed, "no subject reached the analysis"
@@ -25,7 +28,7 @@ def test_the_quick_population_runs_end_to_end_and_reports_what_it_found(tmp_path
     flow_tv = next(r for r in agreement(rows) if r[0] == "TV" and r[2] == "flow")
     assert flow_tv[8] == 1.0  # the flow sensor's tidal volume is within 50 mL of the truth on every subject
     assert "| TV (L) | flow sensor |" in text and "arms-close" in text and "ISO26782" in text
-    plots = sorted(tmp_path.glob("population-0.08-*.png"))
+    plots = sorted(tmp_path.glob("population-0.1-*.png"))
     assert {p.stem.split("-")[-1] for p in plots} >= {"TV", "RR"}
     image = cv2.imread(str(plots[0]))
     assert image is not None and image.shape[0] > 200 and image.std() > 5
