@@ -126,11 +126,12 @@ def _matte_placements(session: SessionFile, head_name: str, radius_mm: float) ->
     """Each placement's matte sphere as detected: the rays and signals of its pixels, binned so that
     every pixel's light counts and the fit's size stays bounded at any resolution, and its centre."""
     head = session.rig.heads[head_name]
+    # the shading as the light left the sphere: the lens' relative illumination divided out
+    illumination = head.relative_illumination()[None] if head.vignetting else None
     out = []
     for placement in placement_images(session, head_name):
         sphere = detect_sphere(placement.signal.sum(0), head, radius_mm)
-        # the shading as the light left the sphere: the lens' relative illumination divided out
-        shading = placement.signal / head.relative_illumination()[None] if head.vignetting else placement.signal
+        shading = placement.signal / illumination if illumination is not None else placement.signal
         rays, signal = binned_sphere(head, shading, sphere.mask, matte_binning(int(sphere.mask.sum())))
         out.append(MattePlacement(rays, signal, sphere.centre_mm, radius_mm))
     return out
