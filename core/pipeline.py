@@ -142,6 +142,64 @@ def subject_mask(signal: np.ndarray, fraction: float, edge_fraction: float | Non
     return ndimage.binary_dilation(mask, iterations=edge_px, mask=total > edge_fraction * reference)
 
 
+# A surface seen this near grazing (|n_z| of its distant-light normal below this) is an occluding
+# contour: the trunk's sides, or an arm's edge where it lies beside the trunk
+GRAZING_NZ = 0.35
+# What lies beside the trunk is an arm when it spans at least this share of the trunk's rows (an
+# arm hangs from the shoulder to below the waist)
+ARM_SHARE_OF_TRUNK_ROWS = 0.25
+
+
+def trunk_mask(mask: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """The trunk within a subject mask, without the arms.
+
+    Arms are surfaces the integrator cannot tie to the trunk (their depth floats by its own
+    constant: a head saw an arm held away 5-20 mm off, changing from map to map), no part of the
+    breathing, and the volume's rules take the outer edges of a row for the trunk's sides. An arm
+    held away is a run of pixels of its own beside the trunk on a row, up to where it meets the
+    shoulder. So:
+    1. on every row, the run through the silhouette's middle column;
+    2. within those, the largest part that no near-grazing pixel (GRAZING_NZ, from `normals`)
+       divides, with the grazing pixels nearer to it than to any part it was divided from (an
+       occluding contour between arm and trunk);
+    3. above where each side's arm leaves the trunk, nothing beyond the trunk's side there (the
+       arm's top and the shoulder's tip over it, which one head may see joined to the trunk and
+       the other not).
+    An arm held close, lying on the trunk's side with nothing between, stays."""
+    if not mask.any():
+        return mask
+    middle = int(np.median(np.nonzero(mask)[1]))
+    runs, _ = ndimage.label(mask, structure=[[0, 0, 0], [1, 1, 1], [0, 0, 0]])
+    through_middle = runs[:, middle]
+    trunk = np.isin(runs, through_middle[through_middle > 0])
+    facing = trunk & (np.abs(np.nan_to_num(normals[..., 2])) >= GRAZING_NZ)
+    parts, n = ndimage.label(facing)
+    if n > 1:
+        largest = 1 + int(np.argmax(np.bincount(parts.ravel())[1:]))
+        rows, cols = ndimage.distance_transform_edt(~facing, return_distances=False, return_indices=True)
+        trunk &= parts[rows, cols] == largest
+    trunk_rows = np.nonzero(trunk.any(axis=1))[0]
+    for side in (slice(0, middle), slice(middle, None)):
+        arms, found = ndimage.label(mask[:, side] & ~trunk[:, side])
+        if not found:
+            continue
+        arm_rows = np.nonzero((arms == 1 + int(np.argmax(np.bincount(arms.ravel())[1:]))).any(axis=1))[0]
+        if len(arm_rows) < ARM_SHARE_OF_TRUNK_ROWS * (trunk_rows[-1] - trunk_rows[0] + 1):
+            continue  # no arm: a speck the mask left beside the trunk
+        top = int(arm_rows[0])
+        on_row = np.nonzero(trunk[top, side])[0]
+        if len(on_row) == 0:
+            continue
+        if side.start == 0:
+            trunk[:top, :on_row[0]] = False
+        else:
+            trunk[:top, middle + on_row[-1] + 1:] = False
+    parts, n = ndimage.label(trunk)
+    if n <= 1:
+        return trunk
+    return parts == 1 + int(np.argmax(np.bincount(parts.ravel())[1:]))
+
+
 class HeadReconstructor:
     """Reconstructs one head's cycles. Holds the head's calibration and, between cycles, the
     stream's running distance (and the intensities fitted on its first cycle, when asked)."""
@@ -245,6 +303,7 @@ class HeadReconstructor:
         # the normals from filtered images; the distance fit (its own noise model) from the raw ones
         solved, solved_saturated = prefiltered(signal, saturated, self._prefilter_px)
         pseudo_normals, albedo = distant_light_normals(solved, np.zeros(h.shape), self.pseudo_light_vectors)
+        mask = trunk_mask(mask, pseudo_normals)
         pseudo_normals[~mask] = np.nan
         dmr = dmr_distance(pseudo_normals, mask, h.fx, h.fy, h.cx, h.cy, h.light_positions_mm,
                            self.pseudo_light_vectors, s.dmr_threshold)

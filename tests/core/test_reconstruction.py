@@ -10,7 +10,8 @@ import pytest
 
 from core.lightfield import light_field, normals_from_field
 from core.photometric import complete_cycles, distant_light_normals, near_light_normals
-from core.pipeline import DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance, subject_mask
+from core.pipeline import (DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance, subject_mask,
+                           trunk_mask)
 from core.process import process_session, with_true_lights
 from core.profile import HeadCalibration, RigCalibration
 from core.session import SessionError, SessionFile
@@ -239,6 +240,43 @@ def test_the_subject_mask_reaches_the_dim_silhouette_and_not_the_background():
     assert eroded.sum() < grown.sum() <= disc.sum()
     missing = lambda m: disc.sum() - m.sum()  # noqa: E731
     assert missing(grown) < 0.4 * missing(eroded)
+
+
+def _facing(shape: tuple[int, int]) -> np.ndarray:
+    normals = np.zeros(shape + (3,))
+    normals[..., 2] = -1.0
+    return normals
+
+
+def test_the_trunk_mask_leaves_out_arms_held_away_and_keeps_arms_held_close():
+    """A trunk (rows 20-99, columns 40-80) with an arm on each side: below the armpits (row 36) a
+    gap of background between arm and trunk, above it arm and trunk one run of pixels (as a front
+    head sees them). The arms and their tops go; a speck beside the trunk and arms that lie on its
+    sides with no gap stay."""
+    trunk = np.zeros((120, 120), bool)
+    trunk[20:100, 40:81] = True
+    away = trunk.copy()
+    away[20:100, 25:36] = away[20:100, 85:96] = True  # the arms
+    away[20:36, 25:40] = away[20:36, 81:96] = True  # their tops, joined to the trunk
+    np.testing.assert_array_equal(trunk_mask(away, _facing(away.shape)), trunk)
+    speck = trunk.copy()
+    speck[60:62, 35:37] = True
+    np.testing.assert_array_equal(trunk_mask(speck, _facing(speck.shape)), trunk)
+    close = trunk.copy()
+    close[20:100, 30:40] = close[20:100, 81:91] = True
+    np.testing.assert_array_equal(trunk_mask(close, _facing(close.shape)), close)
+
+
+def test_an_occluding_contour_divides_an_arm_from_the_trunk():
+    """An arm that meets the trunk over its whole length, with a line of grazing normals between
+    them (a back head's view of an arm against the trunk's side): it goes, the contour's pixels
+    nearer the trunk stay with it."""
+    mask = np.zeros((120, 120), bool)
+    mask[20:100, 30:81] = True
+    normals = _facing(mask.shape)
+    normals[20:100, 38:42] = [1.0, 0.0, -0.1]
+    kept = trunk_mask(mask, normals)
+    assert kept[:, 40:81][mask[:, 40:81]].all() and not kept[:, 30:40].any()
 
 
 def test_the_light_field_solves_a_shadowed_or_saturated_pixel_from_three_lights(sphere_session):
