@@ -213,6 +213,7 @@ class HeadView:
     height_mm: np.ndarray | None = None  # above the subject's mean surface, NaN off the subject
     distance_mm: float = float("nan")
     frame_id: int = -1
+    occluded_side_share: float = float("nan")  # core.pipeline.occluded_side_share of the last map
     reconstructed: int = 0
     frames: int = 0
     lost: int = 0
@@ -545,6 +546,7 @@ class LiveRig:
             with self._lock:
                 view.height_mm = height
                 view.distance_mm = float(result.distance_mm)
+                view.occluded_side_share = float(result.extra.get("occluded_side_share", np.nan))
                 view.frame_id = done_id
                 view.reconstructed += 1
                 self._gradient[head] = float(result.gradient_volume)
@@ -565,8 +567,8 @@ class LiveRig:
             heads = {}
             for h, v in self._views.items():
                 stats = self.source.cameras[h].stats
-                heads[h] = HeadView(v.height_mm, v.distance_mm, v.frame_id, v.reconstructed, stats.delivered,
-                                    stats.lost + stats.failed, self._rates[h].per_s())
+                heads[h] = HeadView(v.height_mm, v.distance_mm, v.frame_id, v.occluded_side_share, v.reconstructed,
+                                    stats.delivered, stats.lost + stats.failed, self._rates[h].per_s())
             optical = np.array(self._optical, dtype=float).reshape(-1, 2)
             flow = np.array(self._flow, dtype=float).reshape(-1, 2)
             metric = np.array(self._metric_curve, dtype=float).reshape(-1, 2)

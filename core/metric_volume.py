@@ -20,7 +20,7 @@ Measured limits on simulated subjects: docs/volume.md.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,6 +33,11 @@ from core.volume import (REGIONS, DisplacementSums, DisplacementTracker, head_vo
 WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of trunk width is 4 mm of distance
 SIDE_SMOOTHING_S = 3.0
 VOLUME_SMOOTHING_S = 0.03  # the maps' own noise; a forced expiration's volume curve has little above 5 Hz
+# How far a head's map scale (the two heads' trunk widths and baseline against the map's own side
+# depth) may sit from 1 before the trunk's sides are not the same in both views. Measured on
+# simulated bodies (docs/volume.md): 0-5 % for trunks in full view, 10-14 % with arms held against
+# the trunk (one head sees them as its sides, the other divides them off).
+MAX_SCALE_MISMATCH = 0.08
 
 
 @dataclass
@@ -60,6 +65,17 @@ class MetricVolume:
     regions: dict[str, np.ndarray]  # each trunk quadrant over the heads (REGIONS), on timestamp_ns
     side_distance_mm: dict[str, np.ndarray]  # the distance each head's sides were scaled to
     scale_from: str
+    scale_mismatch: dict[str, float] = field(default_factory=dict)  # median |k - 1| of each head's maps
+
+    def refusal(self) -> str | None:
+        """Why this volume cannot be reported, or None: a head whose maps had to be rescaled by more
+        than MAX_SCALE_MISMATCH to put their sides where the two heads' trunk widths put them."""
+        for name, mismatch in self.scale_mismatch.items():
+            if mismatch > MAX_SCALE_MISMATCH:
+                return (f"head {name}: the trunk's width in the two heads' views and its depth in this head's maps "
+                        f"disagree by {100 * mismatch:.0f} % (arms against the trunk's sides, or the trunk not "
+                        "wholly in view)")
+        return None
 
 
 def side_targets(heads: dict[str, HeadDisplacements], baseline_mm: float | None) -> tuple[dict[str, np.ndarray], str]:
@@ -90,8 +106,12 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
     targets, scale_from = side_targets(heads, baseline_mm)
     t = next(iter(heads.values())).timestamp_ns
     per_head, regions = {}, {r: np.zeros(len(t)) for r in REGIONS}
+    mismatch = {}
     for name, h in heads.items():
         side, target = h.side_mm, targets[name]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.abs(target / side - 1.0)
+        mismatch[name] = float(np.nanmedian(ratio)) if np.isfinite(ratio).any() else float("nan")
 
         def on_t(values: np.ndarray) -> np.ndarray:
             return np.interp(t.astype(float), h.timestamp_ns.astype(float), _bridged(values))
@@ -107,7 +127,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
 
     per_head = {name: smooth(v) for name, v in per_head.items()}
     return MetricVolume(t, sum(per_head.values()), per_head, {r: smooth(v) for r, v in regions.items()},
-                        targets, scale_from)
+                        targets, scale_from, mismatch)
 
 
 def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:

@@ -32,6 +32,9 @@ AUTO_WORKERS_PIXEL_MAPS = 5e6
 # near or too far but a measurement gone wrong (glossy skin put it 800 mm short,
 # docs/reconstruction.md), and no volume is reported from it.
 WORKING_RANGE_MM = (1500.0, 2600.0)
+# The share of the trunk's rows an occluding contour may cross (core/pipeline.py,
+# occluded_side_share) in a head's typical map before its sides count as hidden by an arm
+MAX_OCCLUDED_SIDE_SHARE = 0.2
 
 
 @dataclass
@@ -53,6 +56,15 @@ def distance_refusal(distances_mm: dict[str, float]) -> str | None:
             return (f"head {name}: the subject measured at {distance:.0f} mm, outside the rig's working range "
                     f"{lo:.0f}-{hi:.0f} mm (a subject out of place, or skin or lights the calibration does not "
                     "describe)")
+    return None
+
+
+def occlusion_refusal(occluded_share: dict[str, float]) -> str | None:
+    """Why the optical volume cannot be reported from heads whose trunk's sides an arm hides, or None."""
+    for name, share in occluded_share.items():
+        if np.isfinite(share) and share > MAX_OCCLUDED_SIDE_SHARE:
+            return (f"head {name}: an arm lies against the trunk along {100 * share:.0f} % of its height and hides "
+                    "the sides the volume is referred to (the patient should hold the arms away from the body)")
     return None
 
 
@@ -121,7 +133,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             if name not in rig.heads:
                 raise SessionError(f"{session_path} has no head {name!r} (heads: {', '.join(session.heads)})")
         maps_at = sorted(set(maps_at or []))
-        counts, distances, displacements = {}, {}, {}
+        counts, distances, displacements, occluded = {}, {}, {}, {}
         with atomic_output(output) as partial, h5py.File(partial, "w") as out:
             out.attrs["format"] = RESULTS_FORMAT
             out.attrs["format_version"] = np.int64(1)
@@ -163,6 +175,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 g.create_dataset("distance_mm", data=result.distance_mm)
                 g.create_dataset("gradient_volume", data=result.gradient_volume)
                 g.create_dataset("valid_pixels", data=result.valid_pixels)
+                g.create_dataset("occluded_side_share", data=result.occluded_side_share)
                 m = g.create_group("maps")
                 m.create_dataset("frame_index", data=np.asarray(result.saved_index, dtype=np.int64))
                 shape = (0, head.height, head.width)
@@ -174,11 +187,16 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 displacements[name] = HeadDisplacements(result.timestamp_ns, result.sums)
                 distances[name] = (float(np.nanmean(result.distance_mm)) if len(result.distance_mm)
                                    else float("nan"))
-            refused = distance_refusal(distances)
+                occluded[name] = (float(np.nanmedian(result.occluded_side_share))
+                                  if np.isfinite(result.occluded_side_share).any() else float("nan"))
+            refused = distance_refusal(distances) or occlusion_refusal(occluded)
             if refused is not None:
                 out.attrs["optical_refused"] = refused
             metric = (metric_volume(displacements, rig.baseline_mm) if all(counts.values()) and refused is None
                       else None)
+            if metric is not None and metric.refusal() is not None:
+                refused, metric = metric.refusal(), None
+                out.attrs["optical_refused"] = refused
             if metric is not None and np.isfinite(metric.volume_l).all():  # a trunk in every head's view
                 _write_metric_volume(out, metric, session)
             if volume_calibration is not None:
@@ -211,6 +229,7 @@ class _HeadResult:
     distance_mm: np.ndarray
     gradient_volume: np.ndarray
     valid_pixels: np.ndarray
+    occluded_side_share: np.ndarray
     saved_index: list[int]
     saved_normals: list[np.ndarray]
     saved_depth: list[np.ndarray]
@@ -225,7 +244,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
     reconstructor = HeadReconstructor(head, job.pseudo_light_vectors, job.settings)
     tracker = DisplacementTracker(head)
     rows: dict[str, list] = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": [],
-                             "valid_pixels": []}
+                             "valid_pixels": [], "occluded_side_share": []}
     saved_index, saved_normals, saved_depth, sums = [], [], [], []
     with SessionFile(job.session_path) as session:
         frames = session.frames(name)
@@ -247,6 +266,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             rows["distance_mm"].append(result.distance_mm)
             rows["gradient_volume"].append(result.gradient_volume)
             rows["valid_pixels"].append(int(result.mask.sum()))
+            rows["occluded_side_share"].append(result.extra.get("occluded_side_share", np.nan))
             sums.append(tracker.add(result.depth_mm, result.mask))
             if window.newest in job.maps_at:
                 saved_index.append(window.newest)
@@ -257,7 +277,9 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                        np.asarray(rows["frame_index"], dtype=np.int64),
                        np.asarray(rows["distance_mm"], dtype=np.float64),
                        np.asarray(rows["gradient_volume"], dtype=np.float64),
-                       np.asarray(rows["valid_pixels"], dtype=np.int64), saved_index, saved_normals, saved_depth, sums)
+                       np.asarray(rows["valid_pixels"], dtype=np.int64),
+                       np.asarray(rows["occluded_side_share"], dtype=np.float64), saved_index, saved_normals, saved_depth,
+                       sums)
 
 
 _worker_ticks = None  # in a worker process: the queue its progress goes to

@@ -10,8 +10,8 @@ import pytest
 
 from core.lightfield import light_field, normals_from_field
 from core.photometric import complete_cycles, distant_light_normals, near_light_normals
-from core.pipeline import (DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance, subject_mask,
-                           trunk_mask)
+from core.pipeline import (DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance,
+                           occluded_side_share, subject_mask, trunk_mask)
 from core.process import process_session, with_true_lights
 from core.profile import HeadCalibration, RigCalibration
 from core.session import SessionError, SessionFile
@@ -279,6 +279,53 @@ def test_an_occluding_contour_divides_an_arm_from_the_trunk():
     assert kept[:, 40:81][mask[:, 40:81]].all() and not kept[:, 30:40].any()
 
 
+def test_an_arm_against_the_trunk_is_an_occluding_contour_down_it_and_a_fold_is_not():
+    mask = np.zeros((100, 100), bool)
+    mask[10:90, 20:80] = True
+    normals = _facing(mask.shape)
+    assert occluded_side_share(mask, normals) == 0.0
+    normals[:, 20:23] = [1.0, 0.0, -0.1]  # the trunk's own grazing side: at the silhouette
+    assert occluded_side_share(mask, normals) == 0.0
+    fold = normals.copy()
+    fold[50:52, 30:70] = [0.0, 1.0, -0.1]  # under a breast: across two rows
+    assert occluded_side_share(mask, fold) == pytest.approx(2 / 80)
+    arm = normals.copy()
+    arm[40:90, 30:32] = [1.0, 0.0, -0.1]  # between an arm and the trunk, down 50 of 80 rows
+    assert occluded_side_share(mask, arm) == pytest.approx(50 / 80)
+
+
+def _body_cycle(tmp_path, body: str, scale: float):
+    from core.sim.bodies import body_named
+
+    path = tmp_path / f"{body}.h5"
+    simulate(path, SimConfig(protocol="static", seconds=10 / 110, scale=scale, body=body_named(body, 3),
+                             clothing="skin", sway=Sway(0, 0, 0), truth_maps_at=[4], flow_sensor=None))
+    with SessionFile(path) as s:
+        head = s.rig.heads["front"]
+        maps = {}
+        for name in s.heads:
+            window = {w.newest: w for w in complete_cycles(s.light_index(name), s.frame_id(name), 5)}[4]
+            frames = s.frames(name)
+            signal = np.stack([frames[i].astype(float) - frames[window.dark] for i in window.lit])
+            maps[name] = HeadReconstructor(s.rig.heads[name]).reconstruct(signal, dark=frames[window.dark])
+    return head, maps
+
+
+def test_a_simulated_body_s_arms_held_away_are_left_out_and_arms_held_close_are_seen(tmp_path):
+    """Arms held away: both heads' maps hold the trunk alone, and its width is the same in both (the
+    metric volume's distances come from it). Arms held close: an occluding contour runs down the
+    trunk in one head's view at least, and `process` would refuse the optical volume for it."""
+    from core.process import MAX_OCCLUDED_SIDE_SHARE
+    from core.volume import trunk_width_px
+
+    head, maps = _body_cycle(tmp_path, "average-woman", 0.15)
+    widths = {name: trunk_width_px(m.depth_mm, m.mask, head) for name, m in maps.items()}
+    assert widths["front"] == pytest.approx(widths["back"], rel=0.03)
+    assert all(m.extra["occluded_side_share"] < 0.05 for m in maps.values())
+    _, close = _body_cycle(tmp_path, "arms-close", 0.15)
+    assert max(m.extra["occluded_side_share"] for m in close.values()) > MAX_OCCLUDED_SIDE_SHARE
+
+
 def test_the_light_field_solves_a_shadowed_or_saturated_pixel_from_three_lights(sphere_session):
     """Light 2 blocked over a band and light 0 at full scale over another: the camera-rate kernel
     solves those pixels from the three lights left, as the per-pixel solve does, and leaves no
@@ -331,10 +378,13 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     """A distance outside 1500-2600 mm is a measurement gone wrong or a subject out of place: the
     results say so and hold no volume to report. (A subject 3300 mm away measures about 2650 mm:
     the distance search does not follow a subject far outside the working range either.)"""
-    from core.process import WORKING_RANGE_MM, distance_refusal, optical_refusal, optical_volume, process_session
+    from core.process import (WORKING_RANGE_MM, distance_refusal, occlusion_refusal, optical_refusal, optical_volume,
+                              process_session)
     from core.sim.simulate import SimConfig, simulate
 
     assert distance_refusal({"front": 2000.0, "back": 2100.0}) is None
+    assert occlusion_refusal({"front": 0.01, "back": float("nan")}) is None
+    assert "head back: an arm lies against the trunk along 55 %" in occlusion_refusal({"front": 0.0, "back": 0.55})
     assert "front: no subject distance" in distance_refusal({"front": float("nan"), "back": 2000.0})
     session, results = tmp_path / "far.h5", tmp_path / "far-r.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=0.5, scale=0.1, distance_mm=3300.0,
