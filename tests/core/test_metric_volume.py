@@ -85,6 +85,10 @@ def test_two_heads_take_their_distances_from_the_silhouette_widths():
     # the quadrants cover the trunk rows (60 % of the widest or more), not the narrow ends of the dome
     in_quadrants = sum(r[1] - r[0] for r in result.regions.values())
     assert 0.9 * gained < in_quadrants < gained
+    assert result.refusal() is None and max(result.scale_mismatch.values()) < 0.01
+    # heads whose widths put the sides 12 % from where their own maps have them: not the same sides
+    apart = metric_volume(heads, 2.24 * RIM_MM)
+    assert "disagree by 12 %" in apart.refusal()
 
 
 def test_process_writes_the_metric_volume_and_uses_it_without_a_flow_sensor(tmp_path):
