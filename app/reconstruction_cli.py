@@ -118,6 +118,9 @@ def add_process(sub: argparse._SubParsersAction) -> None:
                         "regression")
     p.add_argument("--no-tracking", action="store_true",
                    help="search the subject distance afresh in every cycle (slower)")
+    p.add_argument("--distance-from", choices=("heads", "photometric"), default="heads",
+                   help="the subject distance: from the two heads' trunk widths and baseline (default; a session "
+                        "of one head: photometric) or each head's photometric fit")
     p.add_argument("--prefilter-px", type=_non_negative, default=None, metavar="SIGMA",
                    help="Gaussian sigma in pixels on the images before the normals are solved (default: 0.56 "
                         "for a head 1400 px wide, none up to about 1000 px; 0: none)")
@@ -161,11 +164,13 @@ def run_process(args: argparse.Namespace) -> int:
                                       settings=settings, heads=heads, every=args.every,
                                       motion_compensation=not args.no_motion_compensation,
                                       volume_calibration=volume_calibration, progress=progress,
-                                      workers=args.workers)
+                                      workers=args.workers, distance_from=args.distance_from)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     for name, n in summary.maps.items():
-        print(f"{name}: {n} maps, mean subject distance {summary.mean_distance_mm[name]:.1f} mm")
+        offset = summary.photometric_offset_mm.get(name)
+        print(f"{name}: {n} maps, mean subject distance {summary.mean_distance_mm[name]:.1f} mm"
+              + (f" (the two heads' geometry; the photometric fit {offset:+.0f} mm from it)" if offset is not None else ""))
     if summary.optical_refused:
         print(f"no optical volume: {summary.optical_refused}")
     print(f"wrote {summary.path} in {summary.elapsed_s:.1f} s")

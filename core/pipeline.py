@@ -303,9 +303,11 @@ class HeadReconstructor:
         return scale * relative, float(scale)
 
     def reconstruct(self, signal: np.ndarray, saturated: np.ndarray | None = None,
-                    dark: np.ndarray | None = None) -> HeadMap:
+                    dark: np.ndarray | None = None, distance_mm: float | None = None) -> HeadMap:
         """signal (4, H, W): each light's frame minus the dark frame; saturated (4, H, W) bool;
-        dark (H, W), the dark frame, for the noise model of the distance search."""
+        dark (H, W), the dark frame, for the noise model of the distance search. distance_mm: the
+        subject's median depth when it is known from elsewhere (the two heads' geometry,
+        core/process.py): the maps are scaled to it and no distance is searched or averaged."""
         h, s = self.head, self.settings
         signal = np.ascontiguousarray(signal, dtype=np.float64)
         if saturated is None:
@@ -326,16 +328,24 @@ class HeadReconstructor:
         tracked = s.track and self.last_distance_mm is not None
         guess = self.last_distance_mm if tracked else (dmr.distance_mm if np.isfinite(dmr.distance_mm)
                                                        else NOMINAL_DISTANCE_MM)
-        photometric = s.distance == "photometric" and s.method == "near"
+        photometric = s.distance == "photometric" and s.method == "near" and distance_mm is None
         intensity = h.light_intensity * (self.intensity_factors if self.intensity_factors is not None else 1.0)
         problem = (PhotometricDistance(signal, mask, h.light_positions_mm, intensity, dark,
                                        max_pixels=s.distance_pixels, binning=self._distance_binning,
                                        light_axis=self._axis, light_mu=self._mu)
                    if photometric else None)
+        if distance_mm is not None:
+            tracked = True
+
+        def scaled(log_depth: np.ndarray, guess_mm: float, search: str) -> tuple[np.ndarray, float]:
+            if distance_mm is not None:
+                return distance_mm * np.exp(log_depth - np.nanmedian(log_depth)), float(distance_mm)
+            return self._scaled(log_depth, dmr, problem, guess_mm, search)
+
         normals = pseudo_normals
         log_depth = self._integrate(normals, mask, final=s.method != "near", start=self._last_pseudo_log_depth)
         self._last_pseudo_log_depth = log_depth
-        depth, distance = self._scaled(log_depth, dmr, problem, guess, "keep" if tracked else "wide")
+        depth, distance = scaled(log_depth, guess, "keep" if tracked else "wide")
         done = 0
         if s.method == "near":
             min_signal = s.shadow_fraction * h.max_value
@@ -350,23 +360,22 @@ class HeadReconstructor:
                 log_depth = self._integrate(normals, mask, final=False, start=log_depth)
                 last = done == s.iterations
                 searched = last or not tracked
-                new_depth, distance = self._scaled(log_depth, dmr, problem, distance,
-                                                   "near" if searched else "keep")
+                new_depth, distance = scaled(log_depth, distance, "near" if searched else "keep")
                 change = np.nanmedian(np.abs(new_depth - depth))
                 depth = new_depth
                 if change < s.max_depth_change_mm:
                     if not searched:  # settled: one search near the tracked distance, then stop
-                        depth, distance = self._scaled(log_depth, dmr, problem, distance, "near")
+                        depth, distance = scaled(log_depth, distance, "near")
                     break
             if s.integrator == "masked" and ROBUST_ITERATIONS > 0:
                 log_depth = self._integrate(normals, mask, final=True, start=log_depth)
-                depth, distance = self._scaled(log_depth, dmr, problem, distance, "keep")
+                depth, distance = scaled(log_depth, distance, "keep")
         if problem is not None and s.fit_intensity and self.intensity_factors is None and np.isfinite(distance):
             scale, factors = problem.scale_and_intensity(self._rays, depth / distance, distance)
             if np.isfinite(scale):
                 depth, distance = depth * (scale / distance), scale
                 self.intensity_factors = factors
-        averaged = self.running_distance.update(distance)
+        averaged = self.running_distance.update(distance) if distance_mm is None else distance
         if np.isfinite(averaged) and averaged != distance:
             depth, distance = depth * (averaged / distance), averaged
         valid = mask & np.isfinite(depth) & np.isfinite(normals[..., 2])

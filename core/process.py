@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -13,14 +13,15 @@ import numpy as np
 from scipy import ndimage
 
 from core import __version__
-from core.metric_volume import HeadDisplacements, MetricVolume, metric_volume, tidal_compartments
+from core.metric_volume import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, side_targets,
+                                 tidal_compartments)
 from core.photometric import CycleWindow, complete_cycles
 from core.outputs import atomic_output, stop_if_requested
 from core.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.profile import ProfileError, RigCalibration
 from core.session import SessionError, SessionFile
 from core.results import RESULTS_FORMAT
-from core.volume import DisplacementTracker
+from core.volume import DisplacementTracker, smooth_in_time
 
 MOTION_SMOOTHING_PX = 2.0
 # Work (maps times pixels) from which worker processes pay: starting one (imports, numba's cached
@@ -44,6 +45,8 @@ class ProcessSummary:
     elapsed_s: float
     mean_distance_mm: dict[str, float]
     optical_refused: str | None = None  # why no optical volume was written, when one was not
+    # per head, the photometric fit's median distance less the two heads' geometric one, where that was used
+    photometric_offset_mm: dict[str, float] = field(default_factory=dict)
 
 
 def distance_refusal(distances_mm: dict[str, float]) -> str | None:
@@ -57,6 +60,44 @@ def distance_refusal(distances_mm: dict[str, float]) -> str | None:
                     f"{lo:.0f}-{hi:.0f} mm (a subject out of place, or skin or lights the calibration does not "
                     "describe)")
     return None
+
+
+# The first pass of a two-head `process` (geometric_distances) reconstructs a light cycle this often:
+# sway is slower than 0.25 Hz and the widths are smoothed over WIDTH_SMOOTHING_S
+SURVEY_INTERVAL_S = 0.2
+
+
+def _survey_windows(session: SessionFile, rig, name: str) -> list[CycleWindow]:
+    """A head's complete light cycles about SURVEY_INTERVAL_S apart."""
+    windows = complete_cycles(session.light_index(name), session.frame_id(name), rig.cycle_length)
+    step = max(1, int(round(SURVEY_INTERVAL_S * rig.frame_rate_hz)))
+    return windows[::step]
+
+
+def geometric_distances(surveyed: dict, baseline_mm: float) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each head's subject distance (median depth, mm) over time from the two heads' geometry, as
+    (timestamp_ns, distance_mm), from a first pass of photometric maps (_HeadResult per head).
+
+    The photometric distance follows everything the light model leaves out: glossy skin put it
+    800 mm short, LEDs 15 mm off hundreds of mm (docs/reconstruction.md), and even on matte skin
+    with exact lights it scattered 1.5 mm from cycle to cycle and wandered 17 mm in 6 s. The two
+    heads see the same trunk sides: their widths in pixels stand in the inverse ratio of their
+    distances and the distances add up to the baseline (core/metric_volume.py, side_targets). Each
+    map's shape (its median depth over its sides' depth) carries that to the map's median depth,
+    smoothed over WIDTH_SMOOTHING_S. A head without a trunk in view gets none."""
+    heads = {name: HeadDisplacements(r.timestamp_ns, r.sums) for name, r in surveyed.items()}
+    if any(len(h.sums) == 0 for h in heads.values()):
+        return {}
+    targets, _ = side_targets(heads, baseline_mm)
+    out = {}
+    for name, r in surveyed.items():
+        with np.errstate(invalid="ignore", divide="ignore"):
+            distance = r.distance_mm * targets[name] / heads[name].side_mm
+        if not np.isfinite(distance).any():
+            continue
+        t = r.timestamp_ns.astype(float)
+        out[name] = (t, smooth_in_time(t / 1e9, distance, WIDTH_SMOOTHING_S))
+    return out
 
 
 def occlusion_refusal(occluded_share: dict[str, float]) -> str | None:
@@ -102,9 +143,13 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                     calibration: RigCalibration | None = None, maps_at: list[int] | None = None,
                     settings: ReconstructionSettings | None = None, heads: list[str] | None = None,
                     every: int | None = None, motion_compensation: bool = True, volume_calibration=None,
-                    progress: Callable[[float], None] | None = None, workers: int | None = 1) -> ProcessSummary:
+                    progress: Callable[[float], None] | None = None, workers: int | None = 1,
+                    distance_from: str = "heads") -> ProcessSummary:
     """Reconstruct every complete light cycle of each head: windows of one cycle's frames, sliding
     by `every` frames (default: the cycle's length, each cycle once; 1: a map at every frame).
+    distance_from: "heads" (two heads and a baseline: each map scaled to the distance the two
+    heads' trunk widths give, `geometric_distances`; one head: as "photometric") or
+    "photometric" (each head's own photometric fit, core/distance.py).
     `workers` > 1 reconstructs the heads in that many processes at once (one head each, at most);
     None: one per core when the work repays starting them (AUTO_WORKERS_PIXEL_MAPS).
 
@@ -115,6 +160,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
     settings = settings or ReconstructionSettings()
     if every is not None and every < 1:
         raise ValueError("every must be 1 or more")
+    if distance_from not in ("heads", "photometric"):
+        raise ValueError(f"distance_from must be 'heads' or 'photometric', got {distance_from!r}")
     with SessionFile(session_path) as session:
         rig = session.rig
         every = every or rig.cycle_length
@@ -157,19 +204,55 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 chosen.sort(key=lambda w: w.newest)
                 plans[name] = chosen
                 total_windows += len(chosen)
-            jobs = []
+            pseudo = {}
             for name in names:
-                pseudo = calibration.heads[name].pseudo_light_vectors if calibration is not None else None
-                if pseudo is not None and not np.any(pseudo):
-                    pseudo = None
-                jobs.append(_HeadJob(Path(session_path), rig, name, plans[name], settings, pseudo,
-                                     motion_compensation, tuple(maps_at)))
+                vectors = calibration.heads[name].pseudo_light_vectors if calibration is not None else None
+                pseudo[name] = None if vectors is not None and not np.any(vectors) else vectors
+            geometry = (distance_from == "heads" and len(names) == 2 and bool(rig.baseline_mm)
+                        and settings.method == "near" and settings.distance == "photometric")
+            out.attrs["distance_from"] = "two heads' trunk widths and baseline" if geometry else "photometric fit"
+            survey = {}
+            if geometry:
+                survey = {name: _survey_windows(session, rig, name) for name in names}
+                total_windows += sum(len(w) for w in survey.values())
             if workers is None:
                 work = sum(len(plans[n]) * rig.heads[n].width * rig.heads[n].height for n in names)
                 workers = (os.cpu_count() or 1) if work >= AUTO_WORKERS_PIXEL_MAPS else 1
-            for result in _run_heads(jobs, workers, total_windows, progress):
+            done_before = 0
+
+            def overall(fraction_of_pass: float, pass_windows: int) -> None:
+                if progress is not None and total_windows:
+                    progress((done_before + fraction_of_pass * pass_windows) / total_windows)
+
+            geometric, offsets = {}, {}
+            if geometry:
+                surveyed = _run_heads([_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name],
+                                                motion_compensation, ()) for name in names], workers,
+                                      lambda f: overall(f, sum(len(w) for w in survey.values())))
+                done_before = sum(len(w) for w in survey.values())
+                geometric = geometric_distances({r.name: r for r in surveyed}, rig.baseline_mm)
+                for r in surveyed:
+                    along = geometric.get(r.name, (None, np.full(len(r.timestamp_ns), np.nan)))[1]
+                    g = out.create_group(f"heads/{r.name}/photometric_survey")
+                    g.create_dataset("timestamp_ns", data=r.timestamp_ns)
+                    g.create_dataset("distance_mm", data=r.distance_mm)
+                    g.create_dataset("geometric_distance_mm", data=along)
+                    if np.isfinite(r.distance_mm - along).any():
+                        offsets[r.name] = float(np.nanmedian(r.distance_mm - along))
+                        g.attrs["photometric_offset_mm"] = offsets[r.name]
+            jobs = []
+            for name in names:
+                distances_mm = None
+                if name in geometric:
+                    stamps = session.timestamp_ns(name)
+                    t, d = geometric[name]
+                    distances_mm = np.interp(np.array([stamps[w.newest] for w in plans[name]], dtype=float), t, d)
+                jobs.append(_HeadJob(Path(session_path), rig, name, plans[name], settings, pseudo[name],
+                                     motion_compensation, tuple(maps_at), distances_mm))
+            pass_windows = sum(len(plans[n]) for n in names)
+            for result in _run_heads(jobs, workers, lambda f: overall(f, pass_windows)):
                 name, head = result.name, rig.heads[result.name]
-                g = out.create_group(f"heads/{name}")
+                g = out.require_group(f"heads/{name}")
                 g.create_dataset("timestamp_ns", data=result.timestamp_ns)
                 g.create_dataset("frame_index", data=result.frame_index)
                 g.create_dataset("distance_mm", data=result.distance_mm)
@@ -205,7 +288,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 _write_volume(out, metric.timestamp_ns, metric.volume_l, METRIC_METHOD + metric.scale_from)
             parameters = out.create_group("parameters")
             _write_parameters(session_path, parameters, out)
-    return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances, refused)
+    return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances, refused, offsets)
 
 
 @dataclass(frozen=True)
@@ -219,6 +302,7 @@ class _HeadJob:
     pseudo_light_vectors: np.ndarray | None
     motion_compensation: bool
     maps_at: tuple[int, ...]
+    distances_mm: np.ndarray | None = None  # each window's subject distance, when known from elsewhere
 
 
 @dataclass
@@ -253,14 +337,15 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
         all_windows = {int(ids[w.newest]): w for w in complete_cycles(session.light_index(name), ids,
                                                                        rig.cycle_length)}
         cache: dict[int, np.ndarray] = {}
-        for window in job.windows:
+        for number, window in enumerate(job.windows):
             stop_if_requested()
             for stale in [k for k in cache if k < window.newest - 2 * rig.cycle_length]:
                 del cache[stale]
             previous = (all_windows.get(int(ids[window.newest]) - rig.cycle_length)
                         if job.motion_compensation else None)
             signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids)
-            result = reconstructor.reconstruct(signal, saturated, dark)
+            known = job.distances_mm[number] if job.distances_mm is not None else np.nan
+            result = reconstructor.reconstruct(signal, saturated, dark, float(known) if np.isfinite(known) else None)
             rows["timestamp_ns"].append(stamps[window.newest])
             rows["frame_index"].append(window.newest)
             rows["distance_mm"].append(result.distance_mm)
@@ -297,16 +382,17 @@ def _process_head_in_worker(job: _HeadJob) -> _HeadResult:
     return _process_head(job, lambda: _worker_ticks.put(1))
 
 
-def _run_heads(jobs: list[_HeadJob], workers: int, total: int,
-               progress: Callable[[float], None] | None) -> list[_HeadResult]:
+def _run_heads(jobs: list[_HeadJob], workers: int, progress: Callable[[float], None]) -> list[_HeadResult]:
     """Each head's reconstruction, here or, with workers > 1, in spawned worker processes (fork is
-    unsafe once OpenMP threads run), each with its share of the cores."""
+    unsafe once OpenMP threads run), each with its share of the cores; `progress` gets the share
+    of their windows done."""
     done = 0
+    total = sum(len(job.windows) for job in jobs)
 
     def tick(count: int = 1) -> None:
         nonlocal done
         done += count
-        if progress is not None and total:
+        if total:
             progress(done / total)
 
     if workers <= 1 or len(jobs) <= 1:

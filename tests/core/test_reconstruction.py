@@ -394,3 +394,30 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     assert reason is not None and "outside the rig's working range" in reason
     assert f"{WORKING_RANGE_MM[0]:.0f}-{WORKING_RANGE_MM[1]:.0f} mm" in reason
     assert optical_volume(results) is None
+
+
+def test_two_heads_take_the_subject_distance_from_their_geometry_where_glossy_skin_misleads_the_photometric_fit(
+        tmp_path):
+    """Skin with a sheen (Blinn-Phong, 0.2 of white): the photometric fit puts the subject about 900 mm
+    short and `process` refuses its volume; from the two heads' trunk widths and baseline (the
+    default) the distance is within 100 mm and the volume is written, with the photometric fit's
+    offset kept beside it."""
+    import h5py
+
+    from core.process import process_session
+
+    session = tmp_path / "glossy.h5"
+    simulate(session, SimConfig(protocol="tidal", seconds=1.0, scale=0.1, specular=0.2, clothing="skin",
+                                flow_sensor=None, sway=Sway(0, 0, 0), truth_maps_at=[54]))
+    with SessionFile(session) as s:
+        truth = {h: float(np.nanmedian(s.truth()[f"{h}/depth_mm"][0])) for h in s.heads}
+    photometric = process_session(session, tmp_path / "p.h5", distance_from="photometric")
+    assert "outside the rig's working range" in photometric.optical_refused
+    geometric = process_session(session, tmp_path / "g.h5")
+    assert geometric.optical_refused is None
+    for name, distance in geometric.mean_distance_mm.items():
+        assert abs(distance - truth[name]) < 100.0
+        assert geometric.photometric_offset_mm[name] < -500.0
+    with h5py.File(tmp_path / "g.h5", "r") as r:
+        assert r.attrs["distance_from"].startswith("two heads")
+        assert len(r["heads/front/photometric_survey/geometric_distance_mm"]) >= 4 and "metric_volume" in r
