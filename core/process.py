@@ -100,6 +100,26 @@ def geometric_distances(surveyed: dict, baseline_mm: float) -> dict[str, tuple[n
     return out
 
 
+def _geometric_pass(out: h5py.File, jobs: list[_HeadJob], baseline_mm: float, workers: int,
+                    progress: Callable[[float], None]) -> tuple[dict, dict[str, float]]:
+    """The first pass of a two-head `process`: the survey's photometric maps, each head's geometric
+    distances (geometric_distances) and the photometric fit's median offset from them, written to
+    /heads/<head>/photometric_survey."""
+    surveyed = _run_heads(jobs, workers, progress)
+    geometric = geometric_distances({r.name: r for r in surveyed}, baseline_mm)
+    offsets = {}
+    for r in surveyed:
+        along = geometric.get(r.name, (None, np.full(len(r.timestamp_ns), np.nan)))[1]
+        g = out.create_group(f"heads/{r.name}/photometric_survey")
+        g.create_dataset("timestamp_ns", data=r.timestamp_ns)
+        g.create_dataset("distance_mm", data=r.distance_mm)
+        g.create_dataset("geometric_distance_mm", data=along)
+        if np.isfinite(r.distance_mm - along).any():
+            offsets[r.name] = float(np.nanmedian(r.distance_mm - along))
+            g.attrs["photometric_offset_mm"] = offsets[r.name]
+    return geometric, offsets
+
+
 def occlusion_refusal(occluded_share: dict[str, float]) -> str | None:
     """Why the optical volume cannot be reported from heads whose trunk's sides an arm hides, or None."""
     for name, share in occluded_share.items():
@@ -226,20 +246,11 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
 
             geometric, offsets = {}, {}
             if geometry:
-                surveyed = _run_heads([_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name],
-                                                motion_compensation, ()) for name in names], workers,
-                                      lambda f: overall(f, sum(len(w) for w in survey.values())))
+                jobs = [_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name], motion_compensation,
+                                 ()) for name in names]
+                geometric, offsets = _geometric_pass(out, jobs, rig.baseline_mm, workers,
+                                                     lambda f: overall(f, sum(len(w) for w in survey.values())))
                 done_before = sum(len(w) for w in survey.values())
-                geometric = geometric_distances({r.name: r for r in surveyed}, rig.baseline_mm)
-                for r in surveyed:
-                    along = geometric.get(r.name, (None, np.full(len(r.timestamp_ns), np.nan)))[1]
-                    g = out.create_group(f"heads/{r.name}/photometric_survey")
-                    g.create_dataset("timestamp_ns", data=r.timestamp_ns)
-                    g.create_dataset("distance_mm", data=r.distance_mm)
-                    g.create_dataset("geometric_distance_mm", data=along)
-                    if np.isfinite(r.distance_mm - along).any():
-                        offsets[r.name] = float(np.nanmedian(r.distance_mm - along))
-                        g.attrs["photometric_offset_mm"] = offsets[r.name]
             jobs = []
             for name in names:
                 distances_mm = None
