@@ -533,7 +533,8 @@ class LiveRig:
             signal = bin_mean(raw, factor) - dark[None]
             saturated = bin_any(raw >= max_value, factor)
             try:
-                result = reconstructor.reconstruct(signal, saturated, dark)
+                # the distance the two heads' geometry gave the last maps (as `process` does), once it has one
+                result = reconstructor.reconstruct(signal, saturated, dark, self._metric.geometric_distance_mm(head))
             except Exception as exc:  # a map that cannot be made is skipped, and said once
                 self._problem(f"{head}: reconstruction failed: {exc}")
                 continue
@@ -541,7 +542,8 @@ class LiveRig:
             height = (np.nanmean(depth) - depth).astype(np.float32) if result.mask.any() else None
             stamp = window[-1][0].timestamp_ns
             t_s = (stamp - self._t0) / 1e9 if self._t0 is not None else None
-            litres = self._metric.add(head, t_s, result.depth_mm, result.mask) if t_s is not None else float("nan")
+            litres = (self._metric.add(head, t_s, result.depth_mm, result.mask, result.distance_mm) if t_s is not None
+                      else float("nan"))
             view = self._views[head]
             with self._lock:
                 view.height_mm = height

@@ -164,6 +164,7 @@ class LiveMetricVolume:
         self._k_reference: dict[str, float] = {}
         self._reference_side: dict[str, float] = {}
         self._volume = {name: 0.0 for name in heads}
+        self._geometric: dict[str, float] = {}  # each head's subject distance from the two heads' geometry
 
     def _smoothed(self, name: str, t_s: float, value: float, time_constant_s: float) -> float:
         if name in self._target:
@@ -173,9 +174,17 @@ class LiveMetricVolume:
         self._target[name] = (t_s, value)
         return value
 
-    def add(self, name: str, t_s: float, depth_mm: np.ndarray, mask: np.ndarray) -> float:
-        """Feed one head's map; the volume (L) both heads have seen since their first maps, or NaN
-        while a head has no trunk in view yet."""
+    def geometric_distance_mm(self, name: str) -> float | None:
+        """The head's subject distance (median depth) where the two heads' trunk widths and baseline put
+        its last map (as core/process.py's geometric_distances, causally); None before both heads
+        have a trunk in view, and with one head."""
+        with self._lock:
+            return self._geometric.get(name)
+
+    def add(self, name: str, t_s: float, depth_mm: np.ndarray, mask: np.ndarray,
+            distance_mm: float | None = None) -> float:
+        """Feed one head's map (and its median depth, for geometric_distance_mm); the volume (L) both
+        heads have seen since their first maps, or NaN while a head has no trunk in view yet."""
         sums = self._trackers[name].add(depth_mm, mask)
         with self._lock:
             if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
@@ -193,6 +202,8 @@ class LiveMetricVolume:
             else:
                 target = self._smoothed(name, t_s, sums.side_mm, SIDE_SMOOTHING_S)
             k = target / sums.side_mm
+            if self._two_heads and distance_mm is not None and np.isfinite(distance_mm * k):
+                self._geometric[name] = float(distance_mm * k)
             k_reference = self._k_reference.setdefault(name, target / reference_side)
             self._volume[name] = float(head_volume_l(sums.reference["all"], sums.current["all"], k_reference, k))
             return sum(self._volume.values()) if len(self._k_reference) == len(self._names) else float("nan")

@@ -131,3 +131,18 @@ def test_the_live_volume_follows_the_maps_as_they_come():
     live.add("front", 1.0, *_trunk_map(front, BULGE_MM))
     both = live.add("back", 1.0, *_trunk_map(back, BULGE_MM))
     assert both == pytest.approx(2 * BULGE_VOLUME_L, rel=0.03)
+
+
+def test_the_live_volume_gives_each_head_the_distance_of_the_two_heads_geometry():
+    """A map whose photometric distance (its median depth) was 1 % long: the two heads' widths put
+    its sides back at the rim's distance, and the map's distance with them."""
+    from core.metric_volume import LiveMetricVolume
+
+    front, back = thesis_head("front", scale=0.25), thesis_head("back", scale=0.25)
+    live = LiveMetricVolume({"front": front, "back": back}, 2 * RIM_MM)
+    assert live.geometric_distance_mm("front") is None
+    depth, mask = _trunk_map(front, 0.0)
+    median = float(np.median(depth[mask]))
+    live.add("back", 0.0, *_trunk_map(back, 0.0), None)
+    live.add("front", 0.0, depth * 1.01, mask, 1.01 * median)
+    assert live.geometric_distance_mm("front") == pytest.approx(median, rel=0.002)
