@@ -215,6 +215,15 @@ def occluded_side_share(mask: np.ndarray, normals: np.ndarray) -> float:
     return float(np.sum((grazing & inside).any(axis=1)) / np.sum(rows))
 
 
+def side_out_of_view_share(mask: np.ndarray) -> float:
+    """The share of the trunk's rows on which it reaches the image's left or right edge: there its
+    side, which the volume is referred to, is out of view."""
+    rows = mask.any(axis=1)
+    if not rows.any():
+        return float("nan")
+    return float(np.sum(mask[:, 0] | mask[:, -1]) / np.sum(rows))
+
+
 class HeadReconstructor:
     """Reconstructs one head's cycles. Holds the head's calibration and, between cycles, the
     stream's running distance (and the intensities fitted on its first cycle, when asked)."""
@@ -382,4 +391,4 @@ class HeadReconstructor:
         depth = np.where(valid, depth, np.nan)
         normals = np.where(valid[..., None], normals, np.nan)
         return HeadMap(normals, depth, albedo, valid, distance, dmr, gradient_volume(normals, valid), done,
-                       {"occluded_side_share": occluded})
+                       {"occluded_side_share": occluded, "side_out_of_view_share": side_out_of_view_share(mask)})

@@ -100,6 +100,10 @@ def geometric_distances(surveyed: dict, baseline_mm: float) -> dict[str, tuple[n
     return out
 
 
+def _median(values: np.ndarray) -> float:
+    return float(np.nanmedian(values)) if np.isfinite(values).any() else float("nan")
+
+
 def _geometric_pass(out: h5py.File, jobs: list[_HeadJob], baseline_mm: float, workers: int,
                     progress: Callable[[float], None]) -> tuple[dict, dict[str, float]]:
     """The first pass of a two-head `process`: the survey's photometric maps, each head's geometric
@@ -120,12 +124,18 @@ def _geometric_pass(out: h5py.File, jobs: list[_HeadJob], baseline_mm: float, wo
     return geometric, offsets
 
 
-def occlusion_refusal(occluded_share: dict[str, float]) -> str | None:
-    """Why the optical volume cannot be reported from heads whose trunk's sides an arm hides, or None."""
+def occlusion_refusal(occluded_share: dict[str, float], out_of_view_share: dict[str, float] | None = None,
+                      ) -> str | None:
+    """Why the optical volume cannot be reported from heads whose trunk's sides an arm hides or the
+    image cuts off, or None."""
     for name, share in occluded_share.items():
         if np.isfinite(share) and share > MAX_OCCLUDED_SIDE_SHARE:
             return (f"head {name}: an arm lies against the trunk along {100 * share:.0f} % of its height and hides "
                     "the sides the volume is referred to (the patient should hold the arms away from the body)")
+    for name, share in (out_of_view_share or {}).items():
+        if np.isfinite(share) and share > MAX_OCCLUDED_SIDE_SHARE:
+            return (f"head {name}: the trunk runs out of the image at the side on {100 * share:.0f} % of its rows "
+                    "(the patient off centre or too near): the sides the volume is referred to are not seen")
     return None
 
 
@@ -200,7 +210,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             if name not in rig.heads:
                 raise SessionError(f"{session_path} has no head {name!r} (heads: {', '.join(session.heads)})")
         maps_at = sorted(set(maps_at or []))
-        counts, distances, displacements, occluded = {}, {}, {}, {}
+        counts, distances, displacements, occluded, out_of_view = {}, {}, {}, {}, {}
         with atomic_output(output) as partial, h5py.File(partial, "w") as out:
             out.attrs["format"] = RESULTS_FORMAT
             out.attrs["format_version"] = np.int64(1)
@@ -270,6 +280,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 g.create_dataset("gradient_volume", data=result.gradient_volume)
                 g.create_dataset("valid_pixels", data=result.valid_pixels)
                 g.create_dataset("occluded_side_share", data=result.occluded_side_share)
+                g.create_dataset("side_out_of_view_share", data=result.side_out_of_view_share)
                 m = g.create_group("maps")
                 m.create_dataset("frame_index", data=np.asarray(result.saved_index, dtype=np.int64))
                 shape = (0, head.height, head.width)
@@ -281,9 +292,9 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 displacements[name] = HeadDisplacements(result.timestamp_ns, result.sums)
                 distances[name] = (float(np.nanmean(result.distance_mm)) if len(result.distance_mm)
                                    else float("nan"))
-                occluded[name] = (float(np.nanmedian(result.occluded_side_share))
-                                  if np.isfinite(result.occluded_side_share).any() else float("nan"))
-            refused = distance_refusal(distances) or occlusion_refusal(occluded)
+                occluded[name] = _median(result.occluded_side_share)
+                out_of_view[name] = _median(result.side_out_of_view_share)
+            refused = distance_refusal(distances) or occlusion_refusal(occluded, out_of_view)
             if refused is not None:
                 out.attrs["optical_refused"] = refused
             metric = (metric_volume(displacements, rig.baseline_mm) if all(counts.values()) and refused is None
@@ -325,6 +336,7 @@ class _HeadResult:
     gradient_volume: np.ndarray
     valid_pixels: np.ndarray
     occluded_side_share: np.ndarray
+    side_out_of_view_share: np.ndarray
     saved_index: list[int]
     saved_normals: list[np.ndarray]
     saved_depth: list[np.ndarray]
@@ -339,7 +351,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
     reconstructor = HeadReconstructor(head, job.pseudo_light_vectors, job.settings)
     tracker = DisplacementTracker(head)
     rows: dict[str, list] = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": [],
-                             "valid_pixels": [], "occluded_side_share": []}
+                             "valid_pixels": [], "occluded_side_share": [], "side_out_of_view_share": []}
     saved_index, saved_normals, saved_depth, sums = [], [], [], []
     with SessionFile(job.session_path) as session:
         frames = session.frames(name)
@@ -362,7 +374,8 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             rows["distance_mm"].append(result.distance_mm)
             rows["gradient_volume"].append(result.gradient_volume)
             rows["valid_pixels"].append(int(result.mask.sum()))
-            rows["occluded_side_share"].append(result.extra.get("occluded_side_share", np.nan))
+            for key in ("occluded_side_share", "side_out_of_view_share"):
+                rows[key].append(result.extra.get(key, np.nan))
             sums.append(tracker.add(result.depth_mm, result.mask))
             if window.newest in job.maps_at:
                 saved_index.append(window.newest)
@@ -374,8 +387,9 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                        np.asarray(rows["distance_mm"], dtype=np.float64),
                        np.asarray(rows["gradient_volume"], dtype=np.float64),
                        np.asarray(rows["valid_pixels"], dtype=np.int64),
-                       np.asarray(rows["occluded_side_share"], dtype=np.float64), saved_index, saved_normals, saved_depth,
-                       sums)
+                       np.asarray(rows["occluded_side_share"], dtype=np.float64),
+                       np.asarray(rows["side_out_of_view_share"], dtype=np.float64), saved_index, saved_normals,
+                       saved_depth, sums)
 
 
 _worker_ticks = None  # in a worker process: the queue its progress goes to

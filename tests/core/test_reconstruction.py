@@ -11,7 +11,7 @@ import pytest
 from core.lightfield import light_field, normals_from_field
 from core.photometric import complete_cycles, distant_light_normals, near_light_normals
 from core.pipeline import (DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance,
-                           occluded_side_share, subject_mask, trunk_mask)
+                           occluded_side_share, side_out_of_view_share, subject_mask, trunk_mask)
 from core.process import process_session, with_true_lights
 from core.profile import HeadCalibration, RigCalibration
 from core.session import SessionError, SessionFile
@@ -294,6 +294,15 @@ def test_an_arm_against_the_trunk_is_an_occluding_contour_down_it_and_a_fold_is_
     assert occluded_side_share(mask, arm) == pytest.approx(50 / 80)
 
 
+def test_a_trunk_cut_off_by_the_image_s_edge_has_its_side_out_of_view():
+    mask = np.zeros((100, 100), bool)
+    mask[10:90, 20:80] = True
+    assert side_out_of_view_share(mask) == 0.0
+    mask[30:90, 0:20] = True  # off centre: from row 30 down the trunk reaches the left edge
+    assert side_out_of_view_share(mask) == pytest.approx(60 / 80)
+    assert np.isnan(side_out_of_view_share(np.zeros((5, 5), bool)))
+
+
 def _body_cycle(tmp_path, body: str, scale: float):
     from core.sim.bodies import body_named
 
@@ -385,6 +394,8 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     assert distance_refusal({"front": 2000.0, "back": 2100.0}) is None
     assert occlusion_refusal({"front": 0.01, "back": float("nan")}) is None
     assert "head back: an arm lies against the trunk along 55 %" in occlusion_refusal({"front": 0.0, "back": 0.55})
+    assert "head front: the trunk runs out of the image at the side on 75 %" in occlusion_refusal(
+        {"front": 0.0, "back": 0.0}, {"front": 0.75, "back": 0.0})
     assert "front: no subject distance" in distance_refusal({"front": float("nan"), "back": 2000.0})
     session, results = tmp_path / "far.h5", tmp_path / "far-r.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=0.5, scale=0.1, distance_mm=3300.0,
