@@ -125,7 +125,9 @@ class PositioningPage(QWizardPage):
         self.maps: dict = {}
         layout = QVBoxLayout(self)
         layout.addWidget(_instructions("Move the patient until both lines read OK: the distance within the "
-                                       "working range and the body centred in the picture."))
+                                       "working range, the body centred in the picture and the arms held "
+                                       "away from the trunk (an arm against it hides the side the volume "
+                                       "is measured from)."))
         layout.addLayout(self.maps_row, 1)
         layout.addWidget(self.checks)
         self.passed = False
