@@ -36,6 +36,7 @@ WORKING_RANGE_MM = (1500.0, 2600.0)
 # The share of the trunk's rows an occluding contour may cross (core/pipeline.py,
 # occluded_side_share) in a head's typical map before its sides count as hidden by an arm
 MAX_OCCLUDED_SIDE_SHARE = 0.2
+MAX_HIDDEN_MAPS = 0.05  # the share of a head's maps that may show its sides so hidden
 
 
 @dataclass
@@ -100,10 +101,6 @@ def geometric_distances(surveyed: dict, baseline_mm: float) -> dict[str, tuple[n
     return out
 
 
-def _median(values: np.ndarray) -> float:
-    return float(np.nanmedian(values)) if np.isfinite(values).any() else float("nan")
-
-
 def _geometric_pass(out: h5py.File, jobs: list[_HeadJob], baseline_mm: float, workers: int,
                     progress: Callable[[float], None]) -> tuple[dict, dict[str, float]]:
     """The first pass of a two-head `process`: the survey's photometric maps, each head's geometric
@@ -124,18 +121,24 @@ def _geometric_pass(out: h5py.File, jobs: list[_HeadJob], baseline_mm: float, wo
     return geometric, offsets
 
 
-def occlusion_refusal(occluded_share: dict[str, float], out_of_view_share: dict[str, float] | None = None,
+def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: dict[str, np.ndarray] | None = None,
                       ) -> str | None:
     """Why the optical volume cannot be reported from heads whose trunk's sides an arm hides or the
-    image cuts off, or None."""
-    for name, share in occluded_share.items():
-        if np.isfinite(share) and share > MAX_OCCLUDED_SIDE_SHARE:
-            return (f"head {name}: an arm lies against the trunk along {100 * share:.0f} % of its height and hides "
-                    "the sides the volume is referred to (the patient should hold the arms away from the body)")
-    for name, share in (out_of_view_share or {}).items():
-        if np.isfinite(share) and share > MAX_OCCLUDED_SIDE_SHARE:
-            return (f"head {name}: the trunk runs out of the image at the side on {100 * share:.0f} % of its rows "
-                    "(the patient off centre or too near): the sides the volume is referred to are not seen")
+    image cuts off in more than MAX_HIDDEN_MAPS of their maps, or None. The shares are per map
+    (core/pipeline.py): an arm that swings against the trunk now and then changes the trunk's
+    outline from map to map, and the volume with it."""
+    for kind, shares in (("arm", occluded_share), ("edge", out_of_view_share or {})):
+        for name, share in shares.items():
+            share = np.asarray(share, dtype=float)
+            hidden = float(np.mean(share > MAX_OCCLUDED_SIDE_SHARE)) if len(share) else 0.0
+            if hidden <= MAX_HIDDEN_MAPS:
+                continue
+            if kind == "arm":
+                return (f"head {name}: an arm lies against the trunk (along more than "
+                        f"{100 * MAX_OCCLUDED_SIDE_SHARE:.0f} % of its height) in {100 * hidden:.0f} % of the maps and "
+                        "hides the sides the volume is referred to (the patient should hold the arms away from the body)")
+            return (f"head {name}: the trunk runs out of the image at the side in {100 * hidden:.0f} % of the maps (the "
+                    "patient off centre or too near): the sides the volume is referred to are not seen")
     return None
 
 
@@ -292,8 +295,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 displacements[name] = HeadDisplacements(result.timestamp_ns, result.sums)
                 distances[name] = (float(np.nanmean(result.distance_mm)) if len(result.distance_mm)
                                    else float("nan"))
-                occluded[name] = _median(result.occluded_side_share)
-                out_of_view[name] = _median(result.side_out_of_view_share)
+                occluded[name] = result.occluded_side_share
+                out_of_view[name] = result.side_out_of_view_share
             refused = distance_refusal(distances) or occlusion_refusal(occluded, out_of_view)
             if refused is not None:
                 out.attrs["optical_refused"] = refused

@@ -392,10 +392,14 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     from core.sim.simulate import SimConfig, simulate
 
     assert distance_refusal({"front": 2000.0, "back": 2100.0}) is None
-    assert occlusion_refusal({"front": 0.01, "back": float("nan")}) is None
-    assert "head back: an arm lies against the trunk along 55 %" in occlusion_refusal({"front": 0.0, "back": 0.55})
-    assert "head front: the trunk runs out of the image at the side on 75 %" in occlusion_refusal(
-        {"front": 0.0, "back": 0.0}, {"front": 0.75, "back": 0.0})
+    clear = np.zeros(40)
+    assert occlusion_refusal({"front": clear + 0.01, "back": np.full(40, np.nan)}) is None
+    swinging = clear.copy()
+    swinging[::4] = 0.6  # an arm against the trunk in a quarter of the maps
+    assert "head back: an arm lies against the trunk (along more than 20 % of its height) in 25 % of the maps" in \
+        occlusion_refusal({"front": clear, "back": swinging})
+    assert "head front: the trunk runs out of the image at the side in 25 % of the maps" in occlusion_refusal(
+        {"front": clear, "back": clear}, {"front": swinging, "back": clear})
     assert "front: no subject distance" in distance_refusal({"front": float("nan"), "back": 2000.0})
     session, results = tmp_path / "far.h5", tmp_path / "far-r.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=0.5, scale=0.1, distance_mm=3300.0,
