@@ -37,6 +37,9 @@ WORKING_RANGE_MM = (1500.0, 2600.0)
 # occluded_side_share) in a head's typical map before its sides count as hidden by an arm
 MAX_OCCLUDED_SIDE_SHARE = 0.2
 MAX_HIDDEN_MAPS = 0.05  # the share of a head's maps that may show its sides so hidden
+# The least trunk area (m^2) a head's typical map must hold for a volume: a 6-year-old's trunk from
+# shoulders to hips is about 0.06 m^2 seen from one side
+MIN_TRUNK_AREA_M2 = 0.03
 
 
 @dataclass
@@ -119,6 +122,24 @@ def _geometric_pass(out: h5py.File, jobs: list[_HeadJob], baseline_mm: float, wo
             offsets[r.name] = float(np.nanmedian(r.distance_mm - along))
             g.attrs["photometric_offset_mm"] = offsets[r.name]
     return geometric, offsets
+
+
+def trunk_area_m2(valid_pixels: np.ndarray, distance_mm: np.ndarray, head) -> np.ndarray:
+    """The area of the subject a head's maps hold (m^2): valid pixels times each pixel's footprint at
+    the map's distance."""
+    return (np.asarray(valid_pixels, float) * (np.asarray(distance_mm, float) / head.fx)
+            * (np.asarray(distance_mm, float) / head.fy) * 1e-6)
+
+
+def coverage_refusal(areas_m2: dict[str, np.ndarray]) -> str | None:
+    """Why the optical volume cannot be reported from heads whose maps hold too little of the trunk."""
+    for name, area in areas_m2.items():
+        area = np.asarray(area, dtype=float)
+        typical = float(np.nanmedian(area)) if np.isfinite(area).any() else 0.0
+        if typical < MIN_TRUNK_AREA_M2:
+            return (f"head {name}: its maps hold {1e4 * typical:.0f} cm^2 of the subject, fewer valid pixels than a trunk "
+                    f"({1e4 * MIN_TRUNK_AREA_M2:.0f} cm^2 at least): the subject out of view, covered or unlit")
+    return None
 
 
 def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: dict[str, np.ndarray] | None = None,
@@ -213,7 +234,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             if name not in rig.heads:
                 raise SessionError(f"{session_path} has no head {name!r} (heads: {', '.join(session.heads)})")
         maps_at = sorted(set(maps_at or []))
-        counts, distances, displacements, occluded, out_of_view = {}, {}, {}, {}, {}
+        counts, distances, displacements, occluded, out_of_view, areas = {}, {}, {}, {}, {}, {}
         with atomic_output(output) as partial, h5py.File(partial, "w") as out:
             out.attrs["format"] = RESULTS_FORMAT
             out.attrs["format_version"] = np.int64(1)
@@ -297,7 +318,9 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                                    else float("nan"))
                 occluded[name] = result.occluded_side_share
                 out_of_view[name] = result.side_out_of_view_share
-            refused = distance_refusal(distances) or occlusion_refusal(occluded, out_of_view)
+                areas[name] = trunk_area_m2(result.valid_pixels, result.distance_mm, head)
+            refused = (distance_refusal(distances) or coverage_refusal(areas)
+                       or occlusion_refusal(occluded, out_of_view))
             if refused is not None:
                 out.attrs["optical_refused"] = refused
             metric = (metric_volume(displacements, rig.baseline_mm) if all(counts.values()) and refused is None

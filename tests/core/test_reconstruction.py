@@ -14,6 +14,7 @@ from core.pipeline import (DISTANCE_RESET, HeadReconstructor, ReconstructionSett
                            occluded_side_share, side_out_of_view_share, subject_mask, trunk_mask)
 from core.process import process_session, with_true_lights
 from core.profile import HeadCalibration, RigCalibration
+from core.rig import thesis_head
 from core.session import SessionError, SessionFile
 from core.sim.breathing import Sway
 from core.sim.simulate import SimConfig, simulate
@@ -387,11 +388,17 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     """A distance outside 1500-2600 mm is a measurement gone wrong or a subject out of place: the
     results say so and hold no volume to report. (A subject 3300 mm away measures about 2650 mm:
     the distance search does not follow a subject far outside the working range either.)"""
-    from core.process import (WORKING_RANGE_MM, distance_refusal, occlusion_refusal, optical_refusal, optical_volume,
-                              process_session)
+    from core.process import (WORKING_RANGE_MM, coverage_refusal, distance_refusal, occlusion_refusal, optical_refusal,
+                              optical_volume, process_session, trunk_area_m2)
     from core.sim.simulate import SimConfig, simulate
 
     assert distance_refusal({"front": 2000.0, "back": 2100.0}) is None
+    head = thesis_head("front", scale=0.25)
+    area = trunk_area_m2(np.full(10, 4000), np.full(10, 2000.0), head)
+    assert area == pytest.approx(np.full(10, 4000 * (2000 / head.fx) * (2000 / head.fy) * 1e-6))
+    assert coverage_refusal({"front": np.full(5, 0.1), "back": np.full(5, 0.05)}) is None
+    assert "head back: its maps hold 100 cm^2 of the subject" in coverage_refusal(
+        {"front": np.full(5, 0.1), "back": np.full(5, 0.01)})
     clear = np.zeros(40)
     assert occlusion_refusal({"front": clear + 0.01, "back": np.full(40, np.nan)}) is None
     swinging = clear.copy()
