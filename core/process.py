@@ -67,8 +67,8 @@ def distance_refusal(distances_mm: dict[str, float]) -> str | None:
 
 
 # The first pass of a two-head `process` (geometric_distances) reconstructs a light cycle this often:
-# sway is slower than 0.25 Hz and the widths are smoothed over WIDTH_SMOOTHING_S
-SURVEY_INTERVAL_S = 0.2
+# sway is slower than 0.25 Hz and the distances are smoothed over WIDTH_SMOOTHING_S (1 s)
+SURVEY_INTERVAL_S = 0.5
 
 
 def _survey_windows(session: SessionFile, rig, name: str) -> list[CycleWindow]:

@@ -442,4 +442,4 @@ def test_two_heads_take_the_subject_distance_from_their_geometry_where_glossy_sk
         assert geometric.photometric_offset_mm[name] < -500.0
     with h5py.File(tmp_path / "g.h5", "r") as r:
         assert r.attrs["distance_from"].startswith("two heads")
-        assert len(r["heads/front/photometric_survey/geometric_distance_mm"]) >= 4 and "metric_volume" in r
+        assert len(r["heads/front/photometric_survey/geometric_distance_mm"]) >= 2 and "metric_volume" in r
