@@ -146,3 +146,22 @@ def test_the_live_volume_gives_each_head_the_distance_of_the_two_heads_geometry(
     live.add("back", 0.0, *_trunk_map(back, 0.0), None)
     live.add("front", 0.0, depth * 1.01, mask, 1.01 * median)
     assert live.geometric_distance_mm("front") == pytest.approx(median, rel=0.002)
+
+
+def test_a_volume_curve_noisier_from_map_to_map_than_its_values_allow_is_refused():
+    """Quiet breathing (0.5 L at 15/min) sampled at 22 maps/s: the noise estimate sees the noise
+    added, not the breathing; above 50 mL the volume is refused with the figure."""
+    from core.metric_volume import MAX_MAP_NOISE_L, MetricVolume, map_noise_l
+
+    t = np.arange(0, 30, 1 / 22)
+    breathing = 0.25 * np.sin(2 * np.pi * t / 4.0)
+    noise = np.random.default_rng(1).normal(0.0, 1.0, len(t))
+    assert map_noise_l(breathing) < 0.002
+    assert map_noise_l(breathing + 0.02 * noise) == pytest.approx(0.02, rel=0.15)
+
+    def volume(values: np.ndarray) -> MetricVolume:
+        return MetricVolume((t * 1e9).astype(np.int64), values, {}, {}, {}, "test", {"front": 0.0})
+
+    assert volume(breathing + 0.02 * noise).refusal() is None
+    refused = volume(breathing + 0.3 * noise).refusal()
+    assert refused is not None and "noise from map to map is" in refused and f"{1000 * MAX_MAP_NOISE_L:.0f} mL" in refused
