@@ -168,22 +168,22 @@ def trunk_mask(mask: np.ndarray, normals: np.ndarray) -> np.ndarray:
     An arm held close, lying on the trunk's side with nothing between, stays."""
     if not mask.any():
         return mask
-    middle = int(np.median(np.nonzero(mask)[1]))
+    # the middle of the largest connected part: a connected part has a pixel in every column it spans
+    middle = int(np.median(np.nonzero(_largest_part(mask))[1]))
     runs, _ = ndimage.label(mask, structure=[[0, 0, 0], [1, 1, 1], [0, 0, 0]])
     through_middle = runs[:, middle]
     trunk = np.isin(runs, through_middle[through_middle > 0])
     facing = trunk & (np.abs(np.nan_to_num(normals[..., 2])) >= GRAZING_NZ)
     parts, n = ndimage.label(facing)
     if n > 1:
-        largest = 1 + int(np.argmax(np.bincount(parts.ravel())[1:]))
         rows, cols = ndimage.distance_transform_edt(~facing, return_distances=False, return_indices=True)
-        trunk &= parts[rows, cols] == largest
+        trunk &= parts[rows, cols] == _largest_label(parts)
     trunk_rows = np.nonzero(trunk.any(axis=1))[0]
     for side in (slice(0, middle), slice(middle, None)):
         arms, found = ndimage.label(mask[:, side] & ~trunk[:, side])
         if not found:
             continue
-        arm_rows = np.nonzero((arms == 1 + int(np.argmax(np.bincount(arms.ravel())[1:]))).any(axis=1))[0]
+        arm_rows = np.nonzero((arms == _largest_label(arms)).any(axis=1))[0]
         if len(arm_rows) < ARM_SHARE_OF_TRUNK_ROWS * (trunk_rows[-1] - trunk_rows[0] + 1):
             continue  # no arm: a speck the mask left beside the trunk
         top = int(arm_rows[0])
@@ -194,10 +194,18 @@ def trunk_mask(mask: np.ndarray, normals: np.ndarray) -> np.ndarray:
             trunk[:top, :on_row[0]] = False
         else:
             trunk[:top, middle + on_row[-1] + 1:] = False
-    parts, n = ndimage.label(trunk)
-    if n <= 1:
-        return trunk
-    return parts == 1 + int(np.argmax(np.bincount(parts.ravel())[1:]))
+    return _largest_part(trunk)
+
+
+def _largest_label(labels: np.ndarray) -> int:
+    """The label of the largest part in an ndimage.label image with at least one part."""
+    return 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
+
+
+def _largest_part(flags: np.ndarray) -> np.ndarray:
+    """The largest connected part of a mask (the mask itself when it has one part or none)."""
+    parts, n = ndimage.label(flags)
+    return flags if n <= 1 else parts == _largest_label(parts)
 
 
 def occluded_side_share(mask: np.ndarray, normals: np.ndarray) -> float:
@@ -330,6 +338,8 @@ class HeadReconstructor:
         solved, solved_saturated = prefiltered(signal, saturated, self._prefilter_px)
         pseudo_normals, albedo = distant_light_normals(solved, np.zeros(h.shape), self.pseudo_light_vectors)
         mask = trunk_mask(mask, pseudo_normals)
+        if mask.sum() < MIN_SUBJECT_PIXELS:
+            return self._no_subject()
         occluded = occluded_side_share(mask, pseudo_normals)
         pseudo_normals[~mask] = np.nan
         dmr = dmr_distance(pseudo_normals, mask, h.fx, h.fy, h.cx, h.cy, h.light_positions_mm,

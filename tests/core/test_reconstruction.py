@@ -266,6 +266,12 @@ def test_the_trunk_mask_leaves_out_arms_held_away_and_keeps_arms_held_close():
     close = trunk.copy()
     close[20:100, 30:40] = close[20:100, 81:91] = True
     np.testing.assert_array_equal(trunk_mask(close, _facing(close.shape)), close)
+    # two subjects of a size with nothing between them (no pixel in the mask's middle column): the first
+    two = np.zeros((60, 60), bool)
+    two[5:55, 5:20] = two[5:55, 40:55] = True
+    first = two.copy()
+    first[:, 30:] = False
+    np.testing.assert_array_equal(trunk_mask(two, _facing(two.shape)), first)
 
 
 def test_an_occluding_contour_divides_an_arm_from_the_trunk():
