@@ -24,6 +24,7 @@ from core.binning import bin_any, bin_mean, binned_head, live_binning
 from core.flow import btps_factor
 from core.metric_volume import LiveMetricVolume
 from core.pipeline import HeadReconstructor, ReconstructionSettings
+from core.process import MAX_OCCLUDED_SIDE_SHARE
 from core.rig import Rig
 from core.session import SessionFile, SubjectRecord
 from drivers.camera import CameraError, CameraStats, Frame, capture_frames
@@ -218,6 +219,11 @@ class HeadView:
     frames: int = 0
     lost: int = 0
     fps: float = 0.0
+
+    @property
+    def arm_against_trunk(self) -> bool:
+        """The last map shows an arm against the trunk hiding its side (core/process.py's rule)."""
+        return bool(self.occluded_side_share > MAX_OCCLUDED_SIDE_SHARE)
 
 
 @dataclass

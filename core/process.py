@@ -71,11 +71,9 @@ def distance_refusal(distances_mm: dict[str, float]) -> str | None:
 SURVEY_INTERVAL_S = 0.5
 
 
-def _survey_windows(session: SessionFile, rig, name: str) -> list[CycleWindow]:
-    """A head's complete light cycles about SURVEY_INTERVAL_S apart."""
-    windows = complete_cycles(session.light_index(name), session.frame_id(name), rig.cycle_length)
-    step = max(1, int(round(SURVEY_INTERVAL_S * rig.frame_rate_hz)))
-    return windows[::step]
+def _survey_windows(windows: list[CycleWindow], frame_rate_hz: float) -> list[CycleWindow]:
+    """Of a head's complete light cycles, those about SURVEY_INTERVAL_S apart."""
+    return windows[::max(1, int(round(SURVEY_INTERVAL_S * frame_rate_hz)))]
 
 
 def geometric_distances(surveyed: dict, baseline_mm: float) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -245,9 +243,10 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             out.attrs["calibration"] = calibration.created if calibration is not None else "session /rig"
             out.attrs["motion_compensation"] = bool(motion_compensation)
             total_windows = 0
-            plans = {}
+            plans, complete = {}, {}
             for name in names:
-                windows = complete_cycles(session.light_index(name), session.frame_id(name), rig.cycle_length)
+                windows = complete[name] = complete_cycles(session.light_index(name), session.frame_id(name),
+                                                           rig.cycle_length)
                 by_end = {w.newest: w for w in windows}
                 missing = [i for i in maps_at if i not in by_end]
                 if missing:
@@ -267,7 +266,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             out.attrs["distance_from"] = "two heads' trunk widths and baseline" if geometry else "photometric fit"
             survey = {}
             if geometry:
-                survey = {name: _survey_windows(session, rig, name) for name in names}
+                survey = {name: _survey_windows(complete[name], rig.frame_rate_hz) for name in names}
                 total_windows += sum(len(w) for w in survey.values())
             if workers is None:
                 work = sum(len(plans[n]) * rig.heads[n].width * rig.heads[n].height for n in names)

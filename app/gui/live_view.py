@@ -10,7 +10,7 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QGridLayout, QGroupBox, QHBoxLayout, QLabel, QVBoxLayout, QWidget
 
 from app.live import WINDOW_S, Snapshot
-from core.process import MAX_OCCLUDED_SIDE_SHARE, WORKING_RANGE_MM
+from core.process import WORKING_RANGE_MM
 
 
 HEIGHT_RANGE_MM = 40.0  # the maps' fixed scale: +-40 mm about the subject's mean surface
@@ -180,7 +180,7 @@ class LiveView(QWidget):
             ok = low <= view.distance_mm <= high
             text = (f"{view.distance_mm:.0f} mm (working range {low:.0f}–{high:.0f} mm)" if np.isfinite(view.distance_mm)
                     else "no subject seen")
-            arm = view.occluded_side_share > MAX_OCCLUDED_SIDE_SHARE
+            arm = view.arm_against_trunk
             if arm:
                 text += "; an arm against the trunk hides its side: arms away from the body"
             self.status.set(f"{h}_distance", text, warn=not ok or arm)

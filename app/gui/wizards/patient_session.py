@@ -20,7 +20,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDateEdit, QDoubleSpinBox, 
                                QVBoxLayout, QWizard, QWizardPage)
 
 from app.gui.errors import show_error
-from core.process import MAX_OCCLUDED_SIDE_SHARE, WORKING_RANGE_MM
+from core.process import WORKING_RANGE_MM
 from app.engine_process import Engine
 from app.paths import data_dir
 from app.records import Patient, Records, RecordsError
@@ -166,7 +166,7 @@ class PositioningPage(QWizardPage):
             width = view.height_mm.shape[1]
             centre = 0.5 * (columns[0] + columns[-1]) if len(columns) else np.nan
             centred = bool(len(columns)) and abs(centre - (width - 1) / 2) <= CENTRED_FRACTION * width
-            arms_away = not view.occluded_side_share > MAX_OCCLUDED_SIDE_SHARE
+            arms_away = not view.arm_against_trunk
             ok = ok and bool(distance_ok and centred and arms_away)
             lines.append(f"<b>{head.capitalize()}</b>: distance {view.distance_mm:.0f} mm "
                          f"{'OK' if distance_ok else f'<span style=color:#b00020>outside {low:.0f}–{high:.0f} mm</span>'}"
