@@ -20,12 +20,13 @@ from typing import Callable
 
 import numpy as np
 
+from core.ambient import FLICKER_WINDOW_S, FlickerCorrection
 from core.binning import bin_any, bin_mean, binned_head, live_binning
 from core.flow import btps_factor
 from core.metric_volume import LiveMetricVolume
 from core.pipeline import HeadReconstructor, ReconstructionSettings
 from core.process import MAX_OCCLUDED_SIDE_SHARE
-from core.rig import Rig
+from core.rig import DARK, Rig
 from core.session import SessionFile, SubjectRecord
 from drivers.camera import CameraError, CameraStats, Frame, capture_frames
 from drivers.flowsensor import FlowBlock
@@ -283,6 +284,9 @@ class LiveRig:
         self._recorder: Recorder | None = None
         self._cycles: dict[str, collections.deque] = {h: collections.deque(maxlen=2 * self.rig.cycle_length)
                                                        for h in source.cameras}
+        # the last second's dark frames: the room light's flicker (core/ambient.py)
+        darks = int(FLICKER_WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length) + 5
+        self._darks: dict[str, collections.deque] = {h: collections.deque(maxlen=darks) for h in source.cameras}
         self._new_frame = {h: threading.Condition() for h in source.cameras}
         self._views = {h: HeadView() for h in source.cameras}
         self._rates = {h: _Rate() for h in source.cameras}
@@ -465,8 +469,11 @@ class LiveRig:
             self.source.lights.observe(head, frame.frame_id, frame.image)
         except LightPhaseError as exc:
             self._problem(str(exc))
+        light = self.source.lights.light_of(head, frame.frame_id)
         with condition:
-            self._cycles[head].append((frame, self.source.lights.light_of(head, frame.frame_id)))
+            self._cycles[head].append((frame, light))
+            if light == DARK:
+                self._darks[head].append(frame)
             condition.notify()
 
     def _capture_flow(self) -> None:
@@ -526,17 +533,29 @@ class LiveRig:
         condition = self._new_frame[head]
         max_value = self.rig.heads[head].max_value
         factor = self._binning[head]
+        flicker = FlickerCorrection(2.0 * self.rig.mains_hz, centred=False)
+        fed_id = -1
         while not self._stop.is_set():
             with condition:
                 condition.wait(timeout=0.2)
                 window = self._newest_cycle(head)
+                darks = [d for d in self._darks[head] if d.frame_id > fed_id]
+            for d in darks:
+                flicker.add_dark(d.timestamp_ns / 1e9, bin_mean(d.image, factor))
+                fed_id = d.frame_id
             if window is None or window[-1][0].frame_id <= done_id:
                 continue
             done_id = window[-1][0].frame_id
+            newest_s = window[-1][0].timestamp_ns / 1e9
+            binned = {}
+            for frame, light in window:
+                image = bin_mean(frame.image, factor)
+                excess = flicker.excess(frame.timestamp_ns / 1e9, newest_s)
+                binned[light] = image if excess is None else image - excess
             by_light = {light: frame.image for frame, light in window}
             raw = np.stack([by_light[k] for k in range(4)])
-            dark = bin_mean(by_light[-1], factor)
-            signal = bin_mean(raw, factor) - dark[None]
+            dark = binned[DARK]
+            signal = np.stack([binned[k] for k in range(4)]) - dark[None]
             saturated = bin_any(raw >= max_value, factor)
             try:
                 # the distance the two heads' geometry gave the last maps (as `process` does), once it has one

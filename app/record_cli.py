@@ -79,7 +79,7 @@ def open_hardware(config, stack: ExitStack):
         cameras[head] = camera
         heads[head] = camera_head(head, config.optics.get(head, {}), camera.sensor_size, camera.region(),
                                   settings.binning, 8 if settings.pixel_format == "Mono8" else 12)
-    rig = Rig(config.name, heads, frame_rate_hz=settings.frame_rate_hz)
+    rig = Rig(config.name, heads, frame_rate_hz=settings.frame_rate_hz, mains_hz=config.mains_hz)
     port = config.sequencer_port
     sequencer = None
     if port != "sim":

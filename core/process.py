@@ -13,9 +13,11 @@ import numpy as np
 from scipy import ndimage
 
 from core import __version__
+from core.ambient import FlickerCorrection
 from core.metric_volume import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, side_targets,
                                  tidal_compartments)
 from core.photometric import CycleWindow, complete_cycles
+from core.rig import DARK
 from core.outputs import atomic_output, stop_if_requested
 from core.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.profile import ProfileError, RigCalibration
@@ -161,22 +163,58 @@ def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: 
     return None
 
 
+class DarkFeed:
+    """A head's dark frames, handed to its FlickerCorrection (core/ambient.py) as the cycles move on:
+    `flicker_of(window)` gives each frame's flicker, fitted on the dark frames around that cycle."""
+
+    def __init__(self, frames: h5py.Dataset, light_index: np.ndarray, timestamp_ns: np.ndarray, mains_hz: float) -> None:
+        self.correction = FlickerCorrection(2.0 * mains_hz)
+        self._frames = frames
+        self._t = np.asarray(timestamp_ns, dtype=np.int64) / 1e9
+        self._darks = np.flatnonzero(np.asarray(light_index) == DARK)
+        self._dark_t = self._t[self._darks]
+        self._next = 0
+
+    def flicker_of(self, window: CycleWindow) -> Callable[[int], np.ndarray | None]:
+        t_cycle = float(self._t[window.newest])
+        start, stop = self.correction.span(t_cycle)
+        self._next = max(self._next, int(np.searchsorted(self._dark_t, start)))
+        while self._next < len(self._darks) and self._dark_t[self._next] <= stop:
+            j = int(self._darks[self._next])
+            self.correction.add_dark(float(self._t[j]), self._frames[j])
+            self._next += 1
+        return lambda i: self.correction.excess(float(self._t[i]), t_cycle)
+
+    @property
+    def flicker_share(self) -> float:
+        """The room light's flicker as found (amplitude over the mean dark level, median over the
+        fits); 0 when none stood above the dark frames' noise."""
+        return float(np.median(self.correction.amplitudes)) if self.correction.amplitudes else 0.0
+
+
 def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindow | None, max_value: int,
                   cache: dict[int, np.ndarray], frame_id: np.ndarray,
+                  flicker: Callable[[int], np.ndarray | None] | None = None,
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each light's frame minus the dark frame; with `previous` (the cycle one period earlier),
     each light is first brought to the newest frame's instant by linear extrapolation along
     frame_id: the subject moves within a cycle (a forced expiration moves the chest millimetres
-    in 45 ms) and the thesis' static assumption would mix five instants into one normal."""
+    in 45 ms) and the thesis' static assumption would mix five instants into one normal.
+    `flicker` (DarkFeed.flicker_of) gives the room light's flicker in a frame, taken out first."""
     def frame(i: int) -> np.ndarray:
         if i not in cache:
             cache[i] = frames[i]
         return cache[i]
 
-    dark_frame = frame(window.dark).astype(np.float64)
+    def level(i: int) -> np.ndarray:
+        image = frame(i).astype(np.float64)
+        excess = flicker(i) if flicker is not None else None
+        return image if excess is None else image - excess
+
+    dark_frame = level(window.dark)
     raw = [frame(i) for i in window.lit]
     saturated = np.stack([r >= max_value for r in raw])
-    signal = np.stack([r.astype(np.float64) for r in raw])
+    signal = np.stack([level(i) for i in window.lit])
     if previous is not None:
         newest = int(frame_id[window.newest])
         for k, (now, before) in enumerate(zip(window.lit, previous.lit)):
@@ -186,7 +224,7 @@ def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindo
             saturated[k] |= old >= max_value
             # The change over one period, smoothed: motion changes shading smoothly, the noise
             # is per pixel and would be amplified by the extrapolation.
-            change = ndimage.gaussian_filter(signal[k] - old.astype(np.float64), MOTION_SMOOTHING_PX)
+            change = ndimage.gaussian_filter(signal[k] - level(before), MOTION_SMOOTHING_PX)
             signal[k] += ahead * change
     return signal - dark_frame[None], saturated, dark_frame
 
@@ -304,6 +342,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 g.create_dataset("valid_pixels", data=result.valid_pixels)
                 g.create_dataset("occluded_side_share", data=result.occluded_side_share)
                 g.create_dataset("side_out_of_view_share", data=result.side_out_of_view_share)
+                g.attrs["ambient_flicker"] = result.ambient_flicker
                 m = g.create_group("maps")
                 m.create_dataset("frame_index", data=np.asarray(result.saved_index, dtype=np.int64))
                 shape = (0, head.height, head.width)
@@ -366,6 +405,7 @@ class _HeadResult:
     saved_normals: list[np.ndarray]
     saved_depth: list[np.ndarray]
     sums: list
+    ambient_flicker: float = 0.0  # DarkFeed.flicker_share
 
 
 def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
@@ -385,13 +425,15 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
         all_windows = {int(ids[w.newest]): w for w in complete_cycles(session.light_index(name), ids,
                                                                        rig.cycle_length)}
         cache: dict[int, np.ndarray] = {}
+        darks = DarkFeed(frames, session.light_index(name), stamps, rig.mains_hz)
         for number, window in enumerate(job.windows):
             stop_if_requested()
             for stale in [k for k in cache if k < window.newest - 2 * rig.cycle_length]:
                 del cache[stale]
             previous = (all_windows.get(int(ids[window.newest]) - rig.cycle_length)
                         if job.motion_compensation else None)
-            signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids)
+            signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids,
+                                                   darks.flicker_of(window))
             known = job.distances_mm[number] if job.distances_mm is not None else np.nan
             result = reconstructor.reconstruct(signal, saturated, dark, float(known) if np.isfinite(known) else None)
             rows["timestamp_ns"].append(stamps[window.newest])
@@ -414,7 +456,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                        np.asarray(rows["valid_pixels"], dtype=np.int64),
                        np.asarray(rows["occluded_side_share"], dtype=np.float64),
                        np.asarray(rows["side_out_of_view_share"], dtype=np.float64), saved_index, saved_normals,
-                       saved_depth, sums)
+                       saved_depth, sums, darks.flicker_share)
 
 
 _worker_ticks = None  # in a worker process: the queue its progress goes to
@@ -487,7 +529,9 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
         for index in frame_indices:
             window = windows[max(0, int(np.searchsorted(ends, index, side="right")) - 1)]
             previous = by_id.get(int(ids[window.newest]) - rig.cycle_length) if motion_compensation else None
-            signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, {}, ids)
+            darks = DarkFeed(frames, session.light_index(head_name), session.timestamp_ns(head_name), rig.mains_hz)
+            signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, {}, ids,
+                                                   darks.flicker_of(window))
             out.append(reconstructor.reconstruct(signal, saturated, dark))
     return out
 

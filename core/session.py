@@ -5,8 +5,9 @@
 with a file, naming the item.
 
 Additions to the spec (allowed: "the project may add groups and attributes"): `/rig`
-attributes `frame_rate_hz` and `head_baseline_mm` (front to back camera centre along the shared
-optical axis, the back head looking back along it; written when known); `/flow` attributes `positive` (`inspiration`), `room_temperature_c`,
+attributes `frame_rate_hz`, `head_baseline_mm` (front to back camera centre along the shared
+optical axis, the back head looking back along it; written when known) and `mains_hz` (the room's
+mains frequency, 50 when absent: the room light flickers at twice it); `/flow` attributes `positive` (`inspiration`), `room_temperature_c`,
 `room_pressure_hpa`, `room_humidity_pct`; `/truth` datasets `sway_mm`, `flow_lps` and the
 compartment volumes `compartment_volume_l` with attribute `compartments`.
 """
@@ -108,6 +109,7 @@ def write_rig(parent: h5py.Group, rig: Rig) -> None:
     group.attrs["frame_rate_hz"] = float(rig.frame_rate_hz)
     if rig.baseline_mm is not None:
         group.attrs["head_baseline_mm"] = float(rig.baseline_mm)
+    group.attrs["mains_hz"] = float(rig.mains_hz)
     for name, head in rig.heads.items():
         _write_head_attrs(group.require_group(name), head)
 
@@ -355,8 +357,9 @@ def read_rig(f: h5py.File) -> Rig:
     rate = float(g.attrs["frame_rate_hz"]) if "frame_rate_hz" in g.attrs else _frame_rate_from_timestamps(f)
     sequence = tuple(int(i) for i in np.asarray(g.attrs.get("sequence", [0, 1, 2, 3, -1])))
     baseline = float(g.attrs["head_baseline_mm"]) if "head_baseline_mm" in g.attrs else None
+    mains = float(g.attrs["mains_hz"]) if "mains_hz" in g.attrs else Rig.mains_hz
     return Rig(name=_str(g.attrs.get("name", "")), heads=heads, frame_rate_hz=rate, sequence=sequence,
-               baseline_mm=baseline)
+               baseline_mm=baseline, mains_hz=mains)
 
 
 class SessionFile(_OwnsFile):
@@ -542,6 +545,9 @@ def _check_rig(c: _Checker, f: h5py.File) -> dict[str, tuple[int, int, int]]:
     baseline = c.attr(rig, "head_baseline_mm", "float", required=False)
     if baseline is not None and not 0 < baseline < 100_000:
         c.add(f"attribute /rig@head_baseline_mm must be a positive distance, found {baseline}")
+    mains = c.attr(rig, "mains_hz", "float", required=False)
+    if mains is not None and not 40 <= mains <= 70:
+        c.add(f"attribute /rig@mains_hz must be a mains frequency (50 or 60 Hz), found {mains}")
     sequence = None
     if "sequence" not in rig.attrs:
         c.add("missing attribute /rig@sequence")

@@ -26,7 +26,7 @@ class RigConfigError(ValueError):
 
 _OPTICS_KEYS = ("focal_length_mm", "pixel_size_um", "fx_px", "fy_px", "cx_px", "cy_px", "dist_coeffs")
 KNOWN_KEYS: dict[str, tuple[str, ...]] = {
-    "": ("name", "camera", "heads", "sequencer", "flowsensor", "simulation", "calibration"),
+    "": ("name", "mains_hz", "camera", "heads", "sequencer", "flowsensor", "simulation", "calibration"),
     "camera": ("width", "height", "offset_x", "offset_y", "binning", "pixel_format", "exposure_us", "frame_rate_hz",
                "trigger"),
     "heads": ("front", "back"),
@@ -80,6 +80,7 @@ class RigConfig:
     simulation: dict[str, Any] = field(default_factory=dict)
     calibration: Path | None = None
     optics: dict[str, dict[str, Any]] = field(default_factory=dict)  # head -> lens and sensor (see template.toml)
+    mains_hz: float = 50.0  # the room's mains: its lamps flicker at twice this (core/ambient.py)
 
     @property
     def simulated(self) -> bool:
@@ -147,9 +148,12 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
             raise RigConfigError(f"{path}: [simulation] protocol must be one of {', '.join(PROTOCOLS)}, found "
                                  f"{simulation['protocol']!r}")
     calibration = data.get("calibration")
+    mains = data.get("mains_hz", 50.0)
+    if mains not in (50, 60):
+        raise RigConfigError(f"{path}: mains_hz must be 50 or 60 (the room's mains frequency), found {mains!r}")
     return RigConfig(path, str(data.get("name", path.stem)), cameras, str(sequencer), flow_port,
                      None if gain is None else float(gain), None if offset is None else float(offset), camera,
-                     simulation, Path(calibration) if calibration else None, optics)
+                     simulation, Path(calibration) if calibration else None, optics, float(mains))
 
 
 _POSITIVE_OPTICS = ("focal_length_mm", "pixel_size_um", "fx_px", "fy_px")

@@ -34,7 +34,8 @@ class SimulatedRigState:
         from core.rig import thesis_rig
         from core.sim.simulate import as_built_heads, build_scene, sim_digitisers
 
-        rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
+        rig = replace(thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz),
+                      mains_hz=config.mains_hz)
         scene, waveform = build_scene(config, rig)
         if len(rig.heads) == 2:
             rig = replace(rig, baseline_mm=float(scene.baseline_mm))

@@ -320,7 +320,8 @@ def sim_digitisers(config: SimConfig, rig) -> dict[str, Digitiser]:
 def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], None] | None = None) -> SimSummary:
     """Render the session described by `config` into a session file at `path`."""
     started = time.perf_counter()
-    rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
+    rig = replace(thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz),
+                  mains_hz=config.mains_hz)
     if config.lens_k1 or config.vignetting:
         rig = replace(rig, heads={n: replace(h, dist_coeffs=np.array([config.lens_k1, 0, 0, 0, 0]),
                                              vignetting=config.vignetting)

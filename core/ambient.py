@@ -1,0 +1,128 @@
+"""The room light's mains flicker, measured on the dark frames and taken out of every frame.
+
+The dark frame of a light cycle measures the ambient light (ARCHITECTURE.md: I_k = ... + ambient),
+but only at its own instant. Lamps on the mains flicker at twice its frequency (100 Hz on a 50 Hz
+supply); the camera's frames sample that flicker at another phase each, so "lit minus dark" leaves
+every light with its own share of it: a different error in each light's image, a different normal
+error in every cycle, a volume curve that jumps from map to map (docs/reconstruction.md, "Room
+light": 0.47 L of map-to-map noise from a 30 % flicker on a population subject, 0.016 L without).
+
+Over a short window of dark frames j (FLICKER_WINDOW_S) the ambient image is modelled as
+
+    D_j(x) = C(x) + s(x) (t_j - t_0) + m(x) u(t_j),    u(t) = cos(2 pi f t - phi),
+
+with f the flicker frequency (twice the rig's mains frequency), one phase phi for the whole image
+(one mains) fitted on the dark frames' mean level, and per pixel a steady part C, a slow trend s
+(the subject moves) and the flicker's amplitude m (daylight does not flicker, lamps do, and their
+shares differ over the image). Every frame i, lit or dark, then has m(x) u(t_i) taken out: all
+of a cycle's frames see the ambient at its steady level and the dark frame's subtraction is exact.
+A flicker the dark frames do not show above their noise (MIN_FLICKER_SNR) is left alone, so a room
+without flicker gets no noise added; nor is a window whose dark frames all fall on one phase of the
+flicker (a frame rate locked to the mains) corrected, since it cannot be measured there.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+FLICKER_WINDOW_S = 1.0  # ten beats of a 100 Hz flicker against 110 frames/s; the subject moves little in it
+MIN_DARK_FRAMES = 10
+# The mean dark level's flicker amplitude over its standard error below which nothing is corrected.
+MIN_FLICKER_SNR = 6.0
+# The dark frames' phases must spread over the flicker's period: the smallest singular value of the
+# (sin, cos) columns, normalised, below which the window cannot tell a flicker from a steady light.
+MIN_PHASE_SPREAD = 0.3
+
+
+def flicker_phase(t_s: np.ndarray, level: np.ndarray, flicker_hz: float) -> tuple[float, float] | None:
+    """(amplitude, phase) of the flicker in a series of mean dark levels (DN), fitted with a steady
+    level and a linear trend; None when it is not measurable or not above the noise."""
+    t = np.asarray(t_s, dtype=float)
+    y = np.asarray(level, dtype=float)
+    n = len(t)
+    if n < MIN_DARK_FRAMES:
+        return None
+    w = 2.0 * np.pi * flicker_hz * t
+    centred = t - t.mean()
+    design = np.column_stack([np.ones(n), centred / max(float(np.ptp(t)), 1e-9), np.cos(w), np.sin(w)])
+    trig = design[:, 2:] - design[:, 2:].mean(axis=0)
+    if np.linalg.svd(trig / np.sqrt(n / 2.0), compute_uv=False)[-1] < MIN_PHASE_SPREAD:
+        return None
+    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    residual = y - design @ coef
+    sigma = float(np.sqrt(np.sum(residual ** 2) / max(n - 4, 1)))
+    amplitude = float(np.hypot(coef[2], coef[3]))
+    standard_error = sigma * np.sqrt(2.0 / n)
+    if amplitude <= MIN_FLICKER_SNR * max(standard_error, 1e-12):
+        return None
+    return amplitude, float(np.arctan2(coef[3], coef[2]))
+
+
+class FlickerCorrection:
+    """One head's dark frames over a sliding window and the flicker they show.
+
+    Feed every dark frame in time order (`add_dark`); `excess(t_s)` is the flicker's part of a
+    frame at t_s (an image to subtract), or None when there is nothing to correct. `centred`:
+    the window is centred on the asked time (offline processing, which has the dark frames after
+    it too); otherwise it ends there (the live view)."""
+
+    def __init__(self, flicker_hz: float, window_s: float = FLICKER_WINDOW_S, centred: bool = True) -> None:
+        self.flicker_hz = float(flicker_hz)
+        self.window_s = float(window_s)
+        self.centred = centred
+        self._darks: deque[tuple[float, np.ndarray, float]] = deque()
+        self._fitted_for: tuple[float, float] | None = None
+        self._fit: tuple[float, np.ndarray] | None = None  # (phase, m(x))
+        self.amplitudes: list[float] = []  # each fit's flicker amplitude over the mean dark level
+
+    def add_dark(self, t_s: float, frame: np.ndarray) -> None:
+        """A dark frame (kept as it came: a window of full-resolution frames is large)."""
+        image = np.asarray(frame)
+        self._darks.append((float(t_s), image, float(image.mean(dtype=np.float64))))
+
+    @property
+    def newest_dark_s(self) -> float:
+        return self._darks[-1][0] if self._darks else float("-inf")
+
+    def span(self, t_s: float) -> tuple[float, float]:
+        """The window of dark frames used for a frame at t_s."""
+        if self.centred:
+            return t_s - self.window_s / 2.0, t_s + self.window_s / 2.0
+        return t_s - self.window_s, t_s
+
+    def _fit_window(self, start: float, stop: float) -> tuple[float, np.ndarray] | None:
+        while self._darks and self._darks[0][0] < start - self.window_s:
+            self._darks.popleft()
+        inside = [d for d in self._darks if start <= d[0] <= stop]
+        if len(inside) < MIN_DARK_FRAMES:
+            return None
+        t = np.array([d[0] for d in inside])
+        found = flicker_phase(t, np.array([d[2] for d in inside]), self.flicker_hz)
+        if found is None:
+            return None
+        amplitude, phase = found
+        self.amplitudes.append(amplitude / max(float(np.mean([d[2] for d in inside])), 1e-9))
+        u = np.cos(2.0 * np.pi * self.flicker_hz * t - phase)
+        centred = t - t.mean()
+        design = np.column_stack([np.ones(len(t)), centred / max(float(np.ptp(t)), 1e-9), u])
+        solve = np.linalg.pinv(design)[2].astype(np.float32)  # the row that gives m(x)
+        amplitude_image = np.zeros(inside[0][1].shape, dtype=np.float32)
+        for weight, (_, frame, _) in zip(solve, inside):
+            amplitude_image += weight * frame.astype(np.float32)
+        return phase, amplitude_image
+
+    def excess(self, t_s: float, around_s: float | None = None) -> np.ndarray | None:
+        """The flicker's part of a frame taken at t_s: m(x) cos(2 pi f t_s - phi), or None; fitted on
+        the window around `around_s` (default t_s: give all frames of one cycle the same time)."""
+        start, stop = self.span(t_s if around_s is None else around_s)
+        step = self.window_s / 10.0  # refitted as the window moves on by a tenth of itself
+        key = (round(start / step), round(stop / step))
+        if key != self._fitted_for:
+            self._fitted_for = key
+            self._fit = self._fit_window(start, stop)
+        if self._fit is None:
+            return None
+        phase, amplitude_image = self._fit
+        return amplitude_image * np.float32(np.cos(2.0 * np.pi * self.flicker_hz * t_s - phase))
