@@ -420,6 +420,27 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                                        f"{args.scale:g} --seed {args.seed}{suffix}`)", text)
 
     po.set_defaults(run=run_population)
+    li = what.add_parser("lights", help="light calibration from simulated sphere sessions of rigs as built, against "
+                                        "their truth")
+    li.add_argument("--rigs", type=int, default=6)
+    li.add_argument("--scale", type=positive, default=0.5)
+    li.add_argument("--seed", type=int, default=1)
+    li.add_argument("--workers", type=int, default=None, help="rigs at once (default: one per core)")
+    li.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_lights(args: argparse.Namespace) -> int:
+        from app.bench_lights import run_lights_bench
+
+        if args.rigs < 1:
+            from app.cli import UserError
+
+            raise UserError("--rigs must be 1 or more")
+        workers = max(1, min(args.rigs, args.workers or os.cpu_count() or 1))
+        text, _ = run_lights_bench(args.rigs, args.scale, args.seed, workers)
+        return _publish(args, f"lights-{args.scale:g}", f"Light calibration (`photopft bench lights --rigs {args.rigs} "
+                                                        f"--scale {args.scale:g} --seed {args.seed}`)", text)
+
+    li.set_defaults(run=run_lights)
     co = what.add_parser("compression", help="lossless HDF5 filters on the rig's frames: ratio, MB/s, GB a minute")
     co.add_argument("--scale", type=positive, default=1.0)
     co.add_argument("--frames", type=int, default=110)

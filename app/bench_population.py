@@ -105,9 +105,74 @@ def _distance_errors(session: Path, results: Path, after_cycles: int) -> list[fl
     return errors
 
 
-def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: str, seconds: float | None) -> dict:
-    """One subject end to end; what each stage gave or why it refused."""
-    from core.light_calibration import CAPTURE_SECONDS, calibrate_lights
+# The sphere sessions are rendered at no less than this scale: the light calibration reads the
+# highlights of a 75 mm sphere and needs the pixels (ideal LEDs, subject 4 of seed 1: 12-17 mm off
+# at scale 0.15, 1.4-3.7 mm at 0.3, 0.2-0.5 mm at 0.5; docs/benchmarks.md, lights). The rig's
+# camera calibrates at its full 1400 x 1024 whatever the subject's scale here; the lights are in mm.
+CALIBRATION_SCALE = 0.5
+
+
+def sphere_sessions(subject: VirtualSubject, scale: float, folder: Path,
+                    scenes: tuple[str, ...] = ("specular-sphere", "matte-sphere")) -> list[Path]:
+    """The subject's rig's sphere sessions at `scale`, as long as the calibration wizard records."""
+    from core.light_calibration import CAPTURE_SECONDS
+    from core.rig import thesis_rig
+    from core.sim.simulate import simulate
+
+    rig = thesis_rig(scale)
+    hold = int(round(CAPTURE_SECONDS * rig.frame_rate_hz / rig.cycle_length))
+    paths = []
+    for scene in scenes:
+        path = folder / f"{subject.index}-{scene}-{scale:g}.h5"
+        simulate(path, _config(subject, scale, scene=scene, placement_cycles=hold, steps=0, drop_rate=0.0))
+        paths.append(path)
+    return paths
+
+
+def lights_truth(session: Path) -> dict[str, dict[str, np.ndarray]]:
+    """The lights as built, {head: {light_positions_mm, light_axis, light_mu}}, from a simulated session."""
+    from core.session import SessionFile
+
+    with SessionFile(session) as s:
+        truth = s.truth()
+        return {h: {k: truth[f"{h}/{k}"][:] for k in ("light_positions_mm", "light_axis", "light_mu")
+                    if f"{h}/{k}" in truth} for h in s.heads}
+
+
+def calibrate_rig(subject: VirtualSubject, scale: float, folder: Path) -> tuple[object, dict]:
+    """The subject's rig calibrated as a user would (core/light_calibration.py) from its specular and
+    matte sphere sessions at `scale`, and the truth of its lights (lights_truth). Raises what the
+    wizard would show."""
+    from core.light_calibration import calibrate_lights
+
+    spheres = []
+    try:
+        spheres = sphere_sessions(subject, scale, folder)
+        return calibrate_lights(spheres)[0], lights_truth(spheres[0])
+    finally:
+        for path in spheres:
+            path.unlink(missing_ok=True)
+
+
+def light_errors(calibration, lights: dict) -> dict[str, dict[str, list[float]]]:
+    """Per head: each LED's position error (mm), and its axis (deg) and falloff exponent errors when
+    the profile has them."""
+    out = {}
+    for h, truth in lights.items():
+        fitted = calibration.heads[h]
+        errors = {"position_mm": np.linalg.norm(fitted.light_positions_mm - truth["light_positions_mm"], axis=1).tolist()}
+        if fitted.light_axis is not None and "light_axis" in truth:
+            cosine = np.clip(np.sum(fitted.light_axis * truth["light_axis"], axis=1), -1.0, 1.0)
+            errors["axis_deg"] = np.degrees(np.arccos(cosine)).tolist()
+            errors["mu"] = np.abs(fitted.light_mu - truth["light_mu"]).tolist()
+        out[h] = errors
+    return out
+
+
+def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: str, seconds: float | None,
+                calibration_scale: float | None = None) -> dict:
+    """One subject end to end; what each stage gave or why it refused. The lights are calibrated
+    from sphere sessions at calibration_scale (default: scale, but no less than CALIBRATION_SCALE)."""
     from core.process import optical_refusal, optical_volume, process_session
     from core.session import SessionFile
     from core.session_analysis import analyse_session
@@ -119,27 +184,13 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     work = Path(folder)
     out: dict = {"subject": asdict(subject), "stage_seconds": {}}
     stages = out["stage_seconds"]
-    from core.rig import thesis_rig
-
-    rig = thesis_rig(scale)
-    hold = int(round(CAPTURE_SECONDS * rig.frame_rate_hz / rig.cycle_length))  # as long as the wizard records
-    spheres = []
-    for scene in ("specular-sphere", "matte-sphere"):
-        path = work / f"{subject.index}-{scene}.h5"
-        simulate(path, _config(subject, scale, scene=scene, placement_cycles=hold, steps=0, drop_rate=0.0))
-        spheres.append(path)
-    stages["simulate spheres"] = time.perf_counter() - started
     try:
-        calibration, _ = calibrate_lights(spheres)
+        calibration, lights = calibrate_rig(subject, calibration_scale or max(scale, CALIBRATION_SCALE), work)
     except Exception as exc:  # the bench reports a refusal, as a user would see it
         out["refused"] = f"light calibration: {exc}"
         return out
-    with SessionFile(spheres[0]) as s:
-        truth = s.truth()
-        out["led_error_mm"] = {h: np.linalg.norm(calibration.heads[h].light_positions_mm
-                                                 - truth[f"{h}/light_positions_mm"][:], axis=1).tolist()
-                               for h in s.heads}
-    stages["calibrate lights"] = time.perf_counter() - started - sum(stages.values())
+    out["led_error_mm"] = {h: e["position_mm"] for h, e in light_errors(calibration, lights).items()}
+    stages["calibrate lights"] = time.perf_counter() - started
     blows = None
     if subject.standard is not None:
         standard = read_waveform(subject.standard)
@@ -175,7 +226,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     out["distance_errors_mm"] = _distance_errors(session, results, after_cycles=10)
     stages["analyse"] = time.perf_counter() - started - sum(stages.values())
     out["seconds"] = time.perf_counter() - started
-    for path in (*spheres, session, results):
+    for path in (session, results):
         path.unlink(missing_ok=True)
     return out
 
@@ -286,26 +337,31 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
     blows = standard_blows(standards)
     population = draw_subjects(subjects, seed, blows, quick, max_sheen)
     protocol, seconds = ("short", 8.0) if quick else ("short", None)
+    calibration_scale = scale if quick else max(scale, CALIBRATION_SCALE)
     with tempfile.TemporaryDirectory() as tmp:
+        jobs = [(s, scale, protocol, tmp, seconds, calibration_scale) for s in population]
         if workers > 1:
             # a Pool, not an executor: leaving the block (done, or Ctrl-C / SIGTERM) terminates the workers
             # instead of waiting for the subjects they are on
             with get_context("spawn").Pool(workers) as pool:
-                rows = pool.starmap(run_subject, [(s, scale, protocol, tmp, seconds) for s in population])
+                rows = pool.starmap(run_subject, jobs)
         else:
-            rows = [run_subject(s, scale, protocol, tmp, seconds) for s in population]
+            rows = [run_subject(*job) for job in jobs]
     elapsed = time.perf_counter() - started
     describe_bodies(rows)
     stem = f"population-{scale:g}" + ("" if max_sheen == MAX_SHEEN else f"-sheen{max_sheen:g}")
     pngs = bland_altman_pngs(rows, images, stem) if images is not None else []
-    return _table(rows, scale, seed, quick, blows, elapsed, workers, pngs, WORLDS["clinic"], max_sheen), rows
+    return _table(rows, scale, seed, quick, blows, elapsed, workers, pngs, WORLDS["clinic"], max_sheen,
+                  calibration_scale), rows
 
 
 def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[Path], elapsed: float,
-           workers: int, pngs: list[Path], world: dict, max_sheen: float = MAX_SHEEN) -> str:
+           workers: int, pngs: list[Path], world: dict, max_sheen: float = MAX_SHEEN,
+           calibration_scale: float | None = None) -> str:
     from core.rig import thesis_head
 
     head = thesis_head(scale=scale)
+    sphere = thesis_head(scale=calibration_scale or scale)
     refused = [r for r in rows if "refused" in r]
     lines = [f"{len(rows)} simulated subjects (seed {seed}{', quick' if quick else ''}), two heads of {head.width} x "
              f"{head.height} pixels; protocol: {'its first 8 s' if quick else '20 s tidal (irregular, sighs), one slow VC, two forced blows'}; "
@@ -313,7 +369,8 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
              "scaled to each subject's predicted FVC. The world: random bodies (core/sim/bodies.py), distance 1700-2300 mm, "
              f"Fitzpatrick I-VI, skin sheen 0-{max_sheen:g}, LEDs 0-15 mm off the drawing, and the clinic's "
              + ", ".join(f"{k} {v:g}" for k, v in world.items() if k not in ("led_offset_mm", "specular"))
-             + ". Lights calibrated from each rig's simulated sphere sessions (specular and matte); processed with "
+             + f". Lights calibrated from each rig's simulated sphere sessions (specular and matte, {sphere.width} x "
+             f"{sphere.height} pixels); processed with "
              "`photopft process` defaults; no calibration on the subject. Truth read only to compare.", "",
              "| value | source | n | refused | bias | 95 % limits of agreement | within tolerance |",
              "|---|---|---|---|---|---|---|"]
