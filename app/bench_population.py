@@ -190,6 +190,10 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
         out["refused"] = f"light calibration: {exc}"
         return out
     out["led_error_mm"] = {h: e["position_mm"] for h, e in light_errors(calibration, lights).items()}
+    from core.rig import thesis_rig
+
+    for name, head in thesis_rig(scale).heads.items():  # lights in mm: the profile serves the subject's pixels too
+        calibration.heads[name].extra.update(width=head.width, height=head.height)
     stages["calibrate lights"] = time.perf_counter() - started
     blows = None
     if subject.standard is not None:

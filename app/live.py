@@ -567,7 +567,8 @@ class LiveRig:
             height = (np.nanmean(depth) - depth).astype(np.float32) if result.mask.any() else None
             stamp = window[-1][0].timestamp_ns
             t_s = (stamp - self._t0) / 1e9 if self._t0 is not None else None
-            litres = (self._metric.add(head, t_s, result.depth_mm, result.mask, result.distance_mm) if t_s is not None
+            litres = (self._metric.add(head, t_s, result.depth_mm, result.mask, result.distance_mm,
+                                         result.silhouette) if t_s is not None
                       else float("nan"))
             view = self._views[head]
             with self._lock:

@@ -202,10 +202,11 @@ class LiveMetricVolume:
             return self._geometric.get(name)
 
     def add(self, name: str, t_s: float, depth_mm: np.ndarray, mask: np.ndarray,
-            distance_mm: float | None = None) -> float:
-        """Feed one head's map (and its median depth, for geometric_distance_mm); the volume (L) both
-        heads have seen since their first maps, or NaN while a head has no trunk in view yet."""
-        sums = self._trackers[name].add(depth_mm, mask)
+            distance_mm: float | None = None, silhouette: np.ndarray | None = None) -> float:
+        """Feed one head's map (and its median depth, for geometric_distance_mm; its silhouette, as
+        DisplacementTracker.add takes it); the volume (L) both heads have seen since their first
+        maps, or NaN while a head has no trunk in view yet."""
+        sums = self._trackers[name].add(depth_mm, mask, silhouette)
         with self._lock:
             if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
                 return float("nan")

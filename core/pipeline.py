@@ -85,6 +85,7 @@ class HeadMap:
     gradient_volume: float
     iterations_done: int = 0
     extra: dict[str, float] = field(default_factory=dict)
+    silhouette: np.ndarray | None = None  # the trunk's pixels, those without a normal or depth included
 
 
 def default_pseudo_light_vectors(head: Head, distance_mm: float = NOMINAL_DISTANCE_MM) -> np.ndarray:
@@ -401,4 +402,5 @@ class HeadReconstructor:
         depth = np.where(valid, depth, np.nan)
         normals = np.where(valid[..., None], normals, np.nan)
         return HeadMap(normals, depth, albedo, valid, distance, dmr, gradient_volume(normals, valid), done,
-                       {"occluded_side_share": occluded, "side_out_of_view_share": side_out_of_view_share(mask)})
+                       {"occluded_side_share": occluded, "side_out_of_view_share": side_out_of_view_share(mask)},
+                       mask)

@@ -443,7 +443,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             rows["valid_pixels"].append(int(result.mask.sum()))
             for key in ("occluded_side_share", "side_out_of_view_share"):
                 rows[key].append(result.extra.get(key, np.nan))
-            sums.append(tracker.add(result.depth_mm, result.mask))
+            sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette))
             if window.newest in job.maps_at:
                 saved_index.append(window.newest)
                 saved_normals.append(result.normals.astype(np.float32))

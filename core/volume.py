@@ -429,6 +429,44 @@ def rim_model(depth_mm: np.ndarray, mask: np.ndarray, head: Head, band_px: int,
     return RimModel(rows, cols, np.clip(regressor, 0.0, None), float(np.nanmedian(z[:, 0] + deeper)))
 
 
+# The contour model is fitted to the pixels with a depth within CONTOUR_FIT_MM (across, at the
+# map's depth) of the outermost one, which may lie up to CONTOUR_MAX_GAP_MM inside the silhouette's
+# edge (the band of grazing light without normals: about two pixels at 210 px wide, 2.3 m).
+CONTOUR_FIT_MM = 25.0
+CONTOUR_MAX_GAP_MM = 18.0
+
+
+def contour_depth_mm(depth_mm: np.ndarray, valid: np.ndarray, silhouette: np.ndarray, head: Head) -> float:
+    """The depth of the trunk's occluding contour, the median over its rows' both sides.
+
+    Near an occluding contour a smooth surface's depth goes as the square root of the image
+    distance from it: Z = Z_c - a sqrt(d) + b d, d = |u - u_c|, u_c the silhouette's edge (half a
+    pixel outside its outermost pixel), b the next term of the curvature. The maps lack the silhouette's outermost pixels (the far lights graze the
+    surface there and no normal is solved), which hold tens of mm of depth: extrapolating the rim's
+    band to the side put the maps 22-37 mm too far on a population subject; the contour model
+    within 10 mm (docs/reconstruction.md). NaN where fewer than MIN_SIDE_ROWS row sides give one."""
+    pixel_mm = float(np.nanmedian(depth_mm[valid])) / head.fx if valid.any() else float("nan")
+    if not np.isfinite(pixel_mm):
+        return float("nan")
+    fit_px = max(4, int(round(CONTOUR_FIT_MM / pixel_mm)))
+    gap_px = max(2.0, CONTOUR_MAX_GAP_MM / pixel_mm)
+    found = []
+    for row in torso_rows(valid):
+        run = np.flatnonzero(silhouette[row])
+        cols = np.flatnonzero(valid[row] & np.isfinite(depth_mm[row]))
+        if len(run) == 0 or len(cols) < 3 * fit_px:
+            continue
+        for edge, inner in ((run[0] - 0.5, cols[:fit_px]), (run[-1] + 0.5, cols[::-1][:fit_px])):
+            if abs(inner[0] - edge) > gap_px:
+                continue
+            away = np.abs(inner - edge)
+            design = np.column_stack([np.ones(len(away)), -np.sqrt(away), away])
+            (z_contour, a, _), *_ = np.linalg.lstsq(design, depth_mm[row, inner], rcond=None)
+            if a > 0:  # the surface recedes towards its contour
+                found.append(z_contour)
+    return float(np.median(found)) if len(found) >= MIN_SIDE_ROWS else float("nan")
+
+
 def row_widths_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> np.ndarray:
     """The distance between the trunk's sides (side_columns) on every row of a map; NaN where a row
     does not give both."""
@@ -473,7 +511,9 @@ class DisplacementTracker:
         self._reference: tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]] | None = None
         self._rim: RimModel | None = None
 
-    def add(self, depth_mm: np.ndarray, mask: np.ndarray) -> DisplacementSums:
+    def add(self, depth_mm: np.ndarray, mask: np.ndarray, silhouette: np.ndarray | None = None) -> DisplacementSums:
+        """silhouette: the trunk's mask with the pixels that have no depth (HeadMap.silhouette); with
+        it the reference's sides are placed at its occluding contour (contour_depth_mm)."""
         valid = mask & np.isfinite(depth_mm)
         row_widths = row_widths_px(depth_mm, valid, self.head)
         width = trunk_width_px(depth_mm, valid, self.head, row_widths)
@@ -488,8 +528,10 @@ class DisplacementTracker:
             self._band_px = rim_band_px(depth_mm, valid, self.head, self.rim_band_mm)
             self._rim = rim_model(depth_mm, valid, self.head, self._band_px)
             rim_of_reference, _ = rim_depths(depth_mm, depth_mm, valid, self._band_px)
-            # the trunk widths place the sides (the trunk's widest), which lie deeper than its rim
-            self._side_per_rim = self._rim.side_depth_mm / rim_of_reference
+            # the trunk widths place the sides (its occluding contour), which lie deeper than its rim
+            contour = contour_depth_mm(depth_mm, valid, silhouette, self.head) if silhouette is not None else float("nan")
+            side = contour if np.isfinite(contour) else self._rim.side_depth_mm
+            self._side_per_rim = side / rim_of_reference
         ref_depth, ref_mask, footprint, regions = self._reference
         frame = self._silhouette.frame(valid, row_widths, width / self._reference_width)
         z = frame.resampled(depth_mm, valid, ref_mask.shape, self.head)
