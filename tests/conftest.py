@@ -16,9 +16,12 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 _HOME = Path(os.environ.get("PHOTOPFT_TEST_HOME", "")) if os.environ.get("PHOTOPFT_TEST_HOME") else None
 if _HOME is None:
+    import atexit
+    import shutil
     import tempfile
 
     _HOME = Path(tempfile.mkdtemp(prefix="photopft-test-home-"))
+    atexit.register(shutil.rmtree, _HOME, True)  # each run's settings and records go with it
 for _name in ("XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_STATE_HOME"):
     os.environ[_name] = str(_HOME / _name.lower())
 
