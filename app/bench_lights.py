@@ -47,14 +47,18 @@ def run_rig(subject: VirtualSubject, scale: float, folder: str) -> dict:
     return out
 
 
+def _values(errors: dict, key: str) -> list[float]:
+    """One calibration's errors of a kind (light_errors' keys) over its heads."""
+    return [v for head in errors.values() for v in head.get(key, [])]
+
+
 def _worst(errors: dict, key: str) -> float:
-    values = [v for head in errors.values() if isinstance(head, dict) for v in head.get(key, [])]
+    values = _values(errors, key)
     return max(values) if values else float("nan")
 
 
 def _all(rows: list[dict], label: str) -> np.ndarray:
-    return np.array([v for r in rows if "failed" not in r[label] for head in r[label].values()
-                     for v in head["position_mm"]])
+    return np.array([v for r in rows if "failed" not in r[label] for v in _values(r[label], "position_mm")])
 
 
 def lights_table(rows: list[dict], scale: float, seed: int, elapsed: float, workers: int) -> str:
@@ -78,7 +82,7 @@ def lights_table(rows: list[dict], scale: float, seed: int, elapsed: float, work
             if "failed" in errors:
                 cells.append(f"failed: {errors['failed']}")
                 continue
-            position = [v for h in errors.values() for v in h["position_mm"]]
+            position = _values(errors, "position_mm")
             cells.append(f"{max(position):.1f} / {np.median(position):.1f}")
         matte = r["specular+matte"]
         axis = _worst(matte, "axis_deg") if "failed" not in matte else float("nan")

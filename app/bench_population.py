@@ -174,6 +174,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     """One subject end to end; what each stage gave or why it refused. The lights are calibrated
     from sphere sessions at calibration_scale (default: scale, but no less than CALIBRATION_SCALE)."""
     from core.process import optical_refusal, optical_volume, process_session
+    from core.rig import thesis_rig
     from core.session import SessionFile
     from core.session_analysis import analyse_session
     from core.sim.breathing import ForcedBlow, standard_curve
@@ -190,8 +191,6 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
         out["refused"] = f"light calibration: {exc}"
         return out
     out["led_error_mm"] = {h: e["position_mm"] for h, e in light_errors(calibration, lights).items()}
-    from core.rig import thesis_rig
-
     for name, head in thesis_rig(scale).heads.items():  # lights in mm: the profile serves the subject's pixels too
         calibration.heads[name].extra.update(width=head.width, height=head.height)
     stages["calibrate lights"] = time.perf_counter() - started

@@ -36,6 +36,11 @@ MIN_FLICKER_SNR = 6.0
 MIN_PHASE_SPREAD = 0.3
 
 
+def _steady_and_trend(t: np.ndarray) -> np.ndarray:
+    """The design's columns for a steady level and a linear trend over the window (n, 2)."""
+    return np.column_stack([np.ones(len(t)), (t - t.mean()) / max(float(np.ptp(t)), 1e-9)])
+
+
 def flicker_phase(t_s: np.ndarray, level: np.ndarray, flicker_hz: float) -> tuple[float, float] | None:
     """(amplitude, phase) of the flicker in a series of mean dark levels (DN), fitted with a steady
     level and a linear trend; None when it is not measurable or not above the noise."""
@@ -45,8 +50,7 @@ def flicker_phase(t_s: np.ndarray, level: np.ndarray, flicker_hz: float) -> tupl
     if n < MIN_DARK_FRAMES:
         return None
     w = 2.0 * np.pi * flicker_hz * t
-    centred = t - t.mean()
-    design = np.column_stack([np.ones(n), centred / max(float(np.ptp(t)), 1e-9), np.cos(w), np.sin(w)])
+    design = np.column_stack([_steady_and_trend(t), np.cos(w), np.sin(w)])
     trig = design[:, 2:] - design[:, 2:].mean(axis=0)
     if np.linalg.svd(trig / np.sqrt(n / 2.0), compute_uv=False)[-1] < MIN_PHASE_SPREAD:
         return None
@@ -82,10 +86,6 @@ class FlickerCorrection:
         image = np.asarray(frame)
         self._darks.append((float(t_s), image, float(image.mean(dtype=np.float64))))
 
-    @property
-    def newest_dark_s(self) -> float:
-        return self._darks[-1][0] if self._darks else float("-inf")
-
     def span(self, t_s: float) -> tuple[float, float]:
         """The window of dark frames used for a frame at t_s."""
         if self.centred:
@@ -105,8 +105,7 @@ class FlickerCorrection:
         amplitude, phase = found
         self.amplitudes.append(amplitude / max(float(np.mean([d[2] for d in inside])), 1e-9))
         u = np.cos(2.0 * np.pi * self.flicker_hz * t - phase)
-        centred = t - t.mean()
-        design = np.column_stack([np.ones(len(t)), centred / max(float(np.ptp(t)), 1e-9), u])
+        design = np.column_stack([_steady_and_trend(t), u])
         solve = np.linalg.pinv(design)[2].astype(np.float32)  # the row that gives m(x)
         amplitude_image = np.zeros(inside[0][1].shape, dtype=np.float32)
         for weight, (_, frame, _) in zip(solve, inside):

@@ -525,11 +525,12 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
         by_id = {int(ids[w.newest]): w for w in windows}
         frames = session.frames(head_name)
         reconstructor = HeadReconstructor(head, None, settings)
+        lights, stamps = session.light_index(head_name), session.timestamp_ns(head_name)
         out = []
         for index in frame_indices:
             window = windows[max(0, int(np.searchsorted(ends, index, side="right")) - 1)]
             previous = by_id.get(int(ids[window.newest]) - rig.cycle_length) if motion_compensation else None
-            darks = DarkFeed(frames, session.light_index(head_name), session.timestamp_ns(head_name), rig.mains_hz)
+            darks = DarkFeed(frames, lights, stamps, rig.mains_hz)  # a feed per frame asked: they come in any order
             signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, {}, ids,
                                                    darks.flicker_of(window))
             out.append(reconstructor.reconstruct(signal, saturated, dark))

@@ -441,8 +441,9 @@ def contour_depth_mm(depth_mm: np.ndarray, valid: np.ndarray, silhouette: np.nda
 
     Near an occluding contour a smooth surface's depth goes as the square root of the image
     distance from it: Z = Z_c - a sqrt(d) + b d, d = |u - u_c|, u_c the silhouette's edge (half a
-    pixel outside its outermost pixel), b the next term of the curvature. The maps lack the silhouette's outermost pixels (the far lights graze the
-    surface there and no normal is solved), which hold tens of mm of depth: extrapolating the rim's
+    pixel outside its outermost pixel), b the next term of the curvature. The maps lack the
+    silhouette's outermost pixels (the far lights graze the surface there and no normal is solved),
+    which hold tens of mm of depth: extrapolating the rim's
     band to the side put the maps 22-37 mm too far on a population subject; the contour model
     within 10 mm (docs/reconstruction.md). NaN where fewer than MIN_SIDE_ROWS row sides give one."""
     pixel_mm = float(np.nanmedian(depth_mm[valid])) / head.fx if valid.any() else float("nan")
