@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from datetime import date, datetime, timezone
 from pathlib import Path
 
+from app import audit
 from app.paths import data_dir
 
 SEXES = ("male", "female")
@@ -64,6 +65,44 @@ MIGRATIONS: tuple[str, ...] = (
         PRIMARY KEY (session_id, name, source)
     );
     """,
+    # 2 -> 3: users and roles, the audit trail, report sign-off and amendments, bronchodilator pairs.
+    """
+    CREATE TABLE users (
+        name TEXT PRIMARY KEY,
+        role TEXT NOT NULL CHECK (role IN ('operator', 'clinician', 'engineer')),
+        active INTEGER NOT NULL DEFAULT 1,
+        created TEXT NOT NULL
+    );
+    CREATE TABLE audit_log (
+        id INTEGER PRIMARY KEY,
+        time TEXT NOT NULL,
+        user TEXT NOT NULL,
+        role TEXT NOT NULL,
+        action TEXT NOT NULL,
+        target TEXT NOT NULL,
+        details TEXT NOT NULL,
+        previous_hash TEXT NOT NULL,
+        hash TEXT NOT NULL
+    );
+    CREATE TRIGGER audit_log_no_update BEFORE UPDATE ON audit_log
+    BEGIN SELECT RAISE(ABORT, 'the audit trail is append-only'); END;
+    CREATE TRIGGER audit_log_no_delete BEFORE DELETE ON audit_log
+    BEGIN SELECT RAISE(ABORT, 'the audit trail is append-only'); END;
+    CREATE TABLE reports (
+        session_id INTEGER PRIMARY KEY REFERENCES sessions(id) ON DELETE RESTRICT,
+        comment TEXT NOT NULL DEFAULT '',
+        signed_by TEXT,
+        signed_at TEXT
+    );
+    CREATE TABLE report_amendments (
+        id INTEGER PRIMARY KEY,
+        session_id INTEGER NOT NULL REFERENCES sessions(id) ON DELETE RESTRICT,
+        time TEXT NOT NULL,
+        user TEXT NOT NULL,
+        text TEXT NOT NULL
+    );
+    ALTER TABLE sessions ADD COLUMN pre_session_id INTEGER REFERENCES sessions(id);
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -75,6 +114,18 @@ class RecordsError(ValueError):
 def _fold(text: str | None) -> str:
     """Case-folded text for searches (SQLite's own lower() knows ASCII only)."""
     return text.casefold() if text else ""
+
+
+def _statements(script: str) -> list[str]:
+    """The SQL statements of a script (a trigger's body holds semicolons of its own)."""
+    out, pending = [], ""
+    for part in script.split(";"):
+        pending += part + ";"
+        if sqlite3.complete_statement(pending):
+            if pending.strip(" \n;"):
+                out.append(pending.strip())
+            pending = ""
+    return out
 
 
 def _first_line(exc: Exception) -> str:
@@ -137,6 +188,27 @@ class SessionRecord:
     summary: dict
 
 
+@dataclass(frozen=True)
+class Amendment:
+    time: datetime
+    user: str
+    text: str
+
+
+@dataclass(frozen=True)
+class ReportState:
+    session_id: int
+    session_path: Path
+    comment: str
+    signed_by: str | None
+    signed_at: datetime | None
+    amendments: list[Amendment]
+
+    @property
+    def signed(self) -> bool:
+        return self.signed_by is not None
+
+
 def _create_private(path: Path) -> None:
     """A new database readable by its owner only (0600; SQLite gives its -wal and -shm files the same)."""
     try:
@@ -175,9 +247,11 @@ def _check_patient(family_name: str, sex: str, birth_date: date, height_cm: floa
 class Records:
     """The records database. One connection per thread: open a Records where it is used."""
 
-    def __init__(self, path: str | os.PathLike | None = None, read_only: bool = False):
+    def __init__(self, path: str | os.PathLike | None = None, read_only: bool = False, user: str | None = None):
         """`read_only`: for commands that only look (a list, a history, a report's names): nothing,
-        not even the journal mode or a schema upgrade, is written to the file."""
+        not even the journal mode or a schema upgrade, is written to the file. `user`: who acts
+        (default $PHOTOPFT_USER or the computer account); their role decides what they may do."""
+        self._user = user
         self.path = Path(path) if path is not None else default_path()
         if path is None:
             self.path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -233,9 +307,8 @@ class Records:
                                f"({SCHEMA_VERSION}); update photopft")
         for step in range(version, SCHEMA_VERSION):
             with self.transaction():
-                for statement in MIGRATIONS[step].split(";"):
-                    if statement.strip():
-                        self._db.execute(statement)
+                for statement in _statements(MIGRATIONS[step]):
+                    self._db.execute(statement)
                 self._db.execute(f"PRAGMA user_version = {step + 1}")
 
     def transaction(self):
@@ -269,6 +342,7 @@ class Records:
                 "height_cm, weight_kg, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (pseudonym, number, family_name.strip(), given_name.strip(), sex, birth_date.isoformat(),
                  float(height_cm), float(weight_kg), _now()))
+            self._log("patient registered", f"patient {pseudonym}")
         return self.patient(cursor.lastrowid)
 
     def update_patient(self, patient_id: int, *, height_cm: float | None = None,
@@ -280,6 +354,8 @@ class Records:
         with self.transaction():
             self._db.execute("UPDATE patients SET height_cm = ?, weight_kg = ? WHERE id = ?",
                              (float(height), float(weight), patient_id))
+            self._log("patient edited", f"patient {p.pseudonym}",
+                      {"height_cm": [p.height_cm, float(height)], "weight_kg": [p.weight_kg, float(weight)]})
         return self.patient(patient_id)
 
     _PATIENT_COLUMNS = ("id, pseudonym, patient_number, family_name, given_name, sex, birth_date, height_cm, "
@@ -326,6 +402,7 @@ class Records:
                 "INSERT INTO sessions (patient_id, session_path, recorded, operator, rig, calibration, status) "
                 "VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (patient_id, path, recorded.isoformat(), operator, rig, calibration, status))
+            self._log("session recorded", path, {"operator": operator, "rig": rig, "status": status})
         return int(cursor.lastrowid)
 
     def set_results(self, session_id: int, results_path: str | os.PathLike | None,
@@ -343,6 +420,8 @@ class Records:
                  session_id)).rowcount
             if not updated:
                 raise RecordsError(f"no session with record id {session_id}")
+            self._log("values stored", self._session_path(session_id),
+                      {"results": str(results_path) if results_path else None, "status": status})
             self._db.execute("DELETE FROM session_values WHERE session_id = ?", (session_id,))
             self._db.executemany(
                 "INSERT INTO session_values (session_id, name, source, value) VALUES (?, ?, ?, ?)",
@@ -373,6 +452,135 @@ class Records:
             "SELECT s.recorded, v.value FROM session_values v JOIN sessions s ON s.id = v.session_id "
             "WHERE s.patient_id = ? AND v.name = ? AND v.source = ? ORDER BY s.recorded", (patient_id, name, source))
         return [(datetime.fromisoformat(t), float(v)) for t, v in rows]
+
+    # Who acts, and the audit trail
+    @property
+    def actor(self) -> audit.Actor:
+        return audit.actor_of(self._db, self._user)
+
+    def _log(self, action: str, target: str, details: dict | None = None) -> None:
+        """Inside the transaction that does the action: refused (and rolled back) when the actor's
+        role does not allow it."""
+        try:
+            audit.append(self._db, self.actor, action, target, details)
+        except audit.NotPermitted as exc:
+            raise RecordsError(str(exc)) from exc
+
+    def log(self, action: str, target: str, details: dict | None = None) -> None:
+        """Log an action done outside the database (a calibration saved, an export written)."""
+        with self.transaction():
+            self._log(action, target, details)
+
+    def check_permitted(self, action: str) -> None:
+        """Refuse before the work starts when the actor may not do `action`."""
+        try:
+            audit.check_permitted(self._db, self.actor, action)
+        except audit.NotPermitted as exc:
+            raise RecordsError(str(exc)) from exc
+
+    def audit_trail(self, target: str | None = None, limit: int | None = None) -> list[audit.AuditEntry]:
+        return audit.entries(self._db, target, limit)
+
+    def verify_audit_trail(self) -> str | None:
+        return audit.verify(self._db)
+
+    def add_user(self, name: str, role: str) -> None:
+        """A user with a role. The first user added must be an engineer (who then adds the others)."""
+        name = name.strip()
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.@ -]{0,63}", name):
+            raise RecordsError(f"user name: 1-64 letters, digits, ' ', '.', '_', '@' or '-', got {name!r}")
+        if role not in audit.ROLES:
+            raise RecordsError(f"role: one of {', '.join(audit.ROLES)}, got {role!r}")
+        with self.transaction():
+            if not audit.roles_enforced(self._db) and role != "engineer":
+                raise RecordsError("the first user must be an engineer (roles are enforced from the first user on)")
+            if self._db.execute("SELECT 1 FROM users WHERE name = ?", (name,)).fetchone():
+                raise RecordsError(f"user {name} is already on record")
+            self._log("user added", f"user {name}", {"role": role})
+            self._db.execute("INSERT INTO users (name, role, created) VALUES (?, ?, ?)", (name, role, _now()))
+
+    def users(self) -> list[tuple[str, str]]:
+        return [(r[0], r[1]) for r in self._db.execute("SELECT name, role FROM users WHERE active = 1 ORDER BY name")]
+
+    # Reports: the clinician's comment, sign-off and amendments
+    def _session_path(self, session_id: int) -> str:
+        row = self._db.execute("SELECT session_path FROM sessions WHERE id = ?", (session_id,)).fetchone()
+        if row is None:
+            raise RecordsError(f"no session with record id {session_id}")
+        return str(row[0])
+
+    def report_state(self, session_id: int) -> ReportState:
+        path = self._session_path(session_id)
+        row = self._db.execute("SELECT comment, signed_by, signed_at FROM reports WHERE session_id = ?",
+                               (session_id,)).fetchone()
+        amendments = [Amendment(datetime.fromisoformat(t), u, text) for t, u, text in self._db.execute(
+            "SELECT time, user, text FROM report_amendments WHERE session_id = ? ORDER BY id", (session_id,))]
+        if row is None:
+            return ReportState(session_id, Path(path), "", None, None, amendments)
+        return ReportState(session_id, Path(path), row[0], row[1],
+                           datetime.fromisoformat(row[2]) if row[2] else None, amendments)
+
+    def set_comment(self, session_id: int, comment: str) -> None:
+        """The clinician's comment, while the report is not signed (afterwards: amend)."""
+        state = self.report_state(session_id)
+        if state.signed:
+            raise RecordsError(f"the report of {state.session_path.name} was signed by {state.signed_by} on "
+                               f"{state.signed_at:%Y-%m-%d %H:%M}: it is read-only; add an amendment instead")
+        with self.transaction():
+            self._log("comment edited", str(state.session_path), {"comment": comment})
+            self._db.execute("INSERT INTO reports (session_id, comment) VALUES (?, ?) ON CONFLICT(session_id) "
+                             "DO UPDATE SET comment = excluded.comment", (session_id, comment))
+
+    def sign_report(self, session_id: int) -> ReportState:
+        """Sign the report as the acting clinician; from then on it is read-only."""
+        state = self.report_state(session_id)
+        if state.signed:
+            raise RecordsError(f"the report of {state.session_path.name} is already signed by {state.signed_by}")
+        who = self.actor.name
+        with self.transaction():
+            self._log("report signed", str(state.session_path), {"comment": state.comment})
+            self._db.execute("INSERT INTO reports (session_id, comment, signed_by, signed_at) VALUES (?, ?, ?, ?) "
+                             "ON CONFLICT(session_id) DO UPDATE SET signed_by = excluded.signed_by, "
+                             "signed_at = excluded.signed_at", (session_id, state.comment, who, _now()))
+        return self.report_state(session_id)
+
+    def amend_report(self, session_id: int, text: str) -> None:
+        state = self.report_state(session_id)
+        if not state.signed:
+            raise RecordsError(f"the report of {state.session_path.name} is not signed: edit its comment")
+        if not text.strip():
+            raise RecordsError("an amendment needs its text")
+        with self.transaction():
+            self._log("report amended", str(state.session_path), {"text": text})
+            self._db.execute("INSERT INTO report_amendments (session_id, time, user, text) VALUES (?, ?, ?, ?)",
+                             (session_id, _now(), self.actor.name, text.strip()))
+
+    # Bronchodilator pairs
+    def link_bronchodilator(self, pre_session_id: int, post_session_id: int) -> None:
+        """Mark `post` as the post-bronchodilator session of `pre` (same patient, recorded after it)."""
+        pre, post = self.session(pre_session_id), self.session(post_session_id)
+        if pre.patient_id != post.patient_id:
+            raise RecordsError("pre- and post-bronchodilator sessions must be of the same patient")
+        if post.recorded <= pre.recorded:
+            raise RecordsError(f"the post-bronchodilator session ({post.recorded:%Y-%m-%d %H:%M}) must be recorded "
+                               f"after the pre one ({pre.recorded:%Y-%m-%d %H:%M})")
+        if pre_session_id == post_session_id:
+            raise RecordsError("a session cannot be its own post-bronchodilator session")
+        with self.transaction():
+            self._log("sessions linked", str(post.session_path), {"pre_session": str(pre.session_path)})
+            self._db.execute("UPDATE sessions SET pre_session_id = ? WHERE id = ?", (pre_session_id, post_session_id))
+
+    def session(self, session_id: int) -> SessionRecord:
+        row = self._db.execute(f"SELECT {self._SESSION_COLUMNS} FROM sessions WHERE id = ?",
+                               (session_id,)).fetchone()
+        if row is None:
+            raise RecordsError(f"no session with record id {session_id}")
+        return self._session(row)
+
+    def pre_bronchodilator(self, session_id: int) -> SessionRecord | None:
+        """The pre-bronchodilator session this one follows, if it is a post one."""
+        row = self._db.execute("SELECT pre_session_id FROM sessions WHERE id = ?", (session_id,)).fetchone()
+        return self.session(row[0]) if row and row[0] is not None else None
 
 
 class _Transaction:

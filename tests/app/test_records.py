@@ -74,7 +74,7 @@ def test_migration_from_version_1_keeps_the_rows(tmp_path):
     db.commit()
     db.close()
     with Records(path) as records:
-        assert records.schema_version == SCHEMA_VERSION == 2
+        assert records.schema_version == SCHEMA_VERSION == 3
         p = records.patient_by_pseudonym("P-OLD")
         sid = records.add_session(p.id, tmp_path / "s.h5", datetime.now(timezone.utc))
         records.set_results(sid, None, {"optical": {"TV_l": 0.5}})
