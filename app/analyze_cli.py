@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from app.cli import UserError
+from app.errors import UserError
 
 
 def add_analyze(sub: argparse._SubParsersAction) -> None:

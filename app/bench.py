@@ -403,7 +403,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         from app.bench_population import run_population_bench
 
         if args.subjects < 1:
-            from app.cli import UserError
+            from app.errors import UserError
 
             raise UserError("--subjects must be 1 or more")
         subjects = 2 if args.quick else args.subjects
@@ -432,7 +432,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         from app.bench_lights import run_lights_bench
 
         if args.rigs < 1:
-            from app.cli import UserError
+            from app.errors import UserError
 
             raise UserError("--rigs must be 1 or more")
         workers = max(1, min(args.rigs, args.workers or os.cpu_count() or 1))

@@ -13,16 +13,13 @@ import numpy as np
 
 from core import __version__
 from app.args import _positive, finite, positive
+from app.errors import UserError
 from core.outputs import OutputError, check_output, clear_stop, request_stop
 from core.session import SessionError, SessionFile, validate_session
 
 log = logging.getLogger("photopft")
 
 BLOW_KINDS = ("good", "slow-start", "early-stop", "cough", "weak")
-
-
-class UserError(Exception):
-    """An error the user can act on: printed as one line, exit status 2."""
 
 
 class Terminated(KeyboardInterrupt):
@@ -314,6 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
     from app.emulate_cli import add_emulate
     from app.record_cli import add_record
     from app.records_cli import add_records_verbs
+    from app.review_cli import add_review_verbs
     from app.gui.app import add_gui
 
     add_calibrate(sub)
@@ -323,6 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_emulate(sub)
     add_record(sub)
     add_records_verbs(sub)
+    add_review_verbs(sub)
     add_gui(sub)
     add_demo(sub, run_simulate, describe_session)
     return parser

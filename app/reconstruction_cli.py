@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from app.args import add_force, positive
-from app.cli import UserError
+from app.errors import UserError
 
 
 def _frame_list(text: str) -> list[int]:

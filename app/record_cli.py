@@ -9,7 +9,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 from app.args import positive
-from app.cli import UserError
+from app.errors import UserError
 from core.session import file_write_failed
 from app.progress import Progress
 from drivers.light_phase import LightPhase

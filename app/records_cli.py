@@ -7,7 +7,7 @@ from datetime import date, datetime
 from pathlib import Path
 
 from app.args import add_force, positive
-from app.cli import UserError
+from app.errors import UserError
 
 
 def _records_arg(p: argparse.ArgumentParser) -> None:

@@ -12,13 +12,15 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from app.records import Patient, Records
+from app.records import Patient, Records, ReportState
 from core.analysis import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.pipeline import ReconstructionSettings
 from core.process import maps_at, optical_refusal, optical_volume, session_of_results
 from core.hdf5_probe import probe
+from core.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
+                                 bronchodilator_statement, interpret)
 from core.results import READ_ERRORS, RESULTS_FORMAT, check_results
-from core.reference import Reference
+from core.reference import Reference, ReferenceUnavailable, reference
 from core.session import SessionError, SessionFile
 from core.session_analysis import analyse_session
 from core.volume import body_aligned_displacement, normalised_gradient_volume, torso_rows, trunk_regions
@@ -94,6 +96,27 @@ class Comparison:
 
 
 @dataclass
+class Bronchodilator:
+    """This session as the post-bronchodilator one of `pre_path`."""
+    pre_path: Path
+    pre_recorded: str
+    changes: list[BronchodilatorChange]
+    statement: str
+    pre_best: Manoeuvre | None  # the pre session's best blow, to overlay
+
+
+@dataclass
+class TrendPoint:
+    recorded: str  # ISO date and time of the visit
+    session_name: str
+    values: dict[str, float]  # FEV1_l, FVC_l, FEV1_FVC where stored
+    z: dict[str, float]  # FEV1, FVC, FEV1_FVC where a reference applies
+
+
+TREND_VALUES = (("FEV1", "FEV1_l"), ("FVC", "FVC_l"), ("FEV1_FVC", "FEV1_FVC"))
+
+
+@dataclass
 class ReportData:
     session_path: Path
     results_path: Path | None
@@ -115,6 +138,11 @@ class ReportData:
     maps: list[HeadMaps]
     breath_times_s: tuple[float, float] | None  # end inspiration, end expiration of the mapped breath
     notes: list[str] = field(default_factory=list)
+    interpretation: Interpretation | None = None
+    optical_manoeuvres: list[Manoeuvre] = field(default_factory=list)  # beside the flow sensor's
+    review: ReportState | None = None  # the clinician's comment and sign-off, where the session is on record
+    bronchodilator: Bronchodilator | None = None
+    trend: list[TrendPoint] = field(default_factory=list)
 
     def parameters(self, source: str) -> dict[str, float | str | int]:
         return self.sources[source].parameters() if source in self.sources else {}
@@ -242,6 +270,73 @@ def _head_maps(session_path: Path, session: SessionFile, times_s: tuple[float, f
     return out
 
 
+def _interpretation(main: str | None, sources: dict[str, SessionValues],
+                    references: dict[str, Reference]) -> Interpretation | None:
+    if main is None:
+        return None
+    p = sources[main].parameters()
+    grade = p.get("grade")
+    return interpret({k: float(v) for k, v in p.items() if k in ("FEV1_l", "FVC_l", "FEV1_FVC")}, references,
+                     str(grade) if grade is not None else None, main)
+
+
+def _source_values(summary: dict) -> dict:
+    """A stored session's values: the flow sensor's where it was recorded, else the optical ones."""
+    return summary.get(FLOW_SENSOR) or summary.get(OPTICAL) or {}
+
+
+def _trend(records: Records, patient: Patient, equations: str) -> list[TrendPoint]:
+    out = []
+    for record in records.history(patient.id):
+        values = {key: float(v) for _, key in TREND_VALUES
+                  if isinstance(v := _source_values(record.summary).get(key), (int, float))}
+        if not values:
+            continue
+        z = {}
+        for name, key in TREND_VALUES:
+            if key in values:
+                try:
+                    ref = reference(name, patient.sex, patient.age_years(record.recorded), patient.height_cm,
+                                    equations)
+                except ReferenceUnavailable:
+                    continue
+                z[name] = ref.zscore(values[key])
+        out.append(TrendPoint(record.recorded.isoformat(), record.session_path.name, values, z))
+    return out
+
+
+def _bronchodilator(records: Records, session_id: int, post: dict[str, float], references: dict[str, Reference],
+                    equations: str) -> Bronchodilator | None:
+    pre = records.pre_bronchodilator(session_id)
+    if pre is None:
+        return None
+    pre_values = _source_values(pre.summary)
+    changes = bronchodilator_response(pre_values, post, references)
+    best = None
+    if pre.session_path.is_file():
+        try:
+            pre_data = build_report(pre.results_path or pre.session_path, equations=equations, with_maps=False)
+        except SessionError:
+            pre_data = None
+        chosen = best_manoeuvres(pre_data.manoeuvres, 1) if pre_data is not None else []
+        best = chosen[0] if chosen else None
+    return Bronchodilator(pre.session_path, pre.recorded.isoformat(), changes, bronchodilator_statement(changes), best)
+
+
+def _on_record(data: ReportData, records: Records | None, references: dict[str, Reference]) -> None:
+    """What the records database adds: the clinician's review, the bronchodilator pair, the trend."""
+    if records is None:
+        return
+    record = records.session_by_path(data.session_path)
+    if record is not None:
+        data.review = records.report_state(record.id)
+        post = {k: float(v) for k, v in data.parameters(data.main_source).items()
+                if k in ("FEV1_l", "FVC_l")} if data.main_source else {}
+        data.bronchodilator = _bronchodilator(records, record.id, post, references, data.equations)
+    if data.patient is not None:
+        data.trend = _trend(records, data.patient, data.equations)
+
+
 def _patient(records: Records | None, subject) -> Patient | None:
     if records is None or subject is None:
         return None
@@ -321,5 +416,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
                                                   "height_cm": subject.height_cm, "weight_kg": subject.weight_kg},
             patient=_patient(records, subject), equations=equations, sources=sources, curves=curves,
             main_source=main, rows=rows, tidal_rows=tidal_rows, manoeuvres=manoeuvres,
-            comparison=_compare(curves, events, results_path, start), maps=maps, breath_times_s=breath, notes=notes)
+            comparison=_compare(curves, events, results_path, start), maps=maps, breath_times_s=breath, notes=notes,
+            interpretation=_interpretation(main, sources, analysed.references),
+            optical_manoeuvres=_manoeuvres(sources[OPTICAL]) if OPTICAL in sources and main != OPTICAL else [])
+    _on_record(data, records, analysed.references)
     return data

@@ -236,6 +236,143 @@ def _curves(data: ReportData, width: float) -> tuple[Drawing, str] | None:
     return drawing, key
 
 
+def _interpretation(data: ReportData, styles) -> list:
+    out: list = [Paragraph("Interpretation (ERS/ATS 2022, z-scores)", styles["h2"])]
+    i = data.interpretation
+    if i is None:
+        out.append(Paragraph("No values to interpret.", styles["body"]))
+        return out
+    out.append(Paragraph(f"<b>{_escape(i.summary)}</b>", styles["body"]))
+    out += [Paragraph(_escape(line), styles["small"]) for line in i.statements]
+    out.append(Paragraph("Lower limit of normal at z = −1.645; severity by the FEV1 z-score (mild −1.65 to −2.5, "
+                         "moderate −2.5 to −4, severe below −4). No predicted value exists for PEF in the GLI "
+                         "equations.", styles["small"]))
+    return out
+
+
+def _blows(data: ReportData, styles) -> list:
+    if not data.manoeuvres:
+        return []
+    rows = [["Blow", "FEV1 (L)", "FVC (L)", "Acceptable", "Problems"]]
+    for m in data.manoeuvres:
+        rows.append([str(m.number), fmt(m.fev1_l, "L"), fmt(m.fvc_l, "L"), "yes" if m.acceptable else "no",
+                     Paragraph(_escape("; ".join(m.problems) or "none"), styles["small"])])
+    table = _grid(rows, [12 * mm, 18 * mm, 18 * mm, 20 * mm, 110 * mm], align_from=1)
+    table.setStyle(TableStyle([("ALIGN", (4, 0), (4, -1), "LEFT"), ("ALIGN", (3, 0), (3, -1), "CENTER")]))
+    return [Paragraph(f"Every blow ({data.main_source}), with the ATS/ERS 2019 acceptability", styles["small"]),
+            table]
+
+
+def _loops(data: ReportData, styles, width: float) -> list:
+    """The optical flow-volume loops beside the flow sensor's, on the same axes."""
+    optical, sensor = best_manoeuvres(data.optical_manoeuvres), best_manoeuvres(data.manoeuvres)
+    if not optical or not sensor:
+        return []
+    both = optical + sensor
+    v_range = (0.0, max(float(np.max(m.volume_l)) for m in both) * 1.1)
+    f_range = (0.0, max(float(np.percentile(m.flow_lps, 99.5)) for m in both) * 1.15)
+    half = width / 2 - 4
+    drawing = Drawing(width, 140)
+    for k, (name, blows) in enumerate(((FLOW_SENSOR, sensor), (OPTICAL, optical))):
+        plot = _plot(half, 140, [_decimate(m.volume_l, m.flow_lps, v_range, f_range) for m in blows],
+                     f"exhaled volume (L), {name}", "expiratory flow (L/s)", v_range, f_range)
+        plot.translate(k * (half + 8), 0)
+        drawing.add(plot)
+    return [Paragraph("Flow-volume loops: flow sensor (left) and optical method (right), best blows, same axes",
+                      styles["small"]), drawing]
+
+
+def _bronchodilator(data: ReportData, styles, width: float) -> list:
+    b = data.bronchodilator
+    if b is None:
+        return []
+    out: list = [Paragraph("Bronchodilator response", styles["h2"]),
+                 Paragraph(f"This session is the post-bronchodilator session of {_escape(b.pre_path.name)} "
+                           f"(recorded {_escape(b.pre_recorded[:16].replace('T', ' '))}).", styles["small"]),
+                 Paragraph(_escape(b.statement), styles["body"])]
+    if b.changes:
+        rows = [["", "Pre (L)", "Post (L)", "Change (mL)", "% of predicted", "Response"]]
+        rows += [[c.parameter, fmt(c.pre_l, "L"), fmt(c.post_l, "L"), f"{c.change_ml:+.0f}",
+                  f"{c.change_percent_predicted:+.1f}", "yes" if c.response else "no"] for c in b.changes]
+        out.append(_grid(rows, [20 * mm, 20 * mm, 20 * mm, 24 * mm, 26 * mm, 20 * mm]))
+    post = best_manoeuvres(data.manoeuvres, 1)
+    if b.pre_best is not None and post:
+        blows = [post[0], b.pre_best]
+        t_range = (-0.5, max(6.0, min(15.0, max(float(m.time_s[-1]) for m in blows))))
+        v_range = (0.0, max(float(np.max(m.volume_l)) for m in blows) * 1.1)
+        f_range = (0.0, max(float(np.percentile(m.flow_lps, 99.5)) for m in blows) * 1.15)
+        half = width / 2 - 4
+        drawing = Drawing(width, 130)
+        drawing.add(_plot(half, 130, [_decimate(m.time_s, m.volume_l, t_range, v_range) for m in blows],
+                          "time from time zero (s)", "exhaled volume (L)", t_range, v_range))
+        loop = _plot(half, 130, [_decimate(m.volume_l, m.flow_lps, v_range, f_range) for m in blows],
+                     "exhaled volume (L)", "expiratory flow (L/s)", v_range, f_range)
+        loop.translate(half + 8, 0)
+        drawing.add(loop)
+        out += [drawing, Paragraph("Solid: best blow after the bronchodilator; dashed: best blow before.",
+                                   styles["small"])]
+    return out
+
+
+def _decimal_year(iso: str) -> float:
+    moment = datetime.fromisoformat(iso)
+    start = datetime(moment.year, 1, 1, tzinfo=moment.tzinfo)
+    return moment.year + (moment - start).total_seconds() / (365.25 * 86400)
+
+
+def _trend(data: ReportData, styles, width: float) -> list:
+    out: list = [Paragraph("Trend over the patient's visits", styles["h2"])]
+    if len(data.trend) < 2:
+        out.append(Paragraph("First visit on record: no trend yet." if data.trend else
+                             "No earlier visits on record.", styles["small"]))
+        return out
+    rows = [["Visit", "FEV1 (L)", "z", "FVC (L)", "z", "FEV1/FVC", "z"]]
+    for point in data.trend:
+        cells = [point.recorded[:10]]
+        for name, key in (("FEV1", "FEV1_l"), ("FVC", "FVC_l"), ("FEV1_FVC", "FEV1_FVC")):
+            cells += [fmt(point.values.get(key), "", 2), fmt(point.z.get(name), "", 2)]
+        rows.append(cells)
+    out.append(_grid(rows, [24 * mm] + [18 * mm] * 6))
+    years = [_decimal_year(p.recorded) for p in data.trend]
+    x_range = (min(years) - 0.05, max(years) + 0.05)
+    half = width / 2 - 4
+    litres = [[(x, p.values[key]) for x, p in zip(years, data.trend) if key in p.values] for key in ("FEV1_l", "FVC_l")]
+    zs = [[(x, p.z[name]) for x, p in zip(years, data.trend) if name in p.z] for name in ("FEV1", "FVC", "FEV1_FVC")]
+    drawing = Drawing(width, 120)
+    top = max(v for series in litres for _, v in series) * 1.15 if any(litres) else 1.0
+    if all(litres):
+        drawing.add(_plot(half, 120, litres, "year", "litres", x_range, (0.0, top)))
+    if all(zs):
+        low = min(-3.0, min(v for series in zs for _, v in series) - 0.5)
+        plot = _plot(half, 120, zs + [[(x_range[0], -1.645), (x_range[1], -1.645)]], "year", "z-score", x_range,
+                     (low, 3.0))
+        plot.translate(half + 8, 0)
+        drawing.add(plot)
+    out += [drawing, Paragraph("Left: FEV1 (solid) and FVC (dashed) in litres. Right: z-scores of FEV1 (solid), FVC "
+                               "(dashed) and FEV1/FVC (dotted), with the lower limit of normal (z = −1.645).",
+                               styles["small"])]
+    return out
+
+
+def _review(data: ReportData, styles) -> list:
+    out: list = [Paragraph("Clinician's review", styles["h2"])]
+    r = data.review
+    if r is None:
+        out.append(Paragraph("The session is not on record in the records database: no comment or sign-off.",
+                             styles["small"]))
+        return out
+    out.append(Paragraph("Comment: " + (_escape(r.comment) if r.comment else "none"), styles["body"]))
+    if r.signed:
+        out.append(Paragraph(f"<b>Signed</b> by {_escape(r.signed_by)} on {r.signed_at:%Y-%m-%d %H:%M} UTC; the "
+                             "report is read-only since.", styles["body"]))
+    else:
+        out.append(Paragraph("<b>Not signed</b>: a preliminary report.", styles["body"]))
+    for a in r.amendments:
+        out.append(Paragraph(f"Amendment by {_escape(a.user)} on {a.time:%Y-%m-%d %H:%M} UTC: {_escape(a.text)}",
+                             styles["small"]))
+    return out
+
+
 def _comparison(data: ReportData, styles, width: float) -> list:
     c = data.comparison
     out: list = [Paragraph("Optical method and flow sensor", styles["h2"])]
@@ -384,7 +521,8 @@ def _tidal(data: ReportData, styles) -> list:
 
 
 def write_report(data: ReportData, output: str | os.PathLike, page_size: str = "a4") -> Path:
-    """Write the two-page report; returns its path."""
+    """Write the report (values, interpretation, curves, review and comparison; then maps, regions,
+    tidal indices and trend); returns its path."""
     _register_fonts()
     styles = _styles()
     size = PAGE_SIZES[page_size]
@@ -414,6 +552,7 @@ def write_report(data: ReportData, output: str | os.PathLike, page_size: str = "
     else:
         story.append(_values_table(data))
         story += [Paragraph(line, styles["small"]) for line in _quality_lines(data)]
+    story += _interpretation(data, styles)
     curves = _curves(data, width)
     story.append(Paragraph(f"Forced expirations ({data.main_source or 'none'}): the best manoeuvres",
                            styles["h2"]))
@@ -421,7 +560,11 @@ def write_report(data: ReportData, output: str | os.PathLike, page_size: str = "
         story.append(Paragraph("No forced expiration to show.", styles["body"]))
     else:
         story += [curves[0], Paragraph(curves[1], styles["small"])]
+        story += _blows(data, styles)
+    story += _review(data, styles)
+    story += _bronchodilator(data, styles, width)
     story += _comparison(data, styles, width)
+    story += _loops(data, styles, width)
     if data.notes:
         story.append(Paragraph("Notes", styles["h2"]))
         story += [Paragraph(_escape(note), styles["small"]) for note in data.notes]
@@ -430,6 +573,7 @@ def write_report(data: ReportData, output: str | os.PathLike, page_size: str = "
     story.append(KeepTogether(_regions(data, styles)))
     story.append(Spacer(1, 4))
     story.append(KeepTogether(_tidal(data, styles)))
+    story.append(KeepTogether(_trend(data, styles, width)))
     with atomic_output(output) as partial:
         doc = SimpleDocTemplate(str(partial), pagesize=size, leftMargin=margin, rightMargin=margin,
                                 topMargin=12 * mm, bottomMargin=14 * mm, title="Pulmonary function report",

@@ -27,7 +27,7 @@ def add_gui(sub: argparse._SubParsersAction) -> None:
 def run_gui(args: argparse.Namespace) -> int:
     from PySide6.QtWidgets import QApplication
 
-    from app.cli import UserError
+    from app.errors import UserError
     from app.gui.errors import ENGINE_LOG, install_excepthook, setup_logging
     from app.gui.main_window import MainWindow
     from app.live import replay_source, rig_source

@@ -23,6 +23,13 @@ def _text(pdf) -> list[str]:
     return ["\n".join(" ".join(line.split()) for line in page.splitlines() if line.strip()) for page in pages]
 
 
+def _parts(pdf) -> tuple[str, str]:
+    """(the clinician's pages, the pages from the height maps on)."""
+    pages = _text(pdf)
+    maps = next(k for k, page in enumerate(pages) if "Height maps" in page.splitlines())
+    return "\n".join(pages[:maps]), "\n".join(pages[maps:])
+
+
 def _row(text: str, label: str, unit: str) -> list[str]:
     """The cells after the unit of the values table's row."""
     prefix = f"{label} {unit} " if unit else f"{label} "
@@ -39,7 +46,7 @@ def test_report_numbers_equal_the_results_file(processed_full_session, tmp_path)
                             patient_number="H-77", pseudonym="SIM-0001")
     pdf = tmp_path / "report.pdf"
     assert main(["report", str(results), "-o", str(pdf), "--records", str(records_path)]) == 0
-    page1, page2 = _text(pdf)
+    page1, page2 = _parts(pdf)
     assert "Łukasiewicz-Дмитриев, Zoë Ψ" in page1 and "H-77" in page1  # the embedded font prints every name
     assert "simulated session" in page1
     with h5py.File(results, "r") as r:
@@ -91,7 +98,7 @@ def small_sessions(tmp_path_factory):
 def test_a_session_without_a_flow_sensor_says_so(small_sessions, tmp_path):
     pdf = tmp_path / "r.pdf"
     assert main(["report", str(small_sessions["no-flow"]), "-o", str(pdf)]) == 0
-    page1, page2 = _text(pdf)
+    page1, page2 = _parts(pdf)
     assert "No flow sensor was recorded" in page1
     assert "No volume curve in litres was recorded" in page1
     assert "No forced expiration to show" in page1
@@ -101,7 +108,7 @@ def test_a_session_without_a_flow_sensor_says_so(small_sessions, tmp_path):
 def test_a_front_only_session(small_sessions, tmp_path):
     pdf = tmp_path / "r.pdf"
     assert main(["report", str(small_sessions["front-only"]), "-o", str(pdf)]) == 0
-    page1, page2 = _text(pdf)
+    page1, page2 = _parts(pdf)
     assert "Front head" in page2 and "Back head" not in page2
     assert _row(page1, "Tidal volume", "L")[0] != "–"
     assert "the session has not been processed" in page1.replace("\n", " ").lower()
@@ -110,7 +117,7 @@ def test_a_front_only_session(small_sessions, tmp_path):
 def test_no_acceptable_manoeuvre_is_graded_and_said(small_sessions, tmp_path):
     pdf = tmp_path / "r.pdf"
     assert main(["report", str(small_sessions["bad-blows"]), "-o", str(pdf)]) == 0
-    page1, _ = _text(pdf)
+    page1, _ = _parts(pdf)
     grade = re.search(r"Flow sensor: ATS/ERS 2019 grade (\w)", page1).group(1)
     assert grade in ("E", "U", "F")
     assert "acceptable manoeuvres: 0 for FEV1 and 0 for FVC, of 2" in page1

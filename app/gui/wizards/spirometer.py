@@ -161,7 +161,7 @@ class VolumePage(QWizardPage):
         self.add_files([Path(p) for p in paths])
 
     def add_files(self, paths: list[Path]) -> None:
-        from app.cli import UserError
+        from app.errors import UserError
         from app.reconstruction_cli import regression_samples
 
         self.files += paths
