@@ -329,6 +329,7 @@ def _on_record(data: ReportData, records: Records | None, references: dict[str, 
         return
     record = records.session_by_path(data.session_path)
     if record is not None:
+        data.operator = data.operator or record.operator
         data.review = records.report_state(record.id)
         post = {k: float(v) for k, v in data.parameters(data.main_source).items()
                 if k in ("FEV1_l", "FVC_l")} if data.main_source else {}
