@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import json
+import math
 from pathlib import Path
 
 from app.errors import UserError
@@ -18,6 +20,8 @@ def add_analyze(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--waveform", type=Path, help="a .wf file instead of a session")
     p.add_argument("--equations", choices=("gli-global", "gli-2012"), default="gli-global",
                    help="reference equations (default GLI Global 2022)")
+    p.add_argument("--json", action="store_true", help="the values, references and interpretation as JSON (a "
+                                                       "session or results file), for scripts")
     p.set_defaults(run=run_analyze)
 
 
@@ -62,6 +66,43 @@ ROWS = (("TV_l", "TV", "L"), ("RR_bpm", "RR", "/min"), ("VE_lpm", "VE", "L/min")
 REFERENCE_OF = {"FVC_l": "FVC", "FEV1_l": "FEV1", "FEV1_FVC": "FEV1_FVC", "FEF2575_lps": "FEF2575"}
 
 
+def _plain(value):
+    value = value.item() if hasattr(value, "item") else value
+    return None if isinstance(value, float) and not math.isfinite(value) else value
+
+
+def _as_json(session: Path, results: Path | None, equations: str, report, named, sources) -> dict:
+    from core.interpretation import interpret
+    from core.process import optical_refusal
+
+    main_name, main = sources[0]
+    references = {}
+    for key, name in REFERENCE_OF.items():
+        ref = report.references.get(name)
+        if ref is not None:
+            references[name] = {"predicted": ref.predicted, "lln": ref.lln}
+            if key in main:
+                references[name].update(z=ref.zscore(float(main[key])), percent_predicted=ref.percent(float(main[key])))
+    grade = main.get("grade")
+    verdict = interpret({k: float(v) for k, v in main.items() if k in ("FEV1_l", "FVC_l", "FEV1_FVC")},
+                        report.references, str(grade) if grade is not None else None, main_name)
+    problems = {}
+    for name, values in named:
+        if values is not None:
+            listed = list(values.problems)
+            if values.forced is not None:
+                listed += [f"blow {k}: {'; '.join(m.problems)}"
+                           for k, m in enumerate(values.forced.manoeuvres, start=1) if m.problems]
+            problems[name] = listed
+    return {"session": str(session), "results": str(results) if results is not None else None,
+            "equations": equations, "main_source": main_name,
+            "values": {name: {k: _plain(v) for k, v in values.items()} for name, values in sources},
+            "references": references, "reference_problem": report.reference_problem,
+            "interpretation": {"pattern": verdict.pattern, "severity": verdict.severity, "summary": verdict.summary,
+                               "z": verdict.z, "statements": verdict.statements},
+            "optical_refused": optical_refusal(results) if results is not None else None, "problems": problems}
+
+
 def run_analyze_session(args: argparse.Namespace) -> int:
     """A session file (flow sensor and truth), or a results file (its session, and its optical volume)."""
     from app.report_data import open_inputs
@@ -81,6 +122,10 @@ def run_analyze_session(args: argparse.Namespace) -> int:
         raise UserError(f"{args.session} has neither a flow sensor recording nor a simulation truth to analyse; "
                         "the optical volume comes with `photopft process` (analyse its results file)")
     main = sources[0][1]
+    if args.json:
+        print(json.dumps(_as_json(session, results, args.equations, report, named, sources), indent=2,
+                         ensure_ascii=False))
+        return 0
     header = f"  {'value':<9} {'unit':<6}" + "".join(f"{name:>20}" for name, _ in sources)
     header += f"{'predicted':>11}{'LLN':>8}{'z':>7}{'% pred':>8}"
     print(f"{session}: values from the {sources[0][0]}; reference {args.equations}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import signal
 import sys
@@ -202,53 +203,82 @@ def run_simulate(args: argparse.Namespace) -> int:
 def add_info(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="summarise a session file", description="A human summary of a session file.")
     p.add_argument("session", type=Path)
+    p.add_argument("--json", action="store_true", help="the summary as JSON, for scripts")
     p.set_defaults(run=run_info)
 
 
-def describe_session(path: Path) -> str:
-    lines = []
+def session_summary(path: Path) -> dict:
+    """What `info` says about a session, as plain data (`info --json` prints it)."""
     with SessionFile(path) as s:
-        lines.append(f"{path}: {s.kind} session, created {s.created} by {s.software}")
-        lines.append(f"rig {s.rig.name!r}: {s.rig.frame_rate_hz:.1f} frames/s, cycle {list(s.rig.sequence)}")
+        out: dict = {"path": str(path), "kind": s.kind, "created": s.created, "software": s.software,
+                     "rig": {"name": s.rig.name, "frame_rate_hz": float(s.rig.frame_rate_hz),
+                             "sequence": [int(k) for k in s.rig.sequence]}, "heads": {}}
         for name in s.heads:
             head = s.rig.heads[name]
             n = s.n_frames(name)
             ts = s.timestamp_ns(name)
-            duration = (ts[-1] - ts[0]) / 1e9 + 1 / s.rig.frame_rate_hz if n else 0.0
-            lines.append(f"  {name}: {head.width} x {head.height} px, {head.bit_depth}-bit, f {head.fx:.1f} px, "
-                         f"{n} frames over {duration:.2f} s, {s.lost_frames(name)} lost, lights calibrated "
-                         f"{head.calibrated or 'never'}")
+            out["heads"][name] = {
+                "width_px": int(head.width), "height_px": int(head.height), "bit_depth": int(head.bit_depth),
+                "fx_px": float(head.fx), "frames": int(n), "lost_frames": int(s.lost_frames(name)),
+                "duration_s": float((ts[-1] - ts[0]) / 1e9 + 1 / s.rig.frame_rate_hz) if n else 0.0,
+                "lights_calibrated": head.calibrated or None}
         flow = s.flow
-        if flow is None:
-            lines.append("flow sensor: none")
-        else:
-            calibration = (f"flow = {flow.gain_lps:g} * adc {flow.offset_lps:+g} L/s" if flow.gain_lps is not None
-                           else "uncalibrated")
-            lines.append(f"flow sensor: {flow.sensor}, {flow.n_samples} samples at {flow.sample_rate_hz:g} Hz, "
-                         f"{flow.adc_bits}-bit, {calibration}, {flow.conditions}")
-        if s.subject is not None:
-            sub = s.subject
-            lines.append(f"subject {sub.id}: {sub.sex}, {sub.age_years:g} years, {sub.height_cm:g} cm, "
-                         f"{sub.weight_kg:g} kg")
+        out["flow_sensor"] = None if flow is None else {
+            "sensor": flow.sensor, "samples": int(flow.n_samples), "sample_rate_hz": float(flow.sample_rate_hz),
+            "adc_bits": int(flow.adc_bits), "gain_lps": flow.gain_lps, "offset_lps": flow.offset_lps,
+            "conditions": flow.conditions}
+        sub = s.subject
+        out["subject"] = None if sub is None else {"id": sub.id, "sex": sub.sex, "age_years": float(sub.age_years),
+                                                   "height_cm": float(sub.height_cm),
+                                                   "weight_kg": float(sub.weight_kg)}
         if s.kind == "sphere-calibration":
-            lines.append(f"sphere: radius {float(s.attrs['sphere_radius_mm']):g} mm, {s.attrs['sphere_finish']}")
-        events = s.events()
+            out["sphere"] = {"radius_mm": float(s.attrs["sphere_radius_mm"]), "finish": str(s.attrs["sphere_finish"])}
         start = min((s.timestamp_ns(h)[0] for h in s.heads if s.n_frames(h)), default=0)
-        if events:
-            lines.append("events: " + ", ".join(f"{label} at {(t - start) / 1e9:.2f} s" for t, label in events))
-        else:
-            lines.append("events: none")
+        out["events"] = [{"time_s": float((t - start) / 1e9), "label": label} for t, label in s.events()]
+        out["truth"] = None
         if s.has_truth:
             truth = s.truth()
             volume = np.asarray(truth["volume_l"])
-            lines.append(f"truth: volume {volume.min():+.3f} to {volume.max():+.3f} L; maps at "
-                         + "; ".join(f"{h} {np.asarray(truth[h]['map_frame_index']).tolist()}" for h in s.heads
-                                     if h in truth))
+            out["truth"] = {"volume_min_l": float(volume.min()), "volume_max_l": float(volume.max()),
+                            "map_frames": {h: np.asarray(truth[h]["map_frame_index"]).tolist() for h in s.heads
+                                           if h in truth}}
+    return out
+
+
+def describe_session(path: Path) -> str:
+    info = session_summary(path)
+    rig = info["rig"]
+    lines = [f"{path}: {info['kind']} session, created {info['created']} by {info['software']}",
+             f"rig {rig['name']!r}: {rig['frame_rate_hz']:.1f} frames/s, cycle {rig['sequence']}"]
+    for name, h in info["heads"].items():
+        lines.append(f"  {name}: {h['width_px']} x {h['height_px']} px, {h['bit_depth']}-bit, f {h['fx_px']:.1f} px, "
+                     f"{h['frames']} frames over {h['duration_s']:.2f} s, {h['lost_frames']} lost, lights calibrated "
+                     f"{h['lights_calibrated'] or 'never'}")
+    flow = info["flow_sensor"]
+    if flow is None:
+        lines.append("flow sensor: none")
+    else:
+        calibration = (f"flow = {flow['gain_lps']:g} * adc {flow['offset_lps']:+g} L/s" if flow["gain_lps"] is not None
+                       else "uncalibrated")
+        lines.append(f"flow sensor: {flow['sensor']}, {flow['samples']} samples at {flow['sample_rate_hz']:g} Hz, "
+                     f"{flow['adc_bits']}-bit, {calibration}, {flow['conditions']}")
+    if (sub := info["subject"]) is not None:
+        lines.append(f"subject {sub['id']}: {sub['sex']}, {sub['age_years']:g} years, {sub['height_cm']:g} cm, "
+                     f"{sub['weight_kg']:g} kg")
+    if "sphere" in info:
+        lines.append(f"sphere: radius {info['sphere']['radius_mm']:g} mm, {info['sphere']['finish']}")
+    lines.append("events: " + (", ".join(f"{e['label']} at {e['time_s']:.2f} s" for e in info["events"]) or "none"))
+    if (truth := info["truth"]) is not None:
+        lines.append(f"truth: volume {truth['volume_min_l']:+.3f} to {truth['volume_max_l']:+.3f} L; maps at "
+                     + "; ".join(f"{h} {frames}" for h, frames in truth["map_frames"].items()))
     return "\n".join(lines)
 
 
 def run_info(args: argparse.Namespace) -> int:
-    print(describe_session(args.session))
+    if args.json:
+        print(json.dumps(session_summary(args.session), indent=2, ensure_ascii=False))
+    else:
+        print(describe_session(args.session))
     return 0
 
 

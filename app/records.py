@@ -577,6 +577,12 @@ class Records:
             raise RecordsError(f"no session with record id {session_id}")
         return self._session(row)
 
+    def post_bronchodilator(self, session_id: int) -> SessionRecord | None:
+        """The post-bronchodilator session that follows this one, if it is a pre one."""
+        row = self._db.execute("SELECT id FROM sessions WHERE pre_session_id = ? ORDER BY recorded DESC LIMIT 1",
+                               (session_id,)).fetchone()
+        return self.session(row[0]) if row else None
+
     def pre_bronchodilator(self, session_id: int) -> SessionRecord | None:
         """The pre-bronchodilator session this one follows, if it is a post one."""
         row = self._db.execute("SELECT pre_session_id FROM sessions WHERE id = ?", (session_id,)).fetchone()

@@ -27,15 +27,26 @@ def add_records_verbs(sub: argparse._SubParsersAction) -> None:
     add_force(r)
     r.set_defaults(run=run_report)
 
-    e = sub.add_parser("export", help="a pseudonymised research copy, or CSV of the volume curves and values",
+    e = sub.add_parser("export", help="a research copy, CSV, a FHIR R4 bundle or a GDT 3.0 file",
                        description="--research writes a copy of the session with a study pseudonym; --csv writes "
-                                   "volume.csv and values.csv into a folder.")
-    e.add_argument("input", type=Path, help="a session file (--research) or a session or results file (--csv)")
+                                   "volume.csv and values.csv into a folder; --fhir a FHIR R4 Bundle (Patient, "
+                                   "DiagnosticReport, Observations with LOINC codes) for a hospital system; --gdt a "
+                                   "GDT 3.0 record (6310) for a practice system. Exports are logged in the records' "
+                                   "audit trail.")
+    e.add_argument("input", type=Path, help="a session file (--research) or a session or results file")
     what = e.add_mutually_exclusive_group(required=True)
     what.add_argument("--research", type=Path, metavar="COPY.h5", help="write the pseudonymised copy here")
     what.add_argument("--csv", type=Path, metavar="FOLDER", help="write volume.csv and values.csv here")
+    what.add_argument("--fhir", type=Path, metavar="OUT.json", help="write a FHIR R4 Bundle here")
+    what.add_argument("--gdt", type=Path, metavar="OUT.gdt", help="write a GDT 3.0 record here")
+    e.add_argument("--identified", action="store_true",
+                   help="--fhir: name, birth date and patient number from the records (default: the pseudonym only)")
+    e.add_argument("--receiver", default="PRAXIS", help="--gdt: the practice system's GDT id (field 8315)")
     e.add_argument("--study-key-file", type=Path, help="the study's secret key (16 bytes or more; --research)")
     e.add_argument("--study", default="", help="study name stored in the copy")
+    e.add_argument("--equations", choices=("gli-global", "gli-2012"), default="gli-global")
+    _records_arg(e)
+    e.add_argument("--user", help="who exports (default: $PHOTOPFT_USER or the computer account)")
     add_force(e)
     e.set_defaults(run=run_export)
 
@@ -97,11 +108,66 @@ def run_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _exporting(args: argparse.Namespace, output: Path):
+    """The records database to log the export in (None where there is none): refused before any work
+    when the acting user may not export."""
+    from app.records import Records, RecordsError, default_path
+
+    path = args.records or default_path()
+    if not path.exists():
+        if args.records is not None:
+            raise UserError(f"--records {args.records}: no records database there")
+        return None
+    try:
+        records = Records(path, user=args.user)
+        records.check_permitted("export")
+    except RecordsError as exc:
+        raise UserError(str(exc)) from exc
+    return records
+
+
+def _log_export(records, args: argparse.Namespace, kind: str, output: Path) -> None:
+    if records is not None:
+        records.log("export", str(args.input.resolve()), {kind: str(output.resolve())})
+
+
 def run_export(args: argparse.Namespace) -> int:
+    output = args.research or args.csv or args.fhir or args.gdt
+    records = _exporting(args, output)
+    try:
+        return _export(args, records)
+    finally:
+        if records is not None:
+            records.close()
+
+
+def _export(args: argparse.Namespace, records) -> int:
     from app.export import research_copy, values_csv, volume_csv
     from app.report_data import build_report
     from core.outputs import check_output
 
+    if args.fhir is not None or args.gdt is not None:
+        from app.fhir_export import write_fhir
+        from app.gdt_export import write_gdt
+
+        target = args.fhir or args.gdt
+        check_output(target, [p for p in (args.input, args.records) if p is not None], force=args.force)
+        data = build_report(args.input, records=records, equations=args.equations, with_maps=False)
+        try:
+            if args.fhir is not None:
+                out = write_fhir(data, target, identified=args.identified)
+                warnings: list[str] = []
+            else:
+                out, warnings = write_gdt(data, target, receiver=args.receiver)
+        except ValueError as exc:
+            raise UserError(str(exc)) from exc
+        _log_export(records, args, "fhir" if args.fhir is not None else "gdt", out)
+        print(f"wrote {out}: {'FHIR R4 bundle' if args.fhir is not None else 'GDT 3.0 record'} of the "
+              f"{data.main_source or 'no'} values" + ("" if data.review is None or not data.review.signed else
+                                                      ", signed report"))
+        for warning in warnings:
+            print(f"  warning: {warning}")
+        return 0
     if args.research is not None:
         if args.study_key_file is None:
             raise UserError("--research needs --study-key-file (the study's secret key)")
@@ -111,6 +177,7 @@ def run_export(args: argparse.Namespace) -> int:
             out = research_copy(args.input, args.research, key, args.study)
         except ValueError as exc:
             raise UserError(str(exc)) from exc
+        _log_export(records, args, "research", out)
         print(f"wrote {out}: pseudonymised research copy")
         return 0
     if args.csv.exists() and not args.csv.is_dir():
@@ -124,6 +191,7 @@ def run_export(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     values = values_csv(data, args.csv / "values.csv")
+    _log_export(records, args, "csv", args.csv)
     print(f"wrote {volume} and {values}")
     return 0
 

@@ -142,6 +142,7 @@ class ReportData:
     optical_manoeuvres: list[Manoeuvre] = field(default_factory=list)  # beside the flow sensor's
     review: ReportState | None = None  # the clinician's comment and sign-off, where the session is on record
     bronchodilator: Bronchodilator | None = None
+    post_bronchodilator_session: Path | None = None  # where this is the pre-bronchodilator session of a pair
     trend: list[TrendPoint] = field(default_factory=list)
 
     def parameters(self, source: str) -> dict[str, float | str | int]:
@@ -334,6 +335,8 @@ def _on_record(data: ReportData, records: Records | None, references: dict[str, 
         post = {k: float(v) for k, v in data.parameters(data.main_source).items()
                 if k in ("FEV1_l", "FVC_l")} if data.main_source else {}
         data.bronchodilator = _bronchodilator(records, record.id, post, references, data.equations)
+        follow_up = records.post_bronchodilator(record.id)
+        data.post_bronchodilator_session = follow_up.session_path if follow_up is not None else None
     if data.patient is not None:
         data.trend = _trend(records, data.patient, data.equations)
 

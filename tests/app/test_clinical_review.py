@@ -3,6 +3,7 @@ one patient on record, the review signed, and the report read back: interpretati
 
 from __future__ import annotations
 
+import json
 from datetime import date
 
 import pytest
@@ -69,3 +70,67 @@ def test_review_sign_and_report(visits, tmp_path, capsys, monkeypatch):
                    "comment edited", "report signed", "report amended"):
         assert action in out, action
     assert "the hash chain is whole" in out
+
+
+def test_fhir_gdt_and_json_exports(visits, tmp_path, capsys, monkeypatch):
+    from fhir.resources.R4B.bundle import Bundle
+    from fhir.resources.R4B.diagnosticreport import DiagnosticReport
+    from fhir.resources.R4B.observation import Observation
+    from fhir.resources.R4B.patient import Patient
+
+    from app.gdt_export import read_gdt
+
+    records, pre, post = visits
+    monkeypatch.setenv("PHOTOPFT_USER", "dr-lee")  # a clinician where the review test added users first
+    rec = ["--records", str(records)]
+    out = tmp_path / "pre.json"
+    assert main(["export", str(pre), "--fhir", str(out)] + rec) == 0
+    bundle = json.loads(out.read_text())
+    Bundle.model_validate(bundle)
+    kinds = {"Patient": Patient, "DiagnosticReport": DiagnosticReport, "Observation": Observation}
+    for entry in bundle["entry"]:
+        kinds[entry["resource"]["resourceType"]].model_validate(entry["resource"])
+        # the models check structure and types, not required value sets: the statuses by hand
+        assert entry["resource"].get("status", "final") in ("registered", "preliminary", "final", "amended")
+    resources = [e["resource"] for e in bundle["entry"]]
+    patient = next(r for r in resources if r["resourceType"] == "Patient")
+    assert "name" not in patient and "birthDate" not in patient  # pseudonymous unless asked
+    assert patient["identifier"][0]["value"] == "P-OBST"
+    observations = {c["code"]: r for r in resources if r["resourceType"] == "Observation"
+                    for c in r["code"]["coding"]}
+    assert {"20150-9", "19868-9", "19926-5", "19935-6", "20157-4"} <= set(observations)  # 20157-4: FEV1 pre-BD
+    fev1 = observations["20150-9"]
+    assert fev1["valueQuantity"]["code"] == "L" and fev1["valueQuantity"]["system"] == "http://unitsofmeasure.org"
+    assert {c["code"]["coding"][0]["code"] for c in fev1["component"]} == {"20149-1", "20152-5", "1078210003"}
+    assert fev1["interpretation"][0]["coding"][0]["code"] == "L"  # the pre FEV1 (2.0 L) is below the LLN
+    capsys.readouterr()
+    assert main(["analyze", "--json", str(pre)]) == 0
+    analysis = json.loads(capsys.readouterr().out)
+    assert fev1["valueQuantity"]["value"] == pytest.approx(analysis["values"]["flow sensor"]["FEV1_l"], abs=1e-4)
+    assert analysis["interpretation"]["pattern"] == "obstruction"
+    report = next(r for r in resources if r["resourceType"] == "DiagnosticReport")
+    assert report["code"]["coding"][0]["code"] == "18759-1" and report["status"] == "preliminary"
+    assert len(report["result"]) == len(observations) - 1  # FEV1 carries two codings
+    identified = tmp_path / "identified.json"
+    assert main(["export", str(pre), "--fhir", str(identified), "--identified"] + rec) == 0
+    person = json.loads(identified.read_text())["entry"][0]["resource"]
+    assert person["name"][0]["family"] == "Muster" and person["birthDate"] == "1966-05-01"
+
+    gdt = tmp_path / "post.gdt"
+    assert main(["export", str(post), "--gdt", str(gdt)] + rec) == 0
+    fields = read_gdt(gdt)
+    assert fields[0] == ("8000", "6310") and ("9218", "03.00") in fields
+    assert int(dict(fields)["8100"]) == gdt.stat().st_size
+    assert ("3101", "Muster") in fields and ("3103", "01051966") in fields
+    tests = [content for field, content in fields if field == "8410"]
+    assert tests[:3] == ["FVC", "FEV1", "FEV1FVC"]
+    values = dict(zip(tests, [content for field, content in fields if field == "8420"]))
+    assert float(values["FEV1"]) == pytest.approx(2.6, abs=0.1)
+    assert any(field == "6220" and "bronchodilator" in content for field, content in fields)
+
+    capsys.readouterr()
+    assert main(["info", "--json", str(post)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["subject"]["id"] == "P-OBST" and summary["flow_sensor"]["sample_rate_hz"] == 1000.0
+    assert main(["audit"] + rec) == 0
+    assert capsys.readouterr().out.count("  export  ") == 3

@@ -1,0 +1,121 @@
+"""A session's results as a GDT 3.0 file for practice systems (record type 6310, "transmit examination data").
+
+GDT lines are `LLLFFFFcontent` + CR LF: LLL the line's length in bytes including the three digits
+and the CR LF, FFFF the field identifier. Field 8100 holds the record's length in bytes. Text is
+ISO 8859-15 (field 9206 = 3); a character it cannot hold is written as '?' and reported.
+Each value is one test (8410 identifier, 8411 name, 8420 value, 8421 unit, 8461 the lower limit of
+normal); the interpretation and the clinician's comment are findings text (6220, 6227).
+"""
+
+from __future__ import annotations
+
+import os
+from datetime import datetime
+from pathlib import Path
+
+from app.report_data import ReportData
+from core.outputs import atomic_output
+
+ENCODING = "iso8859_15"
+GDT_VERSION = "03.00"
+SENDER = "PHOTOPFT"
+RECORD_TYPE = "6310"
+# (key in the values, test identifier, name, unit, reference parameter)
+TESTS = (("FVC_l", "FVC", "Forced vital capacity", "L", "FVC"),
+         ("FEV1_l", "FEV1", "Forced expiratory volume in 1 s", "L", "FEV1"),
+         ("FEV1_FVC", "FEV1FVC", "FEV1/FVC", "", "FEV1_FVC"),
+         ("PEF_lps", "PEF", "Peak expiratory flow", "L/s", None),
+         ("FEF2575_lps", "FEF2575", "FEF25-75", "L/s", "FEF2575"),
+         ("VC_l", "VC", "Vital capacity (slow)", "L", None),
+         ("TV_l", "VT", "Tidal volume", "L", None),
+         ("RR_bpm", "AF", "Respiratory rate", "/min", None))
+
+
+def _line(field: str, content: str) -> bytes:
+    body = f"{field}{content}".encode(ENCODING, errors="replace") + b"\r\n"
+    return f"{len(body) + 3:03d}".encode("ascii") + body
+
+
+def _number(value: float, unit: str) -> str:
+    return f"{value:.2f}" if unit in ("L", "L/s", "") else f"{value:.1f}"
+
+
+def gdt_record(data: ReportData, receiver: str = "PRAXIS") -> tuple[bytes, list[str]]:
+    """(the record's bytes, warnings such as characters the character set cannot hold)."""
+    warnings: list[str] = []
+    lines: list[bytes] = [_line("8000", RECORD_TYPE), b"", _line("8315", receiver), _line("8316", SENDER),
+                          _line("9206", "3"), _line("9218", GDT_VERSION)]
+    patient, subject = data.patient, data.subject or {}
+    if patient is not None:
+        lines += [_line("3000", patient.patient_number or patient.pseudonym), _line("3101", patient.family_name)]
+        if patient.given_name:
+            lines.append(_line("3102", patient.given_name))
+        lines.append(_line("3103", patient.birth_date.strftime("%d%m%Y")))
+        for text in (patient.family_name, patient.given_name):
+            try:
+                text.encode(ENCODING)
+            except UnicodeEncodeError:
+                warnings.append(f"the name {text!r} has characters ISO 8859-15 cannot hold: written as '?'")
+    else:
+        lines.append(_line("3000", str(subject.get("id", ""))))
+    if subject.get("sex") in ("male", "female"):
+        lines.append(_line("3110", "1" if subject["sex"] == "male" else "2"))
+    if "height_cm" in subject:
+        lines += [_line("3622", f"{float(subject['height_cm']):.0f}"), _line("3623", f"{float(subject['weight_kg']):.1f}")]
+    try:
+        moment = datetime.fromisoformat(data.recorded)
+        lines += [_line("6200", moment.strftime("%d%m%Y")), _line("6201", moment.strftime("%H%M%S"))]
+    except ValueError:
+        warnings.append(f"the recording time {data.recorded!r} is not a date: 6200/6201 left out")
+    lines.append(_line("8402", "LUFU01"))
+    values = data.parameters(data.main_source) if data.main_source else {}
+    references = {row.reference.parameter: row.reference for row in data.rows if row.reference is not None}
+    for key, ident, name, unit, ref_name in TESTS:
+        if key not in values:
+            continue
+        value = float(values[key])
+        lines += [_line("8410", ident), _line("8411", name), _line("8420", _number(value, unit))]
+        if unit:
+            lines.append(_line("8421", unit))
+        ref = references.get(ref_name) if ref_name else None
+        if ref is not None:
+            lines += [_line("8461", _number(ref.lln, unit)),
+                      _line("8480", f"predicted {_number(ref.predicted, unit)}, z {ref.zscore(value):+.2f}, "
+                                    f"{ref.percent(value):.0f} % predicted")]
+    if data.main_source:
+        lines.append(_line("6220", f"Values from the {data.main_source}."))
+    if data.interpretation is not None:
+        lines.append(_line("6220", f"{data.interpretation.summary} (ERS/ATS 2022)."))
+        lines += [_line("6220", statement) for statement in data.interpretation.statements]
+    if data.bronchodilator is not None:
+        lines.append(_line("6220", data.bronchodilator.statement))
+    if data.review is not None:
+        if data.review.comment:
+            lines.append(_line("6227", data.review.comment))
+        if data.review.signed:
+            lines.append(_line("6227", f"Signed by {data.review.signed_by} on {data.review.signed_at:%Y-%m-%d %H:%M}"))
+    body_length = sum(len(line) for line in lines)
+    total = body_length + len(_line("8100", "00000"))
+    lines[1] = _line("8100", f"{total:05d}")
+    return b"".join(lines), warnings
+
+
+def read_gdt(path: str | os.PathLike) -> list[tuple[str, str]]:
+    """(field, content) of each line, checking each line's length: what a practice system reads."""
+    raw = Path(path).read_bytes()
+    out = []
+    for number, line in enumerate(raw.split(b"\r\n")[:-1], start=1):
+        if len(line) + 2 != int(line[:3]):
+            raise ValueError(f"{path}: line {number} says {int(line[:3])} bytes, has {len(line) + 2}")
+        out.append((line[3:7].decode("ascii"), line[7:].decode(ENCODING)))
+    if not raw.endswith(b"\r\n"):
+        raise ValueError(f"{path}: the last line does not end in CR LF")
+    return out
+
+
+def write_gdt(data: ReportData, output: str | os.PathLike, receiver: str = "PRAXIS") -> tuple[Path, list[str]]:
+    record, warnings = gdt_record(data, receiver)
+    output = Path(output)
+    with atomic_output(output) as partial:
+        Path(partial).write_bytes(record)
+    return output, warnings
