@@ -8,6 +8,7 @@ from datetime import datetime
 from pathlib import Path
 
 from app.paths import config_dir
+from app.records import Records, RecordsError, default_path
 
 RIG_PROFILE = "rig-calibration.json"
 FLOW_PROFILE = "flow-calibration.json"
@@ -30,3 +31,28 @@ def keep_previous(path: Path) -> Path | None:
         k += 1
     shutil.move(path, kept)
     return kept
+
+
+class CalibrationRefused(RecordsError):
+    """The acting user may not save a calibration (roles are enforced in the records)."""
+
+
+def calibration_audit(records_path: Path | None = None, user: str | None = None) -> Records | None:
+    """The records database that logs calibrations (None where there is none yet); raises
+    CalibrationRefused before any work when the acting user is not an engineer."""
+    path = records_path or default_path()
+    if not path.exists():
+        return None
+    records = Records(path, user=user)
+    try:
+        records.check_permitted("calibration saved")
+    except RecordsError as exc:
+        records.close()
+        raise CalibrationRefused(str(exc)) from exc
+    return records
+
+
+def log_calibration(records: Records | None, kind: str, saved: Path, previous: Path | None = None) -> None:
+    if records is not None:
+        records.log("calibration saved", str(Path(saved).resolve()),
+                    {"kind": kind, "previous": str(previous) if previous else None})

@@ -62,17 +62,39 @@ def add_calibrate(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=lambda args: p.print_help() or 2)
 
 
+def _calibration_audit():
+    """The records database that logs the calibration; refused before any work for a user who may
+    not calibrate (roles enforced)."""
+    from app.calibration_store import calibration_audit
+    from app.records import RecordsError
+
+    try:
+        return calibration_audit()
+    except RecordsError as exc:
+        raise UserError(str(exc)) from exc
+
+
+def _logged(audit, kind: str, saved: Path) -> None:
+    from app.calibration_store import log_calibration
+
+    if audit is not None:
+        with audit:
+            log_calibration(audit, kind, saved)
+
+
 def run_calibrate_lights(args: argparse.Namespace) -> int:
     from core.light_calibration import calibrate_lights
     from core.lights import CalibrationError
     from core.outputs import check_output
 
     check_output(args.output, args.sessions, force=args.force)
+    audit = _calibration_audit()
     try:
         calibration, reports = calibrate_lights(args.sessions, args.prior_sigma_mm, args.max_residual_mm)
     except CalibrationError as exc:
         raise UserError(str(exc)) from exc
     calibration.save(args.output)
+    _logged(audit, "lights", args.output)
     for report in reports:
         cal = calibration.heads[report.head]
         print(f"{report.head}: {report.placements} placements, "
@@ -236,12 +258,14 @@ def run_calibrate_flow(args: argparse.Namespace) -> int:
     from core.session import now_iso
 
     check_output(args.output, [args.source], force=args.force)
+    audit = _calibration_audit()
     means, flows = steady_flows(args.source)
     try:
         profile = fit_flow(means, flows, created=now_iso(), sources=[args.source.name])
     except CalibrationProfileError as exc:
         raise UserError(f"{args.source}: {exc}") from exc
     save_profile(profile, args.output)
+    _logged(audit, "flow sensor", args.output)
     print(f"flow (L/s) = {profile.gain_lps:.6g} * adc {profile.offset_lps:+.6g}; R^2 {profile.r_squared:.5f}; "
           f"{profile.points} steady flows from {profile.range_lps[0]:g} to {profile.range_lps[1]:g} L/s; "
           f"largest residual {max(abs(r) for r in profile.residuals_lps):.4f} L/s")
@@ -291,6 +315,7 @@ def run_calibrate_volume(args: argparse.Namespace) -> int:
     from core.session import now_iso
 
     check_output(args.output, args.results, force=args.force)
+    audit = _calibration_audit()
     features, volumes, names = [], [], []
     for path in args.results:
         x, pv, name = regression_samples(path)
@@ -302,6 +327,7 @@ def run_calibrate_volume(args: argparse.Namespace) -> int:
     except CalibrationProfileError as exc:
         raise UserError(f"{args.source}: {exc}") from exc
     save_profile(profile, args.output)
+    _logged(audit, "volume", args.output)
     print(f"phi = {np.array2string(profile.phi, precision=6)}; r = {profile.correlation:.4f}, "
           f"R^2 = {profile.r_squared:.4f} over {profile.samples} samples from {len(names)} session(s)")
     print(f"wrote {args.output}")

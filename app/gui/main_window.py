@@ -310,9 +310,25 @@ class MainWindow(QMainWindow):
         QThreadPool.globalInstance().start(job)
         return job
 
+    def _may_calibrate(self) -> bool:
+        """Only engineers calibrate where roles are enforced: said before the wizard's work starts."""
+        from app.calibration_store import calibration_audit
+        from app.records import RecordsError
+
+        try:
+            records = calibration_audit()
+        except RecordsError as exc:
+            show_error(self, "You may not calibrate the rig.", str(exc))
+            return False
+        if records is not None:
+            records.close()
+        return True
+
     def sphere_calibration(self) -> None:
         from app.gui.wizards.sphere import SphereCalibrationWizard, capture_from_rig
 
+        if not self._may_calibrate():
+            return
         heads = tuple(self.info.heads)
         scale = self.info.rig.heads["front"].width / 1400.0
         capture = None if self.info.simulated else capture_from_rig(self)
@@ -323,7 +339,8 @@ class MainWindow(QMainWindow):
     def spirometer_calibration(self) -> None:
         from app.gui.wizards.spirometer import SpirometerCalibrationWizard
 
-        SpirometerCalibrationWizard(self).exec()
+        if self._may_calibrate():
+            SpirometerCalibrationWizard(self).exec()
 
     def open_settings(self) -> None:
         from app.gui.settings_dialog import SettingsDialog

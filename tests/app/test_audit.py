@@ -111,3 +111,30 @@ def test_bronchodilator_pair(tmp_path):
         records.link_bronchodilator(pre, post)
         assert records.pre_bronchodilator(post).id == pre
         assert records.pre_bronchodilator(pre) is None
+
+
+def test_calibrations_are_logged_and_need_an_engineer(tmp_path, monkeypatch, capsys):
+    """`photopft calibrate flow` against the records in the user's data folder: refused for an operator
+    before anything is written, logged for the engineer."""
+    from app.cli import main
+    from app.records import default_path
+
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))  # users here must not reach other tests' records
+    csv = tmp_path / "steps.csv"
+    csv.write_text("reference_lps,adc_mean\n-4,1500\n0,2048\n2,2315\n6,2848\n")
+    path = default_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with Records(path, user="ed") as records:
+        records.add_user("ed", "engineer")
+        records.add_user("otto", "operator")
+    monkeypatch.setenv("PHOTOPFT_USER", "otto")
+    out = tmp_path / "flow.json"
+    assert main(["calibrate", "flow", str(csv), "-o", str(out)]) == 2
+    assert "calibration saved: otto is an operator; this needs the role engineer" in capsys.readouterr().err
+    assert not out.exists()
+    monkeypatch.setenv("PHOTOPFT_USER", "ed")
+    assert main(["calibrate", "flow", str(csv), "-o", str(out)]) == 0
+    with Records(path, read_only=True) as records:
+        entry = records.audit_trail()[-1]
+        assert (entry.action, entry.user, entry.target, entry.details["kind"]) == \
+            ("calibration saved", "ed", str(out.resolve()), "flow sensor")

@@ -19,7 +19,8 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout, QLabel, QListWidget, QPushButton,
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWizard, QWizardPage)
 
-from app.calibration_store import RIG_PROFILE, calibration_dir, keep_previous
+from app.calibration_store import RIG_PROFILE, calibration_audit, calibration_dir, keep_previous, log_calibration
+from app.records import RecordsError
 from app.gui.errors import show_error
 from core.outputs import next_free_path
 
@@ -273,11 +274,19 @@ class SphereCalibrationWizard(QWizard):
         self.profile_dir.mkdir(parents=True, exist_ok=True)
         target = self.profile_dir / RIG_PROFILE
         try:
+            audit = calibration_audit()
+        except RecordsError as exc:
+            show_error(self, "The calibration profile cannot be saved.", str(exc))
+            return
+        try:
             kept = keep_previous(target)
             calibration.save(target)
         except OSError as exc:
             show_error(self, "The calibration profile cannot be saved.", f"{exc}. Check the folder's permissions.")
             return
+        if audit is not None:
+            with audit:
+                log_calibration(audit, "lights (sphere wizard)", target, kept)
         self.saved_to = target
         self.previous = kept
         super().accept()

@@ -13,7 +13,9 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QCheckBox, QDoubleSpinBox, QFileDialog, QFormLayout, QHBoxLayout, QLabel, QListWidget,
                                QPushButton, QTableWidget, QTableWidgetItem, QVBoxLayout, QWizard, QWizardPage)
 
-from app.calibration_store import FLOW_PROFILE, VOLUME_PROFILE, calibration_dir, keep_previous
+from app.calibration_store import (FLOW_PROFILE, VOLUME_PROFILE, calibration_audit, calibration_dir, keep_previous,
+                                   log_calibration)
+from app.records import RecordsError
 from app.gui.errors import show_error
 from core.calibration import CalibrationProfileError, fit_flow, fit_volume
 from core.flow import btps_factor
@@ -232,17 +234,27 @@ class SpirometerCalibrationWizard(QWizard):
         flow["room"] = {"temperature_c": c.temperature.value(), "pressure_hpa": c.pressure.value(),
                         "humidity_pct": c.humidity.value(), "btps_factor": c.btps()}
         try:
+            audit = calibration_audit()
+        except RecordsError as exc:
+            show_error(self, "The calibration profiles cannot be saved.", str(exc))
+            return
+        try:
             target = self.profile_dir / FLOW_PROFILE
-            keep_previous(target)
+            kept = [keep_previous(target)]
             write_text_atomic(target, json.dumps(flow, indent=2) + "\n")
             self.saved = [target]
             volume = self.volume_page.calibration
             if self.volume_page.enabled.isChecked() and volume is not None:
                 target = self.profile_dir / VOLUME_PROFILE
-                keep_previous(target)
+                kept.append(keep_previous(target))
                 write_text_atomic(target, json.dumps(volume.to_json(), indent=2) + "\n")
                 self.saved.append(target)
         except OSError as exc:
             show_error(self, "The calibration profiles cannot be saved.", f"{exc}. Check the folder's permissions.")
             return
+        if audit is not None:
+            with audit:
+                for saved, previous in zip(self.saved, kept):
+                    log_calibration(audit, "flow sensor" if saved.name == FLOW_PROFILE else "volume", saved,
+                                    previous)
         super().accept()
