@@ -458,6 +458,10 @@ class Records:
     def actor(self) -> audit.Actor:
         return audit.actor_of(self._db, self._user)
 
+    @property
+    def roles_enforced(self) -> bool:
+        return audit.roles_enforced(self._db)
+
     def _log(self, action: str, target: str, details: dict | None = None) -> None:
         """Inside the transaction that does the action: refused (and rolled back) when the actor's
         role does not allow it."""

@@ -281,27 +281,45 @@ def _interpretation(main: str | None, sources: dict[str, SessionValues],
                      str(grade) if grade is not None else None, main)
 
 
-def _source_values(summary: dict) -> dict:
-    """A stored session's values: the flow sensor's where it was recorded, else the optical ones."""
-    return summary.get(FLOW_SENSOR) or summary.get(OPTICAL) or {}
+def references_on(patient: Patient, day, equations: str) -> dict[str, Reference]:
+    """FEV1, FVC and FEV1/FVC references of a patient on a day (their age then, their height on record)."""
+    out = {}
+    for name, _ in TREND_VALUES:
+        try:
+            out[name] = reference(name, patient.sex, patient.age_years(day), patient.height_cm, equations)
+        except ReferenceUnavailable:
+            continue
+    return out
 
 
-def _trend(records: Records, patient: Patient, equations: str) -> list[TrendPoint]:
+def stored_interpretation(patient: Patient, values: dict, recorded, source: str,
+                          equations: str = "gli-global") -> Interpretation:
+    """The interpretation of values kept in the records (a session's summary), with the references
+    at the patient's age on the day it was recorded."""
+    references = references_on(patient, recorded, equations)
+    grade = values.get("grade")
+    numbers = {k: float(v) for k, v in values.items()
+               if k in ("FEV1_l", "FVC_l", "FEV1_FVC") and isinstance(v, (int, float))}
+    return interpret(numbers, references, str(grade) if grade is not None else None, source)
+
+
+def source_values(summary: dict) -> tuple[str, dict]:
+    """(source, values) of a stored session: the flow sensor's where it was recorded, else the optical ones."""
+    if summary.get(FLOW_SENSOR):
+        return FLOW_SENSOR, summary[FLOW_SENSOR]
+    return OPTICAL, summary.get(OPTICAL) or {}
+
+
+def trend_points(records: Records, patient: Patient, equations: str) -> list[TrendPoint]:
     out = []
     for record in records.history(patient.id):
         values = {key: float(v) for _, key in TREND_VALUES
-                  if isinstance(v := _source_values(record.summary).get(key), (int, float))}
+                  if isinstance(v := source_values(record.summary)[1].get(key), (int, float))}
         if not values:
             continue
-        z = {}
-        for name, key in TREND_VALUES:
-            if key in values:
-                try:
-                    ref = reference(name, patient.sex, patient.age_years(record.recorded), patient.height_cm,
-                                    equations)
-                except ReferenceUnavailable:
-                    continue
-                z[name] = ref.zscore(values[key])
+        references = references_on(patient, record.recorded, equations)
+        z = {name: references[name].zscore(values[key]) for name, key in TREND_VALUES
+             if key in values and name in references}
         out.append(TrendPoint(record.recorded.isoformat(), record.session_path.name, values, z))
     return out
 
@@ -311,7 +329,7 @@ def _bronchodilator(records: Records, session_id: int, post: dict[str, float], r
     pre = records.pre_bronchodilator(session_id)
     if pre is None:
         return None
-    pre_values = _source_values(pre.summary)
+    pre_values = source_values(pre.summary)[1]
     changes = bronchodilator_response(pre_values, post, references)
     best = None
     if pre.session_path.is_file():
@@ -338,7 +356,7 @@ def _on_record(data: ReportData, records: Records | None, references: dict[str, 
         follow_up = records.post_bronchodilator(record.id)
         data.post_bronchodilator_session = follow_up.session_path if follow_up is not None else None
     if data.patient is not None:
-        data.trend = _trend(records, data.patient, data.equations)
+        data.trend = trend_points(records, data.patient, data.equations)
 
 
 def _patient(records: Records | None, subject) -> Patient | None:

@@ -54,6 +54,23 @@ class Stall:
     preempted: int  # times the kernel took the CPU from the GUI thread meanwhile (involuntary switches)
 
 
+def acting_user_text() -> str:
+    """Who the records will say acted, and their role (roles are enforced once users are registered)."""
+    from app.audit import UNREGISTERED, login_name
+    from app.records import Records, RecordsError, default_path
+
+    name, role, enforced = login_name(), UNREGISTERED, False
+    if default_path().exists():
+        try:
+            with Records(read_only=True) as records:
+                role, enforced = records.actor.role, records.roles_enforced
+        except RecordsError:
+            pass
+    if not enforced:
+        return f"User: {name} (roles not enforced)"
+    return f"User: {name} ({'not registered: may only look' if role == UNREGISTERED else role})"
+
+
 def _thread_switches() -> int:
     try:
         return resource.getrusage(resource.RUSAGE_THREAD).ru_nivcsw
@@ -162,6 +179,8 @@ class MainWindow(QMainWindow):
         self._build_actions()
         self.status_label = QLabel()
         self.statusBar().addPermanentWidget(self.status_label)
+        self.user_label = QLabel(acting_user_text())
+        self.statusBar().addPermanentWidget(self.user_label)
         self.stalls = StallMonitor(self)
         self.timer = QTimer(self)
         self.timer.setInterval(DISPLAY_INTERVAL_MS)
@@ -199,18 +218,24 @@ class MainWindow(QMainWindow):
                                        "Light positions from a specular sphere (engineer)")
         self.act_spiro = self._action("S&pirometer calibration…", self.spirometer_calibration, None,
                                       "Flow sensor and volume calibration (engineer)")
+        self.act_records = self._action("Patient &records…", self.open_records, "Ctrl+R",
+                                        "Visits, trends, interpretation, comment and sign-off (clinician)")
+        self.act_audit = self._action("&Audit trail…", self.open_audit, None,
+                                      "Who did what when, with the check of its hash chain")
         self.act_settings = self._action("&Settings…", self.open_settings, "Ctrl+,")
         self.act_quit = self._action("&Quit", self.close, QKeySequence.StandardKey.Quit)
         menu = self.menuBar()
         session = menu.addMenu("&Session")
-        for a in (self.act_patient, self.act_open, self.act_live, self.act_report):
+        for a in (self.act_patient, self.act_open, self.act_live, self.act_records, self.act_report):
             session.addAction(a)
         session.addSeparator()
         session.addAction(self.act_quit)
         calibrate = menu.addMenu("&Calibration")
         calibrate.addAction(self.act_sphere)
         calibrate.addAction(self.act_spiro)
-        menu.addMenu("&Tools").addAction(self.act_settings)
+        tools = menu.addMenu("&Tools")
+        tools.addAction(self.act_audit)
+        tools.addAction(self.act_settings)
         toolbar = self.addToolBar("Main")
         toolbar.setObjectName("main-toolbar")
         for a in (self.act_patient, self.act_open, self.act_live, self.act_report):
@@ -341,6 +366,33 @@ class MainWindow(QMainWindow):
 
         if self._may_calibrate():
             SpirometerCalibrationWizard(self).exec()
+
+    def open_records(self) -> None:
+        from app.gui.records_view import RecordsWindow
+        from app.records import Records, RecordsError
+
+        try:
+            records = Records()
+        except RecordsError as exc:
+            show_error(self, "The patient records cannot be opened.", str(exc))
+            return
+        with records:
+            RecordsWindow(self, records, str(self.settings.value("reference/equations", "gli-global"))).exec()
+
+    def open_audit(self) -> None:
+        from app.gui.records_view import AuditWindow
+        from app.records import Records, RecordsError, default_path
+
+        if not default_path().exists():
+            show_error(self, "There is no audit trail yet.", "It starts with the first patient put on record.")
+            return
+        try:
+            records = Records(read_only=True)
+        except RecordsError as exc:
+            show_error(self, "The audit trail cannot be opened.", str(exc))
+            return
+        with records:
+            AuditWindow(self, records).exec()
 
     def open_settings(self) -> None:
         from app.gui.settings_dialog import SettingsDialog

@@ -27,6 +27,33 @@ def _grab(widget: QWidget, path: Path) -> None:
     print(f"wrote {path}")
 
 
+def _records_windows(app, records, folder: Path, out: Path) -> None:
+    """The records window on the patient just recorded, with two earlier visits made up for the
+    picture (values only, no session files) so that the trend has points."""
+    from datetime import datetime, timezone
+
+    from app.gui.records_view import AuditWindow, RecordsWindow
+
+    patient = records.find_patients("Nowak")[0]
+    for year, fev1, fvc in ((2024, 2.95, 3.72), (2025, 2.81, 3.66)):
+        sid = records.add_session(patient.id, folder / f"earlier-{year}.h5",
+                                  datetime(year, 10, 14, 10, tzinfo=timezone.utc), operator="example")
+        records.set_results(sid, None, {"flow sensor": {"FEV1_l": fev1, "FVC_l": fvc, "FEV1_FVC": fev1 / fvc,
+                                                        "grade": "A"}})
+    window = RecordsWindow(None, records)
+    window.show()
+    window.comment.setPlainText("Stable compared with last year.")
+    window.save_comment.click()
+    _wait(app, 0.5)
+    _grab(window, out / "records-window.png")
+    window.close()
+    audit = AuditWindow(None, records)
+    audit.show()
+    _wait(app, 0.3)
+    _grab(audit, out / "audit-trail.png")
+    audit.close()
+
+
 def main(out: Path) -> int:
     from app.gui.main_window import MainWindow
     from app.gui.wizards.patient_session import PatientSessionWizard
@@ -81,6 +108,8 @@ def main(out: Path) -> int:
     _wait(app, 0.5)
     _grab(wizard, out / "patient-6-review.png")
     wizard.accept()
+
+    _records_windows(app, records, folder, out)
 
     sphere = SphereCalibrationWizard(window, ("front", "back"), 0.25, profile_dir=folder / "cal")
     sphere.show()
