@@ -130,7 +130,8 @@ def test_a_whole_patient_session(qtbot, tmp_path):
         assert "Blow 1: FVC" in feedback and "acceptable" in feedback
         assert "Grade" in feedback or "another blow" in feedback
         review = wizard.currentPage()
-        assert "FVC_l" in review.summary.toPlainText()
+        text = review.summary.toPlainText()
+        assert "FVC\nL\n" in text and "Predicted" in text and "(ERS/ATS 2022)" in text  # labels, not keys
         wizard.accept()
     finally:
         engine.stop()

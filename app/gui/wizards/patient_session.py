@@ -328,6 +328,33 @@ class ManoeuvrePage(QWizardPage):
         return self.count >= 1
 
 
+def review_html(parameters: dict, problems: list[str], patient: Patient | None) -> str:
+    """The flow sensor's values as the report names them, with predicted values, z-scores and the
+    ERS/ATS 2022 interpretation."""
+    from app.report_data import MAIN_ROWS, references_on, stored_interpretation
+
+    now = datetime.now(timezone.utc)
+    references = references_on(patient, now, "gli-global") if patient else {}
+    rows = ["<tr><th align=left>Value</th><th>Unit</th><th>Measured</th><th>Predicted</th><th>LLN</th><th>z</th></tr>"]
+    for key, label, unit, ref_name in MAIN_ROWS:
+        if key not in parameters:
+            continue
+        value = float(parameters[key])
+        ref = references.get(ref_name) if ref_name else None
+        extra = (f"<td align=right>{ref.predicted:.2f}</td><td align=right>{ref.lln:.2f}</td>"
+                 f"<td align=right>{ref.zscore(value):+.2f}</td>") if ref else "<td></td><td></td><td></td>"
+        rows.append(f"<tr><td>{label}</td><td>{unit}</td><td align=right>{value:.2f}</td>{extra}</tr>")
+    html = "<table cellspacing=0 cellpadding=3>" + "".join(rows) + "</table>"
+    if "grade" in parameters:
+        html += (f"<p>ATS/ERS 2019 grade <b>{parameters['grade']}</b>: {parameters['acceptable_FEV1']} acceptable "
+                 f"FEV1 and {parameters['acceptable_FVC']} acceptable FVC of {parameters['manoeuvres']} blows.</p>")
+    if patient is not None:
+        verdict = stored_interpretation(patient, parameters, now, "flow sensor")
+        html += f"<p><b>{verdict.summary}</b> (ERS/ATS 2022)<br>" + "<br>".join(verdict.statements) + "</p>"
+    html += "".join(f"<p>Note: {p}</p>" for p in problems)
+    return html
+
+
 class ReviewPage(QWizardPage):
     def __init__(self, engine: Engine) -> None:
         super().__init__()
@@ -340,14 +367,10 @@ class ReviewPage(QWizardPage):
 
     def initializePage(self) -> None:  # noqa: N802
         values = self.engine.recorded_values(self.wizard().age_years())
-        lines = []
         if values is None:
-            lines.append("No flow sensor: the values come with processing and the report.")
-        else:
-            for key, value in values.parameters().items():
-                lines.append(f"{key}: {value:.3f}" if isinstance(value, float) else f"{key}: {value}")
-            lines += [f"note: {p}" for p in values.problems]
-        self.summary.setPlainText("\n".join(lines))
+            self.summary.setPlainText("No flow sensor: the values come with processing and the report.")
+            return
+        self.summary.setHtml(review_html(values.parameters(), values.problems, self.wizard().patient_page.patient()))
 
 
 class PatientSessionWizard(QWizard):
@@ -386,6 +409,11 @@ class PatientSessionWizard(QWizard):
         self.session_path = next_free_path(self.sessions_dir / f"{patient.pseudonym}-{now:%Y%m%d-%H%M%S}.h5")
         subject = SubjectRecord(**patient.subject_attrs(now))
         kind = "simulation" if self.engine.info.simulated else "patient"
+        try:
+            self.records.check_permitted("session recorded")  # before the engine records anything
+        except RecordsError as exc:
+            show_error(self, "The recording cannot start.", str(exc))
+            return False
         try:
             self.engine.start_recording(self.session_path, subject, kind=kind, heads=self.heads(),
                                         root_attrs={"operator": self.operator} if self.operator else None)
