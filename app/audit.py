@@ -31,7 +31,6 @@ PERMISSIONS: dict[str, tuple[str, ...]] = {
     "patient edited": ("operator", "clinician"),
     "session recorded": ROLES,
     "values stored": ROLES,
-    "values edited": ("clinician",),
     "sessions linked": ("clinician",),
     "comment edited": ("clinician",),
     "report signed": ("clinician",),

@@ -119,6 +119,8 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--led-mu", type=finite, default=0.0, help="LED anisotropy exponent (0 = isotropic)")
     c.add_argument("--drop-rate", type=finite, default=0.0, help="fraction of frames lost (gaps in frame_id)")
     c.add_argument("--no-flow", action="store_true", help="no flow sensor recording")
+    c.add_argument("--created", type=_iso_time, help="the session's recording time, ISO 8601 with a time zone "
+                                                     "(default now), for a simulated patient history")
     c.add_argument("--truth-maps-at", type=_float_list, help="frame indices of the true maps (default: five)")
     k = p.add_argument_group("sphere calibration scenes")
     k.add_argument("--placements", type=int, default=7, help="sphere placements (>= 2)")
@@ -126,6 +128,19 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace an existing file that is not a session (a recorded session is never replaced)")
     p.set_defaults(run=run_simulate)
+
+
+def _iso_time(text: str) -> str:
+    from datetime import datetime
+
+    try:
+        moment = datetime.fromisoformat(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected an ISO 8601 time such as 2026-11-26T09:00:00+00:00, got "
+                                         f"{text!r}") from exc
+    if moment.tzinfo is None:
+        raise argparse.ArgumentTypeError(f"{text!r} has no time zone (add +00:00 or Z)")
+    return moment.isoformat(timespec="seconds")
 
 
 def run_simulate(args: argparse.Namespace) -> int:
@@ -181,7 +196,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         led_intensity_spread=args.led_intensity_spread, led_mu=args.led_mu,
         flow_sensor=None if args.no_flow else FlowSensorModel(), drop_rate=args.drop_rate,
         truth_maps_at=args.truth_maps_at, sphere_radius_mm=args.sphere_radius_mm, placements=args.placements,
-        skin_type=args.skin_type)
+        skin_type=args.skin_type, created=args.created)
     config = in_world(config, args.world)
     from app.progress import Progress
 
