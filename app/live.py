@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from core.ambient import FLICKER_WINDOW_S, FlickerCorrection
-from core.binning import bin_any, bin_mean, binned_head, live_binning
+from core.binning import bin_any, bin_mean, binned_head, working_binning
 from core.flow import btps_factor
 from core.metric_volume import LiveMetricVolume
 from core.pipeline import HeadReconstructor, ReconstructionSettings
@@ -293,9 +293,9 @@ class LiveRig:
         n = int(WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length * 2) + 10
         self._optical = collections.deque(maxlen=n)
         self._gradient = {h: 0.0 for h in source.cameras}
-        # each head reconstructed binned to about LIVE_MAP_WIDTH_PX wide (core/binning.py);
+        # each head reconstructed binned to about WORKING_WIDTH_PX wide (core/binning.py);
         # recordings keep every pixel
-        self._binning = {h: live_binning(self.rig.heads[h]) for h in source.cameras}
+        self._binning = {h: working_binning(self.rig.heads[h]) for h in source.cameras}
         self._live_heads = {h: binned_head(self.rig.heads[h], self._binning[h]) for h in source.cameras}
         self._metric = LiveMetricVolume(self._live_heads, self.rig.baseline_mm)
         self._metric_curve = collections.deque(maxlen=n)

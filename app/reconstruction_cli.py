@@ -130,6 +130,9 @@ def add_process(sub: argparse._SubParsersAction) -> None:
                    help="slide the cycle window by N frames (default: a cycle's length, each light cycle once; "
                         "1: a map at every frame)")
     p.add_argument("--heads", choices=("front", "back", "both"), default="both")
+    p.add_argument("--full-resolution", action="store_true",
+                   help="reconstruct the stream from every pixel (default: binned to about 350 px wide, as the "
+                        "live view does; --maps-at maps keep every pixel either way)")
     p.add_argument("--workers", type=int, default=None,
                    help="processes reconstructing at once, one head each (default: one per core for a "
                         "session long enough to repay starting them)")
@@ -186,7 +189,8 @@ def run_process(args: argparse.Namespace) -> int:
                                       settings=settings, heads=heads, every=args.every,
                                       motion_compensation=not args.no_motion_compensation,
                                       volume_calibration=volume_calibration, progress=progress,
-                                      workers=args.workers, distance_from=args.distance_from)
+                                      workers=args.workers, distance_from=args.distance_from,
+                                      binning=1 if args.full_resolution else None)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     for name, n in summary.maps.items():

@@ -111,6 +111,7 @@ class TrendPoint:
     session_name: str
     values: dict[str, float]  # FEV1_l, FVC_l, FEV1_FVC where stored
     z: dict[str, float]  # FEV1, FVC, FEV1_FVC where a reference applies
+    post_bronchodilator: bool = False  # kept out of the trend's lines, which follow the baseline
 
 
 TREND_VALUES = (("FEV1", "FEV1_l"), ("FVC", "FVC_l"), ("FEV1_FVC", "FEV1_FVC"))
@@ -320,7 +321,8 @@ def trend_points(records: Records, patient: Patient, equations: str) -> list[Tre
         references = references_on(patient, record.recorded, equations)
         z = {name: references[name].zscore(values[key]) for name, key in TREND_VALUES
              if key in values and name in references}
-        out.append(TrendPoint(record.recorded.isoformat(), record.session_path.name, values, z))
+        out.append(TrendPoint(record.recorded.isoformat(), record.session_path.name, values, z,
+                              records.pre_bronchodilator(record.id) is not None))
     return out
 
 

@@ -320,37 +320,55 @@ def _decimal_year(iso: str) -> float:
     return moment.year + (moment - start).total_seconds() / (365.25 * 86400)
 
 
+def _year_month(year: float) -> str:
+    whole = int(math.floor(year))
+    return f"{whole}-{min(12, int((year - whole) * 12) + 1):02d}"
+
+
 def _trend(data: ReportData, styles, width: float) -> list:
     out: list = [Paragraph("Trend over the patient's visits", styles["h2"])]
+    baseline = [p for p in data.trend if not p.post_bronchodilator]
     if len(data.trend) < 2:
         out.append(Paragraph("First visit on record: no trend yet." if data.trend else
                              "No earlier visits on record.", styles["small"]))
         return out
-    rows = [["Visit", "FEV1 (L)", "z", "FVC (L)", "z", "FEV1/FVC", "z"]]
+    rows = [["Visit", "", "FEV1 (L)", "z", "FVC (L)", "z", "FEV1/FVC", "z"]]
     for point in data.trend:
-        cells = [point.recorded[:10]]
+        cells = [point.recorded[:10], "post-BD" if point.post_bronchodilator else ""]
         for name, key in (("FEV1", "FEV1_l"), ("FVC", "FVC_l"), ("FEV1_FVC", "FEV1_FVC")):
             cells += [fmt(point.values.get(key), "", 2), fmt(point.z.get(name), "", 2)]
         rows.append(cells)
-    out.append(_grid(rows, [24 * mm] + [18 * mm] * 6))
-    years = [_decimal_year(p.recorded) for p in data.trend]
-    x_range = (min(years) - 0.05, max(years) + 0.05)
-    half = width / 2 - 4
-    litres = [[(x, p.values[key]) for x, p in zip(years, data.trend) if key in p.values] for key in ("FEV1_l", "FVC_l")]
-    zs = [[(x, p.z[name]) for x, p in zip(years, data.trend) if name in p.z] for name in ("FEV1", "FVC", "FEV1_FVC")]
-    drawing = Drawing(width, 120)
-    top = max(v for series in litres for _, v in series) * 1.15 if any(litres) else 1.0
-    if all(litres):
-        drawing.add(_plot(half, 120, litres, "year", "litres", x_range, (0.0, top)))
-    if all(zs):
-        low = min(-3.0, min(v for series in zs for _, v in series) - 0.5)
-        plot = _plot(half, 120, zs + [[(x_range[0], -1.645), (x_range[1], -1.645)]], "year", "z-score", x_range,
-                     (low, 3.0))
-        plot.translate(half + 8, 0)
-        drawing.add(plot)
-    out += [drawing, Paragraph("Left: FEV1 (solid) and FVC (dashed) in litres. Right: z-scores of FEV1 (solid), FVC "
-                               "(dashed) and FEV1/FVC (dotted), with the lower limit of normal (z = −1.645).",
-                               styles["small"])]
+    out.append(_grid(rows, [24 * mm, 16 * mm] + [18 * mm] * 6))
+    if len(baseline) >= 2:
+        years = [_decimal_year(p.recorded) for p in baseline]
+        span = max(years) - min(years)
+        x_range = (min(years) - 0.05 * span - 0.02, max(years) + 0.05 * span + 0.02)
+        half = width / 2 - 4
+        litres = [[(x, p.values[key]) for x, p in zip(years, baseline) if key in p.values]
+                  for key in ("FEV1_l", "FVC_l")]
+        zs = [[(x, p.z[name]) for x, p in zip(years, baseline) if name in p.z] for name in ("FEV1", "FVC", "FEV1_FVC")]
+        drawing = Drawing(width, 120)
+        for k, (series, label, y_range) in enumerate((
+                (litres, "litres", (0.0, max((v for s in litres for _, v in s), default=1.0) * 1.15)),
+                (zs, "z-score", (min(-3.0, min((v for s in zs for _, v in s), default=0.0) - 0.5), 3.0)))):
+            if not all(series):
+                continue
+            lln = [[(x_range[0], -1.645), (x_range[1], -1.645)]] if label == "z-score" else []
+            plot = _plot(half, 120, series + lln, "visit", label, x_range, y_range)
+            line_plot = plot.contents[0]
+            line_plot.xValueAxis.labelTextFormat = _year_month
+            for j in range(len(series)):
+                line_plot.lines[j].symbol = makeMarker("Circle", size=3)
+            if lln:
+                line_plot.lines[len(series)].strokeColor = colors.Color(0.6, 0.6, 0.6)
+                line_plot.lines[len(series)].strokeWidth = 0.6
+                line_plot.lines[len(series)].strokeDashArray = (1, 1)
+            plot.translate(k * (half + 8), 0)
+            drawing.add(plot)
+        out += [drawing, Paragraph("Baseline visits (post-bronchodilator sessions are in the table only). Left: "
+                                   "FEV1 (solid) and FVC (dashed) in litres. Right: z-scores of FEV1 (solid), FVC "
+                                   "(dashed) and FEV1/FVC (dotted); the grey line is the lower limit of normal "
+                                   "(z = −1.645).", styles["small"])]
     return out
 
 
@@ -562,7 +580,7 @@ def write_report(data: ReportData, output: str | os.PathLike, page_size: str = "
         story += [curves[0], Paragraph(curves[1], styles["small"])]
         story += _blows(data, styles)
     story += _review(data, styles)
-    story += _bronchodilator(data, styles, width)
+    story.append(KeepTogether(_bronchodilator(data, styles, width)))
     story += _comparison(data, styles, width)
     story += _loops(data, styles, width)
     if data.notes:

@@ -33,8 +33,8 @@ def add_review_verbs(sub: argparse._SubParsersAction) -> None:
     add = verbs.add_parser("add", help="a user with a role")
     add.add_argument("name")
     add.add_argument("--role", choices=("operator", "clinician", "engineer"), required=True)
-    _common(add)
-    _common(verbs.add_parser("list", help="the users and their roles"))
+    verbs.add_parser("list", help="the users and their roles")
+    _common(u)  # before the action, as for `photopft patients`
     u.set_defaults(run=run_users)
 
     a = sub.add_parser("audit", help="the audit trail: who did what when; --verify checks its hash chain")

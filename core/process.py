@@ -14,6 +14,7 @@ from scipy import ndimage
 
 from core import __version__
 from core.ambient import FlickerCorrection
+from core.binning import bin_any, bin_mean, binned_head, working_binning
 from core.metric_volume import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, side_targets,
                                  tidal_compartments)
 from core.photometric import CycleWindow, complete_cycles
@@ -167,9 +168,11 @@ class DarkFeed:
     """A head's dark frames, handed to its FlickerCorrection (core/ambient.py) as the cycles move on:
     `flicker_of(window)` gives each frame's flicker, fitted on the dark frames around that cycle."""
 
-    def __init__(self, frames: h5py.Dataset, light_index: np.ndarray, timestamp_ns: np.ndarray, mains_hz: float) -> None:
+    def __init__(self, frames: h5py.Dataset, light_index: np.ndarray, timestamp_ns: np.ndarray, mains_hz: float,
+                 binning: int = 1) -> None:
         self.correction = FlickerCorrection(2.0 * mains_hz)
         self._frames = frames
+        self._binning = binning
         self._t = np.asarray(timestamp_ns, dtype=np.int64) / 1e9
         self._darks = np.flatnonzero(np.asarray(light_index) == DARK)
         self._dark_t = self._t[self._darks]
@@ -181,7 +184,7 @@ class DarkFeed:
         self._next = max(self._next, int(np.searchsorted(self._dark_t, start)))
         while self._next < len(self._darks) and self._dark_t[self._next] <= stop:
             j = int(self._darks[self._next])
-            self.correction.add_dark(float(self._t[j]), self._frames[j])
+            self.correction.add_dark(float(self._t[j]), bin_mean(self._frames[j], self._binning))
             self._next += 1
         return lambda i: self.correction.excess(float(self._t[i]), t_cycle)
 
@@ -193,35 +196,36 @@ class DarkFeed:
 
 
 def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindow | None, max_value: int,
-                  cache: dict[int, np.ndarray], frame_id: np.ndarray,
-                  flicker: Callable[[int], np.ndarray | None] | None = None,
+                  cache: dict[int, tuple[np.ndarray, np.ndarray]], frame_id: np.ndarray,
+                  flicker: Callable[[int], np.ndarray | None] | None = None, binning: int = 1,
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each light's frame minus the dark frame; with `previous` (the cycle one period earlier),
     each light is first brought to the newest frame's instant by linear extrapolation along
     frame_id: the subject moves within a cycle (a forced expiration moves the chest millimetres
     in 45 ms) and the thesis' static assumption would mix five instants into one normal.
-    `flicker` (DarkFeed.flicker_of) gives the room light's flicker in a frame, taken out first."""
-    def frame(i: int) -> np.ndarray:
+    `flicker` (DarkFeed.flicker_of, binned alike) gives the room light's flicker in a frame, taken
+    out first. `binning`: frames averaged over binning x binning blocks (core/binning.py); a bin
+    with a saturated pixel is saturated. `cache` keeps each frame read (binned, and its saturation)."""
+    def frame(i: int) -> tuple[np.ndarray, np.ndarray]:
         if i not in cache:
-            cache[i] = frames[i]
+            raw = frames[i]
+            cache[i] = (bin_mean(raw, binning), bin_any(raw >= max_value, binning))
         return cache[i]
 
     def level(i: int) -> np.ndarray:
-        image = frame(i).astype(np.float64)
+        image = frame(i)[0]
         excess = flicker(i) if flicker is not None else None
         return image if excess is None else image - excess
 
     dark_frame = level(window.dark)
-    raw = [frame(i) for i in window.lit]
-    saturated = np.stack([r >= max_value for r in raw])
+    saturated = np.stack([frame(i)[1] for i in window.lit])
     signal = np.stack([level(i) for i in window.lit])
     if previous is not None:
         newest = int(frame_id[window.newest])
         for k, (now, before) in enumerate(zip(window.lit, previous.lit)):
             period = int(frame_id[now]) - int(frame_id[before])
             ahead = (newest - int(frame_id[now])) / period
-            old = frame(before)
-            saturated[k] |= old >= max_value
+            saturated[k] |= frame(before)[1]
             # The change over one period, smoothed: motion changes shading smoothly, the noise
             # is per pixel and would be amplified by the extrapolation.
             change = ndimage.gaussian_filter(signal[k] - level(before), MOTION_SMOOTHING_PX)
@@ -234,7 +238,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                     settings: ReconstructionSettings | None = None, heads: list[str] | None = None,
                     every: int | None = None, motion_compensation: bool = True, volume_calibration=None,
                     progress: Callable[[float], None] | None = None, workers: int | None = 1,
-                    distance_from: str = "heads") -> ProcessSummary:
+                    distance_from: str = "heads", binning: int | None = None) -> ProcessSummary:
     """Reconstruct every complete light cycle of each head: windows of one cycle's frames, sliding
     by `every` frames (default: the cycle's length, each cycle once; 1: a map at every frame).
     distance_from: "heads" (two heads and a baseline: each map scaled to the distance the two
@@ -242,6 +246,9 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
     "photometric" (each head's own photometric fit, core/distance.py).
     `workers` > 1 reconstructs the heads in that many processes at once (one head each, at most);
     None: one per core when the work repays starting them (AUTO_WORKERS_PIXEL_MAPS).
+    `binning`: the stream reconstructed on binning x binning bins; None: each head binned to about
+    WORKING_WIDTH_PX wide, as the live view does (core/binning.py); 1: every pixel. Maps asked for
+    in `maps_at` keep every pixel either way.
 
     Maps "at frame i" come from the newest complete cycle ending at frame i; frames asked for
     in `maps_at` that end no complete cycle are reported as an error.
@@ -269,6 +276,10 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
         for name in names:
             if name not in rig.heads:
                 raise SessionError(f"{session_path} has no head {name!r} (heads: {', '.join(session.heads)})")
+        if binning is not None and binning < 1:
+            raise ValueError("binning must be 1 or more")
+        factors = {name: binning or working_binning(rig.heads[name]) for name in names}
+        stream_heads = {name: binned_head(rig.heads[name], factors[name]) for name in names}
         maps_at = sorted(set(maps_at or []))
         counts, distances, displacements, occluded, out_of_view, areas = {}, {}, {}, {}, {}, {}
         with atomic_output(output) as partial, h5py.File(partial, "w") as out:
@@ -307,7 +318,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 survey = {name: _survey_windows(complete[name], rig.frame_rate_hz) for name in names}
                 total_windows += sum(len(w) for w in survey.values())
             if workers is None:
-                work = sum(len(plans[n]) * rig.heads[n].width * rig.heads[n].height for n in names)
+                work = sum(len(plans[n]) * stream_heads[n].width * stream_heads[n].height for n in names)
                 workers = (os.cpu_count() or 1) if work >= AUTO_WORKERS_PIXEL_MAPS else 1
             done_before = 0
 
@@ -318,7 +329,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             geometric, offsets = {}, {}
             if geometry:
                 jobs = [_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name], motion_compensation,
-                                 ()) for name in names]
+                                 (), binning=factors[name]) for name in names]
                 geometric, offsets = _geometric_pass(out, jobs, rig.baseline_mm, workers,
                                                      lambda f: overall(f, sum(len(w) for w in survey.values())))
                 done_before = sum(len(w) for w in survey.values())
@@ -330,7 +341,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                     t, d = geometric[name]
                     distances_mm = np.interp(np.array([stamps[w.newest] for w in plans[name]], dtype=float), t, d)
                 jobs.append(_HeadJob(Path(session_path), rig, name, plans[name], settings, pseudo[name],
-                                     motion_compensation, tuple(maps_at), distances_mm))
+                                     motion_compensation, tuple(maps_at), distances_mm, factors[name]))
             pass_windows = sum(len(plans[n]) for n in names)
             for result in _run_heads(jobs, workers, lambda f: overall(f, pass_windows)):
                 name, head = result.name, rig.heads[result.name]
@@ -343,6 +354,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 g.create_dataset("occluded_side_share", data=result.occluded_side_share)
                 g.create_dataset("side_out_of_view_share", data=result.side_out_of_view_share)
                 g.attrs["ambient_flicker"] = result.ambient_flicker
+                g.attrs["binning"] = np.int64(factors[name])  # the stream's; valid_pixels count its bins
                 m = g.create_group("maps")
                 m.create_dataset("frame_index", data=np.asarray(result.saved_index, dtype=np.int64))
                 shape = (0, head.height, head.width)
@@ -356,7 +368,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                                    else float("nan"))
                 occluded[name] = result.occluded_side_share
                 out_of_view[name] = result.side_out_of_view_share
-                areas[name] = trunk_area_m2(result.valid_pixels, result.distance_mm, head)
+                areas[name] = trunk_area_m2(result.valid_pixels, result.distance_mm, stream_heads[name])
             refused = (distance_refusal(distances) or coverage_refusal(areas)
                        or occlusion_refusal(occluded, out_of_view))
             if refused is not None:
@@ -389,6 +401,7 @@ class _HeadJob:
     motion_compensation: bool
     maps_at: tuple[int, ...]
     distances_mm: np.ndarray | None = None  # each window's subject distance, when known from elsewhere
+    binning: int = 1  # the stream reconstructed on binning x binning bins (maps_at frames at full resolution)
 
 
 @dataclass
@@ -412,8 +425,10 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
     """Reconstructs one head's windows in order (the running distance and the displacement tracker
     follow the stream); `tick` after each."""
     rig, name = job.rig, job.name
-    head = rig.heads[name]
+    full_head = rig.heads[name]
+    head = binned_head(full_head, job.binning)
     reconstructor = HeadReconstructor(head, job.pseudo_light_vectors, job.settings)
+    full_reconstructor = None  # the maps asked for at full resolution, when the stream is binned
     tracker = DisplacementTracker(head)
     rows: dict[str, list] = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": [],
                              "valid_pixels": [], "occluded_side_share": [], "side_out_of_view_share": []}
@@ -424,8 +439,8 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
         ids = session.frame_id(name)
         all_windows = {int(ids[w.newest]): w for w in complete_cycles(session.light_index(name), ids,
                                                                        rig.cycle_length)}
-        cache: dict[int, np.ndarray] = {}
-        darks = DarkFeed(frames, session.light_index(name), stamps, rig.mains_hz)
+        cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        darks = DarkFeed(frames, session.light_index(name), stamps, rig.mains_hz, job.binning)
         for number, window in enumerate(job.windows):
             stop_if_requested()
             for stale in [k for k in cache if k < window.newest - 2 * rig.cycle_length]:
@@ -433,7 +448,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             previous = (all_windows.get(int(ids[window.newest]) - rig.cycle_length)
                         if job.motion_compensation else None)
             signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids,
-                                                   darks.flicker_of(window))
+                                                   darks.flicker_of(window), job.binning)
             known = job.distances_mm[number] if job.distances_mm is not None else np.nan
             result = reconstructor.reconstruct(signal, saturated, dark, float(known) if np.isfinite(known) else None)
             rows["timestamp_ns"].append(stamps[window.newest])
@@ -445,9 +460,17 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                 rows[key].append(result.extra.get(key, np.nan))
             sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette))
             if window.newest in job.maps_at:
+                full = result
+                if job.binning > 1:
+                    full_reconstructor = full_reconstructor or HeadReconstructor(full_head, job.pseudo_light_vectors,
+                                                                                 job.settings)
+                    full_darks = DarkFeed(frames, session.light_index(name), stamps, rig.mains_hz)
+                    full = full_reconstructor.reconstruct(
+                        *cycle_signal(frames, window, previous, head.max_value, {}, ids,
+                                      full_darks.flicker_of(window)), float(result.distance_mm))
                 saved_index.append(window.newest)
-                saved_normals.append(result.normals.astype(np.float32))
-                saved_depth.append(result.depth_mm.astype(np.float32))
+                saved_normals.append(full.normals.astype(np.float32))
+                saved_depth.append(full.depth_mm.astype(np.float32))
             tick()
     return _HeadResult(name, np.asarray(rows["timestamp_ns"], dtype=np.int64),
                        np.asarray(rows["frame_index"], dtype=np.int64),

@@ -43,8 +43,8 @@ def test_review_sign_and_report(visits, tmp_path, capsys, monkeypatch):
     records, pre, post = visits
     monkeypatch.setenv("PHOTOPFT_USER", "dr-lee")
     rec = ["--records", str(records)]
-    assert main(["users", "add", "ed", "--role", "engineer", "--user", "ed"] + rec) == 0
-    assert main(["users", "add", "dr-lee", "--role", "clinician", "--user", "ed"] + rec) == 0
+    assert main(["users", "--user", "ed"] + rec + ["add", "ed", "--role", "engineer"]) == 0
+    assert main(["users", "--user", "ed"] + rec + ["add", "dr-lee", "--role", "clinician"]) == 0
     assert main(["review", str(post), "--post-bronchodilator-of", str(pre), "--comment",
                  "Reversible obstruction; asthma likely."] + rec) == 0
     assert main(["review", str(post), "--sign", "--user", "otto"] + rec) == 2

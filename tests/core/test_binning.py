@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.binning import bin_all, bin_any, bin_mean, binned_head, live_binning
+from core.binning import bin_all, bin_any, bin_mean, binned_head, working_binning
 from core.rig import thesis_head
 
 
@@ -33,7 +33,7 @@ def test_bins_average_and_a_saturated_pixel_spoils_its_bin():
     assert bin_all(inside, 2).tolist() == [[True, True, True], [True, True, False]]
 
 
-def test_live_binning_brings_a_head_near_the_live_width():
-    assert [live_binning(thesis_head(scale=s)) for s in (0.25, 0.5, 1.0)] == [1, 2, 4]
+def test_working_binning_brings_a_head_near_the_live_width():
+    assert [working_binning(thesis_head(scale=s)) for s in (0.25, 0.5, 1.0)] == [1, 2, 4]
     with pytest.raises(ValueError, match="positive whole number"):
         binned_head(thesis_head(scale=0.25), 0)

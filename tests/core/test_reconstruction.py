@@ -449,3 +449,22 @@ def test_two_heads_take_the_subject_distance_from_their_geometry_where_glossy_sk
     with h5py.File(tmp_path / "g.h5", "r") as r:
         assert r.attrs["distance_from"].startswith("two heads")
         assert len(r["heads/front/photometric_survey/geometric_distance_mm"]) >= 2 and "metric_volume" in r
+
+
+def test_a_binned_stream_keeps_full_resolution_maps(small_session, tmp_path):
+    """The stream on 2 x 2 bins (as `process` does by default above WORKING_WIDTH_PX): its rows say
+    so, the maps asked for keep every pixel, and the distance agrees with the unbinned stream."""
+    plain = tmp_path / "plain.h5"
+    binned = tmp_path / "binned.h5"
+    process_session(small_session, plain, maps_at=[9], binning=1)
+    process_session(small_session, binned, maps_at=[9], binning=2)
+    with h5py.File(plain) as a, h5py.File(binned) as b, SessionFile(small_session) as s:
+        head = s.rig.heads["front"]
+        assert b["heads/front"].attrs["binning"] == 2 and a["heads/front"].attrs["binning"] == 1
+        assert b["heads/front/maps/depth_mm"].shape == (1, head.height, head.width)
+        shapes = [m - np.nanmedian(m) for m in (a["heads/front/maps/depth_mm"][0], b["heads/front/maps/depth_mm"][0])]
+        assert np.nanpercentile(np.abs(shapes[0] - shapes[1]), 95) < 2.0  # the same surface; the distance is the stream's
+        ratio = b["heads/front/valid_pixels"][:].mean() / a["heads/front/valid_pixels"][:].mean()
+        assert 0.2 < ratio < 0.3  # bins, a quarter of the pixels
+        # 70 px wide bins, far below the working width: within 2 %
+        assert abs(np.nanmedian(b["heads/front/distance_mm"][:]) - np.nanmedian(a["heads/front/distance_mm"][:])) < 40
