@@ -36,6 +36,8 @@ def visits(tmp_path_factory):
                                            created=f"2026-11-02T{hour:02d}:00:00+00:00"))
         assert main(["patients", "--records", str(records), "register", str(sessions[name]), "--operator",
                      "otto"]) == 0
+    assert main(["review", str(sessions["post"]), "--post-bronchodilator-of", str(sessions["pre"]), "--records",
+                 str(records)]) == 0
     return records, sessions["pre"], sessions["post"]
 
 
@@ -45,8 +47,7 @@ def test_review_sign_and_report(visits, tmp_path, capsys, monkeypatch):
     rec = ["--records", str(records)]
     assert main(["users", "--user", "ed"] + rec + ["add", "ed", "--role", "engineer"]) == 0
     assert main(["users", "--user", "ed"] + rec + ["add", "dr-lee", "--role", "clinician"]) == 0
-    assert main(["review", str(post), "--post-bronchodilator-of", str(pre), "--comment",
-                 "Reversible obstruction; asthma likely."] + rec) == 0
+    assert main(["review", str(post), "--comment", "Reversible obstruction; asthma likely."] + rec) == 0
     assert main(["review", str(post), "--sign", "--user", "otto"] + rec) == 2
     assert "report signed: otto is not a registered user; this needs the role clinician" in capsys.readouterr().err
     assert main(["review", str(post), "--sign"] + rec) == 0
