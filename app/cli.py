@@ -352,6 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     from app.reconstruction_cli import add_calibrate, add_process
 
     from app.analyze_cli import add_analyze
+    from app.batch import add_batch
     from app.bench import add_bench
     from app.emulate_cli import add_emulate
     from app.record_cli import add_record
@@ -362,6 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_calibrate(sub)
     add_process(sub)
     add_analyze(sub)
+    add_batch(sub)
     add_bench(sub)
     add_emulate(sub)
     add_record(sub)
