@@ -350,8 +350,11 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     rec = what.add_parser("record", help="record from two fake GigE cameras and the simulated rig")
     rec.add_argument("--seconds", type=positive, default=60.0)
     rec.add_argument("--rate", type=positive, default=110.0, help="frames/s asked of the fake cameras")
+    rec.add_argument("--compression", choices=("none", "blosc-lz4"), default="blosc-lz4",
+                     help="the frames' filter, as a rig file's [recording] compression (default blosc-lz4)")
     rec.add_argument("--no-write", action="store_true", help="print only")
-    rec.set_defaults(run=lambda args: print(run_record(args.seconds, not args.no_write, args.rate)) or 0)
+    rec.set_defaults(run=lambda args: print(run_record(args.seconds, not args.no_write, args.rate,
+                                                       args.compression)) or 0)
     vol = what.add_parser("volume", help="tidal volume, VC, FVC, FEV1 and the optical volume against the truth")
     vol.add_argument("--scale", type=positive, default=0.25)
     vol.add_argument("--seconds", type=positive, default=60.0)
@@ -712,7 +715,7 @@ def run_motion(write: bool, scale: float = 0.25) -> str:
     return text
 
 
-def run_record(seconds: float, write: bool, rate_hz: float = 110.0) -> str:
+def run_record(seconds: float, write: bool, rate_hz: float = 110.0, compression: str = "blosc-lz4") -> str:
     """Two fake GigE cameras at 1400 x 1024 with the flow emulator, then the simulated rig at 700 x 512."""
     import resource
     import shutil
@@ -729,9 +732,9 @@ def run_record(seconds: float, write: bool, rate_hz: float = 110.0) -> str:
         usage = resource.getrusage(resource.RUSAGE_SELF)
         return usage.ru_utime + usage.ru_stime
 
-    lines = [f"## Recording (`photopft bench record --seconds {seconds:g}`)", ""]
+    lines = [f"## Recording (`photopft bench record --seconds {seconds:g} --compression {compression}`)", ""]
     fake = shutil.which("arv-fake-gv-camera-0.8")
-    rows = []
+    rows, sizes = [], []  # sizes: the file's MB per second recorded, as it landed on the disk
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
 
@@ -746,11 +749,13 @@ def run_record(seconds: float, write: bool, rate_hz: float = 110.0) -> str:
             with FlowSensorEmulator() as emulator:
                 flow = FlowSensor(emulator.port)
                 recorder = Recorder(folder / "aravis.h5", rig, cameras, LightPhase(rig, first_trigger=0), flow,
-                                    (0.0075, -15.36), SubjectRecord("BENCH", "male", 30, 175, 75), queue_items=4000)
+                                    (0.0075, -15.36), SubjectRecord("BENCH", "male", 30, 175, 75), queue_items=4000,
+                                    compression=compression)
                 cpu0 = cpu_s()
                 summary = recorder.run(seconds)
                 cpu = (cpu_s() - cpu0) / summary.elapsed_s
                 flow.close()
+            sizes.append(summary.path.stat().st_size / summary.elapsed_s / 1e6)
             summary.path.unlink()  # a minute at 1400 x 1024 is about 19 GB: one recording on the disk at a time
             for camera in cameras.values():
                 camera.close()
@@ -793,24 +798,27 @@ def run_record(seconds: float, write: bool, rate_hz: float = 110.0) -> str:
             state.start_ns = time.monotonic_ns()  # the clock starts once the loops are rendered
             recorder = Recorder(folder / "sim.h5", state.rig, cameras, LightPhase(state.rig),
                                 SimFlowSensor(state), (0.0075, -15.36), SubjectRecord("BENCH", "male", 30, 175, 75),
-                                kind="simulation", queue_items=4000)
+                                kind="simulation", queue_items=4000, compression=compression)
             cpu0 = cpu_s()
             summary = recorder.run(seconds)
             rows.append((name, summary, (cpu_s() - cpu0) / summary.elapsed_s))
+            sizes.append(summary.path.stat().st_size / summary.elapsed_s / 1e6)
             summary.path.unlink()
-    lines += [f"Each for {seconds:g} s at {rate_hz:g} frames/s asked; 2 cores.", "",
+    lines += [f"Each for {seconds:g} s at {rate_hz:g} frames/s asked, frames written with compression "
+              f"{compression}; 2 cores. Written: frame data handed to the file; on disk: the file's size.", "",
               "| source | frames per head (rate) | lost at the cameras | dropped by the software | flow samples (lost) "
-              "| queue peak | CPU (cores) | written |", "|---|---|---|---|---|---|---|---|"]
-    for name, s, cpu in rows:
+              "| queue peak | CPU (cores) | written | on disk |", "|---|---|---|---|---|---|---|---|---|"]
+    for (name, s, cpu), disk in zip(rows, sizes):
         per_head = ", ".join(f"{h} {n} ({n / s.elapsed_s:.1f}/s)" for h, n in s.frames.items())
         lost = ", ".join(f"{h} {s.camera_failed[h]} failed, {s.camera_lost[h]} gaps" for h in s.frames)
         lines.append(f"| {name} | {per_head} | {lost} | {s.dropped_by_software} | {s.flow_samples} ({s.flow_lost}) | "
-                     f"{100 * s.max_queue_fill:.0f} % | {cpu:.2f} | {s.written_mb / s.elapsed_s:.0f} MB/s |")
+                     f"{100 * s.max_queue_fill:.0f} % | {cpu:.2f} | {s.written_mb / s.elapsed_s:.0f} MB/s | "
+                     f"{disk:.0f} MB/s ({disk * 60 / 1000:.1f} GB/min) |")
         for problem in s.problems:
-            lines.append(f"| | stopped: {problem} | | | | | | |")
+            lines.append(f"| | stopped: {problem} | | | | | | | |")
     if fake is None:
         lines.append("(arv-fake-gv-camera-0.8 not installed: the GigE row is missing)")
     text = "\n".join(lines)
     if write:
-        write_section("record", text)
+        write_section("record" if compression == "none" else f"record-{compression}", text)
     return text

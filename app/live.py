@@ -55,6 +55,7 @@ class Source:
     replay: bool = False
     closers: list[Callable[[], None]] = field(default_factory=list)
     simulated: object | None = None  # drivers.simulated.SimulatedRigState: a subject that follows prompts
+    compression: str = "blosc-lz4"  # the frames' lossless filter when recording (the rig file's [recording])
 
 
 def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "back"), seed: int = 1,
@@ -382,7 +383,8 @@ class LiveRig:
         rig = self.rig if len(heads) == len(self.rig.heads) else replace(
             self.rig, heads={h: self.rig.heads[h] for h in heads}, baseline_mm=None)
         recorder = Recorder(path, rig, {h: self.source.cameras[h] for h in heads}, self.source.lights,
-                            self.source.flow, self.source.flow_calibration, subject, kind=kind)
+                            self.source.flow, self.source.flow_calibration, subject, kind=kind,
+                            compression=self.source.compression)
         for key, value in (root_attrs or {}).items():
             recorder.writer.set_root_attr(key, value)
         recorder.begin()
@@ -638,6 +640,7 @@ def rig_source(config_path: str | Path | None = None, scale: float | None = None
             raise
         source = Source(rig, cameras, flow, lights, calibration, config.name,
                         closers=[stack.close])
+    source.compression = config.compression
     if config.calibration is not None:
         source.rig = load_profile(config.calibration).apply(source.rig)
         source.lights.rig = source.rig

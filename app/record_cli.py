@@ -136,7 +136,7 @@ def run_record(args: argparse.Namespace) -> int:
             bar(elapsed / args.seconds, "frames " + ", ".join(f"{h} {n}" for h, n in counts.items()))
 
         recorder = Recorder(args.output, rig, cameras, lights, flow, flow_calibration, subject,
-                            kind="simulation" if config.simulated else "patient")
+                            kind="simulation" if config.simulated else "patient", compression=config.compression)
         summary = recorder.run(args.seconds, progress)
     frames = ", ".join(f"{h} {n}" for h, n in summary.frames.items())
     camera = ", ".join(f"{h} {summary.camera_failed[h]} failed / {summary.camera_lost[h]} lost"

@@ -54,7 +54,8 @@ class Recorder:
     def __init__(self, path: str | Path, rig: Rig, cameras: dict[str, Camera],
                  lights: LightPhase | RecordedLights, flow=None, flow_calibration: tuple[float, float] | None = None,
                  subject: SubjectRecord | None = None, kind: str = "patient", queue_items: int = 2000,
-                 flow_sensor_name: str = "pneumotachometer (12-bit ADC)") -> None:
+                 flow_sensor_name: str = "pneumotachometer (12-bit ADC)", compression: str = "none") -> None:
+        """`compression`: the frames' lossless filter (core/session.py FRAME_COMPRESSION)."""
         self.path = Path(path)
         self.rig = rig
         self.cameras = cameras
@@ -71,7 +72,7 @@ class Recorder:
         self._counts = {h: 0 for h in cameras}
         self._flow_samples = 0
         self._written_bytes = 0
-        self.writer = SessionWriter(self.path, kind=kind, rig=rig, subject=subject)
+        self.writer = SessionWriter(self.path, kind=kind, rig=rig, subject=subject, compression=compression)
         if flow is not None:
             gain, offset = flow_calibration if flow_calibration else (None, None)
             self.writer.configure_flow(sample_rate_hz=flow.sample_rate_hz, adc_bits=12, sensor=flow_sensor_name,

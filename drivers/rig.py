@@ -26,7 +26,7 @@ class RigConfigError(ValueError):
 
 _OPTICS_KEYS = ("focal_length_mm", "pixel_size_um", "fx_px", "fy_px", "cx_px", "cy_px", "dist_coeffs")
 KNOWN_KEYS: dict[str, tuple[str, ...]] = {
-    "": ("name", "mains_hz", "camera", "heads", "sequencer", "flowsensor", "simulation", "calibration"),
+    "": ("name", "mains_hz", "camera", "heads", "sequencer", "flowsensor", "simulation", "calibration", "recording"),
     "camera": ("width", "height", "offset_x", "offset_y", "binning", "pixel_format", "exposure_us", "frame_rate_hz",
                "trigger"),
     "heads": ("front", "back"),
@@ -35,8 +35,9 @@ KNOWN_KEYS: dict[str, tuple[str, ...]] = {
     "sequencer": ("port",),
     "flowsensor": ("port", "gain_lps", "offset_lps"),
     "simulation": ("scale", "seed", "protocol"),
+    "recording": ("compression",),
 }
-_TABLES = ("camera", "heads", "heads.front", "heads.back", "sequencer", "flowsensor", "simulation")
+_TABLES = ("camera", "heads", "heads.front", "heads.back", "sequencer", "flowsensor", "simulation", "recording")
 
 
 def _check_keys(path: Path, data: dict, table: str = "") -> None:
@@ -81,6 +82,7 @@ class RigConfig:
     calibration: Path | None = None
     optics: dict[str, dict[str, Any]] = field(default_factory=dict)  # head -> lens and sensor (see template.toml)
     mains_hz: float = 50.0  # the room's mains: its lamps flicker at twice this (core/ambient.py)
+    compression: str = "blosc-lz4"  # the frames' lossless filter (core/session.py FRAME_COMPRESSION)
 
     @property
     def simulated(self) -> bool:
@@ -151,9 +153,15 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
     mains = data.get("mains_hz", 50.0)
     if mains not in (50, 60):
         raise RigConfigError(f"{path}: mains_hz must be 50 or 60 (the room's mains frequency), found {mains!r}")
+    from core.session import FRAME_COMPRESSION
+
+    compression = data.get("recording", {}).get("compression", "blosc-lz4")
+    if compression not in FRAME_COMPRESSION:
+        raise RigConfigError(f"{path}: [recording] compression must be one of {', '.join(FRAME_COMPRESSION)}, found "
+                             f"{compression!r}")
     return RigConfig(path, str(data.get("name", path.stem)), cameras, str(sequencer), flow_port,
                      None if gain is None else float(gain), None if offset is None else float(offset), camera,
-                     simulation, Path(calibration) if calibration else None, optics, float(mains))
+                     simulation, Path(calibration) if calibration else None, optics, float(mains), compression)
 
 
 _POSITIVE_OPTICS = ("focal_length_mm", "pixel_size_um", "fx_px", "fy_px")
