@@ -57,11 +57,11 @@ def _cycles(session, head_name: str):
     from core.photometric import complete_cycles
     from core.process import cycle_signal
 
-    frames, ids = session.frames(head_name), session.frame_id(head_name)
+    frames, ids, stamps = session.frames(head_name), session.frame_id(head_name), session.timestamp_ns(head_name)
     max_value = session.rig.heads[head_name].max_value
     for window in complete_cycles(session.light_index(head_name), ids,
                                   session.rig.cycle_length)[::session.rig.cycle_length]:
-        yield (window.newest, *cycle_signal(frames, window, None, max_value, {}, ids))
+        yield (window.newest, *cycle_signal(frames, window, None, max_value, {}, ids, stamps))
 
 
 def _angular_error(normals: np.ndarray, truth: np.ndarray, valid: np.ndarray) -> float:

@@ -21,7 +21,8 @@ from typing import Callable
 import numpy as np
 
 from core.ambient import FLICKER_WINDOW_S, FlickerCorrection
-from core.binning import bin_any, bin_mean, binned_head, working_binning
+from core.binning import binned_head, working_binning
+from core.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.flow import btps_factor
 from core.metric_volume import LiveMetricVolume
 from core.pipeline import HeadReconstructor, ReconstructionSettings
@@ -283,7 +284,8 @@ class LiveRig:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._recorder: Recorder | None = None
-        self._cycles: dict[str, collections.deque] = {h: collections.deque(maxlen=2 * self.rig.cycle_length)
+        # three cycles: the newest complete one and the one before it, for motion compensation
+        self._cycles: dict[str, collections.deque] = {h: collections.deque(maxlen=3 * self.rig.cycle_length)
                                                        for h in source.cameras}
         # the last second's dark frames: the room light's flicker (core/ambient.py)
         darks = int(FLICKER_WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length) + 5
@@ -529,6 +531,13 @@ class LiveRig:
                 return window
         return None
 
+    def _cycle_before(self, head: str, window: list[tuple[Frame, int]]) -> dict[int, Frame] | None:
+        """Each light's frame one period before the window's, if all are still in the buffer."""
+        n = self.rig.cycle_length
+        wanted = {frame.frame_id - n: light for frame, light in window if light != DARK}
+        found = {light: frame for frame, light in self._cycles[head] if wanted.get(frame.frame_id) == light}
+        return found if len(found) == len(wanted) else None
+
     def _reconstruct(self, head: str) -> None:
         reconstructor = HeadReconstructor(self._live_heads[head], None, self.settings)
         done_id = -1
@@ -537,28 +546,35 @@ class LiveRig:
         factor = self._binning[head]
         flicker = FlickerCorrection(2.0 * self.rig.mains_hz, centred=False)
         fed_id = -1
+        binned: dict[int, CycleFrame] = {}  # each frame binned once (core/cycle.py), by frame id
+
+        def framed(frame: Frame) -> CycleFrame:
+            if frame.frame_id not in binned:
+                binned[frame.frame_id] = cycle_frame(frame.image, factor, max_value, frame.timestamp_ns / 1e9,
+                                                     frame.frame_id)
+            return binned[frame.frame_id]
+
         while not self._stop.is_set():
             with condition:
                 condition.wait(timeout=0.2)
                 window = self._newest_cycle(head)
+                before = self._cycle_before(head, window) if window is not None else None
                 darks = [d for d in self._darks[head] if d.frame_id > fed_id]
             for d in darks:
-                flicker.add_dark(d.timestamp_ns / 1e9, bin_mean(d.image, factor))
+                flicker.add_dark(d.timestamp_ns / 1e9, framed(d).level)
                 fed_id = d.frame_id
             if window is None or window[-1][0].frame_id <= done_id:
                 continue
             done_id = window[-1][0].frame_id
             newest_s = window[-1][0].timestamp_ns / 1e9
-            binned = {}
-            for frame, light in window:
-                image = bin_mean(frame.image, factor)
-                excess = flicker.excess(frame.timestamp_ns / 1e9, newest_s)
-                binned[light] = image if excess is None else image - excess
-            by_light = {light: frame.image for frame, light in window}
-            raw = np.stack([by_light[k] for k in range(4)])
-            dark = binned[DARK]
-            signal = np.stack([binned[k] for k in range(4)]) - dark[None]
-            saturated = bin_any(raw >= max_value, factor)
+            by_light = {light: frame for frame, light in window}
+            # the same cycle signal as `photopft process` (binned, flicker out, motion-compensated)
+            signal, saturated, dark = cycle_signal_of(
+                [framed(by_light[k]) for k in range(4)], framed(by_light[DARK]),
+                [framed(before[k]) for k in range(4)] if before is not None else None,
+                lambda f: flicker.excess(f.time_s, newest_s))
+            for stale in [i for i in binned if i < done_id - 3 * self.rig.cycle_length]:
+                del binned[stale]
             try:
                 # the distance the two heads' geometry gave the last maps (as `process` does), once it has one
                 result = reconstructor.reconstruct(signal, saturated, dark, self._metric.geometric_distance_mm(head))

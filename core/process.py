@@ -10,11 +10,11 @@ from typing import Callable
 
 import h5py
 import numpy as np
-from scipy import ndimage
 
 from core import __version__
 from core.ambient import FlickerCorrection
-from core.binning import bin_any, bin_mean, binned_head, working_binning
+from core.binning import bin_mean, binned_head, working_binning
+from core.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.metric_volume import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, side_targets,
                                  tidal_compartments)
 from core.photometric import CycleWindow, complete_cycles
@@ -26,7 +26,6 @@ from core.session import SessionError, SessionFile
 from core.results import RESULTS_FORMAT
 from core.volume import DisplacementTracker, smooth_in_time
 
-MOTION_SMOOTHING_PX = 2.0
 # Work (maps times pixels) from which worker processes pay: starting one (imports, numba's cached
 # kernels) takes about 3 s; this much work takes about 10 s on this 2-core host (300 maps at scale
 # 0.1, 3 at full resolution)
@@ -196,41 +195,26 @@ class DarkFeed:
 
 
 def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindow | None, max_value: int,
-                  cache: dict[int, tuple[np.ndarray, np.ndarray]], frame_id: np.ndarray,
-                  flicker: Callable[[int], np.ndarray | None] | None = None, binning: int = 1,
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each light's frame minus the dark frame; with `previous` (the cycle one period earlier),
-    each light is first brought to the newest frame's instant by linear extrapolation along
-    frame_id: the subject moves within a cycle (a forced expiration moves the chest millimetres
-    in 45 ms) and the thesis' static assumption would mix five instants into one normal.
-    `flicker` (DarkFeed.flicker_of, binned alike) gives the room light's flicker in a frame, taken
-    out first. `binning`: frames averaged over binning x binning blocks (core/binning.py); a bin
-    with a saturated pixel is saturated. `cache` keeps each frame read (binned, and its saturation)."""
-    def frame(i: int) -> tuple[np.ndarray, np.ndarray]:
+                 cache: dict[int, CycleFrame], frame_id: np.ndarray, timestamp_ns: np.ndarray,
+                 flicker: Callable[[int], np.ndarray | None] | None = None, binning: int = 1,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A window's signal from a session's frames (core/cycle.py, as the live view makes it): with
+    `previous` (the cycle one period earlier) motion-compensated; `flicker` (DarkFeed.flicker_of,
+    binned alike) the room light's flicker by frame position; `cache` keeps each frame read."""
+    def frame(i: int) -> CycleFrame:
         if i not in cache:
-            raw = frames[i]
-            cache[i] = (bin_mean(raw, binning), bin_any(raw >= max_value, binning))
+            cache[i] = cycle_frame(frames[i], binning, max_value, timestamp_ns[i] / 1e9, int(frame_id[i]))
         return cache[i]
 
-    def level(i: int) -> np.ndarray:
-        image = frame(i)[0]
-        excess = flicker(i) if flicker is not None else None
-        return image if excess is None else image - excess
+    positions = {}
 
-    dark_frame = level(window.dark)
-    saturated = np.stack([frame(i)[1] for i in window.lit])
-    signal = np.stack([level(i) for i in window.lit])
-    if previous is not None:
-        newest = int(frame_id[window.newest])
-        for k, (now, before) in enumerate(zip(window.lit, previous.lit)):
-            period = int(frame_id[now]) - int(frame_id[before])
-            ahead = (newest - int(frame_id[now])) / period
-            saturated[k] |= frame(before)[1]
-            # The change over one period, smoothed: motion changes shading smoothly, the noise
-            # is per pixel and would be amplified by the extrapolation.
-            change = ndimage.gaussian_filter(signal[k] - level(before), MOTION_SMOOTHING_PX)
-            signal[k] += ahead * change
-    return signal - dark_frame[None], saturated, dark_frame
+    def excess(f: CycleFrame) -> np.ndarray | None:
+        return flicker(positions[f.frame_id]) if flicker is not None else None
+
+    for i in list(window.lit) + [window.dark] + (list(previous.lit) if previous is not None else []):
+        positions[frame(i).frame_id] = i
+    return cycle_signal_of([frame(i) for i in window.lit], frame(window.dark),
+                           [frame(i) for i in previous.lit] if previous is not None else None, excess)
 
 
 def process_session(session_path: str | os.PathLike, output: str | os.PathLike, *,
@@ -447,7 +431,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                 del cache[stale]
             previous = (all_windows.get(int(ids[window.newest]) - rig.cycle_length)
                         if job.motion_compensation else None)
-            signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids,
+            signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids, stamps,
                                                    darks.flicker_of(window), job.binning)
             known = job.distances_mm[number] if job.distances_mm is not None else np.nan
             result = reconstructor.reconstruct(signal, saturated, dark, float(known) if np.isfinite(known) else None)
@@ -466,7 +450,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                                                                                  job.settings)
                     full_darks = DarkFeed(frames, session.light_index(name), stamps, rig.mains_hz)
                     full = full_reconstructor.reconstruct(
-                        *cycle_signal(frames, window, previous, head.max_value, {}, ids,
+                        *cycle_signal(frames, window, previous, head.max_value, {}, ids, stamps,
                                       full_darks.flicker_of(window)), float(result.distance_mm))
                 saved_index.append(window.newest)
                 saved_normals.append(full.normals.astype(np.float32))
@@ -554,7 +538,7 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
             window = windows[max(0, int(np.searchsorted(ends, index, side="right")) - 1)]
             previous = by_id.get(int(ids[window.newest]) - rig.cycle_length) if motion_compensation else None
             darks = DarkFeed(frames, lights, stamps, rig.mains_hz)  # a feed per frame asked: they come in any order
-            signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, {}, ids,
+            signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, {}, ids, stamps,
                                                    darks.flicker_of(window))
             out.append(reconstructor.reconstruct(signal, saturated, dark))
     return out

@@ -79,8 +79,9 @@ def test_a_cycle_in_a_flickering_room_gives_the_signal_of_a_steady_room(flickeri
                              flickering.timestamp_ns("front"), flickering.rig.mains_hz)
             for window in windows[5:-5]:
                 flicker = darks.flicker_of(window) if corrected else None
-                signal, _, _ = cycle_signal(flickering.frames("front"), window, None, 4095, {}, ids, flicker)
-                truth, _, _ = cycle_signal(steady.frames("front"), window, None, 4095, {}, ids)
+                stamps = flickering.timestamp_ns("front")
+                signal, _, _ = cycle_signal(flickering.frames("front"), window, None, 4095, {}, ids, stamps, flicker)
+                truth, _, _ = cycle_signal(steady.frames("front"), window, None, 4095, {}, ids, stamps)
                 subject = truth[0] > 100
                 worst = max(worst, float(np.max(np.abs(np.median(signal[:, subject] - truth[:, subject], axis=1)))))
         errors[corrected] = worst
