@@ -463,15 +463,20 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     gui.add_argument("--no-record", action="store_true", help="live view only (no session file written)")
     gui.add_argument("--warmup", type=positive, default=30.0,
                      help="seconds of live view before the measurement (as while positioning the patient)")
+    gui.add_argument("--loop", type=int, default=0, metavar="CYCLES",
+                     help="render this many light cycles once and deliver them in a loop (the renderer then does "
+                          "not limit the rate; the images repeat)")
     gui.add_argument("--no-write", action="store_true", help="print only")
 
     def run_gui(args: argparse.Namespace) -> int:
         from app.gui.bench_gui import run_gui_bench
 
-        text = run_gui_bench(args.scale, args.seconds, not args.no_record, args.warmup)
-        return _publish(args, f"gui-{args.scale:g}-{'live' if args.no_record else 'recording'}",
+        text = run_gui_bench(args.scale, args.seconds, not args.no_record, args.warmup, args.loop)
+        return _publish(args, f"gui-{args.scale:g}-{'live' if args.no_record else 'recording'}"
+                              + (f"-loop{args.loop}" if args.loop else ""),
                         f"Live view (`photopft bench gui --scale {args.scale:g} --seconds {args.seconds:g}"
-                        f"{' --no-record' if args.no_record else ''}`)", text)
+                        f"{' --no-record' if args.no_record else ''}{f' --loop {args.loop}' if args.loop else ''}`)",
+                        text)
 
     gui.set_defaults(run=run_gui)
     p.set_defaults(run=lambda args: p.print_help() or 2)

@@ -60,8 +60,10 @@ class Source:
 
 
 def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "back"), seed: int = 1,
-                     protocol: str = "tidal", seconds: float = 1800.0) -> Source:
-    """The simulated rig, breathing quietly (the default everywhere)."""
+                     protocol: str = "tidal", seconds: float = 1800.0, loop_cycles: int = 0) -> Source:
+    """The simulated rig, breathing quietly (the default everywhere). `loop_cycles`: that many light
+    cycles rendered once and delivered over and over (drivers/simulated.py), for measuring the live
+    view at a rate the renderer cannot reach on the same cores."""
     from core.sim.breathing import Subject, Sway
     from core.sim.simulate import SimConfig
     from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
@@ -69,7 +71,7 @@ def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "ba
     config = SimConfig(scene="torso", protocol=protocol, seconds=seconds, scale=scale, seed=seed, heads=heads,
                        sway=Sway(seed=seed), subject=Subject())
     state = SimulatedRigState.build(config)
-    cameras = {h: SimCamera(state, h) for h in heads}
+    cameras = {h: SimCamera(state, h, loop_cycles=loop_cycles) for h in heads}
     flow = SimFlowSensor(state)
     model = config.flow_sensor
     return Source(state.rig, cameras, flow, LightPhase(state.rig), (model.gain_lps, model.offset_lps),

@@ -9,7 +9,7 @@ from functools import partial
 from pathlib import Path
 
 
-def run_gui_bench(scale: float, seconds: float, record: bool, warmup_s: float = 30.0) -> str:
+def run_gui_bench(scale: float, seconds: float, record: bool, warmup_s: float = 30.0, loop_cycles: int = 0) -> str:
     os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
     from PySide6.QtWidgets import QApplication
 
@@ -19,7 +19,7 @@ def run_gui_bench(scale: float, seconds: float, record: bool, warmup_s: float = 
     from core.session import SubjectRecord
 
     app = QApplication.instance() or QApplication([])
-    window = MainWindow(partial(simulated_source, scale=scale))
+    window = MainWindow(partial(simulated_source, scale=scale, loop_cycles=loop_cycles))
     window.show()
     folder = Path(tempfile.mkdtemp(prefix="photopft-bench-gui-"))
     f = measure_live_view(app, window, seconds, folder / "bench.h5" if record else None,
@@ -30,8 +30,10 @@ def run_gui_bench(scale: float, seconds: float, record: bool, warmup_s: float = 
     dropped = f.recording.dropped_by_software if f.recording is not None else 0
     rows = [
         f"scale {scale:g}, {'recording' if record else 'live view only'}, {f.elapsed_s:.0f} s after "
-        f"{warmup_s:.0f} s of live view (as while positioning), simulated rig (its cameras rendered on the "
-        f"same cores), {os.cpu_count()} cores",
+        f"{warmup_s:.0f} s of live view (as while positioning), simulated rig ("
+        + (f"{loop_cycles} light cycles rendered beforehand and delivered in a loop, so the renderer does not "
+           f"limit the rate" if loop_cycles else "its cameras rendered on the same cores")
+        + f"), {os.cpu_count()} cores",
         "",
         "| display updates/s | GUI thread longest stall | maps/s per head | frames/s per head | dropped | memory |",
         "|---|---|---|---|---|---|",
