@@ -8,6 +8,15 @@ import pytest
 from app.records import Records, RecordsError
 
 
+def tamper(path, *statements: str) -> None:
+    """What another program could do to the file: SQL past photopft (triggers dropped first)."""
+    db = sqlite3.connect(path)
+    for statement in statements:
+        db.execute(statement)
+    db.commit()
+    db.close()
+
+
 def _patient(records):
     return records.add_patient("Muster", "Erika", "female", date(1970, 5, 1), 165.0, 60.0)
 
@@ -47,18 +56,12 @@ def test_the_trail_cannot_be_changed_through_sql_and_tampering_shows(tmp_path):
         db.execute("UPDATE audit_log SET user = 'mallory' WHERE id = 2")
     with pytest.raises(sqlite3.IntegrityError, match="append-only"):
         db.execute("DELETE FROM audit_log WHERE id = 2")
-    db.execute("DROP TRIGGER audit_log_no_update")
-    db.execute("UPDATE audit_log SET user = 'mallory' WHERE id = 3")
-    db.commit()
     db.close()
+    tamper(path, "DROP TRIGGER audit_log_no_update", "UPDATE audit_log SET user = 'mallory' WHERE id = 3")
     with Records(path, read_only=True) as records:
         assert records.verify_audit_trail() == f"audit entry 3 (session recorded, {records.audit_trail()[2].time}) " \
                                                "was changed after it was written"
-    db = sqlite3.connect(path)
-    db.execute("DROP TRIGGER audit_log_no_delete")
-    db.execute("DELETE FROM audit_log WHERE id = 2")
-    db.commit()
-    db.close()
+    tamper(path, "DROP TRIGGER audit_log_no_delete", "DELETE FROM audit_log WHERE id = 2")
     with Records(path, read_only=True) as records:
         assert "audit entry 3 does not follow" in records.verify_audit_trail()
 

@@ -76,15 +76,11 @@ def test_a_refused_change_is_one_line_in_a_dialog(qtbot, tmp_path):
 
 
 def test_the_audit_window_shows_tampering(qtbot, tmp_path):
-    import sqlite3
+    from tests.app.test_audit import tamper
 
     path = tmp_path / "r.sqlite3"
     _visits(path).close()
-    db = sqlite3.connect(path)
-    db.execute("DROP TRIGGER audit_log_no_update")
-    db.execute("UPDATE audit_log SET details = '{}' WHERE id = 3")
-    db.commit()
-    db.close()
+    tamper(path, "DROP TRIGGER audit_log_no_update", "UPDATE audit_log SET details = '{}' WHERE id = 3")
     with Records(path, read_only=True) as records:
         audit = AuditWindow(None, records)
         qtbot.addWidget(audit)
