@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 from scipy import ndimage
 
-from core.binning import bin_any, bin_mean
+from core.binning import frame_bins
 
 # The change of a light's frame over one period is smoothed with this sigma (pixels of the binned
 # frame, about 350 px wide) before it is extrapolated: motion changes shading smoothly, the noise
@@ -30,7 +30,8 @@ class CycleFrame:
 
 
 def cycle_frame(raw: np.ndarray, binning: int, max_value: int, time_s: float, frame_id: int) -> CycleFrame:
-    return CycleFrame(bin_mean(raw, binning), bin_any(raw >= max_value, binning), float(time_s), int(frame_id))
+    mean, peak = frame_bins(raw, binning)
+    return CycleFrame(mean, peak >= max_value, float(time_s), int(frame_id))
 
 
 def cycle_signal_of(lit: list[CycleFrame], dark: CycleFrame, previous: list[CycleFrame] | None = None,

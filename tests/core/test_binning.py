@@ -37,3 +37,16 @@ def test_working_binning_brings_a_head_near_the_live_width():
     assert [working_binning(thesis_head(scale=s)) for s in (0.25, 0.5, 1.0)] == [1, 2, 4]
     with pytest.raises(ValueError, match="positive whole number"):
         binned_head(thesis_head(scale=0.25), 0)
+
+
+def test_frame_bins_equal_the_plain_reductions():
+    """The one-pass kernel (mean and max of each bin) against numpy's reductions, remainders dropped."""
+    from core.binning import _blocks, frame_bins
+
+    rng = np.random.default_rng(4)
+    for dtype, factor, shape in ((np.uint16, 4, (103, 141)), (np.uint8, 3, (50, 61)), (np.uint16, 1, (7, 9))):
+        frame = rng.integers(0, np.iinfo(dtype).max, shape).astype(dtype)
+        mean, peak = frame_bins(frame, factor)
+        blocks = _blocks(frame, factor)
+        np.testing.assert_allclose(mean, blocks.mean(axis=(-3, -1)), rtol=1e-12)
+        np.testing.assert_array_equal(peak, blocks.max(axis=(-3, -1)))
