@@ -144,7 +144,14 @@ def run_batch(args: argparse.Namespace) -> int:
 def _run_on_cluster(todo: list[Path], args: argparse.Namespace, options: BatchOptions, progress) -> list[str]:
     import logging
 
+    import dask
     from distributed import Client, LocalCluster, as_completed
+
+    # Dask starts its workers with MALLOC_TRIM_THRESHOLD_=65536 (memory handed back to the system at
+    # once) and one OpenMP thread: each map's large arrays then went back and forth to the kernel,
+    # a session took 3 times as long as under `process` (sys time as high as user). The workers
+    # keep glibc's own threshold; numba's threads are set per task (BatchOptions.threads).
+    dask.config.set({"distributed.nanny.pre-spawn-environ": {}})
 
     logging.getLogger("distributed").setLevel(logging.WARNING)  # the cluster's chatter stays out of the batch's report
     cluster = None
