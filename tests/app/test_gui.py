@@ -149,6 +149,56 @@ def test_a_whole_patient_session(qtbot, tmp_path):
     records.close()
 
 
+def test_back_and_next_keep_one_recording_and_cancel_asks(qtbot, tmp_path):
+    """Positioning, Next, Back, Next: one recording, not two; Cancel while recording asks first, and
+    what was recorded stays on record as cancelled."""
+    from app.gui.wizards.patient_session import PatientSessionWizard
+
+    engine = EngineProcess(partial(simulated_source, scale=0.1))
+    records = Records(tmp_path / "records.sqlite3")
+    wizard = PatientSessionWizard(None, engine, records, sessions_dir=tmp_path / "sessions")
+    qtbot.addWidget(wizard)
+    wizard.show()
+    try:
+        page = wizard.currentPage()
+        page.family.setText("Kowalski")
+        page.sex.setCurrentText("male")
+        page.add.click()
+        _press(qtbot, wizard)
+        qtbot.waitUntil(wizard.currentPage().isComplete, timeout=30000)
+        _press(qtbot, wizard)
+        first = wizard.session_path
+        wizard.back()
+        qtbot.waitUntil(wizard.currentPage().isComplete, timeout=30000)
+        _press(qtbot, wizard)
+        assert engine.recording and wizard.session_path == first
+        patient = records.find_patients("Kowalski")[0]
+        assert len(records.history(patient.id)) == 1
+        answers: list[str] = []
+
+        def answer(button) -> None:
+            box = QApplication.activeModalWidget()
+            if box is None:
+                QTimer.singleShot(20, lambda: answer(button))
+                return
+            answers.append(box.text())
+            box.button(button).click()
+
+        from PySide6.QtWidgets import QMessageBox
+
+        QTimer.singleShot(20, lambda: answer(QMessageBox.StandardButton.No))
+        wizard.reject()
+        assert len(answers) == 1 and answers[0].startswith("Stop the recording") and wizard.isVisible()
+        assert engine.recording
+        QTimer.singleShot(20, lambda: answer(QMessageBox.StandardButton.Yes))
+        wizard.reject()
+        assert not engine.recording
+        assert [s.status for s in records.history(patient.id)] == ["cancelled"]
+    finally:
+        engine.stop()
+        records.close()
+
+
 def test_the_sphere_calibration_wizard(qtbot, tmp_path):
     from app.gui.wizards.sphere import SphereCalibrationWizard
 

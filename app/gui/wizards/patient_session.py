@@ -182,6 +182,8 @@ class PositioningPage(QWizardPage):
 
     def validatePage(self) -> bool:  # noqa: N802
         self.timer.stop()
+        if self.engine.recording:  # Back to positioning and Next again: the recording goes on, one file
+            return True
         return self.wizard().start_recording()
 
 
@@ -443,5 +445,18 @@ class PatientSessionWizard(QWizard):
         super().accept()
 
     def reject(self) -> None:
+        if self.engine.recording and not self._confirm_cancel():
+            return
         self._stop("cancelled")
         super().reject()
+
+    def _confirm_cancel(self) -> bool:
+        """Cancel during a recording asks first: what was recorded is kept either way, marked cancelled."""
+        from PySide6.QtWidgets import QMessageBox
+
+        answer = QMessageBox.question(
+            self, "Cancel the session?",
+            "Stop the recording and end this patient session?\n\nWhat was recorded so far is kept in the "
+            "patient's record, marked as cancelled.",
+            QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No, QMessageBox.StandardButton.No)
+        return answer == QMessageBox.StandardButton.Yes
