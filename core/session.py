@@ -4,12 +4,8 @@
 `SessionFile` reads any file that follows the spec; `validate_session` lists what is wrong
 with a file, naming the item.
 
-Additions to the spec (allowed: "the project may add groups and attributes"): `/rig`
-attributes `frame_rate_hz`, `head_baseline_mm` (front to back camera centre along the shared
-optical axis, the back head looking back along it; written when known) and `mains_hz` (the room's
-mains frequency, 50 when absent: the room light flickers at twice it); `/flow` attributes `positive` (`inspiration`), `room_temperature_c`,
-`room_pressure_hpa`, `room_humidity_pct`; `/truth` datasets `sway_mm`, `flow_lps` and the
-compartment volumes `compartment_volume_l` with attribute `compartments`.
+Additions to the spec (allowed: "the project may add groups and attributes"), compressed frames
+among them, are listed in docs/format-extensions.md.
 """
 
 from __future__ import annotations
