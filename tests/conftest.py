@@ -36,6 +36,9 @@ _GROUPED_FIXTURES = ("processed_full_session",)
 
 
 def pytest_collection_modifyitems(items) -> None:
+    # the installer's end-to-end test (about 3 minutes) first: collected last, it started when the
+    # other worker had little left and the run waited for it
+    items.sort(key=lambda item: "tests/e2e/" not in item.nodeid.replace("\\", "/"))
     for item in items:
         for name in _GROUPED_FIXTURES:
             if name in getattr(item, "fixturenames", ()):
