@@ -94,7 +94,7 @@ def main(out: Path) -> int:
     tidal.start.click()
     _wait(app, 4)
     _grab(wizard, out / "patient-3-tidal.png")
-    _wait(app, 15, tidal.isComplete)
+    _wait(app, 75, tidal.isComplete)  # ten seconds hold too few breaths: the page extends itself
     wizard.next()
     for name in ("vc", "forced"):
         page = wizard.currentPage()

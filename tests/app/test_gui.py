@@ -111,9 +111,10 @@ def test_a_whole_patient_session(qtbot, tmp_path):
         _press(qtbot, wizard)  # recording starts here
         assert engine.recording
         tidal = wizard.currentPage()
-        tidal.seconds.setValue(10)
+        tidal.seconds.setValue(10)  # about two breaths at 14/min: too few, the page goes on by itself
         tidal.start.click()
-        qtbot.waitUntil(tidal.isComplete, timeout=20000)
+        qtbot.waitUntil(tidal.isComplete, timeout=90000)
+        assert tidal.extended_s >= 15.0 and tidal.remaining.text() == "done"
         _press(qtbot, wizard)
         for kind in ("vc", "forced"):
             page = wizard.currentPage()

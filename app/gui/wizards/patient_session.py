@@ -30,6 +30,9 @@ from core.spirometry import repeatability_tolerance_l
 
 MAX_BLOWS = 8
 MIN_BLOWS = 3
+MIN_TIDAL_BREATHS = 5  # tidal indices are averaged over breaths: fewer than five say little
+TIDAL_EXTENSION_S = 15.0  # a tidal period with too few breaths goes on this much longer, ...
+MAX_TIDAL_EXTENSION_S = 60.0  # ... at most this much in all
 CENTRED_FRACTION = 0.12  # the subject's centre within 12 % of the image width of its centre
 
 
@@ -205,12 +208,14 @@ class TimedPage(QWizardPage):
         form.addRow(self.start)
         form.addRow("Remaining", self.remaining)
         self.done = False
+        self.extended_s = 0.0
         self.timer = QTimer(self)
         self.timer.timeout.connect(self._tick)
 
     def _start(self) -> None:
         self.engine.mark("tidal-start")
         self.ends_at = time.monotonic() + self.seconds.value()
+        self.extended_s = 0.0
         self.start.setEnabled(False)
         self.seconds.setEnabled(False)
         self.timer.start(200)
@@ -218,13 +223,29 @@ class TimedPage(QWizardPage):
     def _tick(self) -> None:
         left = self.ends_at - time.monotonic()
         if left > 0:
-            self.remaining.setText(f"{left:.0f} s")
+            extra = f" (extended: {self._note})" if self.extended_s else ""
+            self.remaining.setText(f"{left:.0f} s{extra}")
+            return
+        breaths = self._breaths()
+        if breaths is not None and breaths < MIN_TIDAL_BREATHS and self.extended_s < MAX_TIDAL_EXTENSION_S:
+            self.extended_s += TIDAL_EXTENSION_S
+            self.ends_at = time.monotonic() + TIDAL_EXTENSION_S
+            self._note = f"{breaths} breath{'s' if breaths != 1 else ''} so far, {MIN_TIDAL_BREATHS} needed"
             return
         self.timer.stop()
         self.engine.mark("maneuver-end")
-        self.remaining.setText("done")
+        self.remaining.setText("done" if breaths is None or breaths >= MIN_TIDAL_BREATHS else
+                               f"done, with only {breaths} breaths: the tidal values rest on few breaths")
         self.done = True
         self.completeChanged.emit()
+
+    def _breaths(self) -> int | None:
+        """Tidal breaths in the recording so far, from the flow sensor (None without one: counted
+        when the session is processed)."""
+        values = self.engine.recorded_values(self.wizard().age_years())
+        if values is None:
+            return None
+        return int(values.tidal.breaths) if values.tidal is not None else 0
 
     def isComplete(self) -> bool:  # noqa: N802
         return self.done
