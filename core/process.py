@@ -177,7 +177,7 @@ class DarkFeed:
         self._dark_t = self._t[self._darks]
         self._next = 0
 
-    def flicker_of(self, window: CycleWindow) -> Callable[[int], np.ndarray | None]:
+    def flicker_of(self, window: CycleWindow) -> Callable[[CycleFrame], np.ndarray | None]:
         t_cycle = float(self._t[window.newest])
         start, stop = self.correction.span(t_cycle)
         self._next = max(self._next, int(np.searchsorted(self._dark_t, start)))
@@ -185,7 +185,7 @@ class DarkFeed:
             j = int(self._darks[self._next])
             self.correction.add_dark(float(self._t[j]), bin_mean(self._frames[j], self._binning))
             self._next += 1
-        return lambda i: self.correction.excess(float(self._t[i]), t_cycle)
+        return lambda frame: self.correction.excess(frame.time_s, t_cycle)
 
     @property
     def flicker_share(self) -> float:
@@ -196,25 +196,18 @@ class DarkFeed:
 
 def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindow | None, max_value: int,
                  cache: dict[int, CycleFrame], frame_id: np.ndarray, timestamp_ns: np.ndarray,
-                 flicker: Callable[[int], np.ndarray | None] | None = None, binning: int = 1,
+                 flicker: Callable[[CycleFrame], np.ndarray | None] | None = None, binning: int = 1,
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A window's signal from a session's frames (core/cycle.py, as the live view makes it): with
     `previous` (the cycle one period earlier) motion-compensated; `flicker` (DarkFeed.flicker_of,
-    binned alike) the room light's flicker by frame position; `cache` keeps each frame read."""
+    binned alike) the room light's flicker in a frame; `cache` keeps each frame read."""
     def frame(i: int) -> CycleFrame:
         if i not in cache:
             cache[i] = cycle_frame(frames[i], binning, max_value, timestamp_ns[i] / 1e9, int(frame_id[i]))
         return cache[i]
 
-    positions = {}
-
-    def excess(f: CycleFrame) -> np.ndarray | None:
-        return flicker(positions[f.frame_id]) if flicker is not None else None
-
-    for i in list(window.lit) + [window.dark] + (list(previous.lit) if previous is not None else []):
-        positions[frame(i).frame_id] = i
     return cycle_signal_of([frame(i) for i in window.lit], frame(window.dark),
-                           [frame(i) for i in previous.lit] if previous is not None else None, excess)
+                           [frame(i) for i in previous.lit] if previous is not None else None, flicker)
 
 
 def process_session(session_path: str | os.PathLike, output: str | os.PathLike, *,
