@@ -8,7 +8,7 @@ from datetime import datetime
 from pathlib import Path
 
 from app.paths import config_dir
-from app.records import Records, RecordsError, default_path
+from app.records import Records, RecordsError, existing_records
 
 RIG_PROFILE = "rig-calibration.json"
 FLOW_PROFILE = "flow-calibration.json"
@@ -40,16 +40,10 @@ class CalibrationRefused(RecordsError):
 def calibration_audit(records_path: Path | None = None, user: str | None = None) -> Records | None:
     """The records database that logs calibrations (None where there is none yet); raises
     CalibrationRefused before any work when the acting user is not an engineer."""
-    path = records_path or default_path()
-    if not path.exists():
-        return None
-    records = Records(path, user=user)
     try:
-        records.check_permitted("calibration saved")
+        return existing_records(records_path, user, may="calibration saved")
     except RecordsError as exc:
-        records.close()
         raise CalibrationRefused(str(exc)) from exc
-    return records
 
 
 def log_calibration(records: Records | None, kind: str, saved: Path, previous: Path | None = None) -> None:

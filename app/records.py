@@ -188,6 +188,23 @@ class SessionRecord:
     summary: dict
 
 
+def existing_records(path: Path | None = None, user: str | None = None, may: str | None = None) -> Records | None:
+    """The records database at `path` (default: the user's), or None where there is none yet;
+    with `may`, refused (RecordsError, nothing opened) when the acting user's role does not allow
+    that action: checked before the work it logs starts."""
+    path = path or default_path()
+    if not path.exists():
+        return None
+    records = Records(path, user=user)
+    if may is not None:
+        try:
+            records.check_permitted(may)
+        except RecordsError:
+            records.close()
+            raise
+    return records
+
+
 @dataclass(frozen=True)
 class Amendment:
     time: datetime

@@ -111,19 +111,14 @@ def run_report(args: argparse.Namespace) -> int:
 def _exporting(args: argparse.Namespace, output: Path):
     """The records database to log the export in (None where there is none): refused before any work
     when the acting user may not export."""
-    from app.records import Records, RecordsError, default_path
+    from app.records import RecordsError, existing_records
 
-    path = args.records or default_path()
-    if not path.exists():
-        if args.records is not None:
-            raise UserError(f"--records {args.records}: no records database there")
-        return None
+    if args.records is not None and not args.records.exists():
+        raise UserError(f"--records {args.records}: no records database there")
     try:
-        records = Records(path, user=args.user)
-        records.check_permitted("export")
+        return existing_records(args.records, args.user, may="export")
     except RecordsError as exc:
         raise UserError(str(exc)) from exc
-    return records
 
 
 def _log_export(records, args: argparse.Namespace, kind: str, output: Path) -> None:
