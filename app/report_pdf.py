@@ -212,28 +212,33 @@ def _decimate(x: np.ndarray, y: np.ndarray, x_range: tuple[float, float], y_rang
     return [(float(a), float(b)) for a, b in zip(x[::step], y[::step])]
 
 
+def _blows_drawing(blows: list, width: float, height: float) -> Drawing:
+    """Volume-time and flow-volume of blows side by side, on axes that hold them all."""
+    half = width / 2 - 4
+    t_range = (-0.5, max(6.0, min(15.0, max(float(m.time_s[-1]) for m in blows))))
+    v_range = (0.0, max(float(np.max(m.volume_l)) for m in blows) * 1.1)
+    f_max = max(float(np.percentile(m.flow_lps, 99.5)) for m in blows) * 1.15
+    f_range = (-0.05 * f_max, f_max)
+    volume_time = _plot(half, height, [_decimate(m.time_s, m.volume_l, t_range, v_range) for m in blows],
+                        "time from time zero (s)", "exhaled volume (L)", t_range, v_range)
+    flow_volume = _plot(half, height, [_decimate(m.volume_l, m.flow_lps, v_range, f_range) for m in blows],
+                        "exhaled volume (L)", "expiratory flow (L/s)", v_range, f_range)
+    drawing = Drawing(width, height)
+    drawing.add(volume_time)
+    flow_volume.translate(half + 8, 0)
+    drawing.add(flow_volume)
+    return drawing
+
+
 def _curves(data: ReportData, width: float) -> tuple[Drawing, str] | None:
     """Volume-time and flow-volume of the best blows, and the key to their line styles."""
     best = best_manoeuvres(data.manoeuvres)
     if not best:
         return None
-    half = width / 2 - 4
-    t_range = (-0.5, max(6.0, min(15.0, max(float(m.time_s[-1]) for m in best))))
-    v_range = (0.0, max(float(np.max(m.volume_l)) for m in best) * 1.1)
-    f_max = max(float(np.percentile(m.flow_lps, 99.5)) for m in best) * 1.15
-    f_range = (-0.05 * f_max, f_max)
-    volume_time = _plot(half, 150, [_decimate(m.time_s, m.volume_l, t_range, v_range) for m in best],
-                        "time from time zero (s)", "exhaled volume (L)", t_range, v_range)
-    flow_volume = _plot(half, 150, [_decimate(m.volume_l, m.flow_lps, v_range, f_range) for m in best],
-                        "exhaled volume (L)", "expiratory flow (L/s)", v_range, f_range)
-    drawing = Drawing(width, 150)
-    drawing.add(volume_time)
-    flow_volume.translate(half + 8, 0)
-    drawing.add(flow_volume)
     styles = ("solid", "dashed", "dotted")
     key = "; ".join(f"{styles[k]}: blow {m.number} (FEV1 {m.fev1_l:.2f} L, FVC {m.fvc_l:.2f} L, "
                     f"{'acceptable' if m.acceptable else 'not acceptable'})" for k, m in enumerate(best))
-    return drawing, key
+    return _blows_drawing(best, width, 150), key
 
 
 def _interpretation(data: ReportData, styles) -> list:
@@ -297,18 +302,7 @@ def _bronchodilator(data: ReportData, styles, width: float) -> list:
         out.append(_grid(rows, [20 * mm, 20 * mm, 20 * mm, 24 * mm, 26 * mm, 20 * mm]))
     post = best_manoeuvres(data.manoeuvres, 1)
     if b.pre_best is not None and post:
-        blows = [post[0], b.pre_best]
-        t_range = (-0.5, max(6.0, min(15.0, max(float(m.time_s[-1]) for m in blows))))
-        v_range = (0.0, max(float(np.max(m.volume_l)) for m in blows) * 1.1)
-        f_range = (0.0, max(float(np.percentile(m.flow_lps, 99.5)) for m in blows) * 1.15)
-        half = width / 2 - 4
-        drawing = Drawing(width, 130)
-        drawing.add(_plot(half, 130, [_decimate(m.time_s, m.volume_l, t_range, v_range) for m in blows],
-                          "time from time zero (s)", "exhaled volume (L)", t_range, v_range))
-        loop = _plot(half, 130, [_decimate(m.volume_l, m.flow_lps, v_range, f_range) for m in blows],
-                     "exhaled volume (L)", "expiratory flow (L/s)", v_range, f_range)
-        loop.translate(half + 8, 0)
-        drawing.add(loop)
+        drawing = _blows_drawing([post[0], b.pre_best], width, 130)
         out += [drawing, Paragraph("Solid: best blow after the bronchodilator; dashed: best blow before.",
                                    styles["small"])]
     return out
