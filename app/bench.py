@@ -400,6 +400,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                     help="the standard test waveforms the blows follow (default ../shared/data/spirometry-waveforms)")
     po.add_argument("--max-sheen", type=finite, default=None,
                     help="skin sheen drawn from 0 to this (default 0.3; 0: matte skin)")
+    po.add_argument("--keep", type=Path, default=None,
+                    help="keep each finished subject here and, run again, go on from them (long runs)")
     po.add_argument("--no-write", action="store_true", help="print only")
 
     def run_population(args: argparse.Namespace) -> int:
@@ -416,7 +418,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
 
         sheen = MAX_SHEEN if args.max_sheen is None else args.max_sheen
         text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images,
-                                       sheen)
+                                       sheen, args.keep)
         suffix = "" if sheen == MAX_SHEEN else f" --max-sheen {sheen:g}"
         section = f"population-{args.scale:g}" + ("" if sheen == MAX_SHEEN else f"-sheen{sheen:g}")
         return _publish(args, section, f"Population (`photopft bench population --subjects {subjects} --scale "

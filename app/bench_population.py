@@ -331,9 +331,27 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
     return written
 
 
+def _kept(folder: Path | None, subject: VirtualSubject, scale: float) -> Path | None:
+    return None if folder is None else folder / f"subject-{subject.seed}-{scale:g}.json"
+
+
+def _keep(path: Path | None, row: dict) -> None:
+    """A finished subject's row, written whole (temporary file renamed) so that a run stopped midway
+    resumes from it."""
+    if path is None:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_suffix(".part")
+    partial.write_text(json.dumps(row))
+    partial.replace(path)
+
+
 def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, workers: int,
                          standards: Path | None, images: Path | None,
-                         max_sheen: float = MAX_SHEEN) -> tuple[str, list[dict]]:
+                         max_sheen: float = MAX_SHEEN, keep: Path | None = None) -> tuple[str, list[dict]]:
+    """The bench's table and rows. With `keep`, each finished subject's row is kept there and a
+    later run with the same arguments takes it instead of running the subject again."""
+    from app.progress import Progress
     from core.sim.simulate import WORLDS
 
     started = time.perf_counter()
@@ -341,26 +359,49 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
     population = draw_subjects(subjects, seed, blows, quick, max_sheen)
     protocol, seconds = ("short", 8.0) if quick else ("short", None)
     calibration_scale = scale if quick else max(scale, CALIBRATION_SCALE)
-    with tempfile.TemporaryDirectory() as tmp:
-        jobs = [(s, scale, protocol, tmp, seconds, calibration_scale) for s in population]
-        if workers > 1:
+    done: dict[int, dict] = {}
+    for s in population:
+        path = _kept(keep, s, scale)
+        if path is not None and path.is_file():
+            row = json.loads(path.read_text())
+            if row.get("subject") == asdict(s):
+                done[s.index] = row
+    with tempfile.TemporaryDirectory() as tmp, Progress("bench population") as progress:
+        jobs = [((s, scale, protocol, tmp, seconds, calibration_scale), _kept(keep, s, scale))
+                for s in population if s.index not in done]
+        progress(len(done) / len(population), f"{len(done)} of {len(population)} subjects")
+        if workers > 1 and len(jobs) > 1:
             # a Pool, not an executor: leaving the block (done, or Ctrl-C / SIGTERM) terminates the workers
             # instead of waiting for the subjects they are on
-            with get_context("spawn").Pool(workers) as pool:
-                rows = pool.starmap(run_subject, jobs)
+            with get_context("spawn").Pool(min(workers, len(jobs))) as pool:
+                for row in pool.imap_unordered(_run_job, jobs):
+                    done[row["subject"]["index"]] = row
+                    progress(len(done) / len(population), f"{len(done)} of {len(population)} subjects")
         else:
-            rows = [run_subject(*job) for job in jobs]
+            for job in jobs:
+                row = _run_job(job)
+                done[row["subject"]["index"]] = row
+                progress(len(done) / len(population), f"{len(done)} of {len(population)} subjects")
+    rows = [done[s.index] for s in population]
+    resumed = len(population) - len(jobs)
     elapsed = time.perf_counter() - started
     describe_bodies(rows)
     stem = f"population-{scale:g}" + ("" if max_sheen == MAX_SHEEN else f"-sheen{max_sheen:g}")
     pngs = bland_altman_pngs(rows, images, stem) if images is not None else []
     return _table(rows, scale, seed, quick, blows, elapsed, workers, pngs, WORLDS["clinic"], max_sheen,
-                  calibration_scale), rows
+                  calibration_scale, resumed), rows
+
+
+def _run_job(job: tuple) -> dict:
+    arguments, kept = job
+    row = run_subject(*arguments)
+    _keep(kept, row)
+    return row
 
 
 def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[Path], elapsed: float,
            workers: int, pngs: list[Path], world: dict, max_sheen: float = MAX_SHEEN,
-           calibration_scale: float | None = None) -> str:
+           calibration_scale: float | None = None, resumed: int = 0) -> str:
     from core.rig import thesis_head
 
     head = thesis_head(scale=scale)
@@ -400,8 +441,11 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
                      f"{' | '.join(cells)} | {max(errors, key=abs) if errors else float('nan'):+.1f} |"
                      + (f" refused: {row['refused']}" if "refused" in row else "")
                      + (f" optical refused: {row['optical_refused']}" if row.get("optical_refused") else ""))
+    subject_seconds = [r["seconds"] for r in rows if "seconds" in r]
     lines += ["", f"{len(refused)} of {len(rows)} subjects refused before analysis. Run time {elapsed:.0f} s with "
-              f"{workers} subject(s) at once on {os.cpu_count()} cores."]
+              f"{workers} subject(s) at once on {os.cpu_count()} cores"
+              + (f" ({resumed} subjects kept from an earlier run of the same bench)" if resumed else "")
+              + (f"; {np.median(subject_seconds):.0f} s per subject (median)." if subject_seconds else ".")]
     if pngs:
         lines += ["", "Bland-Altman plots: " + ", ".join(f"![{p.stem}](images/{p.name})" for p in pngs)]
     return "\n".join(lines)

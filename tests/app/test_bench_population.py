@@ -13,7 +13,8 @@ from app.bench_population import agreement, run_population_bench
 @pytest.mark.slow
 def test_the_quick_population_runs_end_to_end_and_reports_what_it_found(tmp_path, shared_data):
     # scale 0.1: at 0.08 the specular sphere's highlights are too small to triangulate in the clinic's light
-    text, rows = run_population_bench(2, 0.1, 1, True, 1, SHARED / "data" / "spirometry-waveforms", tmp_path)
+    waveforms, kept = SHARED / "data" / "spirometry-waveforms", tmp_path / "kept"
+    text, rows = run_population_bench(2, 0.1, 1, True, 1, waveforms, tmp_path, keep=kept)
     assert len(rows) == 2
     for row in rows:
         # each subject either gave its values or says at which stage and why it stopped
@@ -32,3 +33,7 @@ def test_the_quick_population_runs_end_to_end_and_reports_what_it_found(tmp_path
     assert {p.stem.split("-")[-1] for p in plots} >= {"TV", "RR"}
     image = cv2.imread(str(plots[0]))
     assert image is not None and image.shape[0] > 200 and image.std() > 5
+    # run again with the same folder: the finished subjects are taken, not run again
+    again, rows_again = run_population_bench(2, 0.1, 1, True, 1, waveforms, None, keep=kept)
+    assert "2 subjects kept from an earlier run" in again
+    assert [r.get("truth") for r in rows_again] == [r.get("truth") for r in rows]
