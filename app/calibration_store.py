@@ -1,9 +1,17 @@
-"""Where calibration profiles live ($XDG_CONFIG_HOME/photopft/calibration), and saving one so
-that the previous one is kept beside it."""
+"""Where calibration profiles live ($XDG_CONFIG_HOME/photopft/calibration/RIG), which are in
+force, the ones they replaced, and going back to one of those.
+
+The wizards save a rig's profiles in its folder under fixed names (the ones in force); saving a new
+one moves the one in force aside as name-YYYYmmdd-HHMMSS.json (its history). drivers/assembly.py
+applies the profiles in force whenever the rig is opened (`gui`, `record`), so every recording's
+/rig holds them, and the report names them.
+"""
 
 from __future__ import annotations
 
+import re
 import shutil
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
@@ -15,8 +23,54 @@ FLOW_PROFILE = "flow-calibration.json"
 VOLUME_PROFILE = "volume-calibration.json"
 
 
-def calibration_dir() -> Path:
-    return config_dir() / "calibration"
+PROFILES = {RIG_PROFILE: "lights (sphere calibration)", FLOW_PROFILE: "flow sensor", VOLUME_PROFILE: "volume regression"}
+
+
+def calibration_dir(rig_name: str = "simulated") -> Path:
+    """The folder of one rig's profiles (a rig file's `name`)."""
+    slug = re.sub(r"[^A-Za-z0-9._-]+", "-", rig_name).strip("-.") or "rig"
+    return config_dir() / "calibration" / slug
+
+
+@dataclass(frozen=True)
+class ProfilesInForce:
+    lights: Path | None
+    flow: Path | None
+    volume: Path | None
+
+
+def in_force(rig_name: str) -> ProfilesInForce:
+    folder = calibration_dir(rig_name)
+
+    def present(name: str) -> Path | None:
+        path = folder / name
+        return path if path.is_file() else None
+
+    return ProfilesInForce(present(RIG_PROFILE), present(FLOW_PROFILE), present(VOLUME_PROFILE))
+
+
+def history(rig_name: str, profile: str) -> list[Path]:
+    """The profiles of one kind that were in force before, newest first."""
+    stem, suffix = Path(profile).stem, Path(profile).suffix
+    kept = calibration_dir(rig_name).glob(f"{stem}-[0-9]*{suffix}")
+    return sorted(kept, key=lambda p: p.name, reverse=True)
+
+
+def restore(rig_name: str, kept: Path, records: Records | None = None) -> Path:
+    """Put an earlier profile back in force; the one in force goes to the history (nothing is
+    deleted). Logged in the records as a calibration saved."""
+    folder = calibration_dir(rig_name)
+    kind = next((name for name in PROFILES if kept.name.startswith(Path(name).stem + "-")), None)
+    if kind is None or kept.parent.resolve() != folder.resolve():
+        raise ValueError(f"{kept} is not an earlier calibration profile of the rig {rig_name!r}")
+    target = folder / kind
+    previous = keep_previous(target)
+    shutil.copy2(kept, target.with_suffix(".part"))
+    target.with_suffix(".part").replace(target)
+    if records is not None:
+        records.log("calibration saved", str(target.resolve()),
+                    {"kind": PROFILES[kind], "restored_from": str(kept), "previous": str(previous) if previous else None})
+    return target
 
 
 def keep_previous(path: Path) -> Path | None:

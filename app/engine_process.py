@@ -269,6 +269,9 @@ class EngineProcess:
     def perform(self, manoeuvre: str) -> float:
         return self._call("perform", manoeuvre)
 
+    def flow_adc_mean(self, seconds: float = 2.0) -> float:
+        return self._call("flow_adc_mean", seconds)
+
     @property
     def replay_finished(self) -> bool:
         return self.snapshot().replay_finished

@@ -57,25 +57,27 @@ class Source:
     closers: list[Callable[[], None]] = field(default_factory=list)
     simulated: object | None = None  # drivers.simulated.SimulatedRigState: a subject that follows prompts
     compression: str = "blosc-lz4"  # the frames' lossless filter when recording (the rig file's [recording])
+    calibration: str = ""  # the calibrations in force, in words (drivers/assembly.py)
 
 
 def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "back"), seed: int = 1,
                      protocol: str = "tidal", seconds: float = 1800.0, loop_cycles: int = 0) -> Source:
-    """The simulated rig, breathing quietly (the default everywhere). `loop_cycles`: that many light
-    cycles rendered once and delivered over and over (drivers/simulated.py), for measuring the live
-    view at a rate the renderer cannot reach on the same cores."""
-    from core.sim.breathing import Subject, Sway
-    from core.sim.simulate import SimConfig
-    from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
+    """The simulated rig, breathing quietly, with its lights and flow sensor as built (benches and
+    tests; the application opens it through rig_source, with the calibrations in force).
+    `loop_cycles`: that many light cycles rendered once and delivered over and over
+    (drivers/simulated.py), for measuring the live view at a rate the renderer cannot reach on the
+    same cores."""
+    from drivers.assembly import simulated_rig
 
-    config = SimConfig(scene="torso", protocol=protocol, seconds=seconds, scale=scale, seed=seed, heads=heads,
-                       sway=Sway(seed=seed), subject=Subject())
-    state = SimulatedRigState.build(config)
-    cameras = {h: SimCamera(state, h, loop_cycles=loop_cycles) for h in heads}
-    flow = SimFlowSensor(state)
-    model = config.flow_sensor
-    return Source(state.rig, cameras, flow, LightPhase(state.rig), (model.gain_lps, model.offset_lps),
-                  f"simulated rig (scale {scale:g})", simulated=state)
+    return _source(simulated_rig(heads, scale, seed, protocol, seconds, loop_cycles=loop_cycles),
+                   f"simulated rig (scale {scale:g})")
+
+
+def _source(assembled, name: str, closers: list | None = None) -> Source:
+    return Source(assembled.rig, assembled.cameras, assembled.flow, assembled.lights, assembled.flow_calibration,
+                  name, closers=closers or [], simulated=assembled.simulated,
+                  calibration=f"lights: {assembled.lights_from}"
+                  + (f"; flow sensor: {assembled.flow_from}" if assembled.flow_from else ""))
 
 
 class _FileCamera:
@@ -263,6 +265,7 @@ class EngineInfo:
     name: str
     replay: bool
     simulated: bool  # the simulated rig: its subject follows the operator's prompts (LiveRig.perform)
+    calibration: str = ""  # the calibrations in force, in words; "" for a replay (the file's /rig holds them)
 
 
 class _Rate:
@@ -305,6 +308,7 @@ class LiveRig:
         self._metric = LiveMetricVolume(self._live_heads, self.rig.baseline_mm)
         self._metric_curve = collections.deque(maxlen=n)
         self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
+        self._recent_flow: collections.deque = collections.deque(maxlen=1000)  # (arrival ns, block), ~10 s
         self._flow_state = {"volume": 0.0, "last_ns": None, "means": collections.deque(maxlen=3000), "sum": 0.0}
         self._problems: list[str] = []
         self._t0: int | None = None
@@ -369,7 +373,20 @@ class LiveRig:
     @property
     def info(self) -> EngineInfo:
         s = self.source
-        return EngineInfo(self.rig, tuple(s.cameras), s.name, s.replay, s.simulated is not None)
+        return EngineInfo(self.rig, tuple(s.cameras), s.name, s.replay, s.simulated is not None, s.calibration)
+
+    def flow_adc_mean(self, seconds: float = 2.0) -> float:
+        """The flow sensor's mean raw reading (ADC counts) over the next `seconds`: a steady flow
+        read for the spirometer calibration (thesis eq. 5.4)."""
+        if self.source.flow is None:
+            raise RuntimeError("this rig has no flow sensor")
+        started = time.monotonic_ns()
+        self._stop.wait(seconds + 0.1)
+        blocks = [b for arrived, b in list(self._recent_flow) if arrived >= started]
+        counts = np.concatenate([b.adc for b in blocks]) if blocks else np.zeros(0)
+        if len(counts) < 0.5 * seconds * 1000:
+            raise TimeoutError(f"the flow sensor gave {len(counts)} samples in {seconds:g} s: is it connected?")
+        return float(counts.mean())
 
     def perform(self, manoeuvre: str) -> float:
         """The simulated subject does the manoeuvre ("vc" or "forced"); the seconds it takes (0 on a real rig)."""
@@ -488,6 +505,7 @@ class LiveRig:
             while not self._stop.is_set():
                 block = self.source.flow.read()
                 if len(block.adc):
+                    self._recent_flow.append((time.monotonic_ns(), block))
                     recorder = self._recorder
                     if recorder is not None:
                         recorder.submit_flow(block)
@@ -636,30 +654,24 @@ class LiveRig:
 
 
 def rig_source(config_path: str | Path | None = None, scale: float | None = None) -> Source:
-    """The rig a configuration names (resources/rigs/simulated.toml by default)."""
+    """The rig a configuration names (resources/rigs/simulated.toml by default), with the
+    calibration profiles in force for it (app/calibration_store.py)."""
     from contextlib import ExitStack
 
-    from app.record_cli import open_hardware
-    from core.profile import load_profile
+    from app.calibration_store import in_force
+    from drivers.assembly import assemble_rig
     from drivers.rig import load_rig_config
 
     config = load_rig_config(config_path)
-    if config.simulated:
-        sim = config.simulation
-        source = simulated_source(scale=scale or float(sim.get("scale", 0.25)), heads=tuple(config.cameras),
-                                  seed=int(sim.get("seed", 1)))
-        source.name = f"{config.name} (simulated, scale {scale or float(sim.get('scale', 0.25)):g})"
-    else:
-        stack = ExitStack()
-        try:
-            rig, cameras, flow, calibration, lights = open_hardware(config, stack)
-        except Exception:
-            stack.close()
-            raise
-        source = Source(rig, cameras, flow, lights, calibration, config.name,
-                        closers=[stack.close])
+    profiles = in_force(config.name)
+    stack = ExitStack()
+    try:
+        assembled = assemble_rig(config, stack, scale, light_profile=profiles.lights, flow_profile=profiles.flow)
+    except Exception:
+        stack.close()
+        raise
+    name = (f"{config.name} (simulated, scale {scale or float(config.simulation.get('scale', 0.25)):g})"
+            if config.simulated else config.name)
+    source = _source(assembled, name, [stack.close])
     source.compression = config.compression
-    if config.calibration is not None:
-        source.rig = load_profile(config.calibration).apply(source.rig)
-        source.lights.rig = source.rig
     return source

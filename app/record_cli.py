@@ -12,7 +12,6 @@ from app.args import positive
 from app.errors import UserError
 from core.session import file_write_failed
 from app.progress import Progress
-from drivers.light_phase import LightPhase
 
 
 def add_record(sub: argparse._SubParsersAction) -> None:
@@ -35,77 +34,12 @@ def add_record(sub: argparse._SubParsersAction) -> None:
     d.set_defaults(run=run_devices)
 
 
-def _simulated(config, seconds: float, stack: ExitStack):
-    from core.sim.breathing import Subject, Sway
-    from core.sim.simulate import SimConfig
-    from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
-
-    sim = config.simulation
-    sim_config = SimConfig(scene="torso", protocol=sim.get("protocol", "tidal"), seconds=seconds + 5.0,
-                           scale=float(sim.get("scale", 0.25)), seed=int(sim.get("seed", 1)),
-                           heads=tuple(config.cameras), frame_rate_hz=float(config.camera.get("frame_rate_hz", 110.0)),
-                           sway=Sway(seed=int(sim.get("seed", 1))), subject=Subject())
-    state = SimulatedRigState.build(sim_config)
-    cameras = {h: SimCamera(state, h) for h in config.cameras}
-    flow = SimFlowSensor(state) if config.flow_port is not None else None
-    calibration = (sim_config.flow_sensor.gain_lps, sim_config.flow_sensor.offset_lps)
-    return state.rig, cameras, flow, calibration, LightPhase(state.rig)  # frame ids are trigger numbers
-
-
-def open_hardware(config, stack: ExitStack):
-    """The rig's cameras, flow sensor and sequencer, opened and configured; the sequencer armed,
-    started by the returned LightPhase once the cameras wait for its triggers."""
-    from core.rig import Rig
-    from drivers.camera import AravisCamera, CameraSettings, bandwidth_advice
-    from drivers.flowsensor import FlowSensor, FlowSensorEmulator
-    from drivers.rig import camera_head
-    from drivers.sequencer import Sequencer, SequencerEmulator
-
-    cam = config.camera
-    settings = CameraSettings(width=cam.get("width"), height=cam.get("height"), offset_x=int(cam.get("offset_x", 0)),
-                              offset_y=int(cam.get("offset_y", 0)), binning=int(cam.get("binning", 1)),
-                              pixel_format=cam.get("pixel_format", "Mono12"),
-                              exposure_us=float(cam.get("exposure_us", 1000.0)),
-                              frame_rate_hz=float(cam.get("frame_rate_hz", 110.0)), trigger=cam.get("trigger", "free"))
-    cameras, heads = {}, {}
-    for head, identifier in config.cameras.items():
-        camera = AravisCamera(identifier, name=f"{head} ({identifier})")
-        stack.callback(camera.close)
-        camera.configure(settings)
-        _, _, width, height = camera.region()
-        advice = bandwidth_advice(width, height, 8 if settings.pixel_format == "Mono8" else 12, settings.frame_rate_hz)
-        if advice:
-            print(f"warning: {head} camera: {advice}", file=sys.stderr)
-        cameras[head] = camera
-        heads[head] = camera_head(head, config.optics.get(head, {}), camera.sensor_size, camera.region(),
-                                  settings.binning, 8 if settings.pixel_format == "Mono8" else 12)
-    rig = Rig(config.name, heads, frame_rate_hz=settings.frame_rate_hz, mains_hz=config.mains_hz)
-    port = config.sequencer_port
-    sequencer = None
-    if port != "sim":
-        if port == "emulator":
-            emulator = stack.enter_context(SequencerEmulator())
-            port = emulator.port
-        sequencer = Sequencer(port)
-        stack.callback(sequencer.close)
-        sequencer.configure(rig.sequence, int(settings.exposure_us), settings.frame_rate_hz)
-        sequencer.arm()
-        stack.callback(sequencer.stop)
-    flow = None
-    if config.flow_port is not None:
-        port = config.flow_port
-        if port == "emulator":
-            emulator = stack.enter_context(FlowSensorEmulator())
-            port = emulator.port
-        flow = FlowSensor(port)
-        stack.callback(flow.close)
-    calibration = (config.flow_gain_lps, config.flow_offset_lps) if config.flow_gain_lps is not None else None
-    return rig, cameras, flow, calibration, LightPhase(rig, first_trigger=0, sequencer=sequencer)
-
-
 def run_record(args: argparse.Namespace) -> int:
-    from core.profile import ProfileError, load_profile
+    from app.calibration_store import in_force
+    from core.calibration import CalibrationProfileError
+    from core.profile import ProfileError
     from core.session import SubjectRecord
+    from drivers.assembly import assemble_rig
     from drivers.camera import CameraError
     from drivers.flowsensor import FlowSensorError
     from drivers.recorder import Recorder
@@ -122,20 +56,19 @@ def run_record(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     with ExitStack() as stack:
         try:
-            if config.simulated:
-                rig, cameras, flow, flow_calibration, lights = _simulated(config, args.seconds, stack)
-            else:
-                rig, cameras, flow, flow_calibration, lights = open_hardware(config, stack)
-            if config.calibration is not None:
-                rig = lights.rig = load_profile(config.calibration).apply(rig)
-        except (CameraError, SequencerError, FlowSensorError, ProfileError) as exc:
+            profiles = in_force(config.name)
+            rig = assemble_rig(config, stack, seconds=args.seconds + 5.0, light_profile=profiles.lights,
+                               flow_profile=profiles.flow)
+        except (CameraError, SequencerError, FlowSensorError, ProfileError, CalibrationProfileError) as exc:
             raise UserError(str(exc)) from exc
+        print(f"calibrations in force: lights {rig.lights_from}"
+              + (f"; flow sensor {rig.flow_from}" if rig.flow_from else ""), file=sys.stderr)
         bar = stack.enter_context(Progress(f"recording {args.output.name}"))
 
         def progress(elapsed: float, counts: dict) -> None:
             bar(elapsed / args.seconds, "frames " + ", ".join(f"{h} {n}" for h, n in counts.items()))
 
-        recorder = Recorder(args.output, rig, cameras, lights, flow, flow_calibration, subject,
+        recorder = Recorder(args.output, rig.rig, rig.cameras, rig.lights, rig.flow, rig.flow_calibration, subject,
                             kind="simulation" if config.simulated else "patient", compression=config.compression)
         summary = recorder.run(args.seconds, progress)
     frames = ", ".join(f"{h} {n}" for h, n in summary.frames.items())

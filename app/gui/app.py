@@ -37,10 +37,11 @@ def run_gui(args: argparse.Namespace) -> int:
     app = QApplication.instance() or QApplication(sys.argv[:1])
     app.setApplicationName("photopft")
     app.setOrganizationName("photopft")
+    rig = args.rig or settings_rig()
     opener = partial(replay_source, args.session, args.speed) if args.session else \
-        partial(rig_source, args.rig, args.scale)
+        partial(rig_source, rig, args.scale)
     try:
-        window = MainWindow(opener, args.rig, engine_log=log_file(ENGINE_LOG))
+        window = MainWindow(opener, rig, engine_log=log_file(ENGINE_LOG))
     except Exception as exc:  # the rig or file cannot be opened: one clear line, and no window
         raise UserError(f"cannot start: {exc}") from exc
     install_excepthook(lambda: window)
@@ -48,6 +49,14 @@ def run_gui(args: argparse.Namespace) -> int:
     if args.smoke_test is None:
         return app.exec()
     return _smoke_test(app, window, args.smoke_test)
+
+
+def settings_rig() -> Path | None:
+    """The rig configuration chosen in Settings (None: the simulated rig)."""
+    from PySide6.QtCore import QSettings
+
+    chosen = str(QSettings("photopft", "photopft").value("rig/config", "") or "")
+    return Path(chosen) if chosen else None
 
 
 def _smoke_test(app, window, seconds: float) -> int:

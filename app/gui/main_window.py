@@ -27,23 +27,23 @@ DISPLAY_INTERVAL_MS = 33  # about 30 display updates per second
 
 
 def calibration_in_force(info: EngineInfo) -> str:
-    """The light calibration of the rig in use, and its age."""
+    """The calibrations in force on the source, and the age of the lights' (a replay: as recorded)."""
     from datetime import datetime, timezone
 
+    if info.replay:
+        stamps = {h.calibrated for h in info.rig.heads.values() if h.calibrated}
+        return f"as recorded (lights calibrated {min(stamps)[:10]})" if stamps else "as recorded (lights not calibrated)"
+    text = info.calibration or "lights as the rig file gives them"
     stamps = {h.calibrated for h in info.rig.heads.values() if h.calibrated}
-    if not stamps:
-        return ("the simulated rig's true lights (nothing to calibrate)" if info.simulated
-                else "no light calibration recorded: run the sphere calibration")
-    oldest = min(stamps)
-    try:
-        age = datetime.now(timezone.utc) - datetime.fromisoformat(oldest)
-        days = age.total_seconds() / 86400
-        age_text = "today" if days < 1 else f"{days:.0f} days ago"
-        warn = " — recalibrate (over 30 days)" if days > 30 else ""
-    except ValueError:
-        age_text, warn = "date unreadable", ""
-    kind = "simulated rig's true lights" if info.simulated else "lights"
-    return f"{kind} calibrated {oldest[:10]} ({age_text}){warn}"
+    if stamps:
+        try:
+            days = (datetime.now(timezone.utc) - datetime.fromisoformat(min(stamps))).total_seconds() / 86400
+        except ValueError:
+            return text
+        text += f" — lights {'calibrated today' if days < 1 else f'{days:.0f} days old'}"
+        if days > 30:
+            text += ": recalibrate (over 30 days)"
+    return text
 
 
 @dataclass(frozen=True)
@@ -222,6 +222,8 @@ class MainWindow(QMainWindow):
                                         "Visits, trends, interpretation, comment and sign-off (clinician)")
         self.act_audit = self._action("&Audit trail…", self.open_audit, None,
                                       "Who did what when, with the check of its hash chain")
+        self.act_profiles = self._action("&Profiles in force…", self.open_profiles, None,
+                                         "The calibrations in force, the ones they replaced, and going back")
         self.act_settings = self._action("&Settings…", self.open_settings, "Ctrl+,")
         self.act_quit = self._action("&Quit", self.close, QKeySequence.StandardKey.Quit)
         menu = self.menuBar()
@@ -233,6 +235,8 @@ class MainWindow(QMainWindow):
         calibrate = menu.addMenu("&Calibration")
         calibrate.addAction(self.act_sphere)
         calibrate.addAction(self.act_spiro)
+        calibrate.addSeparator()
+        calibrate.addAction(self.act_profiles)
         tools = menu.addMenu("&Tools")
         tools.addAction(self.act_audit)
         tools.addAction(self.act_settings)
@@ -245,6 +249,7 @@ class MainWindow(QMainWindow):
     def use_source(self, opener: Callable[[], Source]) -> None:
         """Run the live view on another source: the new engine starts first, so a source that
         cannot be opened leaves the current one running (and raises)."""
+        self.opener = opener
         QApplication.setOverrideCursor(Qt.CursorShape.WaitCursor)  # the engine process starts in seconds
         try:
             engine = EngineProcess(opener, self.engine_log)
@@ -357,15 +362,48 @@ class MainWindow(QMainWindow):
         heads = tuple(self.info.heads)
         scale = self.info.rig.heads["front"].width / 1400.0
         capture = None if self.info.simulated else capture_from_rig(self)
-        wizard = SphereCalibrationWizard(self, heads, scale, capture=capture)
+        wizard = SphereCalibrationWizard(self, heads, scale, capture=capture, profile_dir=self.profile_dir())
         if wizard.exec() and wizard.saved_to is not None:
-            self.statusBar().showMessage(f"Rig calibration saved: {wizard.saved_to}", 10000)
+            self.calibration_changed(f"Rig calibration saved and in force: {wizard.saved_to}")
 
     def spirometer_calibration(self) -> None:
-        from app.gui.wizards.spirometer import SpirometerCalibrationWizard
+        from app.gui.wizards.spirometer import RigFlowBench, SimulatedFlowBench, SpirometerCalibrationWizard
 
+        if self.info.replay:
+            show_error(self, "The spirometer is calibrated on the rig, not on a replay.",
+                       "Session > Live rig goes back to the rig first.")
+            return
         if self._may_calibrate():
-            SpirometerCalibrationWizard(self).exec()
+            bench = SimulatedFlowBench() if self.info.simulated else RigFlowBench(self.engine)
+            wizard = SpirometerCalibrationWizard(self, bench, profile_dir=self.profile_dir())
+            if wizard.exec() and wizard.saved:
+                self.calibration_changed("Spirometer calibration saved and in force: "
+                                         + ", ".join(p.name for p in wizard.saved))
+
+    def profile_dir(self) -> Path:
+        from app.calibration_store import calibration_dir
+
+        return calibration_dir(self.info.rig.name)
+
+    def calibration_changed(self, message: str) -> None:
+        """A profile saved or restored: the rig reopened with it (unless a replay is showing, which
+        keeps the calibrations it was recorded with)."""
+        if not self.info.replay:
+            try:
+                self.use_source(self.opener)
+            except Exception as exc:  # the rig cannot be reopened with it: said, the view keeps what it has
+                show_error(self, "The new calibration cannot be put in force.",
+                           f"{exc}. Calibration > Profiles can put the previous one back.")
+                return
+        self.statusBar().showMessage(message, 10000)
+
+    def open_profiles(self) -> None:
+        from app.gui.profiles_view import ProfilesWindow
+
+        window = ProfilesWindow(self, self.info.rig.name, self.info.calibration if not self.info.replay else "")
+        window.exec()
+        if window.restored is not None:
+            self.calibration_changed(f"Calibration profile restored and in force: {window.restored.name}")
 
     def open_records(self) -> None:
         from app.gui.records_view import RecordsWindow
@@ -400,7 +438,11 @@ class MainWindow(QMainWindow):
         dialog = SettingsDialog(self.settings, self)
         if dialog.exec():
             rig = self.settings.value("rig/config", "")
-            self.rig_config = Path(rig) if rig else None
+            chosen = Path(rig) if rig else None
+            if chosen != self.rig_config:
+                self.rig_config = chosen
+                if not self.info.replay and not self.engine.recording:
+                    self.back_to_rig()
 
     def closeEvent(self, event) -> None:  # noqa: N802 - Qt naming
         if self.engine is not None and self.engine.recording:

@@ -200,10 +200,18 @@ def test_back_and_next_keep_one_recording_and_cancel_asks(qtbot, tmp_path):
         records.close()
 
 
-def test_the_sphere_calibration_wizard(qtbot, tmp_path):
+def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path, monkeypatch):
+    """The profile the wizard saves is the one the rig opens with next: the status names it and
+    the next recording's /rig holds its lights."""
+    from app.calibration_store import calibration_dir, history
     from app.gui.wizards.sphere import SphereCalibrationWizard
+    from app.live import rig_source
+    from core.profile import load_profile
+    from core.session import SubjectRecord
 
-    wizard = SphereCalibrationWizard(None, ("front", "back"), 0.25, profile_dir=tmp_path)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
+    folder = calibration_dir("simulated")
+    wizard = SphereCalibrationWizard(None, ("front", "back"), 0.25, profile_dir=folder)
     qtbot.addWidget(wizard)
     wizard.show()
     _press(qtbot, wizard)
@@ -218,13 +226,29 @@ def test_the_sphere_calibration_wizard(qtbot, tmp_path):
     result = wizard.currentPage()
     assert result.isComplete(), result.message.text()
     assert result.table.rowCount() == 8 and all(result.table.item(r, 5).text() == "pass" for r in range(8))
-    (tmp_path / "rig-calibration.json").write_text("{}")  # the profile in force, to be kept
+    folder.mkdir(parents=True)
+    (folder / "rig-calibration.json").write_text("{}")  # the profile in force, to be kept
     wizard.accept()
-    from core.profile import load_profile
-
-    profile = load_profile(tmp_path / "rig-calibration.json")
+    profile = load_profile(folder / "rig-calibration.json")
     assert set(profile.heads) == {"front", "back"}
-    assert len(list(tmp_path.glob("rig-calibration-*.json"))) == 1
+    assert len(history("simulated", "rig-calibration.json")) == 1
+
+    window = MainWindow(partial(rig_source, None, 0.1))
+    qtbot.addWidget(window)
+    try:
+        window.refresh()
+        assert "rig-calibration.json of " + profile.created[:10] in window.view.status.labels["calibration"].text()
+        session = tmp_path / "after.h5"
+        window.engine.start_recording(session, SubjectRecord("CAL-0001", "male", 40.0, 175.0, 75.0))
+        qtbot.wait(1500)
+        window.engine.stop_recording()
+    finally:
+        window.close()
+    with SessionFile(session) as recorded:
+        for head in ("front", "back"):
+            assert np.allclose(recorded.rig.heads[head].light_positions_mm,
+                               profile.heads[head].light_positions_mm, atol=1e-3)
+            assert recorded.rig.heads[head].calibrated == profile.created
 
 
 def test_the_spirometer_calibration_wizard(qtbot, tmp_path, processed_full_session):

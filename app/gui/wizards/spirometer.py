@@ -23,8 +23,23 @@ from core.outputs import write_text_atomic
 from core.session import now_iso
 
 
+class RigFlowBench:
+    """The rig's own flow sensor, read through the live engine while the pneumatic bench holds a
+    steady flow."""
+
+    label = "the rig's flow sensor"
+
+    def __init__(self, engine) -> None:
+        self.engine = engine
+
+    def adc_mean(self, reference_lps: float, seconds: float = 2.0) -> float:
+        return self.engine.flow_adc_mean(seconds)
+
+
 class SimulatedFlowBench:
     """The simulated pneumatic bench: a steady flow through the simulated sensor, read for 2 s."""
+
+    label = "the simulated flow bench (the simulated rig's sensor model; no hardware is read)"
 
     def __init__(self, seed: int = 1) -> None:
         from core.sim.flowsensor import FlowSensorModel
@@ -47,7 +62,7 @@ class FlowPage(QWizardPage):
         self.setTitle("Flow sensor")
         self.setSubTitle("Set a steady flow on the pneumatic bench, type the reference flowmeter's reading and "
                          "press Read (2 s). Cover the working range in both directions, and zero flow: at least "
-                         "three flows.")
+                         f"three flows. Reading {getattr(bench, 'label', 'the flow sensor')}.")
         self.reference = QDoubleSpinBox(minimum=-15.0, maximum=15.0, value=0.0, suffix=" L/s", decimals=3,
                                         singleStep=0.5)
         self.read = QPushButton("Read")

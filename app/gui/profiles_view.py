@@ -1,0 +1,83 @@
+"""Calibration > Profiles in force: each kind of calibration of this rig, the profile in force with
+its date, the ones it replaced, and putting one of those back (engineer; logged)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from PySide6.QtWidgets import (QDialog, QDialogButtonBox, QHBoxLayout, QLabel, QListWidget, QListWidgetItem,
+                               QPushButton, QVBoxLayout)
+
+from app.calibration_store import PROFILES, calibration_audit, calibration_dir, history, restore
+from app.gui.errors import show_error
+from app.records import RecordsError
+
+
+def profile_created(path: Path) -> str:
+    """A profile's creation time as written in it, or what is wrong with reading it."""
+    try:
+        created = str(json.loads(path.read_text()).get("created", ""))
+    except (OSError, ValueError, AttributeError) as exc:
+        return f"unreadable ({exc.__class__.__name__})"
+    return created[:16].replace("T", " ") or "no date"
+
+
+class ProfilesWindow(QDialog):
+    def __init__(self, parent, rig_name: str, in_force_text: str) -> None:
+        super().__init__(parent)
+        self.rig_name = rig_name
+        self.restored: Path | None = None
+        self.setWindowTitle(f"Calibration profiles of the rig {rig_name!r}")
+        layout = QVBoxLayout(self)
+        heading = QLabel(f"<b>In force now:</b> {in_force_text or 'as recorded in the file being replayed'}<br>"
+                         f"Folder: {calibration_dir(rig_name)}")
+        heading.setWordWrap(True)
+        layout.addWidget(heading)
+        self.lists: dict[str, QListWidget] = {}
+        for name, kind in PROFILES.items():
+            current = calibration_dir(rig_name) / name
+            label = QLabel(f"<b>{kind[0].upper() + kind[1:]}</b>: "
+                           + (f"{name} of {profile_created(current)}" if current.is_file() else "none saved yet"))
+            layout.addWidget(label)
+            earlier = QListWidget()
+            earlier.setMaximumHeight(90)
+            for path in history(rig_name, name):
+                item = QListWidgetItem(f"{profile_created(path)}  ({path.name})")
+                item.setData(256, str(path))
+                earlier.addItem(item)
+            if earlier.count() == 0:
+                earlier.addItem("no earlier profile")
+            row = QHBoxLayout()
+            row.addWidget(earlier, 1)
+            button = QPushButton("Put back in force")
+            button.setEnabled(bool(history(rig_name, name)))
+            button.clicked.connect(lambda _=False, w=earlier: self._restore(w))
+            row.addWidget(button)
+            layout.addLayout(row)
+            self.lists[name] = earlier
+        buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Close)
+        buttons.rejected.connect(self.reject)
+        layout.addWidget(buttons)
+        self.resize(720, 480)
+
+    def _restore(self, earlier: QListWidget) -> None:
+        item = earlier.currentItem()
+        if item is None or not item.data(256):
+            show_error(self, "Choose the earlier profile to put back.", "Click one in the list first.")
+            return
+        try:
+            records = calibration_audit()
+        except RecordsError as exc:
+            show_error(self, "You may not change the rig's calibration.", str(exc))
+            return
+        try:
+            if records is not None:
+                with records:
+                    self.restored = restore(self.rig_name, Path(item.data(256)), records)
+            else:
+                self.restored = restore(self.rig_name, Path(item.data(256)))
+        except (OSError, ValueError) as exc:
+            show_error(self, "That profile cannot be put back.", str(exc))
+            return
+        self.accept()
