@@ -269,6 +269,9 @@ class EngineProcess:
     def perform(self, manoeuvre: str) -> float:
         return self._call("perform", manoeuvre)
 
+    def blow_trace(self, mark_ns: int):
+        return self._call("blow_trace", mark_ns)
+
     def flow_adc_mean(self, seconds: float = 2.0) -> float:
         return self._call("flow_adc_mean", seconds)
 

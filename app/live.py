@@ -309,6 +309,7 @@ class LiveRig:
         self._metric_curve = collections.deque(maxlen=n)
         self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
         self._recent_flow: collections.deque = collections.deque(maxlen=1000)  # (arrival ns, block), ~10 s
+        self._blow_drift_lps: dict[int, float] = {}  # the flow sensor's drift at a blow's mark
         self._flow_state = {"volume": 0.0, "last_ns": None, "means": collections.deque(maxlen=3000), "sum": 0.0}
         self._problems: list[str] = []
         self._t0: int | None = None
@@ -441,7 +442,18 @@ class LiveRig:
         """The pulmonary function values of the recording so far, from the flow sensor, by the same
         analysis as the report (core.analysis): for feedback after each manoeuvre. None without a
         calibrated flow sensor."""
-        from core.analysis import analyse_volume, tidal_windows
+        from core.analysis import analyse_volume
+
+        recorded = self._recorded_volume()
+        if recorded is None:
+            return None
+        volume, start, marks = recorded
+        return analyse_volume((volume.timestamp_ns - start) / 1e9, volume.volume_l, marks, age_years)
+
+    def _recorded_volume(self):
+        """(the flow sensor's volume of the recording so far, its first stamp, the events in s from
+        it), with the drift removed as the report removes it; None without a calibrated flow sensor."""
+        from core.analysis import tidal_windows
         from core.flow import flow_sensor_volume
 
         if self.source.flow_calibration is None or self._recorder is None:
@@ -449,7 +461,7 @@ class LiveRig:
         with self._lock:
             adc, stamps = self._recorded_flow.samples()
             events = list(self._recorded_events)
-        if not len(adc):
+        if len(adc) < 2:
             return None
         start = int(stamps[0])
         end_s = (int(stamps[-1]) - start) / 1e9
@@ -457,8 +469,37 @@ class LiveRig:
         marks = sorted((min((t - start) / 1e9, end_s) if (t - start) / 1e9 - end_s < 0.5 else (t - start) / 1e9,
                         label) for t, label in events)
         gain, offset = self.source.flow_calibration
-        volume = flow_sensor_volume(adc, stamps, gain, offset, self._btps, tidal_windows(marks, end_s))
-        return analyse_volume((volume.timestamp_ns - start) / 1e9, volume.volume_l, marks, age_years)
+        return flow_sensor_volume(adc, stamps, gain, offset, self._btps, tidal_windows(marks, end_s)), start, marks
+
+    def blow_trace(self, mark_ns: int, before_s: float = 2.5) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """The volume curves (s from the mark, L positive inhaled, BTPS) since `before_s` before a
+        manoeuvre's mark, for the forced-blow screen: the flow sensor's from the recording (about
+        100 samples a second; the sensor's drift as the report will remove it, taken once from the
+        recording up to the mark) and the optical metric volume."""
+        from core.flow import flow_sensor_volume
+
+        out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        from_ns = mark_ns - int(before_s * 1e9)
+        if mark_ns not in self._blow_drift_lps:
+            recorded = self._recorded_volume()
+            self._blow_drift_lps = {mark_ns: float(recorded[0].drift_lps[-1]) if recorded is not None else 0.0}
+        with self._lock:
+            adc, stamps = self._recorded_flow.samples() if self._recorder is not None else (np.zeros(0), np.zeros(0))
+            metric = np.array(self._metric_curve, dtype=float).reshape(-1, 2)
+        if self.source.flow_calibration is not None and len(stamps):
+            keep = stamps >= from_ns
+            adc, stamps = adc[keep], stamps[keep]
+            if len(stamps) > 20:
+                gain, offset = self.source.flow_calibration
+                drift = self._blow_drift_lps[mark_ns]
+                volume = flow_sensor_volume(adc, stamps, gain, offset - drift / self._btps, self._btps, drift_degree=0)
+                step = max(1, len(stamps) // max(1, int((stamps[-1] - stamps[0]) / 1e7)))  # about 100 per second
+                out["flow sensor"] = ((volume.timestamp_ns[::step] - mark_ns) / 1e9, volume.volume_l[::step])
+        if self._t0 is not None and len(metric):
+            t = metric[:, 0] - (mark_ns - self._t0) / 1e9
+            keep = t >= -before_s
+            out["optical"] = (t[keep], metric[keep, 1])
+        return out
 
     def stop_recording(self) -> RecordSummary:
         with self._lock:

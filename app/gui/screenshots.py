@@ -100,7 +100,12 @@ def main(out: Path) -> int:
         page = wizard.currentPage()
         while not page.isComplete():
             page.begin.click()
-            _wait(app, page.last_duration_s + 0.8)
+            if name == "forced" and page.count == 1:  # the second blow, as the operator sees it happen
+                _wait(app, 0.45 * page.last_duration_s)
+                _grab(wizard, out / "patient-5-forced-during-blow.png")
+                _wait(app, 0.55 * page.last_duration_s + 0.8)
+            else:
+                _wait(app, page.last_duration_s + 0.8)
             page.end.click()
             _wait(app, 15, lambda: page.assessed == page.count)
         _grab(wizard, out / f"patient-{4 if name == 'vc' else 5}-{name}.png")

@@ -123,9 +123,24 @@ def test_a_whole_patient_session(qtbot, tmp_path):
                 assert page.count < 8
                 page.begin.click()
                 duration = page.last_duration_s
-                qtbot.wait(int(1000 * (duration + 0.8)))
+                if kind == "forced":  # the loop is drawn while the blow happens, not after it
+                    loop = page.screen.live["flow sensor"][0]
+                    qtbot.wait(int(1000 * duration / 2))
+                    midway = float(np.max(loop.xData)) if loop.xData is not None and len(loop.xData) else 0.0
+                    qtbot.wait(int(1000 * (duration / 2 + 0.8)))
+                    assert loop.xData is not None and float(np.max(loop.xData)) > midway > 0.3
+                    assert "FET" in page.screen.status.text()
+                else:
+                    qtbot.wait(int(1000 * (duration + 0.8)))
                 page.end.click()
                 qtbot.waitUntil(lambda: page.assessed == page.count, timeout=15000)
+            if kind == "forced":
+                screen = page.screen
+                assert screen.table.rowCount() == page.count and len(screen.earlier) == page.count
+                best = [screen.table.item(r, 7).text() for r in range(page.count)]
+                assert best.count("★ best") == 1
+                assert screen.repeatability.text().startswith("Repeatability (grade ")
+                assert "END OF TEST" in screen.end_of_test.text() or "not yet" in screen.end_of_test.text()
             _press(qtbot, wizard)
         feedback = wizard.page(wizard.pageIds()[4]).feedback.toPlainText()
         assert "Blow 1: FVC" in feedback and "acceptable" in feedback

@@ -275,19 +275,48 @@ class ManoeuvrePage(QWizardPage):
         buttons = QHBoxLayout()
         buttons.addWidget(self.begin)
         buttons.addWidget(self.end)
-        layout = QVBoxLayout(self)
-        layout.addLayout(buttons)
-        layout.addWidget(self.feedback)
+        self.layout_ = QVBoxLayout(self)
+        self.layout_.addLayout(buttons)
+        self.layout_.addWidget(self.feedback)
         self.count = 0
         self.assessed = 0
         self._lines: list[str] = []
         self.finished = False
+        self.screen = None  # the forced-blow screen, made when the page shows (it needs the patient)
+        self.trace_timer = QTimer(self)
+        self.trace_timer.setInterval(100)
+        self.trace_timer.timeout.connect(self._trace)
+        self._mark_ns = 0
+
+    def initializePage(self) -> None:  # noqa: N802
+        from app.gui.blow_screen import BlowScreen, predicted_fvc_l
+
+        if self.kind != "forced" or self.screen is not None:
+            return
+        patient = self.wizard().patient_page.patient()
+        self.screen = BlowScreen(self.wizard().age_years(), predicted_fvc_l(patient))
+        self.layout_.insertWidget(1, self.screen, 1)
+        self.feedback.setMaximumHeight(90)
+        wizard = self.wizard()
+        wizard.resize(max(wizard.width(), 1150), max(wizard.height(), 860))
 
     def _begin(self) -> None:
-        self.engine.mark("forced-start" if self.kind == "forced" else "vc-start")
+        self._mark_ns = self.engine.mark("forced-start" if self.kind == "forced" else "vc-start")
         self.last_duration_s = self.engine.perform(self.kind)
         self.begin.setEnabled(False)
         self.end.setEnabled(True)
+        if self.screen is not None:
+            self.trace_timer.start()
+
+    def _trace(self) -> None:
+        """The blow so far on the forced-blow screen (ten times a second)."""
+        try:
+            traces = self.engine.blow_trace(self._mark_ns)
+        except Exception as exc:  # the screen is feedback; the recording goes on without it
+            self.trace_timer.stop()
+            self.screen.status.setText(f"live curves stopped: {exc}")
+            return
+        self.screen.show_live(traces)
 
     def _end(self) -> None:
         self._end_ns = self.engine.mark("maneuver-end")
@@ -305,6 +334,9 @@ class ManoeuvrePage(QWizardPage):
         if not self.engine.flow_reaches(self._end_ns) and time.monotonic() - self._asked < 10.0:
             QTimer.singleShot(100, self._when_flow_arrives)
             return
+        self.trace_timer.stop()
+        if self.screen is not None:
+            self._trace()
         self._lines.append(self._assess())
         self.feedback.setPlainText("\n".join(self._lines))
         self.assessed = self.count
@@ -315,12 +347,16 @@ class ManoeuvrePage(QWizardPage):
         age_years = self.wizard().age_years()
         values = self.engine.recorded_values(age_years)
         if values is None:
+            if self.screen is not None:
+                self.screen.finish_blow(None)
             return f"{self.title()} {self.count}: recorded (no flow sensor: feedback comes with the report)."
         if self.kind != "forced":
             vc = values.vital_capacity
             self.finished = True
             return f"Slow VC recorded: VC {vc.vc_l:.2f} L." if vc else "Slow VC: not analysable; do it again."
         grade = values.forced
+        if self.screen is not None:
+            self.screen.finish_blow(grade)
         if grade is None:
             return f"Blow {self.count}: not analysable ({'; '.join(values.problems[-1:])}); do another."
         last = grade.manoeuvres[-1]

@@ -1,0 +1,60 @@
+"""The forced blow as it happens (core/blow_monitor.py): nothing before the blow starts, the
+back-extrapolated volume and FET during it, the end-of-test plateau when it comes, the same values
+as the report's analysis of the whole blow, and the best blow by ATS/ERS 2019."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.analysis import ANALYSIS_RATE_HZ, resample
+from core.blow_monitor import best_blow, live_blow
+from core.spirometry import forced_values
+
+
+def _session(fvc_l: float = 4.0, tau_s: float = 0.6, rate_hz: float = 100.0):
+    """Quiet breathing, a full inspiration to 3 L above FRC at 1 s before the mark, then a blow
+    of fvc_l (exhaled = fvc (1 - exp(-t/tau)) from the mark), then breathing in again at 10 s."""
+    t = np.arange(-3.0, 12.0, 1.0 / rate_hz)
+    v = np.where(t < -1.0, 0.3 * np.sin(2 * np.pi * t / 4), 0.0)
+    rising = (t >= -1.0) & (t < 0.0)
+    v[rising] = 3.0 * (t[rising] + 1.0)
+    blowing = t >= 0.0
+    v[blowing] = 3.0 - fvc_l * (1 - np.exp(-t[blowing] / tau_s))
+    after = t >= 10.0
+    v[after] = v[after][0] + 1.5 * (t[after] - 10.0)
+    return t, v
+
+
+def test_the_blow_is_followed_from_start_to_plateau():
+    t, v = _session()
+    before = live_blow(t[t <= -0.2], v[t <= -0.2], 0.0)
+    assert not before.started and "waiting" in before.status()
+    during = live_blow(t[t <= 1.5], v[t <= 1.5], 0.0)
+    assert during.started and not during.end_of_test
+    assert during.values.bev_ok and during.values.fet_s == pytest.approx(1.5, abs=0.1)
+    assert "keep blowing" in during.status()
+    done = live_blow(t[t <= 9.0], v[t <= 9.0], 0.0)
+    assert done.end_of_test and "end of test reached" in done.status()
+    assert done.values.fvc_l == pytest.approx(4.0, abs=0.01)
+    # what the operator saw is what the report says: the report's analysis of the same blow
+    grid, vg = resample(t[(t >= -1.0) & (t <= 9.5)], v[(t >= -1.0) & (t <= 9.5)])
+    top = int(np.argmax(vg))
+    report = forced_values(vg[top] - vg[top:], ANALYSIS_RATE_HZ)
+    assert done.values.fev1_l == pytest.approx(report.fev1_l, abs=0.005)
+    assert done.values.pef_lps == pytest.approx(report.pef_lps, abs=0.05)
+    # the next inspiration is not part of the blow's curves
+    after = live_blow(t, v, 0.0)
+    assert np.all(np.diff(after.exhaled_l) >= -1e-9) and after.exhaled_l[-1] == pytest.approx(after.values.fvc_l)
+
+
+def test_the_best_blow_is_the_acceptable_one_with_the_largest_fev1_plus_fvc():
+    blows = []
+    for fvc, tau in ((4.0, 0.6), (4.2, 0.6), (4.1, 0.5)):
+        t, v = _session(fvc, tau)
+        blows.append(live_blow(t[t <= 9.0], v[t <= 9.0], 0.0).values)
+    assert all(b.fvc_acceptable for b in blows)
+    assert best_blow(blows) == max(range(3), key=lambda i: blows[i].fvc_l + blows[i].fev1_l)
+    blows[1].cough_in_first_second = True  # no longer acceptable: the best is another one
+    assert best_blow(blows) != 1
+    assert best_blow([]) is None
