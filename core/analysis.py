@@ -31,18 +31,48 @@ class TidalValues:
     end_expiratory_level_l: float
 
 
+# Slow VC (ATS/ERS 2005, lung volumes): the exhalation ends on a plateau, and the two largest
+# acceptable VCs agree within 150 mL; the largest acceptable VC is reported.
+VC_PLATEAU_L = 0.050  # under this in the last second of the slow exhalation
+VC_REPEATABILITY_L = 0.150
+
+
 @dataclass
 class VitalCapacity:
     vc_l: float
     ic_l: float
     erv_l: float
     irv_l: float
+    exhalation_end_l: float = 0.0  # volume exhaled in the last second before the lowest point
+    start_s: float = float("nan")
+
+    @property
+    def plateau(self) -> bool:
+        return self.exhalation_end_l < VC_PLATEAU_L
+
+    @property
+    def acceptable(self) -> bool:
+        return self.plateau
+
+    @property
+    def problems(self) -> list[str]:
+        if self.plateau:
+            return []
+        return [f"ended too early: {1000 * self.exhalation_end_l:.0f} mL in the last second of the exhalation "
+                f"(a plateau is under {1000 * VC_PLATEAU_L:.0f} mL)"]
+
+
+def vc_repeatability_l(manoeuvres: list[VitalCapacity]) -> float:
+    """The difference between the two largest acceptable VCs (NaN with fewer than two)."""
+    values = sorted((m.vc_l for m in manoeuvres if m.acceptable), reverse=True)
+    return values[0] - values[1] if len(values) >= 2 else float("nan")
 
 
 @dataclass
 class SessionValues:
     tidal: TidalValues | None = None
-    vital_capacity: VitalCapacity | None = None
+    vital_capacity: VitalCapacity | None = None  # the largest acceptable slow VC (else the largest)
+    vc_manoeuvres: list[VitalCapacity] = field(default_factory=list)
     forced: SessionGrade | None = None
     problems: list[str] = field(default_factory=list)
     # exhaled volume (L) of each forced manoeuvre, sampled at ANALYSIS_RATE_HZ from the blow's
@@ -59,7 +89,11 @@ class SessionValues:
                        tPTEF_tE=t.tptef_te, IE50=t.ie50, breaths=t.breaths)
         if self.vital_capacity is not None:
             v = self.vital_capacity
-            out.update(VC_l=v.vc_l, IC_l=v.ic_l, ERV_l=v.erv_l, IRV_l=v.irv_l)
+            out.update(VC_l=v.vc_l, IC_l=v.ic_l, ERV_l=v.erv_l, IRV_l=v.irv_l, VC_manoeuvres=len(self.vc_manoeuvres),
+                       VC_acceptable=sum(m.acceptable for m in self.vc_manoeuvres))
+            spread = vc_repeatability_l(self.vc_manoeuvres)
+            if np.isfinite(spread):
+                out["VC_repeatability_l"] = spread
         if self.forced is not None:
             f = self.forced
             out.update(FVC_l=f.fvc_l, FEV1_l=f.fev1_l, FEV1_FVC=f.fev1_fvc, PEF_lps=f.pef_lps,
@@ -199,9 +233,25 @@ def _windows(events: list[tuple[float, str]], start_label: str,
         end = next((t2 for t2, l2 in events[k + 1:] if l2 == "maneuver-end"), None)
         if end is None or end > end_s:
             unfinished.append(t)
-        else:
+        elif not _rejected(events, end):
             out.append((t, end))
     return out, unfinished
+
+
+MANOEUVRE_STARTS = ("tidal-start", "vc-start", "forced-start")
+
+
+def _rejected(events: list[tuple[float, str]], end: float) -> bool:
+    """The operator rejected the manoeuvre that ended at `end` (a `maneuver-rejected` event after
+    its end and before the next manoeuvre starts): it is left out, as if it had not been done."""
+    for t, label in events:
+        if t < end:
+            continue
+        if label in MANOEUVRE_STARTS:
+            return False
+        if label == "maneuver-rejected":
+            return True
+    return False
 
 
 def tidal_windows(events: list[tuple[float, str]], end_s: float) -> list[tuple[float, float]]:
@@ -241,10 +291,16 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         inside = (t >= a) & (t <= b + 0.5)
         if inside.sum() < 10:
             continue
-        top, bottom = float(v[inside].max()), float(v[inside].min())
+        ti, vi = t[inside], v[inside]
+        i_low = int(np.argmin(vi))
+        top, bottom = float(vi.max()), float(vi[i_low])
         ic, erv = top - frc, frc - bottom
         tv = result.tidal.tidal_volume_l if result.tidal is not None else float("nan")
-        result.vital_capacity = VitalCapacity(top - bottom, ic, erv, ic - tv)
+        last_second = float(np.interp(ti[i_low] - 1.0, ti, vi)) - bottom
+        result.vc_manoeuvres.append(VitalCapacity(top - bottom, ic, erv, ic - tv, last_second, a))
+    if result.vc_manoeuvres:
+        acceptable = [m for m in result.vc_manoeuvres if m.acceptable]
+        result.vital_capacity = max(acceptable or result.vc_manoeuvres, key=lambda m: m.vc_l)
     blows: list[ForcedValues] = []
     forced_windows, forced_unfinished = _windows(ordered, "forced-start", end_s)
     result.problems += [f"forced expiration from {t:.1f} s not finished before the recording ended: left out"

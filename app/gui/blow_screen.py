@@ -143,6 +143,14 @@ class BlowScreen(QWidget):
         if grade is not None:
             self.show_grade(grade)
 
+    def reject_last(self) -> None:
+        """The operator rejected the last blow: its curve goes."""
+        if self.earlier:
+            for item, plot in zip(self.earlier.pop(), (self.loop, self.volume_time)):
+                plot.removeItem(item)
+            self.curves.pop()
+        self.table.setRowCount(len(self.earlier))
+
     def show_grade(self, grade: SessionGrade) -> None:
         blows = grade.manoeuvres
         best = best_blow(blows)

@@ -158,6 +158,13 @@ def _ramp(level_from: float, level_to: float, duration_s: float) -> np.ndarray:
     return level_from + (level_to - level_from) * 0.5 * (1 - np.cos(np.pi * t / duration_s))
 
 
+def _ease_out(level_from: float, level_to: float, duration_s: float) -> np.ndarray:
+    """A change of level that starts briskly and levels off (cubic ease-out): a slow exhalation
+    to residual volume, which ends on a plateau."""
+    t = _samples(duration_s)
+    return level_from + (level_to - level_from) * (1 - (1 - t / duration_s) ** 3)
+
+
 def tidal(subject: Subject, duration_s: float, rng: np.random.Generator, level_l: float = 0.0) -> np.ndarray:
     """Tidal breaths: raised-cosine inspiration, passive (exponential) expiration, 8% variability."""
     parts: list[np.ndarray] = [np.zeros(0)]
@@ -184,7 +191,7 @@ def slow_vc(subject: Subject, rng: np.random.Generator,
     """Tidal breaths, a slow full inspiration to TLC, a slow full expiration to RV, back to FRC."""
     ic, erv = subject.inspiratory_capacity, subject.expiratory_reserve
     lead = tidal(subject, lead_breaths * 60.0 / subject.respiratory_rate_bpm, rng)
-    parts = [lead, _ramp(0.0, ic, 3.0), np.full(int(0.5 * RATE_HZ), ic), _ramp(ic, -erv, 6.0),
+    parts = [lead, _ramp(0.0, ic, 3.0), np.full(int(0.5 * RATE_HZ), ic), _ease_out(ic, -erv, 7.0),
              np.full(int(0.4 * RATE_HZ), -erv), _ramp(-erv, 0.0, 2.0)]
     start = len(lead) / RATE_HZ
     end = sum(len(p) for p in parts) / RATE_HZ

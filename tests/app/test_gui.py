@@ -116,6 +116,7 @@ def test_a_whole_patient_session(qtbot, tmp_path):
         qtbot.waitUntil(tidal.isComplete, timeout=90000)
         assert tidal.extended_s >= 15.0 and tidal.remaining.text() == "done"
         _press(qtbot, wizard)
+        rejected: list[int] = []
         for kind in ("vc", "forced"):
             page = wizard.currentPage()
             assert isinstance(page, ManoeuvrePage) and page.kind == kind
@@ -134,6 +135,14 @@ def test_a_whole_patient_session(qtbot, tmp_path):
                     qtbot.wait(int(1000 * (duration + 0.8)))
                 page.end.click()
                 qtbot.waitUntil(lambda: page.assessed == page.count, timeout=15000)
+                if kind == "vc" and not rejected:  # the operator saw it go wrong: left out, done again
+                    assert page.reject.isEnabled() and not page.isComplete()
+                    page.reject.click()
+                    rejected.append(page.count)
+                    assert page.count == 0 and page.begin.isEnabled()
+                    assert page.feedback.toPlainText().endswith("Rejected by the operator.")
+            if kind == "vc":
+                assert page.count >= 3 and "The two largest within" in page.feedback.toPlainText()
             if kind == "forced":
                 screen = page.screen
                 assert screen.table.rowCount() == page.count and len(screen.earlier) == page.count
@@ -155,13 +164,15 @@ def test_a_whole_patient_session(qtbot, tmp_path):
     assert validate_session(path) == [], validate_session(path)
     with SessionFile(path) as s:
         labels = [label for _, label in s.events()]
-        assert labels[0] == "tidal-start" and "vc-start" in labels and labels.count("forced-start") >= 3
+        assert labels[0] == "tidal-start" and labels.count("vc-start") >= 4 and labels.count("forced-start") >= 3
+        assert labels.count("maneuver-rejected") == 1
         assert s.subject.id.startswith("P-") and s.attrs["operator"] == "op1"
         assert "Nowak" not in json.dumps({k: str(v) for k, v in s.attrs.items()})
     (patient,) = records.find_patients("Nowak")
     (row,) = records.history(patient.id)
     assert row.session_path == path and row.status == "recorded"
     assert row.summary["flow sensor"]["FVC_l"] > 2.0
+    assert row.summary["flow sensor"]["VC_manoeuvres"] == labels.count("vc-start") - 1  # the rejected one left out
     records.close()
 
 

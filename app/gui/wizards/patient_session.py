@@ -30,6 +30,9 @@ from core.spirometry import repeatability_tolerance_l
 
 MAX_BLOWS = 8
 MIN_BLOWS = 3
+MIN_VC = 3  # slow VC (ATS/ERS 2005): three manoeuvres, the two largest acceptable within 150 mL, ...
+MAX_VC = 4  # ... at most four
+FAR_BELOW_PREDICTED = 0.5  # a VC under half the predicted FVC: effort, leak or the wrong patient?
 MIN_TIDAL_BREATHS = 5  # tidal indices are averaged over breaths: fewer than five say little
 TIDAL_EXTENSION_S = 15.0  # a tidal period with too few breaths goes on this much longer, ...
 MAX_TIDAL_EXTENSION_S = 60.0  # ... at most this much in all
@@ -44,7 +47,9 @@ def _instructions(text: str) -> QLabel:
 
 
 class PatientPage(QWizardPage):
-    def __init__(self, records: Records) -> None:
+    def __init__(self, records: Records, operator: str = "") -> None:
+        from app.audit import login_name
+
         super().__init__()
         self.records = records
         self.setTitle("Patient")
@@ -75,8 +80,14 @@ class PatientPage(QWizardPage):
         self.add.clicked.connect(self._add)
         form.addRow(self.add)
         self.front_only = QCheckBox("Front head only (the patient cannot stand in the rig)")
+        self.operator = QLineEdit(operator or login_name())
+        self.operator.setToolTip("Who runs this session: recorded in the session file and on the report")
+        self.operator.textChanged.connect(self.completeChanged)
+        who = QFormLayout()
+        who.addRow("Operator", self.operator)
         layout = QHBoxLayout(self)
         left = QVBoxLayout()
+        left.addLayout(who)
         left.addWidget(self.search)
         left.addWidget(self.list)
         left.addWidget(self.front_only)
@@ -110,7 +121,7 @@ class PatientPage(QWizardPage):
         return self.records.patient(items[0].data(Qt.ItemDataRole.UserRole)) if items else None
 
     def isComplete(self) -> bool:  # noqa: N802 - Qt naming
-        return self.patient() is not None
+        return self.patient() is not None and bool(self.operator.text().strip())
 
 
 class PositioningPage(QWizardPage):
@@ -271,10 +282,15 @@ class ManoeuvrePage(QWizardPage):
         self.end = QPushButton("End blow" if forced else "End manoeuvre")
         self.end.setEnabled(False)
         self.end.clicked.connect(self._end)
+        self.reject = QPushButton("Reject the last one (do it again)")
+        self.reject.setToolTip("The last manoeuvre is left out of every value (marked in the recording)")
+        self.reject.setEnabled(False)
+        self.reject.clicked.connect(self._reject_last)
         self.feedback = QTextEdit(readOnly=True)
         buttons = QHBoxLayout()
         buttons.addWidget(self.begin)
         buttons.addWidget(self.end)
+        buttons.addWidget(self.reject)
         self.layout_ = QVBoxLayout(self)
         self.layout_.addLayout(buttons)
         self.layout_.addWidget(self.feedback)
@@ -304,6 +320,7 @@ class ManoeuvrePage(QWizardPage):
         self._mark_ns = self.engine.mark("forced-start" if self.kind == "forced" else "vc-start")
         self.last_duration_s = self.engine.perform(self.kind)
         self.begin.setEnabled(False)
+        self.reject.setEnabled(False)
         self.end.setEnabled(True)
         if self.screen is not None:
             self.trace_timer.start()
@@ -340,7 +357,8 @@ class ManoeuvrePage(QWizardPage):
         self._lines.append(self._assess())
         self.feedback.setPlainText("\n".join(self._lines))
         self.assessed = self.count
-        self.begin.setEnabled(self.kind == "forced" and self.count < MAX_BLOWS and not self.finished)
+        self.begin.setEnabled(self.count < (MAX_BLOWS if self.kind == "forced" else MAX_VC) and not self.finished)
+        self.reject.setEnabled(self.count > 0)
         self.completeChanged.emit()
 
     def _assess(self) -> str:
@@ -351,9 +369,7 @@ class ManoeuvrePage(QWizardPage):
                 self.screen.finish_blow(None)
             return f"{self.title()} {self.count}: recorded (no flow sensor: feedback comes with the report)."
         if self.kind != "forced":
-            vc = values.vital_capacity
-            self.finished = True
-            return f"Slow VC recorded: VC {vc.vc_l:.2f} L." if vc else "Slow VC: not analysable; do it again."
+            return self._assess_vc(values)
         grade = values.forced
         if self.screen is not None:
             self.screen.finish_blow(grade)
@@ -379,12 +395,61 @@ class ManoeuvrePage(QWizardPage):
                      " another blow, please.")
         return text
 
+    def _assess_vc(self, values) -> str:
+        """This slow VC's verdict, a plausibility warning, and the repeatability so far."""
+        from app.gui.blow_screen import predicted_fvc_l
+        from core.analysis import VC_REPEATABILITY_L, vc_repeatability_l
+
+        manoeuvres = values.vc_manoeuvres
+        if len(manoeuvres) < self.count:
+            self.finished = self.count >= MAX_VC
+            return f"Slow VC {self.count}: not analysable; do it again."
+        last = manoeuvres[-1]
+        text = f"Slow VC {self.count}: VC {last.vc_l:.2f} L, " + (
+            "acceptable" if last.acceptable else "not acceptable: " + "; ".join(last.problems))
+        predicted = predicted_fvc_l(self.wizard().patient_page.patient())
+        if predicted and last.vc_l < FAR_BELOW_PREDICTED * predicted:
+            text += (f". Far below the predicted FVC ({predicted:.2f} L): check the effort, the nose clip and "
+                     "the mouthpiece")
+        acceptable = sum(m.acceptable for m in manoeuvres)
+        spread = vc_repeatability_l(manoeuvres)
+        repeatable = acceptable >= 2 and spread <= VC_REPEATABILITY_L
+        if acceptable >= 2:
+            text += (f". The two largest within {1000 * spread:.0f} mL "
+                     f"({'met' if repeatable else 'not met'}: tolerance {1000 * VC_REPEATABILITY_L:.0f} mL)")
+        self.finished = (self.count >= MIN_VC and repeatable) or self.count >= MAX_VC
+        if self.finished:
+            text += (f". VC {values.vital_capacity.vc_l:.2f} L (the largest acceptable): enough." if repeatable else
+                     f". {MAX_VC} manoeuvres, the most asked for: VC {values.vital_capacity.vc_l:.2f} L, "
+                     "not repeatable.")
+        else:
+            text += f". Another, please ({acceptable} acceptable of {self.count}; {MIN_VC} manoeuvres at least)."
+        return text
+
+    def _reject_last(self) -> None:
+        """The operator saw the last manoeuvre go wrong: it is marked rejected (left out of every
+        value, in the report too) and may be done again."""
+        self.engine.mark("maneuver-rejected")
+        self.count -= 1
+        self.assessed = self.count
+        self._lines[-1] += " Rejected by the operator."
+        self.reject.setEnabled(False)
+        self.finished = False
+        if self.screen is not None:
+            self.screen.reject_last()
+            values = self.engine.recorded_values(self.wizard().age_years())
+            if values is not None and values.forced is not None:
+                self.screen.show_grade(values.forced)
+        self.feedback.setPlainText("\n".join(self._lines))
+        self.begin.setEnabled(True)
+        self.completeChanged.emit()
+
     def isComplete(self) -> bool:  # noqa: N802
         if self.end.isEnabled() or self.assessed < self.count:
             return False
         if self.kind == "forced":
             return self.finished or self.count >= MAX_BLOWS
-        return self.count >= 1
+        return self.finished
 
 
 def review_html(parameters: dict, problems: list[str], patient: Patient | None) -> str:
@@ -440,10 +505,9 @@ class PatientSessionWizard(QWizard):
         self.engine = engine
         self.records = records or Records()
         self.sessions_dir = sessions_dir or data_dir() / "sessions"
-        self.operator = operator
         self.session_path: Path | None = None
         self.session_id: int | None = None
-        self.patient_page = PatientPage(self.records)
+        self.patient_page = PatientPage(self.records, operator)
         self.addPage(self.patient_page)
         self.addPage(PositioningPage(engine))
         self.addPage(TimedPage(engine))
@@ -460,6 +524,10 @@ class PatientSessionWizard(QWizard):
     def age_years(self) -> float | None:
         p = self.patient_page.patient()
         return p.age_years(date.today()) if p else None
+
+    @property
+    def operator(self) -> str:
+        return self.patient_page.operator.text().strip()
 
     def start_recording(self) -> bool:
         patient = self.patient_page.patient()
