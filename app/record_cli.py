@@ -92,44 +92,20 @@ def run_record(args: argparse.Namespace) -> int:
 def run_devices(args: argparse.Namespace) -> int:
     from serial.tools import list_ports
 
-    from drivers.camera import CameraError, find_aravis_device
+    from drivers.diagnostics import check_rig, seen_cameras
     from drivers.rig import RigConfigError, load_rig_config
 
     try:
         config = load_rig_config(args.rig)
     except RigConfigError as exc:
         raise UserError(str(exc)) from exc
-    try:
-        import gi
-
-        gi.require_version("Aravis", "0.8")
-        from gi.repository import Aravis
-
-        Aravis.update_device_list()
-        cameras = [f"{Aravis.get_device_id(i)} (serial {Aravis.get_device_serial_nbr(i)}, "
-                   f"{Aravis.get_device_address(i)})" for i in range(Aravis.get_n_devices())]
-    except (ImportError, ValueError) as exc:
-        cameras = [f"Aravis unavailable: {exc}"]
+    cameras = seen_cameras()
     print("cameras: " + ("; ".join(cameras) if cameras else "none"))
     ports = [p.device for p in list_ports.comports()]
     print("serial ports: " + (", ".join(ports) if ports else "none"))
     print(f"rig {config.name!r} ({config.path}):")
-    ok = True
-    for head, identifier in config.cameras.items():
-        if identifier == "sim":
-            print(f"  {head} camera: simulated")
-            continue
-        try:
-            print(f"  {head} camera {identifier}: found as {find_aravis_device(identifier)}")
-        except CameraError as exc:
-            ok = False
-            print(f"  {head} camera {identifier}: MISSING: {exc}")
-    for name, port in (("sequencer", config.sequencer_port), ("flow sensor", config.flow_port)):
-        if port in (None, "sim", "emulator"):
-            print(f"  {name}: {port or 'none'}")
-        elif Path(port).exists():
-            print(f"  {name}: {port} present")
-        else:
-            ok = False
-            print(f"  {name}: {port} MISSING")
-    return 0 if ok else 1
+    checks = check_rig(config)
+    for c in checks:
+        address = "" if c.address in ("sim", "none", "emulator") else f" {c.address}"
+        print(f"  {c.device}{address}: {c.state}" + ("" if c.ok else f" ({c.advice})"))
+    return 0 if all(c.ok for c in checks) else 1

@@ -48,6 +48,8 @@ def run_gui(args: argparse.Namespace) -> int:
     window.show()
     if args.smoke_test is None:
         return app.exec()
+    if window.engine is None:
+        raise UserError(f"cannot start: {window.diagnostics.problem.text()}")
     return _smoke_test(app, window, args.smoke_test)
 
 

@@ -30,6 +30,22 @@ def show_error(parent: QWidget | None, what: str, todo: str, detail: str = "") -
     box.exec()
 
 
+def file_problem(path: Path, error: BaseException) -> tuple[str, str]:
+    """(what, what to do) in plain words for a session or results file that cannot be read; the
+    reader's own words (HDF5's among them) go to the log as the detail."""
+    text = str(error)
+    name = Path(path).name
+    if "truncated file" in text:
+        return (f"Cannot open {name}: it is cut short (the recording that wrote it was interrupted).",
+                f"`photopft recover {name}` makes a whole copy of what it holds (the file itself is not changed).")
+    if "signature not found" in text:
+        return (f"Cannot open {name}: it is not a photopft session file.",
+                "Choose a session (.h5) that photopft or the rig recorded.")
+    return (f"Cannot open {name}: it cannot be read as a photopft session.",
+            f"`photopft validate {name}` lists what is wrong with it; `photopft recover {name}` saves what a "
+            "damaged recording still holds.")
+
+
 def install_excepthook(parent_of: callable) -> None:
     """An unexpected error becomes a dialog (and a log entry with the traceback)."""
 

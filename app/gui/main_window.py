@@ -16,7 +16,7 @@ from PySide6.QtCore import QByteArray, QObject, QRunnable, QSettings, Qt, QThrea
 from PySide6.QtGui import QAction, QKeySequence
 from PySide6.QtWidgets import QApplication, QFileDialog, QLabel, QMainWindow, QMessageBox
 
-from app.gui.errors import show_error
+from app.gui.errors import file_problem, show_error
 from app.gui.live_view import LiveView
 from app.engine_process import EngineProcess
 from app.live import EngineInfo, Source, replay_source, rig_source
@@ -185,7 +185,13 @@ class MainWindow(QMainWindow):
         self.timer = QTimer(self)
         self.timer.setInterval(DISPLAY_INTERVAL_MS)
         self.timer.timeout.connect(self.refresh)
-        self.use_source(opener)
+        self.info = None
+        try:
+            self.use_source(opener)
+        except Exception as exc:  # the rig cannot start: the window opens on the diagnostics page
+            log.exception("the source could not be opened")
+            self.opener = opener
+            self.show_diagnostics(str(exc))
         self.timer.start()
         geometry = self.settings.value("main/geometry")
         if isinstance(geometry, QByteArray):
@@ -266,8 +272,36 @@ class MainWindow(QMainWindow):
         self.calibration_text = calibration_in_force(self.info)
         self.statusBar().showMessage(f"Showing {self.info.name}", 5000)
 
+    def show_diagnostics(self, problem: str) -> None:
+        from app.gui.diagnostics_page import DiagnosticsPage
+
+        self.diagnostics = DiagnosticsPage(problem, self.rig_config, self.retry_source,
+                                           lambda: self.try_source(partial(rig_source, None)), self.open_session)
+        self.setCentralWidget(self.diagnostics)
+        self.view = None
+        self.statusBar().showMessage("The rig could not start: see the devices", 10000)
+
+    def retry_source(self) -> None:
+        self.try_source(self.opener)
+
+    def try_source(self, opener) -> None:
+        try:
+            self.use_source(opener)
+        except Exception as exc:  # still not: the page says why, its checks redone
+            log.exception("the source could not be opened")
+            self.diagnostics.problem.setText(str(exc))
+            self.diagnostics.show_checks(self.rig_config)
+
+    def has_engine(self) -> bool:
+        """An engine is running; otherwise the operator is told where to start one."""
+        if self.engine is not None:
+            return True
+        show_error(self, "No rig is running.", "Try again on the diagnostics page, use the simulated rig, or replay "
+                   "a recorded session.")
+        return False
+
     def refresh(self) -> None:
-        if self.engine is None:
+        if self.engine is None or self.view is None:
             return
         snapshot = self.engine.snapshot()
         self.view.show(snapshot, self.calibration_text, self.info.name)
@@ -281,6 +315,8 @@ class MainWindow(QMainWindow):
     def new_patient_session(self) -> None:
         from app.gui.wizards.patient_session import PatientSessionWizard
 
+        if not self.has_engine():
+            return
         if self.info.replay:
             self.back_to_rig()
         wizard = PatientSessionWizard(self, self.engine)
@@ -298,8 +334,8 @@ class MainWindow(QMainWindow):
         try:
             self.use_source(partial(replay_source, path, speed))
         except (SessionError, OSError) as exc:
-            show_error(self, f"Cannot open {path.name}.", f"{exc}. Choose a photopft session file (.h5); "
-                       "`photopft validate FILE` lists what is wrong with it.")
+            what, todo = file_problem(path, exc)
+            show_error(self, what, todo, str(exc))
 
     def back_to_rig(self) -> None:
         try:
@@ -357,6 +393,8 @@ class MainWindow(QMainWindow):
     def sphere_calibration(self) -> None:
         from app.gui.wizards.sphere import SphereCalibrationWizard, capture_from_rig
 
+        if not self.has_engine():
+            return
         if not self._may_calibrate():
             return
         heads = tuple(self.info.heads)
@@ -369,6 +407,8 @@ class MainWindow(QMainWindow):
     def spirometer_calibration(self) -> None:
         from app.gui.wizards.spirometer import RigFlowBench, SimulatedFlowBench, SpirometerCalibrationWizard
 
+        if not self.has_engine():
+            return
         if self.info.replay:
             show_error(self, "The spirometer is calibrated on the rig, not on a replay.",
                        "Session > Live rig goes back to the rig first.")
@@ -400,6 +440,8 @@ class MainWindow(QMainWindow):
     def open_profiles(self) -> None:
         from app.gui.profiles_view import ProfilesWindow
 
+        if not self.has_engine():
+            return
         window = ProfilesWindow(self, self.info.rig.name, self.info.calibration if not self.info.replay else "")
         window.exec()
         if window.restored is not None:
@@ -441,7 +483,9 @@ class MainWindow(QMainWindow):
             chosen = Path(rig) if rig else None
             if chosen != self.rig_config:
                 self.rig_config = chosen
-                if not self.info.replay and not self.engine.recording:
+                if self.engine is None:
+                    self.try_source(partial(rig_source, chosen))
+                elif not self.info.replay and not self.engine.recording:
                     self.back_to_rig()
 
     def closeEvent(self, event) -> None:  # noqa: N802 - Qt naming

@@ -156,7 +156,24 @@ def main(out: Path) -> int:
     QTimer.singleShot(0, window.close)
     _wait(app, 1)
     records.close()
+    _diagnostics(app, folder, out)
     return 0
+
+
+def _diagnostics(app, folder: Path, out: Path) -> None:
+    """The window on a rig whose front camera and sequencer are not connected."""
+    from app.gui.main_window import MainWindow
+    from app.live import rig_source
+
+    rig = folder / "clinic.toml"
+    rig.write_text('name = "clinic"\n[camera]\n[heads.front]\ncamera = "192.168.10.21"\n[heads.back]\n'
+                   'camera = "192.168.10.22"\n[sequencer]\nport = "/dev/ttyACM0"\n[flowsensor]\nport = "emulator"\n')
+    window = MainWindow(partial(rig_source, rig), rig)
+    window.resize(1100, 560)
+    window.show()
+    _wait(app, 0.5)
+    _grab(window, out / "diagnostics.png")
+    window.close()
 
 
 if __name__ == "__main__":

@@ -72,14 +72,47 @@ def test_replay_of_a_recorded_session(small_session, qtbot):
     w.close()
 
 
-def test_a_broken_file_is_a_dialog_not_a_traceback(window, qtbot, tmp_path):
+def test_a_broken_file_is_a_dialog_not_a_traceback(window, qtbot, tmp_path, small_session):
     broken = tmp_path / "broken.h5"
     broken.write_bytes(b"not hdf5")
     seen: list[str] = []
     _close_when_shown(qtbot, seen)
     window.replay(broken)
-    assert seen and "Cannot open broken.h5" in seen[0] and "photopft validate" in seen[0]
+    assert seen and "Cannot open broken.h5: it is not a photopft session file" in seen[0]
+    assert "HDF5" not in seen[0] and "signature" not in seen[0]  # plain words; the detail is in the log
     assert not window.info.replay  # the live view goes on with what it had
+    cut = tmp_path / "cut.h5"
+    whole = small_session.read_bytes()
+    cut.write_bytes(whole[: len(whole) // 2])
+    _close_when_shown(qtbot, seen)
+    window.replay(cut)
+    assert "cut short" in seen[1] and "photopft recover cut.h5" in seen[1]
+
+
+def test_a_rig_that_cannot_start_opens_on_the_diagnostics_page(qtbot, tmp_path):
+    """A camera that is not there: the window opens anyway, on a page that names each device, its
+    state and what to do; the operator can switch to the simulated rig from there."""
+    from app.live import rig_source
+
+    rig = tmp_path / "clinic.toml"
+    rig.write_text('name = "clinic"\n[camera]\n[heads.front]\ncamera = "NO-SUCH-CAMERA-42"\n'
+                   '[sequencer]\nport = "/dev/ttyNOPE0"\n[flowsensor]\nport = "sim"\n')
+    window = MainWindow(partial(rig_source, rig), rig)
+    qtbot.addWidget(window)
+    try:
+        page = window.diagnostics
+        assert window.centralWidget() is page and window.engine is None
+        states = {page.table.item(r, 0).text(): (page.table.item(r, 2).text(), page.table.item(r, 3).text())
+                  for r in range(page.table.rowCount())}
+        assert states["front camera"][0].startswith("MISSING") and "network cable" in states["front camera"][1]
+        assert states["sequencer"][0] == "MISSING" and "/dev/ttyNOPE0" in states["sequencer"][1]
+        assert "front camera" in page.note.text()
+        page.retry.click()  # still missing: the page stays, its checks redone
+        assert window.engine is None and window.centralWidget() is page
+        page.simulated.click()
+        assert window.engine is not None and window.view is not None and not window.info.replay
+    finally:
+        window.close()
 
 
 def _press(qtbot, wizard: QWizard) -> None:
