@@ -269,6 +269,9 @@ class EngineProcess:
     def perform(self, manoeuvre: str) -> float:
         return self._call("perform", manoeuvre)
 
+    def replay_control(self, action: str, position_s: float | None = None) -> None:
+        self._call("replay_control", action, position_s)
+
     def blow_trace(self, mark_ns: int):
         return self._call("blow_trace", mark_ns)
 

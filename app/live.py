@@ -58,6 +58,7 @@ class Source:
     simulated: object | None = None  # drivers.simulated.SimulatedRigState: a subject that follows prompts
     compression: str = "blosc-lz4"  # the frames' lossless filter when recording (the rig file's [recording])
     calibration: str = ""  # the calibrations in force, in words (drivers/assembly.py)
+    replay_clock: _ReplayClock | None = None  # a replay's position, pause and seek
 
 
 def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "back"), seed: int = 1,
@@ -90,6 +91,7 @@ class _FileCamera:
         self._stamps = session.timestamp_ns(head)
         self._clock = clock
         self._next = 0
+        self._generation = 0
         self.stats = CameraStats()
         self.name = f"replay-{head}"
 
@@ -97,6 +99,9 @@ class _FileCamera:
         self._clock.start()
 
     def grab(self, timeout_s: float = 0.5) -> Frame | None:
+        if self._generation != self._clock.generation:  # the operator moved the position
+            self._generation = self._clock.generation
+            self._next = int(np.searchsorted(self._stamps, self._clock.now_ns()))
         if self._next >= len(self._ids):
             time.sleep(timeout_s)
             return None
@@ -124,10 +129,17 @@ class _FileCamera:
 
 
 class _ReplayClock:
-    def __init__(self, first_ns: int, speed: float) -> None:
+    """The recording's time during a replay: running at `speed` times real time, paused, or moved
+    to another position (each move counted in `generation`, so the readers find their place)."""
+
+    def __init__(self, first_ns: int, speed: float, last_ns: int | None = None) -> None:
         self.first_ns = first_ns
+        self.last_ns = last_ns if last_ns is not None else first_ns
         self.speed = speed
         self._started: int | None = None
+        self._anchor_ns = first_ns  # the recording's time at the wall clock's _started
+        self._paused_at: int | None = None
+        self.generation = 0
         self._lock = threading.Lock()
 
     def start(self) -> None:
@@ -135,10 +147,39 @@ class _ReplayClock:
             if self._started is None:
                 self._started = time.monotonic_ns()
 
-    def wait_s(self, stamp_ns: int) -> float:
+    def now_ns(self) -> int:
+        """The recording's time now."""
         self.start()
-        due = self._started + (stamp_ns - self.first_ns) / self.speed
-        return (due - time.monotonic_ns()) / 1e9
+        with self._lock:
+            if self._paused_at is not None:
+                return self._paused_at
+            return self._anchor_ns + int((time.monotonic_ns() - self._started) * self.speed)
+
+    def wait_s(self, stamp_ns: int) -> float:
+        if self.paused:
+            return float("inf")
+        return (stamp_ns - self.now_ns()) / self.speed / 1e9
+
+    @property
+    def paused(self) -> bool:
+        return self._paused_at is not None
+
+    def pause(self) -> None:
+        now = self.now_ns()
+        with self._lock:
+            self._paused_at = now
+
+    def resume(self) -> None:
+        self.seek(self.now_ns(), paused=False)
+
+    def seek(self, stamp_ns: int, paused: bool | None = None) -> None:
+        stamp = int(min(max(stamp_ns, self.first_ns), self.last_ns))
+        with self._lock:
+            keep_paused = self._paused_at is not None if paused is None else paused
+            self._started = time.monotonic_ns()
+            self._anchor_ns = stamp
+            self._paused_at = stamp if keep_paused else None
+            self.generation += 1
 
 
 class _FileFlow:
@@ -146,6 +187,7 @@ class _FileFlow:
         self._adc, self._stamps = session.flow_samples()
         self._clock = clock
         self._next = 0
+        self._generation = 0
         self.sample_rate_hz = session.flow.sample_rate_hz
         self.lost_samples = 0
 
@@ -153,8 +195,10 @@ class _FileFlow:
         self._clock.start()
 
     def read(self) -> FlowBlock:
-        now = self._clock.first_ns + (time.monotonic_ns() - self._clock._started) * self._clock.speed \
-            if self._clock._started else self._clock.first_ns
+        now = self._clock.now_ns()
+        if self._generation != self._clock.generation:
+            self._generation = self._clock.generation
+            self._next = int(np.searchsorted(self._stamps, now))
         end = int(np.searchsorted(self._stamps, now, side="right"))
         k = np.arange(self._next, end)
         self._next = max(self._next, end)
@@ -171,7 +215,8 @@ def replay_source(path: str | Path, speed: float = 1.0) -> Source:
     """A recorded session played through the live view at real speed (or `speed` times it)."""
     session = SessionFile(path)
     first = int(min(session.timestamp_ns(h)[0] for h in session.heads if session.n_frames(h)))
-    clock = _ReplayClock(first, speed)
+    last = int(max(session.timestamp_ns(h)[-1] for h in session.heads if session.n_frames(h)))
+    clock = _ReplayClock(first, speed, last)
     cameras = {h: _FileCamera(session, h, clock) for h in session.heads}
     lights = {h: dict(zip(session.frame_id(h).tolist(), session.light_index(h).tolist())) for h in session.heads}
     flow = _FileFlow(session, clock) if session.flow is not None and session.flow.gain_lps is not None else None
@@ -182,9 +227,11 @@ def replay_source(path: str | Path, speed: float = 1.0) -> Source:
         a = session.flow.attrs
         room = (float(a.get("room_temperature_c", 23.0)), float(a.get("room_pressure_hpa", 1013.0)),
                 float(a.get("room_humidity_pct", 50.0)))
-    return Source(session.rig, cameras, flow, RecordedLights(lights),
-                  calibration, f"replay of {Path(path).name}" + (f" at {speed:g}x" if speed != 1 else ""),
-                  conditions, room, replay=True, closers=[session.close])
+    source = Source(session.rig, cameras, flow, RecordedLights(lights),
+                    calibration, f"replay of {Path(path).name}" + (f" at {speed:g}x" if speed != 1 else ""),
+                    conditions, room, replay=True, closers=[session.close])
+    source.replay_clock = clock
+    return source
 
 
 class FlowRecord:
@@ -249,6 +296,9 @@ class Snapshot:
     metric_volume_l: np.ndarray  # the metric optical volume (litres, both heads)
     flow_until_ns: int = 0  # the recording's newest flow sample (no limit without a recording or flow sensor)
     replay_finished: bool = False
+    replay_position_s: float = float("nan")  # a replay's position and length in its recording, and pause
+    replay_length_s: float = float("nan")
+    replay_paused: bool = False
 
     @classmethod
     def empty(cls, heads) -> "Snapshot":
@@ -682,12 +732,39 @@ class LiveRig:
             recorder = self._recorder
             problems = list(self._problems) + (recorder.problems if recorder is not None else [])
             flow_until = self._flow_until_ns()
-        return Snapshot(heads, optical[:, 0], optical[:, 1], flow[:, 0], flow[:, 1],
-                        recorder.path if recorder is not None else None,
-                        recorder.frames_written() if recorder is not None else {},
-                        recorder.dropped if recorder is not None else 0, problems,
-                        time.monotonic() - self._started, metric[:, 0], metric[:, 1], flow_until,
-                        self.replay_finished)
+        snapshot = Snapshot(heads, optical[:, 0], optical[:, 1], flow[:, 0], flow[:, 1],
+                            recorder.path if recorder is not None else None,
+                            recorder.frames_written() if recorder is not None else {},
+                            recorder.dropped if recorder is not None else 0, problems,
+                            time.monotonic() - self._started, metric[:, 0], metric[:, 1], flow_until,
+                            self.replay_finished)
+        clock = self.source.replay_clock
+        if clock is not None:
+            snapshot.replay_position_s = (min(clock.now_ns(), clock.last_ns) - clock.first_ns) / 1e9
+            snapshot.replay_length_s = (clock.last_ns - clock.first_ns) / 1e9
+            snapshot.replay_paused = clock.paused
+        return snapshot
+
+    def replay_control(self, action: str, position_s: float | None = None) -> None:
+        """Pause, resume, or move a replay to `position_s` into its recording; after a move the
+        curves start afresh (their time would run backwards)."""
+        clock = self.source.replay_clock
+        if clock is None:
+            raise RuntimeError("not a replay")
+        if action == "pause":
+            clock.pause()
+        elif action == "resume":
+            clock.resume()
+        elif action == "seek":
+            clock.seek(clock.first_ns + int(float(position_s) * 1e9))
+            with self._lock:
+                for buffer in (self._optical, self._metric_curve, self._flow, *self._cycles.values(),
+                               *self._darks.values()):
+                    buffer.clear()
+                self._flow_state.update(volume=0.0, last_ns=None, sum=0.0)
+                self._flow_state["means"].clear()
+        else:
+            raise ValueError(f"unknown replay action {action!r}: pause, resume or seek")
 
     @property
     def replay_finished(self) -> bool:

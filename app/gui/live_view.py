@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import Qt
-from PySide6.QtWidgets import QGridLayout, QGroupBox, QHBoxLayout, QLabel, QVBoxLayout, QWidget
+from PySide6.QtWidgets import QGridLayout, QGroupBox, QHBoxLayout, QLabel, QPushButton, QSlider, QVBoxLayout, QWidget
 
 from app.live import WINDOW_S, Snapshot
 from core.process import WORKING_RANGE_MM
@@ -62,17 +62,18 @@ class VolumeView(pg.GraphicsLayoutWidget):
     def __init__(self, parent=None) -> None:
         super().__init__(parent)
         self.setBackground("w")
-        self.litres = self.addPlot(title="Volume (L, BTPS), last 30 s")
+        # the legend in the title: inside the plot it covered the newest data
+        self.litres = self.addPlot(title="Volume (L, BTPS), last 30 s: <span style='color:#141414'>━ flow sensor"
+                                         "</span> &nbsp; <span style='color:#c85014'>━ optical (metric)</span>")
         self.litres.setLabel("left", "volume", units="L")
         self.litres.getAxis("left").enableAutoSIPrefix(False)
         self.litres.showGrid(y=True, alpha=0.3)
         self.litres.setMouseEnabled(False, False)
-        self.litres.addLegend(offset=(-10, 5))
         self.flow_curve = self.litres.plot(pen=pg.mkPen((20, 20, 20), width=2), name="flow sensor")
         # 3000 points a curve in a few hundred pixels: draw each pixel column's extremes only
         self.flow_curve.setDownsampling(auto=True, method="peak")
         self.flow_curve.setClipToView(True)
-        self.metric_curve = self.litres.plot(pen=pg.mkPen((200, 80, 20), width=2), name="optical (metric)")
+        self.metric_curve = self.litres.plot(pen=pg.mkPen((200, 80, 20), width=2))
         self.nextRow()
         self.relative = self.addPlot(title="Optical: gradient volume (thesis eq. 3.27, relative)")
         # a fixed time axis, now at the right: the curves move, the axes and the grid are drawn once
@@ -153,10 +154,83 @@ class StatusPanel(QGroupBox):
         label.setStyleSheet("color: #b00020; font-weight: bold" if warn else "")
 
 
+class ReplayBar(QWidget):
+    """A replay's controls: pause or play, the position in the recording (drag to move), and its
+    length. `control(action, position_s)` is the engine's replay_control."""
+
+    STEPS_PER_S = 10
+
+    def __init__(self, parent=None) -> None:
+        super().__init__(parent)
+        self.control = None
+        self.play = QPushButton("Pause")
+        self.play.setFixedWidth(90)
+        self.play.clicked.connect(self._toggle)
+        self.slider = QSlider(Qt.Orientation.Horizontal)
+        self.slider.sliderReleased.connect(self._seek)
+        self.position = QLabel("–")
+        self.position.setMinimumWidth(130)
+        layout = QHBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        layout.addWidget(self.play)
+        layout.addWidget(self.slider, 1)
+        layout.addWidget(self.position)
+        self.paused = False
+
+    def _toggle(self) -> None:
+        if self.control is not None:
+            self.control("resume" if self.paused else "pause")
+
+    def _seek(self) -> None:
+        if self.control is not None:
+            self.control("seek", self.slider.value() / self.STEPS_PER_S)
+
+    def show_position(self, position_s: float, length_s: float, paused: bool) -> None:
+        self.paused = paused
+        self.play.setText("Play" if paused else "Pause")
+        self.slider.setMaximum(int(length_s * self.STEPS_PER_S))
+        if not self.slider.isSliderDown():
+            self.slider.setValue(int(position_s * self.STEPS_PER_S))
+        shown = self.slider.value() / self.STEPS_PER_S if self.slider.isSliderDown() else position_s
+        self.position.setText(f"{shown:.1f} s of {length_s:.1f} s" + (" (paused)" if paused else ""))
+
+
+LOST_WINDOW_S = 10.0  # a camera's lost frames are judged over this much of the recent past
+LOST_SHARE_WARN = 0.01  # red above this share of the window's frames
+
+
+class LostFrames:
+    """A camera's frames and lost frames over the last LOST_WINDOW_S, from cumulative counts."""
+
+    def __init__(self) -> None:
+        self.history: list[tuple[float, int, int]] = []  # (s, frames, lost)
+
+    def recent(self, now_s: float, frames: int, lost: int) -> tuple[int, int]:
+        self.history.append((now_s, frames, lost))
+        while len(self.history) > 2 and self.history[1][0] < now_s - LOST_WINDOW_S:
+            self.history.pop(0)
+        _, frames0, lost0 = self.history[0]
+        return frames - frames0, lost - lost0
+
+
+def camera_status(fps: float, maps: int, recent_frames: int, recent_lost: int, lost: int,
+                  simulated: bool) -> tuple[str, bool]:
+    """A camera's status line and whether it is a fault. The simulated cameras skip frames the
+    renderer cannot make in time (a real camera drops them the same way, but that is a fault)."""
+    if simulated:
+        return (f"{fps:.0f} frames/s rendered ({lost} skipped by the renderer: this computer's pace, not a "
+                f"fault); {maps} maps"), False
+    share = recent_lost / max(recent_frames + recent_lost, 1)
+    return (f"{fps:.0f} frames/s; {recent_lost} lost in the last {LOST_WINDOW_S:.0f} s ({lost} in all); "
+            f"{maps} maps"), share > LOST_SHARE_WARN
+
+
 class LiveView(QWidget):
-    def __init__(self, heads: list[str], parent=None) -> None:
+    def __init__(self, heads: list[str], parent=None, simulated: bool = False) -> None:
         super().__init__(parent)
         self.heads = heads
+        self.simulated = simulated
+        self.lost = {h: LostFrames() for h in heads}
         self.maps = {h: HeadMapView(h) for h in heads}
         self.volume = VolumeView()
         self.status = StatusPanel(heads)
@@ -165,17 +239,26 @@ class LiveView(QWidget):
         for h in heads:
             top.addWidget(self.maps[h], 1)
         top.addWidget(self.status)
+        self.replay_bar = ReplayBar()
+        self.replay_bar.setVisible(False)
         layout = QVBoxLayout(self)
         layout.addLayout(top, 3)
         layout.addWidget(self.volume, 2)
+        layout.addWidget(self.replay_bar)
         self.updates = 0
 
     def show(self, s: Snapshot, calibration: str, source: str) -> None:  # noqa: A003 - Qt naming
+        replay = bool(np.isfinite(s.replay_length_s))
+        if self.replay_bar.isVisible() != replay:
+            self.replay_bar.setVisible(replay)
+        if replay:
+            self.replay_bar.show_position(s.replay_position_s, s.replay_length_s, s.replay_paused)
         for h, view in s.heads.items():
             if h in self.maps:
                 self.maps[h].show_map(view.height_mm)
-            self.status.set(f"{h}_rate", f"{view.fps:.0f} frames/s, {view.frames} frames, {view.lost} lost; "
-                                         f"{view.reconstructed} maps", warn=view.lost > 0)
+            recent_frames, recent_lost = self.lost[h].recent(s.elapsed_s, view.frames, view.lost)
+            self.status.set(f"{h}_rate", *camera_status(view.fps, view.reconstructed, recent_frames, recent_lost,
+                                                         view.lost, self.simulated))
             low, high = WORKING_RANGE_MM
             ok = low <= view.distance_mm <= high
             text = (f"{view.distance_mm:.0f} mm (working range {low:.0f}–{high:.0f} mm)" if np.isfinite(view.distance_mm)

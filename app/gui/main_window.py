@@ -269,6 +269,8 @@ class MainWindow(QMainWindow):
         if self.view is None or self.view.heads != heads:
             self.view = LiveView(heads)
             self.setCentralWidget(self.view)
+        self.view.simulated = self.info.simulated
+        self.view.replay_bar.control = engine.replay_control if self.info.replay else None
         self.calibration_text = calibration_in_force(self.info)
         self.statusBar().showMessage(f"Showing {self.info.name}", 5000)
 

@@ -72,6 +72,33 @@ def test_replay_of_a_recorded_session(small_session, qtbot):
     w.close()
 
 
+def test_replay_pauses_seeks_and_shows_where_it_is(small_session, qtbot):
+    w = MainWindow(partial(replay_source, small_session, speed=0.25))  # 1 s of recording in 4 s
+    qtbot.addWidget(w)
+    w.show()
+    try:
+        bar = w.view.replay_bar
+        qtbot.waitUntil(lambda: bar.isVisible() and "of 1.0 s" in bar.position.text(), timeout=10000)
+        bar.play.click()  # pause: the position stands still
+        qtbot.waitUntil(lambda: w.engine.snapshot().replay_paused, timeout=5000)
+        held = w.engine.snapshot().replay_position_s
+        qtbot.wait(400)
+        assert w.engine.snapshot().replay_position_s == held < 1.0
+        qtbot.waitUntil(lambda: bar.play.text() == "Play" and "(paused)" in bar.position.text(), timeout=5000)
+        bar.slider.setValue(2)  # back to 0.2 s, still paused
+        bar._seek()
+        qtbot.waitUntil(lambda: abs(w.engine.snapshot().replay_position_s - 0.2) < 1e-6, timeout=5000)
+        qtbot.waitUntil(lambda: "0.2 s of 1.0 s (paused)" in bar.position.text(), timeout=5000)
+        snapshot = w.engine.snapshot()
+        assert snapshot.replay_paused
+        frames = snapshot.heads["front"].frames
+        bar.play.click()  # play on from there: the frames after 0.2 s come again
+        qtbot.waitUntil(lambda: w.engine.snapshot().heads["front"].frames > frames + 5, timeout=10000)
+        assert not w.engine.snapshot().replay_paused
+    finally:
+        w.close()
+
+
 def test_a_broken_file_is_a_dialog_not_a_traceback(window, qtbot, tmp_path, small_session):
     broken = tmp_path / "broken.h5"
     broken.write_bytes(b"not hdf5")
