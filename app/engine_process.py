@@ -269,6 +269,9 @@ class EngineProcess:
     def perform(self, manoeuvre: str) -> float:
         return self._call("perform", manoeuvre)
 
+    def preview(self, head: str):
+        return self._call("preview", head)
+
     def replay_control(self, action: str, position_s: float | None = None) -> None:
         self._call("replay_control", action, position_s)
 

@@ -629,6 +629,15 @@ class LiveRig:
             if self._t0 is not None:
                 self._flow.append(((int(stamps[-1]) - self._t0) / 1e9, state["volume"]))
 
+    def preview(self, head: str, width_px: int = 400) -> np.ndarray | None:
+        """The head's newest light cycle as one image (the brightest of its frames), at most about
+        `width_px` wide: for placing the calibration sphere."""
+        window = self._newest_cycle(head)
+        if window is None:
+            return None
+        step = max(1, int(np.ceil(window[0][0].image.shape[1] / width_px)))
+        return np.max([f.image[::step, ::step] for f, _ in window], axis=0)
+
     def _newest_cycle(self, head: str) -> list[tuple[Frame, int]] | None:
         """The newest complete light cycle in the buffer: consecutive frame ids, each light once,
         ending with the dark frame."""

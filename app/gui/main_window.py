@@ -402,7 +402,8 @@ class MainWindow(QMainWindow):
         heads = tuple(self.info.heads)
         scale = self.info.rig.heads["front"].width / 1400.0
         capture = None if self.info.simulated else capture_from_rig(self)
-        wizard = SphereCalibrationWizard(self, heads, scale, capture=capture, profile_dir=self.profile_dir())
+        wizard = SphereCalibrationWizard(self, heads, scale, capture=capture, profile_dir=self.profile_dir(),
+                                         preview=None if self.info.simulated else self.engine.preview)
         if wizard.exec() and wizard.saved_to is not None:
             self.calibration_changed(f"Rig calibration saved and in force: {wizard.saved_to}")
 

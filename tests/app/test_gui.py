@@ -308,12 +308,23 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
         qtbot.waitUntil(lambda: len(captures.captures) == k + 1, timeout=60000)
         assert "highlights found 4/4" in captures.list.item(k).text()
     assert captures.outline.xData is not None and len(captures.spots.data) == 4
+    assert len(captures.placed.data) == 3  # the placements so far, over the field of view
+    # the profile in force before: the rig's drawing (the simulated sphere's LEDs are 8 mm off it)
+    from core.profile import HeadCalibration, RigCalibration
+    from core.rig import thesis_rig
+
+    drawing = {name: HeadCalibration(h.light_positions_mm, np.ones(4), np.zeros((4, 3)), np.zeros(4),
+                                     np.zeros((4, 3))) for name, h in thesis_rig(0.25).heads.items()}
+    folder.mkdir(parents=True)
+    RigCalibration("2026-10-01T08:00:00+00:00", [], drawing).save(folder / "rig-calibration.json")
     _press(qtbot, wizard)
     result = wizard.currentPage()
     assert result.isComplete(), result.message.text()
     assert result.table.rowCount() == 8 and all(result.table.item(r, 5).text() == "pass" for r in range(8))
-    folder.mkdir(parents=True)
-    (folder / "rig-calibration.json").write_text("{}")  # the profile in force, to be kept
+    assert result.table.item(0, 5).background().color().name() == "#1b7f3b"
+    moved = [float(result.table.item(r, 6).text()) for r in range(8)]
+    assert 1.0 < max(moved) < 25.0  # each LED moved from the drawing (8 mm off it per axis, fitted at 350 px)
+    assert "profile in force of 2026-10-01" in result.message.text()
     wizard.accept()
     profile = load_profile(folder / "rig-calibration.json")
     assert set(profile.heads) == {"front", "back"}
@@ -335,6 +346,25 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
             assert np.allclose(recorded.rig.heads[head].light_positions_mm,
                                profile.heads[head].light_positions_mm, atol=1e-3)
             assert recorded.rig.heads[head].calibrated == profile.created
+
+
+def test_the_sphere_wizard_previews_the_live_camera(qtbot, tmp_path):
+    """On a rig with cameras the capture page shows the head's newest cycle, to place the sphere."""
+    from app.gui.wizards.sphere import SphereCalibrationWizard
+
+    engine = EngineProcess(partial(simulated_source, scale=0.1))
+    try:
+        wizard = SphereCalibrationWizard(None, ("front", "back"), 0.1, profile_dir=tmp_path, preview=engine.preview)
+        qtbot.addWidget(wizard)
+        wizard.show()
+        _press(qtbot, wizard)
+        page = wizard.currentPage()
+        qtbot.waitUntil(lambda: page.live_image.image is not None, timeout=20000)
+        assert page.live_image.image.shape[1] == 140 and page.live_image.image.max() > 0
+        wizard.reject()
+        assert not page.preview_timer.isActive()
+    finally:
+        engine.stop()
 
 
 def test_the_spirometer_calibration_wizard(qtbot, tmp_path, processed_full_session):

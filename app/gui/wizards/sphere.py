@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import Qt
+from PySide6.QtCore import Qt, QTimer
+from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayout, QLabel, QListWidget, QPushButton,
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWizard, QWizardPage)
 
@@ -111,11 +112,38 @@ class CapturePage(QWizardPage):
         self.spots = pg.ScatterPlotItem(size=14, pen=pg.mkPen("c", width=2), brush=None, symbol="o")
         self.plot.addItem(self.spots)
         self.labels: list[pg.TextItem] = []
+        # where the sphere has been, over the head's whole field of view: spread them out
+        self.placements = pg.PlotWidget(background="w", title="Placements so far")
+        self.placements.setAspectLocked(True)
+        self.placements.invertY(True)
+        self.placements.hideAxis("bottom")
+        self.placements.hideAxis("left")
+        self.field = self.placements.plot(pen=pg.mkPen((120, 120, 120), width=1))
+        self.placed = pg.ScatterPlotItem(size=12, pen=pg.mkPen("k"), brush=pg.mkBrush(30, 120, 200, 160))
+        self.placements.addItem(self.placed)
+        self.placements.setMaximumHeight(220)
+        # the camera now, to place the sphere before capturing (a real rig's live engine)
+        self.live = pg.PlotWidget(background="w", title="Live camera: place the sphere")
+        self.live.setAspectLocked(True)
+        self.live.invertY(True)
+        self.live.hideAxis("bottom")
+        self.live.hideAxis("left")
+        self.live_image = pg.ImageItem()
+        self.live.addItem(self.live_image)
+        self.live.setMaximumHeight(240)
+        self.live_note = QLabel()
+        self.live_note.setWordWrap(True)
+        self.preview_timer = QTimer(self)
+        self.preview_timer.setInterval(300)
+        self.preview_timer.timeout.connect(self._preview)
         left = QVBoxLayout()
         left.addWidget(self.capture_button)
         left.addWidget(QLabel("Head shown"))
         left.addWidget(self.head)
         left.addWidget(self.list, 1)
+        left.addWidget(self.placements)
+        left.addWidget(self.live)
+        left.addWidget(self.live_note)
         layout = QHBoxLayout(self)
         layout.addLayout(left, 1)
         layout.addWidget(self.plot, 3)
@@ -126,6 +154,27 @@ class CapturePage(QWizardPage):
     def initializePage(self) -> None:  # noqa: N802
         if not self.head.count():
             self.head.addItems(self.wizard().heads)
+        if self.wizard().preview is not None:
+            self.live_note.setText("The newest light cycle of the head shown, about three times a second.")
+            self.preview_timer.start()
+        else:
+            self.live.setVisible(False)
+            self.live_note.setText("Simulated rig: each capture renders the simulated sphere at its next place; "
+                                   "there is no camera to preview.")
+
+    def cleanupPage(self) -> None:  # noqa: N802
+        self.preview_timer.stop()
+
+    def _preview(self) -> None:
+        head = self.head.currentText()
+        try:
+            image = self.wizard().preview(head) if head else None
+        except Exception as exc:  # the preview is a help; the captures do not need it
+            self.preview_timer.stop()
+            self.live_note.setText(f"No live picture: {exc}")
+            return
+        if image is not None:
+            self.live_image.setImage(np.asarray(image, dtype=float), autoLevels=True)
 
     def capture(self) -> None:
         wizard = self.wizard()
@@ -171,10 +220,24 @@ class CapturePage(QWizardPage):
             self.plot.removeItem(label)
         self.labels = []
         for light, h in highlights.items():
-            label = pg.TextItem(f"L{light}", color="c", anchor=(0, 1))
-            label.setPos(h.uv[0] + 6, h.uv[1] - 6)
+            # each label outward from the sphere's centre, beyond its highlight: close highlights'
+            # labels no longer sit on each other
+            direction = np.array([h.uv[0] - cu, h.uv[1] - cv])
+            direction /= max(float(np.hypot(*direction)), 1e-9)
+            label = pg.TextItem(f"L{light}", color=(0, 200, 220), anchor=(0.5, 0.5))
+            label.setPos(h.uv[0] + 0.35 * sphere.radius_px * direction[0],
+                         h.uv[1] + 0.35 * sphere.radius_px * direction[1])
             self.plot.addItem(label)
             self.labels.append(label)
+        self._show_placements(head, image.shape)
+
+    def _show_placements(self, head: str, shape: tuple[int, ...]) -> None:
+        height, width = shape[:2]
+        self.field.setData([0, width, width, 0, 0], [0, 0, height, height, 0])
+        centres = [d[head][1].centre_px for d in self.detections if head in d]
+        self.placed.setData([c[0] for c in centres], [c[1] for c in centres],
+                            brush=[pg.mkBrush(200, 40, 40, 200) if k == self.list.currentRow() else
+                                   pg.mkBrush(30, 120, 200, 160) for k in range(len(centres))])
 
     def isComplete(self) -> bool:  # noqa: N802
         if len(self.captures) < MIN_CAPTURES:
@@ -182,14 +245,28 @@ class CapturePage(QWizardPage):
         return all(len(d[2]) == 4 for d in self.detections[0].values())  # the centre capture gives pseudo vectors
 
 
+def previous_profile(path: Path):
+    """(the light calibration in force, a sentence on it) for the comparison, (None, why) without one."""
+    from core.profile import ProfileError, load_profile
+
+    if not path.is_file():
+        return None, "There is no earlier calibration to compare with."
+    try:
+        profile = load_profile(path)
+    except ProfileError as exc:
+        return None, f"The profile in force cannot be read ({exc}); nothing to compare with."
+    return profile, (f"The last column compares with the profile in force of {profile.created[:10]}: a light that "
+                     "moved by more than a few millimetres was knocked or refitted.")
+
+
 class ResultPage(QWizardPage):
     def __init__(self) -> None:
         super().__init__()
         self.setTitle("Result")
         self.setSubTitle("Light positions in each head's camera frame; every residual must pass.")
-        self.table = QTableWidget(0, 7)
+        self.table = QTableWidget(0, 8)
         self.table.setHorizontalHeaderLabels(["Head", "Light", "Position (mm)", "± (mm)", "Residual (mm)",
-                                              "Pass", "Pseudo light vector"])
+                                              "Pass", "Moved since the profile in force (mm)", "Pseudo light vector"])
         self.message = QLabel()
         self.message.setWordWrap(True)
         layout = QVBoxLayout(self)
@@ -213,26 +290,36 @@ class ResultPage(QWizardPage):
             self.completeChanged.emit()
             return
         rows = [(name, k, head) for name, head in calibration.heads.items() for k in range(4)]
+        previous, previous_note = previous_profile(wizard.profile_dir / RIG_PROFILE)
         self.table.setRowCount(len(rows))
         for r, (name, k, head) in enumerate(rows):
             residual = float(head.residual_mm[k])
+            moved = "–"
+            if previous is not None and name in previous.heads:
+                moved = f"{np.linalg.norm(head.light_positions_mm[k] - previous.heads[name].light_positions_mm[k]):.1f}"
             cells = [name, f"L{k}", ", ".join(f"{x:.1f}" for x in head.light_positions_mm[k]),
                      ", ".join(f"{x:.1f}" for x in head.light_position_sigma_mm[k]), f"{residual:.2f}",
-                     "pass" if residual <= threshold else "FAIL",
+                     "pass" if residual <= threshold else "FAIL", moved,
                      ", ".join(f"{x:+.3f}" for x in head.pseudo_light_vectors[k])]
             for c, text in enumerate(cells):
                 item = QTableWidgetItem(text)
                 item.setFlags(item.flags() & ~Qt.ItemFlag.ItemIsEditable)
+                if c == 5:
+                    item.setForeground(QColor("white"))
+                    item.setBackground(QColor("#1b7f3b" if residual <= threshold else "#b00020"))
                 self.table.setItem(r, c, item)
+        self.comparison = previous_note
         self.table.resizeColumnsToContents()
         failed = [f"{name} L{k}" for name, k, head in rows if head.residual_mm[k] > threshold]
         if failed:
             self.message.setText(f"<b>{', '.join(failed)} fail</b> the {threshold:g} mm threshold: go back and "
-                                 "capture at more places (spread wider), or check the sphere's radius.")
+                                 "capture at more places (spread wider), or check the sphere's radius. "
+                                 + previous_note)
             self.completeChanged.emit()
             return
         self.calibration = calibration
-        self.message.setText(f"All {len(rows)} lights pass (threshold {threshold:g} mm). Finish saves the profile.")
+        self.message.setText(f"All {len(rows)} lights pass (threshold {threshold:g} mm). {previous_note} "
+                             "Finish saves the profile and puts it in force.")
         self.completeChanged.emit()
 
     def isComplete(self) -> bool:  # noqa: N802
@@ -241,8 +328,9 @@ class ResultPage(QWizardPage):
 
 class SphereCalibrationWizard(QWizard):
     def __init__(self, parent, heads: tuple[str, ...] = ("front", "back"), scale: float = 0.25,
-                 capture=None, start_job=None, profile_dir: Path | None = None) -> None:
+                 capture=None, start_job=None, profile_dir: Path | None = None, preview=None) -> None:
         super().__init__(parent)
+        self.preview = preview  # head -> the camera's newest image (a real rig's engine.preview), or None
         self.setWindowTitle("Sphere calibration")
         self.heads = list(heads)
         self.scale = scale
@@ -268,6 +356,10 @@ class SphereCalibrationWizard(QWizard):
             return
         job = self._start_job(work, what, done)
         job.signals.failed.connect(lambda *_: self.capture_page.capture_failed())
+
+    def done(self, result: int) -> None:
+        self.capture_page.preview_timer.stop()
+        super().done(result)
 
     def accept(self) -> None:
         calibration = self.result_page.calibration
