@@ -36,6 +36,7 @@ PERMISSIONS: dict[str, tuple[str, ...]] = {
     "report signed": ("clinician",),
     "report amended": ("clinician",),
     "calibration saved": ("engineer",),
+    "syringe check": ("operator", "engineer"),
     "export": ("clinician",),
     "user added": ("engineer",),
 }

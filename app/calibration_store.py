@@ -104,3 +104,55 @@ def log_calibration(records: Records | None, kind: str, saved: Path, previous: P
     if records is not None:
         records.log("calibration saved", str(Path(saved).resolve()),
                     {"kind": kind, "previous": str(previous) if previous else None})
+
+
+SYRINGE_LOG = "syringe-checks.jsonl"
+
+
+def log_syringe_check(rig_name: str, check, flow_from: str, records: Records | None = None) -> dict:
+    """Append a 3 L syringe check to the rig's log (one JSON line each, never rewritten) and to
+    the records' audit trail; returns the entry."""
+    import json
+    import os
+
+    entry = {"time": datetime.now().astimezone().isoformat(timespec="seconds"), "passed": check.passed,
+             "syringe_l": check.syringe_l, "volumes_l": [round(s.volume_l, 4) for s in check.strokes],
+             "verdict": check.verdict(), "flow_calibration": flow_from}
+    folder = calibration_dir(rig_name)
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / SYRINGE_LOG, "a", encoding="utf-8") as log:
+        log.write(json.dumps(entry) + "\n")
+        log.flush()
+        os.fsync(log.fileno())
+    if records is not None:
+        records.log("syringe check", str(folder / SYRINGE_LOG), entry)
+    return entry
+
+
+def syringe_checks(rig_name: str) -> list[dict]:
+    """The rig's syringe checks, oldest first (a line that cannot be read is skipped)."""
+    import json
+
+    path = calibration_dir(rig_name) / SYRINGE_LOG
+    if not path.is_file():
+        return []
+    out = []
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        try:
+            entry = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(entry, dict) and "time" in entry:
+            out.append(entry)
+    return out
+
+
+def syringe_status(rig_name: str) -> tuple[str, bool]:
+    """(the day's syringe check in words, whether it is missing or failed)."""
+    today = datetime.now().astimezone().date().isoformat()
+    done = [c for c in syringe_checks(rig_name) if str(c["time"]).startswith(today)]
+    if not done:
+        return "3 L syringe check: none today", True
+    last = done[-1]
+    return f"3 L syringe check: {'passed' if last.get('passed') else 'FAILED'} at {str(last['time'])[11:16]}", \
+        not last.get("passed")

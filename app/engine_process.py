@@ -269,6 +269,9 @@ class EngineProcess:
     def perform(self, manoeuvre: str) -> float:
         return self._call("perform", manoeuvre)
 
+    def flow_since(self, monotonic_ns: int):
+        return self._call("flow_since", monotonic_ns)
+
     def preview(self, head: str):
         return self._call("preview", head)
 

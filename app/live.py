@@ -316,6 +316,7 @@ class EngineInfo:
     replay: bool
     simulated: bool  # the simulated rig: its subject follows the operator's prompts (LiveRig.perform)
     calibration: str = ""  # the calibrations in force, in words; "" for a replay (the file's /rig holds them)
+    flow_calibration: tuple[float, float] | None = None  # the flow line in force (gain, offset L/s)
 
 
 class _Rate:
@@ -358,7 +359,7 @@ class LiveRig:
         self._metric = LiveMetricVolume(self._live_heads, self.rig.baseline_mm)
         self._metric_curve = collections.deque(maxlen=n)
         self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
-        self._recent_flow: collections.deque = collections.deque(maxlen=1000)  # (arrival ns, block), ~10 s
+        self._recent_flow: collections.deque = collections.deque(maxlen=9000)  # (arrival ns, block), ~90 s
         self._blow_drift_lps: dict[int, float] = {}  # the flow sensor's drift at a blow's mark
         self._flow_state = {"volume": 0.0, "last_ns": None, "means": collections.deque(maxlen=3000), "sum": 0.0}
         self._problems: list[str] = []
@@ -424,20 +425,28 @@ class LiveRig:
     @property
     def info(self) -> EngineInfo:
         s = self.source
-        return EngineInfo(self.rig, tuple(s.cameras), s.name, s.replay, s.simulated is not None, s.calibration)
+        return EngineInfo(self.rig, tuple(s.cameras), s.name, s.replay, s.simulated is not None, s.calibration,
+                          s.flow_calibration)
 
     def flow_adc_mean(self, seconds: float = 2.0) -> float:
         """The flow sensor's mean raw reading (ADC counts) over the next `seconds`: a steady flow
         read for the spirometer calibration (thesis eq. 5.4)."""
-        if self.source.flow is None:
-            raise RuntimeError("this rig has no flow sensor")
         started = time.monotonic_ns()
         self._stop.wait(seconds + 0.1)
-        blocks = [b for arrived, b in list(self._recent_flow) if arrived >= started]
-        counts = np.concatenate([b.adc for b in blocks]) if blocks else np.zeros(0)
+        counts, _ = self.flow_since(started)
         if len(counts) < 0.5 * seconds * 1000:
             raise TimeoutError(f"the flow sensor gave {len(counts)} samples in {seconds:g} s: is it connected?")
         return float(counts.mean())
+
+    def flow_since(self, monotonic_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """The flow sensor's raw samples (ADC counts, session-clock stamps) that arrived since
+        `monotonic_ns` (the last 90 s at most): a 3 L syringe check's strokes."""
+        if self.source.flow is None:
+            raise RuntimeError("this rig has no flow sensor")
+        blocks = [b for arrived, b in list(self._recent_flow) if arrived >= monotonic_ns]
+        if not blocks:
+            return np.zeros(0, np.int32), np.zeros(0, np.int64)
+        return np.concatenate([b.adc for b in blocks]), np.concatenate([b.timestamp_ns for b in blocks])
 
     def perform(self, manoeuvre: str) -> float:
         """The simulated subject does the manoeuvre ("vc" or "forced"); the seconds it takes (0 on a real rig)."""

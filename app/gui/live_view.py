@@ -275,7 +275,8 @@ class LiveView(QWidget):
             self.status.set("recording", "not recording")
         if s.problems:
             self.status.set("recording", "; ".join(s.problems[-2:]), warn=True)
-        self.status.set("calibration", calibration)
+        syringe_due = "syringe check: none today" in calibration and not self.simulated
+        self.status.set("calibration", calibration, warn=syringe_due or "syringe check: FAILED" in calibration)
         self.status.set("source", source)
         self.volume.show_curves(s)
         self.updates += 1

@@ -33,7 +33,11 @@ def calibration_in_force(info: EngineInfo) -> str:
     if info.replay:
         stamps = {h.calibrated for h in info.rig.heads.values() if h.calibrated}
         return f"as recorded (lights calibrated {min(stamps)[:10]})" if stamps else "as recorded (lights not calibrated)"
+    from app.calibration_store import syringe_status
+
     text = info.calibration or "lights as the rig file gives them"
+    if info.flow_calibration is not None:
+        text += "; " + syringe_status(info.rig.name)[0]
     stamps = {h.calibrated for h in info.rig.heads.values() if h.calibrated}
     if stamps:
         try:
@@ -228,6 +232,8 @@ class MainWindow(QMainWindow):
                                         "Visits, trends, interpretation, comment and sign-off (clinician)")
         self.act_audit = self._action("&Audit trail…", self.open_audit, None,
                                       "Who did what when, with the check of its hash chain")
+        self.act_syringe = self._action("3 L &syringe check…", self.syringe_check, None,
+                                        "The daily check of the flow sensor with the 3 L syringe (operator)")
         self.act_profiles = self._action("&Profiles in force…", self.open_profiles, None,
                                          "The calibrations in force, the ones they replaced, and going back")
         self.act_settings = self._action("&Settings…", self.open_settings, "Ctrl+,")
@@ -241,6 +247,7 @@ class MainWindow(QMainWindow):
         calibrate = menu.addMenu("&Calibration")
         calibrate.addAction(self.act_sphere)
         calibrate.addAction(self.act_spiro)
+        calibrate.addAction(self.act_syringe)
         calibrate.addSeparator()
         calibrate.addAction(self.act_profiles)
         tools = menu.addMenu("&Tools")
@@ -439,6 +446,22 @@ class MainWindow(QMainWindow):
                            f"{exc}. Calibration > Profiles can put the previous one back.")
                 return
         self.statusBar().showMessage(message, 10000)
+
+    def syringe_check(self) -> None:
+        from app.gui.syringe_check import RigSyringe, SimulatedSyringe, SyringeCheckDialog
+
+        if not self.has_engine():
+            return
+        if self.info.replay:
+            show_error(self, "The syringe check is done on the rig, not on a replay.",
+                       "Session > Live rig goes back to the rig first.")
+            return
+        bench = SimulatedSyringe() if self.info.simulated else RigSyringe(self.engine)
+        flow_from = self.info.calibration.split("flow sensor: ")[-1] if "flow sensor: " in self.info.calibration else ""
+        dialog = SyringeCheckDialog(self, bench, self.info.flow_calibration, self.info.rig.name, flow_from)
+        if dialog.exec() and dialog.saved is not None:
+            self.calibration_text = calibration_in_force(self.info)
+            self.statusBar().showMessage(f"Syringe check logged: {dialog.saved['verdict']}", 10000)
 
     def open_profiles(self) -> None:
         from app.gui.profiles_view import ProfilesWindow

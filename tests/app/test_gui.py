@@ -441,3 +441,27 @@ def test_the_stall_monitor_tells_work_on_the_gui_thread_from_waiting(qtbot):
     assert worked.ms >= 60 and worked.busy_ms >= 75
     assert waited.ms >= 60 and waited.busy_ms < 20
     assert monitor.longest_ms >= 60
+
+
+def test_the_daily_syringe_check_is_judged_and_logged(qtbot, tmp_path, monkeypatch):
+    from app.calibration_store import syringe_checks, syringe_status
+    from app.gui.syringe_check import SimulatedSyringe, SyringeCheckDialog
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    assert syringe_status("simulated") == ("3 L syringe check: none today", True)
+    bench = SimulatedSyringe()
+    for gain, passed in ((bench.model.gain_lps * 1.05, False), (bench.model.gain_lps, True)):
+        dialog = SyringeCheckDialog(None, bench, (gain, bench.model.offset_lps * gain / bench.model.gain_lps),
+                                    "simulated", "flow-calibration.json of 2026-11-26 07:00")
+        qtbot.addWidget(dialog)
+        dialog.start.click()
+        dialog.stop.click()
+        assert dialog.check.passed is passed and dialog.table.rowCount() == 6
+        assert ("passed" if passed else "FAILED") in dialog.verdict.text()
+        dialog._save()
+        assert dialog.saved is not None
+    checks = syringe_checks("simulated")
+    assert [c["passed"] for c in checks] == [False, True] and len(checks[1]["volumes_l"]) == 6
+    text, due = syringe_status("simulated")
+    assert text.startswith("3 L syringe check: passed at") and not due
