@@ -8,6 +8,8 @@ simulation's true lung volume through the same analysis.
 
 from __future__ import annotations
 
+import argparse
+
 import tempfile
 import time
 from dataclasses import dataclass
@@ -69,14 +71,17 @@ def _cell(measured: float | None, truth: float) -> tuple[str, str]:
 
 def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ...] = SCENARIOS,
                      every: int = 2, world: str = "ideal") -> str:
-    from app.cli import build_parser, run_simulate
+    from app.session_cli import add_simulate, run_simulate
+
+    parser = argparse.ArgumentParser(prog="photopft")
+    add_simulate(parser.add_subparsers())
 
     started = time.perf_counter()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for k, scenario in enumerate(scenarios):
             session, results = Path(tmp) / f"s{k}.h5", Path(tmp) / f"r{k}.h5"
-            run_simulate(build_parser().parse_args([
+            run_simulate(parser.parse_args([
                 "simulate", "-o", str(session), "--protocol", "full", "--seconds", f"{seconds:g}", "--scale",
                 f"{scale:g}", "--seed", str(scenario.seed), "--distance-mm", f"{scenario.distance_mm:g}",
                 "--distance-back-mm", f"{scenario.distance_mm:g}", "--sway-mm", f"{scenario.axial_sway_mm:g}",

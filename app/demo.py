@@ -32,9 +32,11 @@ def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) ->
             raise OutputError(f"{session} exists (a demo was run there before, and a recorded session is never "
                               "replaced): choose another folder with -o")
         args.output_dir.mkdir(parents=True, exist_ok=True)
-        from app.cli import build_parser
+        from app.session_cli import add_simulate
 
-        sim_args = build_parser().parse_args(["simulate", "-o", str(session), "--protocol", "full", "--seconds",
+        parser = argparse.ArgumentParser(prog="photopft")
+        add_simulate(parser.add_subparsers())
+        sim_args = parser.parse_args(["simulate", "-o", str(session), "--protocol", "full", "--seconds",
                                               str(args.seconds), "--scale", str(args.scale), "--seed",
                                               str(args.seed)])
         run_simulate(sim_args)
