@@ -635,7 +635,9 @@ class LiveRig:
                 dt = (int(stamps[-1]) - state["last_ns"]) / 1e9
                 state["volume"] += (mean - state["sum"] / len(means)) * dt
             state["last_ns"] = int(stamps[-1])
-            if self._t0 is not None:
+            # at most a point every 10 ms, whatever the blocks' sizes: the buffer holds the whole window
+            if self._t0 is not None and int(stamps[-1]) - state.get("shown_ns", 0) >= 10_000_000:
+                state["shown_ns"] = int(stamps[-1])
                 self._flow.append(((int(stamps[-1]) - self._t0) / 1e9, state["volume"]))
 
     def preview(self, head: str, width_px: int = 400) -> np.ndarray | None:
@@ -779,7 +781,7 @@ class LiveRig:
                 for buffer in (self._optical, self._metric_curve, self._flow, *self._cycles.values(),
                                *self._darks.values()):
                     buffer.clear()
-                self._flow_state.update(volume=0.0, last_ns=None, sum=0.0)
+                self._flow_state.update(volume=0.0, last_ns=None, sum=0.0, shown_ns=0)
                 self._flow_state["means"].clear()
         else:
             raise ValueError(f"unknown replay action {action!r}: pause, resume or seek")
