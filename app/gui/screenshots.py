@@ -145,6 +145,7 @@ def main(out: Path) -> int:
     training = sorted(Path(p) for p in sys.argv[2:])
     if training:
         volume.add_files(training)
+        _wait(app, 120, lambda: not volume.label.text().startswith("Fitting"))  # on a worker
     _wait(app, 0.5)
     _grab(spiro, out / "spirometer-2-volume.png")
     if not volume.isComplete():

@@ -26,16 +26,9 @@ from app.paths import data_dir
 from app.records import Patient, Records, RecordsError
 from core.outputs import next_free_path
 from core.session import SubjectRecord
-from core.spirometry import repeatability_tolerance_l
+from core.protocol_feedback import (MAX_BLOWS, MAX_VC, MIN_TIDAL_BREATHS, forced_feedback, tidal_extension_s,
+                                    vc_feedback)
 
-MAX_BLOWS = 8
-MIN_BLOWS = 3
-MIN_VC = 3  # slow VC (ATS/ERS 2005): three manoeuvres, the two largest acceptable within 150 mL, ...
-MAX_VC = 4  # ... at most four
-FAR_BELOW_PREDICTED = 0.5  # a VC under half the predicted FVC: effort, leak or the wrong patient?
-MIN_TIDAL_BREATHS = 5  # tidal indices are averaged over breaths: fewer than five say little
-TIDAL_EXTENSION_S = 15.0  # a tidal period with too few breaths goes on this much longer, ...
-MAX_TIDAL_EXTENSION_S = 60.0  # ... at most this much in all
 CENTRED_FRACTION = 0.12  # the subject's centre within 12 % of the image width of its centre
 
 
@@ -238,9 +231,10 @@ class TimedPage(QWizardPage):
             self.remaining.setText(f"{left:.0f} s{extra}")
             return
         breaths = self._breaths()
-        if breaths is not None and breaths < MIN_TIDAL_BREATHS and self.extended_s < MAX_TIDAL_EXTENSION_S:
-            self.extended_s += TIDAL_EXTENSION_S
-            self.ends_at = time.monotonic() + TIDAL_EXTENSION_S
+        extension = tidal_extension_s(breaths, self.extended_s)
+        if extension:
+            self.extended_s += extension
+            self.ends_at = time.monotonic() + extension
             self._note = f"{breaths} breath{'s' if breaths != 1 else ''} so far, {MIN_TIDAL_BREATHS} needed"
             return
         self.timer.stop()
@@ -370,61 +364,18 @@ class ManoeuvrePage(QWizardPage):
             return f"{self.title()} {self.count}: recorded (no flow sensor: feedback comes with the report)."
         if self.kind != "forced":
             return self._assess_vc(values)
-        grade = values.forced
         if self.screen is not None:
-            self.screen.finish_blow(grade)
-        if grade is None:
-            return f"Blow {self.count}: not analysable ({'; '.join(values.problems[-1:])}); do another."
-        last = grade.manoeuvres[-1]
-        verdict = "acceptable" if last.fvc_acceptable else ("FEV1 acceptable" if last.fev1_acceptable
-                                                            else "not acceptable")
-        text = (f"Blow {self.count}: FVC {last.fvc_l:.2f} L, FEV1 {last.fev1_l:.2f} L, PEF {last.pef_lps:.1f} L/s: "
-                f"{verdict}" + (f" ({'; '.join(last.problems)})" if last.problems else "") + ".")
-        repeatable = grade.fvc_grade in ("A", "B") and grade.fev1_grade in ("A", "B")  # two acceptable, within tolerance
-        self.finished = self.count >= MAX_BLOWS or (self.count >= MIN_BLOWS and repeatable)
-        if self.finished:
-            text += f" Grade {grade.grade}: enough blows." if self.count < MAX_BLOWS or repeatable else \
-                f" Grade {grade.grade}: eight blows, the most the standard allows."
-        elif self.count >= MIN_BLOWS and min(grade.acceptable_fvc, grade.acceptable_fev1) < 2:
-            text += (f" {grade.acceptable_fvc} acceptable FVC and {grade.acceptable_fev1} acceptable FEV1 so far; "
-                     "two of each are needed: another blow, please.")
-        elif self.count >= MIN_BLOWS:
-            text += (f" Repeatability not met yet (FVC within {grade.fvc_repeatability_l:.3f} L, needs "
-                     f"{repeatability_tolerance_l(grade.fvc_l, age_years):.3f} L; FEV1 within "
-                     f"{grade.fev1_repeatability_l:.3f} L, needs {repeatability_tolerance_l(grade.fev1_l, age_years):.3f} L):"
-                     " another blow, please.")
-        return text
+            self.screen.finish_blow(values.forced)
+        feedback = forced_feedback(values, self.count, age_years)
+        self.finished = feedback.finished
+        return feedback.text
 
     def _assess_vc(self, values) -> str:
-        """This slow VC's verdict, a plausibility warning, and the repeatability so far."""
         from app.gui.blow_screen import predicted_fvc_l
-        from core.analysis import VC_REPEATABILITY_L, vc_repeatability_l
 
-        manoeuvres = values.vc_manoeuvres
-        if len(manoeuvres) < self.count:
-            self.finished = self.count >= MAX_VC
-            return f"Slow VC {self.count}: not analysable; do it again."
-        last = manoeuvres[-1]
-        text = f"Slow VC {self.count}: VC {last.vc_l:.2f} L, " + (
-            "acceptable" if last.acceptable else "not acceptable: " + "; ".join(last.problems))
-        predicted = predicted_fvc_l(self.wizard().patient_page.patient())
-        if predicted and last.vc_l < FAR_BELOW_PREDICTED * predicted:
-            text += (f". Far below the predicted FVC ({predicted:.2f} L): check the effort, the nose clip and "
-                     "the mouthpiece")
-        acceptable = sum(m.acceptable for m in manoeuvres)
-        spread = vc_repeatability_l(manoeuvres)
-        repeatable = acceptable >= 2 and spread <= VC_REPEATABILITY_L
-        if acceptable >= 2:
-            text += (f". The two largest within {1000 * spread:.0f} mL "
-                     f"({'met' if repeatable else 'not met'}: tolerance {1000 * VC_REPEATABILITY_L:.0f} mL)")
-        self.finished = (self.count >= MIN_VC and repeatable) or self.count >= MAX_VC
-        if self.finished:
-            text += (f". VC {values.vital_capacity.vc_l:.2f} L (the largest acceptable): enough." if repeatable else
-                     f". {MAX_VC} manoeuvres, the most asked for: VC {values.vital_capacity.vc_l:.2f} L, "
-                     "not repeatable.")
-        else:
-            text += f". Another, please ({acceptable} acceptable of {self.count}; {MIN_VC} manoeuvres at least)."
-        return text
+        feedback = vc_feedback(values, self.count, predicted_fvc_l(self.wizard().patient_page.patient()))
+        self.finished = feedback.finished
+        return feedback.text
 
     def _reject_last(self) -> None:
         """The operator saw the last manoeuvre go wrong: it is marked rejected (left out of every

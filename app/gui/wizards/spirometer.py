@@ -143,6 +143,22 @@ class FlowPage(QWizardPage):
         return self.calibration is not None
 
 
+def fit_regression(files: list[Path]):
+    """(calibration, features, volumes, None) of the thesis' regression on results files, or
+    (None, None, None, why not)."""
+    from app.errors import UserError
+    from app.reconstruction_cli import regression_samples
+
+    try:
+        samples = [regression_samples(p) for p in files]
+        features = np.vstack([s[0] for s in samples])
+        volumes = np.concatenate([s[1] for s in samples])
+        calibration = fit_volume(features, volumes, created=now_iso(), sessions=[s[2] for s in samples])
+    except (UserError, CalibrationProfileError, OSError, KeyError) as exc:
+        return None, None, None, str(exc)
+    return calibration, features, volumes, None
+
+
 class VolumePage(QWizardPage):
     def __init__(self) -> None:
         super().__init__()
@@ -178,25 +194,32 @@ class VolumePage(QWizardPage):
         self.add_files([Path(p) for p in paths])
 
     def add_files(self, paths: list[Path]) -> None:
-        from app.errors import UserError
-        from app.reconstruction_cli import regression_samples
-
+        """Fit the regression on every file so far: on a worker (the main window's jobs) when the
+        wizard has one, so that reading the files does not freeze the window."""
         self.files += paths
         self.list.clear()
         self.list.addItems([p.name for p in self.files])
         self.calibration = None
-        try:
-            samples = [regression_samples(p) for p in self.files]
-            features = np.vstack([s[0] for s in samples])
-            volumes = np.concatenate([s[1] for s in samples])
-            self.calibration = fit_volume(features, volumes, created=now_iso(), sessions=[s[2] for s in samples])
-            c = self.calibration
+        self.completeChanged.emit()
+        files = list(self.files)
+        start_job = getattr(self.wizard().parent() if self.wizard() else None, "start_job", None)
+        if start_job is None:
+            self._fitted(fit_regression(files))
+            return
+        self.label.setText(f"Fitting on {len(files)} file(s) …")
+        start_job(lambda: fit_regression(files), "The volume regression", self._fitted)
+
+    def _fitted(self, fitted) -> None:
+        calibration, features, volumes, problem = fitted
+        self.calibration = calibration
+        if calibration is None:
+            self.label.setText(f"<b>Cannot fit:</b> {problem}")
+        else:
+            c = calibration
             self.label.setText(f"r = {c.correlation:.4f}, R² = {c.r_squared:.4f} over {c.samples} samples from "
                                f"{len(self.files)} file(s).")
             keep = np.all(np.isfinite(features), axis=1)
             self.points.setData(volumes[keep][::5], c.volume_l(features[keep])[::5])
-        except (UserError, CalibrationProfileError, OSError, KeyError) as exc:
-            self.label.setText(f"<b>Cannot fit:</b> {exc}")
         self.completeChanged.emit()
 
     def isComplete(self) -> bool:  # noqa: N802

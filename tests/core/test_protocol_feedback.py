@@ -1,0 +1,33 @@
+"""What the patient-session wizard tells the operator after each manoeuvre, and when a
+manoeuvre is done (core/protocol_feedback.py): the ATS/ERS rules outside the GUI."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from core.analysis import analyse_volume
+from core.protocol_feedback import (MAX_TIDAL_EXTENSION_S, TIDAL_EXTENSION_S, forced_feedback, tidal_extension_s,
+                                    vc_feedback)
+from core.sim.breathing import RATE_HZ, Subject, protocol_waveform
+
+
+def _values():
+    w = protocol_waveform(Subject(), "full", None, 1)  # tidal, one slow VC, three good blows
+    return analyse_volume(np.arange(len(w.volume_l)) / RATE_HZ, w.volume_l, w.events, 40.0)
+
+
+def test_three_good_blows_are_enough_and_one_vc_is_not():
+    values = _values()
+    forced = forced_feedback(values, 3, 40.0)
+    assert forced.finished and "Grade A: enough blows" in forced.text
+    vc = vc_feedback(values, 1, predicted_fvc_l=4.5)
+    assert not vc.finished and "acceptable" in vc.text and "Another, please" in vc.text
+    warned = vc_feedback(values, 1, predicted_fvc_l=12.0)
+    assert "Far below the predicted FVC" in warned.text
+
+
+def test_tidal_breathing_goes_on_while_breaths_are_too_few():
+    assert tidal_extension_s(2, 0.0) == TIDAL_EXTENSION_S
+    assert tidal_extension_s(5, 0.0) == 0.0
+    assert tidal_extension_s(None, 0.0) == 0.0  # no flow sensor: counted when processed
+    assert tidal_extension_s(2, MAX_TIDAL_EXTENSION_S) == 0.0
