@@ -73,7 +73,7 @@ def _plain(value):
 
 def _as_json(session: Path, results: Path | None, equations: str, report, named, sources) -> dict:
     from core.interpretation import interpret
-    from core.process import optical_refusal
+    from core.results import optical_refusal
 
     main_name, main = sources[0]
     references = {}
@@ -106,7 +106,7 @@ def _as_json(session: Path, results: Path | None, equations: str, report, named,
 def run_analyze_session(args: argparse.Namespace) -> int:
     """A session file (flow sensor and truth), or a results file (its session, and its optical volume)."""
     from app.report_data import open_inputs
-    from core.process import optical_refusal, optical_volume
+    from core.results import optical_refusal, optical_volume
     from core.session import SessionError
     from core.session_analysis import analyse_session
 

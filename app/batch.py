@@ -62,14 +62,14 @@ def results_path(session: Path, out_dir: Path) -> Path:
 
 def already_done(session: Path, results: Path) -> bool:
     """A complete results file of this session is there (outputs appear only when complete)."""
-    from core.results import check_results
+    from core.results import ResultsFile, check_results
 
     if not results.is_file():
         return False
     try:
         check_results(results)
-        with h5py.File(results, "r") as f:
-            return Path(str(f.attrs.get("session", ""))).resolve() == session.resolve()
+        with ResultsFile(results) as r:
+            return Path(r.session_name).resolve() == session.resolve()
     except Exception:  # a damaged or foreign file is processed again (written beside, then renamed)
         return False
 

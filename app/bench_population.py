@@ -173,7 +173,8 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
                 calibration_scale: float | None = None) -> dict:
     """One subject end to end; what each stage gave or why it refused. The lights are calibrated
     from sphere sessions at calibration_scale (default: scale, but no less than CALIBRATION_SCALE)."""
-    from core.process import optical_refusal, optical_volume, process_session
+    from core.process import process_session
+    from core.results import optical_refusal, optical_volume
     from core.rig import thesis_rig
     from core.session import SessionFile
     from core.session_analysis import analyse_session

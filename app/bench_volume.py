@@ -15,11 +15,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from core.pipeline import ReconstructionSettings
-from core.process import optical_volume, process_session
+from core.process import process_session
+from core.results import ResultsFile, optical_volume
 from core.session import SessionFile
 from core.session_analysis import analyse_session
 from core.volume import gradient_volume_correlations
@@ -44,9 +44,8 @@ def within_limit(value: float, truth: float) -> bool:
 
 def _gradient_correlations(session: Path, results: Path) -> dict[str, float]:
     """r of the normalised gradient volume (thesis eq. 3.27) against the true volume: front, back, combined."""
-    with h5py.File(results, "r") as r:
-        series = {h: (r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/gradient_volume"][:])
-                  for h in ("front", "back") if h in r["heads"]}
+    with ResultsFile(results) as r:
+        series = {h: (r.series(h, "timestamp_ns"), r.series(h, "gradient_volume")) for h in r.heads}
     with SessionFile(session) as s:
         truth = s.truth()
         return gradient_volume_correlations(series, truth["timestamp_ns"][:], truth["volume_l"][:])
@@ -54,8 +53,8 @@ def _gradient_correlations(session: Path, results: Path) -> dict[str, float]:
 
 def _metric_against_truth(session: Path, results: Path) -> dict[str, float]:
     """The metric volume against the true volume: r, and the slope and rms of its difference in litres."""
-    with h5py.File(results, "r") as r, SessionFile(session) as s:
-        t, volume = r["metric_volume/timestamp_ns"][:], r["metric_volume/volume_l"][:]
+    with ResultsFile(results) as r, SessionFile(session) as s:
+        t, volume = r.metric_volume()
         truth = np.interp(t, s.truth()["timestamp_ns"][:], s.truth()["volume_l"][:])
     truth = truth - truth[0]
     slope = float(np.polyfit(truth, volume, 1)[0])

@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from app.args import positive
 from core.outputs import OutputError
 from core.pipeline import ReconstructionSettings
-from core.process import optical_volume, process_session
+from core.process import process_session
+from core.results import ResultsFile, optical_volume
 from core.session import SessionFile, validate_session
 from core.session_analysis import analyse_session
 from core.volume import gradient_volume_correlations
@@ -61,10 +61,10 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
     lines = ["volume summary:"]
     optical = optical_volume(results) if results is not None else None
     if results is not None:
-        with h5py.File(results, "r") as r:
-            heads = [h for h in ("front", "back") if h in r["heads"]]
-            series = {h: (r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/distance_mm"][:],
-                          r[f"heads/{h}/gradient_volume"][:]) for h in heads}
+        with ResultsFile(results) as r:
+            heads = r.heads
+            series = {h: (r.series(h, "timestamp_ns"), r.series(h, "distance_mm"), r.series(h, "gradient_volume"))
+                      for h in heads}
         for head, (_, distance, _) in series.items():
             lines.append(f"  {head}: subject distance {np.nanmedian(distance):.0f} mm (from "
                          f"{np.nanpercentile(distance, 2):.0f} to {np.nanpercentile(distance, 98):.0f} mm)")

@@ -284,23 +284,19 @@ def regression_samples(results_path: Path):
 
     from core.session_analysis import analyse_session
 
-    from core.process import session_of_results
+    from core.calibration import regression_features
+    from core.results import ResultsFile, session_of_results
     from core.results import check_results, is_results_file
 
     if not is_hdf5(results_path) or not is_results_file(results_path):
         raise UserError(f"{results_path} is not a results file of `photopft process`: process the session first")
     check_results(results_path)
-    with h5py.File(results_path, "r") as r:
-        heads = [h for h in ("front", "back") if h in r["heads"]]
-
+    with ResultsFile(results_path) as r:
+        heads = r.heads
         session = session_of_results(results_path)
-        t = r[f"heads/{heads[0]}/timestamp_ns"][:]
-        gv = sum(np.interp(t, r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/gradient_volume"][:]) for h in heads)
-        if "valid_pixels" not in r[f"heads/{heads[0]}"]:
+        if not r.has_series(heads[0], "valid_pixels"):
             raise UserError(f"{results_path} predates the pixel counts: process the session again")
-        pixels = sum(np.interp(t, r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/valid_pixels"][:]) for h in heads)
-        distance = np.mean([np.interp(t, r[f"heads/{h}/timestamp_ns"][:], r[f"heads/{h}/distance_mm"][:])
-                            for h in heads], axis=0)
+        t, features = regression_features(r.series, heads)
     report = analyse_session(session)
     if report.flow_volume is None:
         raise UserError(f"{session} has no flow sensor recording to train the volume regression on")
@@ -308,7 +304,7 @@ def regression_samples(results_path: Path):
         start = int(min(s[f"heads/{h}/timestamp_ns"][0] for h in heads))
     flow_t, flow_v = report.flow_volume
     pv = np.interp((t - start) / 1e9, flow_t, flow_v)
-    return np.column_stack([gv, pixels, distance]), pv, session.name
+    return features, pv, session.name
 
 
 def run_calibrate_volume(args: argparse.Namespace) -> int:

@@ -15,7 +15,8 @@ import numpy as np
 from app.records import Patient, Records, ReportState
 from core.analysis import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.pipeline import ReconstructionSettings
-from core.process import maps_at, optical_refusal, optical_volume, session_of_results
+from core.process import maps_at
+from core.results import ResultsFile, optical_refusal, optical_volume, session_of_results
 from core.hdf5_probe import probe
 from core.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
                                  bronchodilator_statement, interpret)
@@ -172,10 +173,9 @@ def _optical_curve(results: Path, start_ns: int) -> tuple[np.ndarray, np.ndarray
 
 def _gradient_correlation(results: Path, start_ns: int, t_flow: np.ndarray, v_flow: np.ndarray) -> dict[str, float]:
     out: dict[str, float] = {}
-    with h5py.File(results, "r") as f:
-        heads = list(f.get("heads", {}))
-        series = {h: ((f[f"heads/{h}/timestamp_ns"][:] - start_ns) / 1e9, f[f"heads/{h}/gradient_volume"][:])
-                  for h in heads}
+    with ResultsFile(results) as r:
+        heads = r.heads
+        series = {h: ((r.series(h, "timestamp_ns") - start_ns) / 1e9, r.series(h, "gradient_volume")) for h in heads}
     if not heads:
         return out
     t = series[heads[0]][0]
@@ -430,9 +430,10 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             calibration.append(f"flow sensor: {s.flow.gain_lps:.6g} L/s per count, offset "
                                f"{s.flow.offset_lps:+.4g} L/s ({s.flow.conditions})")
         if results_path is not None:
-            with h5py.File(results_path, "r") as f:
-                if "volume" in f and "calibration_created" in f["volume"].attrs:
-                    calibration.append(f"volume calibration of {f['volume'].attrs['calibration_created']}")
+            with ResultsFile(results_path) as r:
+                created = r.volume_attrs().get("calibration_created")
+            if created is not None:
+                calibration.append(f"volume calibration of {created}")
         data = ReportData(
             session_path=session_path, results_path=results_path, kind=s.kind, recorded=s.created,
             operator=str(s.attrs.get("operator", "")), rig=s.rig.name, calibration=calibration,

@@ -98,6 +98,18 @@ class VolumeCalibration:
                 "r_squared": self.r_squared, "correlation": self.correlation, "samples": self.samples}
 
 
+def regression_features(read, heads: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(the first head's map times, the regression's features at them): X = [gradient volume summed
+    over the heads, valid pixels summed, mean distance] (eq. 5.1). `read(head, name)` gives a head's
+    per-map series; the same features for training (calibrate volume) and prediction (process)."""
+    t = read(heads[0], "timestamp_ns")
+
+    def at(name: str) -> list[np.ndarray]:
+        return [np.interp(t, read(h, "timestamp_ns"), read(h, name)) for h in heads]
+
+    return t, np.column_stack([sum(at("gradient_volume")), sum(at("valid_pixels")), np.mean(at("distance_mm"), axis=0)])
+
+
 def fit_volume(features: np.ndarray, volume_l: np.ndarray, created: str = "",
                sessions: list[str] | None = None, min_correlation: float = 0.8) -> VolumeCalibration:
     """phi = (X^T X)^-1 X^T pv (eq. 5.3); X (N, 3) = [gradient volume, valid pixels, distance]."""

@@ -537,30 +537,6 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
     return out
 
 
-def optical_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
-    """A results file's /volume as (timestamp_ns, litres), or None if it has none."""
-    with h5py.File(results, "r") as f:
-        return (f["volume/timestamp_ns"][:], f["volume/volume_l"][:].astype(float)) if "volume" in f else None
-
-
-def optical_refusal(results: str | os.PathLike) -> str | None:
-    """Why a results file holds no optical volume, when `process` refused one."""
-    with h5py.File(results, "r") as f:
-        reason = f.attrs.get("optical_refused")
-    return None if reason is None else str(reason)
-
-
-def session_of_results(results: str | os.PathLike) -> Path:
-    """The session file a results file was made from: where it was, or beside the results file."""
-    results = Path(results)
-    with h5py.File(results, "r") as f:
-        named = Path(str(f.attrs.get("session", "")))
-    for candidate in (named, results.parent / named.name):
-        if candidate.name and candidate.exists():
-            return candidate
-    raise SessionError(f"{results}: its session file {named} is not there (nor beside the results file)")
-
-
 def with_true_lights(session: SessionFile) -> RigCalibration:
     """A calibration profile holding the simulation's true lights (for benchmarks: the noise floor)."""
     from core.profile import HeadCalibration
@@ -634,13 +610,9 @@ def _write_metric_volume(out: h5py.File, metric: MetricVolume, session: SessionF
 
 def _write_regression_volume(out: h5py.File, heads: list[str], calibration) -> None:
     """/volume from the thesis' regression (eqs 5.1-5.3) on the gradient volume, pixels and distance."""
-    t = out[f"heads/{heads[0]}/timestamp_ns"][:]
+    from core.calibration import regression_features
 
-    def series(name: str) -> list[np.ndarray]:
-        return [np.interp(t, out[f"heads/{h}/timestamp_ns"][:], out[f"heads/{h}/{name}"][:]) for h in heads]
-
-    features = np.column_stack([sum(series("gradient_volume")), sum(series("valid_pixels")),
-                                np.mean(series("distance_mm"), axis=0)])
+    t, features = regression_features(lambda head, name: out[f"heads/{head}/{name}"][:], heads)
     g = _write_volume(out, t, calibration.volume_l(features),
                       "thesis regression (eqs 5.1-5.3) on gradient volume, valid pixels and distance")
     g.attrs["calibration_created"] = calibration.created

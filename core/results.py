@@ -1,8 +1,10 @@
-"""Reading a results file (written by core.process) safely: `check_results` reads every part once
-and refuses, in one line naming the file and the part, anything the readers could not use: an
-unreadable or missing dataset, a series of the wrong type or length, an infinite value, a
-parameter that should be a number and is not. A results file that passes can be read by raw paths
-without further checks (docs/data-format.md gives the layout).
+"""Reading a results file (written by core.process): the one reader every part of the program
+goes through (`ResultsFile`, `optical_volume`, `optical_refusal`, `session_of_results`).
+
+`check_results` reads every part once and refuses, in one line naming the file and the part,
+anything the readers could not use: an unreadable or missing dataset, a series of the wrong type or
+length, an infinite value, a parameter that should be a number and is not. The layout is in
+shared/spec/session-format.md and docs/format-extensions.md.
 """
 
 from __future__ import annotations
@@ -123,3 +125,80 @@ def is_results_file(path: str | os.PathLike) -> bool:
             return str(f.attrs.get("format", "")) == RESULTS_FORMAT
     except READ_ERRORS:
         return False
+
+
+class ResultsFile:
+    """An open results file, read by name rather than by HDF5 path."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self._f = h5py.File(self.path, "r")
+
+    def __enter__(self) -> ResultsFile:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._f.close()
+
+    @property
+    def heads(self) -> list[str]:
+        return [h for h in ("front", "back") if h in self._f.get("heads", {})]
+
+    @property
+    def session_name(self) -> str:
+        return str(self._f.attrs.get("session", ""))
+
+    def series(self, head: str, name: str) -> np.ndarray:
+        """A head's per-map series (timestamp_ns, distance_mm, gradient_volume, valid_pixels, ...)."""
+        return self._f[f"heads/{head}/{name}"][:]
+
+    def has_series(self, head: str, name: str) -> bool:
+        return f"heads/{head}/{name}" in self._f
+
+    def volume(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """/volume as (timestamp_ns, litres), or None if there is none."""
+        f = self._f
+        return (f["volume/timestamp_ns"][:], f["volume/volume_l"][:].astype(float)) if "volume" in f else None
+
+    def volume_attrs(self) -> dict:
+        return dict(self._f["volume"].attrs) if "volume" in self._f else {}
+
+    def metric_volume(self) -> tuple[np.ndarray, np.ndarray] | None:
+        f = self._f
+        return ((f["metric_volume/timestamp_ns"][:], f["metric_volume/volume_l"][:].astype(float))
+                if "metric_volume" in f else None)
+
+    @property
+    def optical_refused(self) -> str | None:
+        reason = self._f.attrs.get("optical_refused")
+        return None if reason is None else str(reason)
+
+    def parameters(self) -> dict:
+        """The stored pulmonary function values (/parameters), with their `source`."""
+        return dict(self._f["parameters"].attrs) if "parameters" in self._f else {}
+
+
+def optical_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
+    """A results file's /volume as (timestamp_ns, litres), or None if it has none."""
+    with ResultsFile(results) as r:
+        return r.volume()
+
+
+def optical_refusal(results: str | os.PathLike) -> str | None:
+    """Why a results file holds no optical volume, when `process` refused one."""
+    with ResultsFile(results) as r:
+        return r.optical_refused
+
+
+def session_of_results(results: str | os.PathLike) -> Path:
+    """The session file a results file was made from: where it was, or beside the results file."""
+    results = Path(results)
+    with ResultsFile(results) as r:
+        named = Path(r.session_name)
+    for candidate in (named, results.parent / named.name):
+        if candidate.name and candidate.exists():
+            return candidate
+    raise SessionError(f"{results}: its session file {named} is not there (nor beside the results file)")

@@ -394,8 +394,9 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     """A distance outside 1500-2600 mm is a measurement gone wrong or a subject out of place: the
     results say so and hold no volume to report. (A subject 3300 mm away measures about 2650 mm:
     the distance search does not follow a subject far outside the working range either.)"""
-    from core.process import (WORKING_RANGE_MM, coverage_refusal, distance_refusal, occlusion_refusal, optical_refusal,
-                              optical_volume, process_session, trunk_area_m2)
+    from core.process import (WORKING_RANGE_MM, coverage_refusal, distance_refusal, occlusion_refusal, process_session,
+                              trunk_area_m2)
+    from core.results import optical_refusal, optical_volume
     from core.sim.simulate import SimConfig, simulate
 
     assert distance_refusal({"front": 2000.0, "back": 2100.0}) is None
