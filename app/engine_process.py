@@ -39,11 +39,7 @@ log = logging.getLogger(__name__)
 PUBLISH_INTERVAL_S = 0.030  # a little faster than the display's 33 ms, so each update has a fresh snapshot
 START_TIMEOUT_S = 300.0  # a cold start imports numba and renders the simulated subject
 COMMAND_TIMEOUT_S = 120.0  # stopping a recording flushes its queues to disk
-# glibc gives every thread that allocates an arena of its own; the frames and maps that the
-# capture, reconstruction and writer threads allocate and free then fragment several heaps, which
-# the process keeps (measured with `photopft bench gui`, docs/user-guide.md). Two arenas bound it.
-# (A fixed glibc mmap threshold, to return frames and maps to the system when freed, was tried
-# and left out: every large temporary then page-faults, which halved the maps per second.)
+# Two glibc arenas: one per thread fragmented the heaps the engine keeps (docs/benchmarks.md, constants).
 ENGINE_MALLOC_ARENAS = "2"
 
 

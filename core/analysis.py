@@ -128,12 +128,8 @@ def _breaths(t_s: np.ndarray, volume_l: np.ndarray, min_breath_s: float, min_tid
     return t, smooth, flow, list(zip(minima[:-1], minima[1:]))
 
 
-# A "breath" under half the median tidal volume of its stretch whose inspiration or expiration also
-# lasts under half the median's is a wiggle on an expiration (noise, sway on an optical curve), not a
-# breath: the higher of its two end-expiratory minima goes, merging it with its neighbour. On the
-# simulated 2000 mm subject of `photopft bench volume`, a dip 0.3 s before the end of an expiration
-# split a 0.5 L breath into 0.48 L and 0.21 L (inspiration 0.34 s) and took the tidal volume to
-# 0.40 L against 0.51 L. Judged on three or more breaths only.
+# A "breath" under half the median in volume and in time is a wiggle on an expiration, merged with its
+# neighbour (three or more breaths only; docs/benchmarks.md, constants).
 WIGGLE_FRACTION = 0.5
 
 
@@ -159,11 +155,8 @@ def _without_wiggles(smooth: np.ndarray, minima: np.ndarray) -> np.ndarray:
     return np.array(minima, dtype=int)
 
 
-# Quiet breathing expires for longer than it inspires (Ti/Te about 0.4-0.8, 1.0 at most in health,
-# lower in obstruction): a "breath" whose expiration is under 0.3 of its inspiration is a rise into a
-# manoeuvre's deep inspiration that the curve's last samples happen to turn down, which the
-# stretch's end then closes. On the 60 s demo session the optical curve had one (1.848 L, te 0.3 s
-# against ti about 3 s), which doubled its tidal volume.
+# Quiet breathing expires longer than it inspires: a "breath" with Te under 0.3 Ti is the rise into a
+# manoeuvre, not a breath (docs/benchmarks.md, constants).
 MIN_EXPIRATION_PER_INSPIRATION = 0.3
 
 

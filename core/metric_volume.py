@@ -33,10 +33,7 @@ from core.volume import (REGIONS, DisplacementSums, DisplacementTracker, head_vo
 WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of trunk width is 4 mm of distance
 SIDE_SMOOTHING_S = 3.0
 VOLUME_SMOOTHING_S = 0.03  # the maps' own noise; a forced expiration's volume curve has little above 5 Hz
-# How far a head's map scale (the two heads' trunk widths and baseline against the map's own side
-# depth) may sit from 1 before the trunk's sides are not the same in both views. Measured on
-# simulated bodies (docs/volume.md): 0-5 % for trunks in full view, 10-14 % with arms held against
-# the trunk (one head sees them as its sides, the other divides them off).
+# A head's map scale this far from 1: the two views' trunk sides are not the same (docs/volume.md).
 MAX_SCALE_MISMATCH = 0.08
 # The most map-to-map noise (L, robust rms) a volume curve may carry and still give values: tidal
 # volumes within 50 mL and breaths counted as breaths. Measured: 0.005-0.011 L on simulated subjects

@@ -26,14 +26,9 @@ from core.session import SessionError, SessionFile
 from core.results import RESULTS_FORMAT
 from core.volume import DisplacementTracker, smooth_in_time
 
-# Work (maps times pixels) from which worker processes pay: starting one (imports, numba's cached
-# kernels) takes about 3 s; this much work takes about 10 s on this 2-core host (300 maps at scale
-# 0.1, 3 at full resolution)
+# Work (maps times pixels) from which worker processes repay their start (docs/benchmarks.md, constants).
 AUTO_WORKERS_PIXEL_MAPS = 5e6
-# Where a head's subject may stand (mm from its camera): the rig is built for 1800-2200 mm and
-# its lights calibrated there; a distance measured outside this is not a subject standing too
-# near or too far but a measurement gone wrong (glossy skin put it 800 mm short,
-# docs/reconstruction.md), and no volume is reported from it.
+# Outside this a measured distance is a measurement gone wrong, not a subject (docs/reconstruction.md).
 WORKING_RANGE_MM = (1500.0, 2600.0)
 # The share of the trunk's rows an occluding contour may cross (core/pipeline.py,
 # occluded_side_share) in a head's typical map before its sides count as hidden by an arm

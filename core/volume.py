@@ -28,15 +28,9 @@ from scipy import ndimage
 
 from core.rig import Head
 
-# The silhouette's outermost pixels, dim and noisy, left out of the fits near the rim (rim_depths,
-# rim_model; they still place the side). Measured with the earlier straight-line rim on a simulated
-# subject at 2000 mm with sway: r against the true volume 0.9952 with them, 0.9971 without.
+# The silhouette's outermost pixels, dim and noisy, left out of the rim fits (docs/benchmarks.md, constants).
 RIM_SKIP_PX = 2
-# How far inside the silhouette the rim's band reaches (rim_model, rim_depths): a wider band steadies
-# the level against sway and noise and leans more on the hinge model's parabola across the row. On
-# a simulated 30 s slow VC at 2000 mm (scale 0.25) with +-50 mm of axial sway, slope against the true
-# volume and rms residual: 30 mm 0.926 / 0.091 L, 50 mm 0.936 / 0.068 L, 70 mm 0.942 / 0.058 L,
-# 100 mm 0.948 / 0.049 L (docs/volume.md).
+# The rim's band inside the silhouette: wider steadies it against sway (docs/benchmarks.md, constants).
 RIM_BAND_MM = 70.0
 
 

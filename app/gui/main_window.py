@@ -144,10 +144,7 @@ class Job(QRunnable):
             self.signals.failed.emit(f"{self.what} failed: {exc}", traceback.format_exc())
 
 
-# The GIL changes hands every 1 ms instead of Python's 5: each time a paint hands the GIL to Qt and
-# another thread (the snapshot receiver, a report job) takes it, the GUI thread waits at most this
-# long to get it back (measured with `photopft bench gui` when the engine ran in this process:
-# longest stall 35-36 ms against 39-51 ms at 5 ms).
+# The GIL every 1 ms: the GUI thread waits at most this for it after a paint (docs/benchmarks.md, constants).
 GIL_SWITCH_INTERVAL_S = 0.001
 
 
