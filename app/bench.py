@@ -6,6 +6,7 @@ import argparse
 import itertools
 import os
 import re
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, replace
@@ -15,7 +16,14 @@ import numpy as np
 
 from app.args import finite, positive
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
+# The benches write their tables into the repository's docs/benchmarks.md: only from a source
+# checkout (an installed or bundled application has no docs/ to write to, and reads nothing there)
+_CHECKOUT = Path(__file__).resolve().parents[1]
+DOCS = _CHECKOUT / "docs" / "benchmarks.md"
+
+
+def in_checkout() -> bool:
+    return (_CHECKOUT / "pyproject.toml").is_file() and DOCS.parent.is_dir()
 SHAPES = ("sphere", "torso", "vase", "relief")
 DISTANCES = (1800, 1900, 2000, 2100, 2200)
 # The project's reference data, beside the checkout (never shipped with the application).
@@ -310,8 +318,13 @@ def _world_words(world: str) -> str:
 def _publish(args: argparse.Namespace, section: str, heading: str, text: str) -> int:
     """Print a bench's table and, unless --no-write, put it in its section of docs/benchmarks.md."""
     print(text)
-    if not args.no_write:
-        write_section(section, f"## {heading}\n\n{text}\n")
+    if args.no_write:
+        return 0
+    if not in_checkout():
+        print(f"not written: docs/benchmarks.md is written from a source checkout of photopft, and {_CHECKOUT} "
+              "is not one", file=sys.stderr)
+        return 0
+    write_section(section, f"## {heading}\n\n{text}\n")
     return 0
 
 
@@ -413,7 +426,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
             raise UserError("--subjects must be 1 or more")
         subjects = 2 if args.quick else args.subjects
         workers = max(1, min(subjects, args.workers or os.cpu_count() or 1))
-        images = None if args.no_write else DOCS.parent / "images"
+        images = None if args.no_write or not in_checkout() else DOCS.parent / "images"
         from app.bench_population import MAX_SHEEN
 
         sheen = MAX_SHEEN if args.max_sheen is None else args.max_sheen

@@ -51,7 +51,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     from app.analyze_cli import add_analyze
     from app.batch import add_batch
-    from app.bench import add_bench
     from app.emulate_cli import add_emulate
     from app.record_cli import add_record
     from app.records_cli import add_records_verbs
@@ -62,7 +61,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_process(sub)
     add_analyze(sub)
     add_batch(sub)
-    add_bench(sub)
+    try:
+        from app.bench import add_bench
+    except ImportError:  # the bundled application ships without the benchmarks (a source checkout has them)
+        add_bench = None
+    if add_bench is not None:
+        add_bench(sub)
     add_emulate(sub)
     add_record(sub)
     add_records_verbs(sub)
