@@ -438,6 +438,20 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                                        f"{args.scale:g} --seed {args.seed}{suffix}`)", text)
 
     po.set_defaults(run=run_population)
+    lv = what.add_parser("live", help="the live view's metric volume against the simulated subject's true volume")
+    lv.add_argument("--seconds", type=positive, default=60.0)
+    lv.add_argument("--scale", type=positive, default=0.25)
+    lv.add_argument("--seed", type=int, default=1)
+    lv.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_live(args: argparse.Namespace) -> int:
+        from app.bench_live import run_live_bench
+
+        text, _ = run_live_bench(args.seconds, args.scale, args.seed)
+        return _publish(args, f"live-{args.scale:g}", f"Live volume (`photopft bench live --seconds {args.seconds:g} "
+                                                      f"--scale {args.scale:g}`)", text)
+
+    lv.set_defaults(run=run_live)
     li = what.add_parser("lights", help="light calibration from simulated sphere sessions of rigs as built, against "
                                         "their truth")
     li.add_argument("--rigs", type=int, default=6)

@@ -1,0 +1,15 @@
+"""`photopft bench live`: the live view's metric volume against the simulated subject's truth, as the
+window runs it (a short run at a small scale; the figures in docs/benchmarks.md come from 60 s)."""
+
+from __future__ import annotations
+
+import pytest
+
+from app.bench_live import run_live_bench
+
+
+@pytest.mark.slow
+def test_the_live_volume_follows_the_true_volume():
+    text, figures = run_live_bench(14.0, 0.1)
+    assert figures["samples"] >= 20 and figures["r"] > 0.5 and 0.5 < figures["slope"] < 1.5
+    assert "| samples | per second | r | slope |" in text
