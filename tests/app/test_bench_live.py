@@ -11,5 +11,6 @@ from app.bench_live import run_live_bench
 @pytest.mark.slow
 def test_the_live_volume_follows_the_true_volume():
     text, figures = run_live_bench(14.0, 0.1)
-    assert figures["samples"] >= 20 and figures["r"] > 0.5 and 0.5 < figures["slope"] < 1.5
+    # measured at 14 s, scale 0.1: r 0.93, slope 1.05
+    assert figures["samples"] >= 20 and figures["r"] > 0.75 and 0.75 < figures["slope"] < 1.3
     assert "| samples | per second | r | slope |" in text
