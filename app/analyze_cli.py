@@ -30,7 +30,7 @@ def run_analyze(args: argparse.Namespace) -> int:
         raise UserError("give a session file or --waveform FILE.wf")
     if args.waveform is None:
         return run_analyze_session(args)
-    from core.spirometry import forced_values, read_waveform
+    from core.analysis.spirometry import forced_values, read_waveform
 
     try:
         wave = read_waveform(args.waveform)
@@ -72,8 +72,8 @@ def _plain(value):
 
 
 def _as_json(session: Path, results: Path | None, equations: str, report, named, sources) -> dict:
-    from core.interpretation import interpret
-    from core.results import optical_refusal
+    from core.analysis.interpretation import interpret
+    from core.io.results import optical_refusal
 
     main_name, main = sources[0]
     references = {}
@@ -106,9 +106,9 @@ def _as_json(session: Path, results: Path | None, equations: str, report, named,
 def run_analyze_session(args: argparse.Namespace) -> int:
     """A session file (flow sensor and truth), or a results file (its session, and its optical volume)."""
     from app.report_data import open_inputs
-    from core.results import optical_refusal, optical_volume
-    from core.session import SessionError
-    from core.session_analysis import analyse_session
+    from core.io.results import optical_refusal, optical_volume
+    from core.io.session import SessionError
+    from core.analysis.session_analysis import analyse_session
 
     try:
         session, results = open_inputs(args.session)

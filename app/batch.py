@@ -35,7 +35,7 @@ class BatchOptions:
 def session_files(folder: Path) -> tuple[list[Path], list[str]]:
     """(session files, one line per file skipped and why) of a folder, in name order: results files
     and files that are not HDF5 sessions are left out."""
-    from core.results import RESULTS_FORMAT
+    from core.io.results import RESULTS_FORMAT
 
     sessions, skipped = [], []
     for path in sorted(folder.glob("*.h5")):
@@ -62,7 +62,7 @@ def results_path(session: Path, out_dir: Path) -> Path:
 
 def already_done(session: Path, results: Path) -> bool:
     """A complete results file of this session is there (outputs appear only when complete)."""
-    from core.results import ResultsFile, check_results
+    from core.io.results import ResultsFile, check_results
 
     if not results.is_file():
         return False
@@ -76,8 +76,8 @@ def already_done(session: Path, results: Path) -> bool:
 
 def process_one(session: str, results: str, options: BatchOptions) -> tuple[str, str | None, float]:
     """The task a Dask worker runs: (session, None or the one-line reason it failed, seconds)."""
-    from core.process import process_session
-    from core.profile import load_profile
+    from core.reconstruction.process import process_session
+    from core.calibration.rig_profile import load_profile
 
     started = time.perf_counter()
     if options.threads is not None:

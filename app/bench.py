@@ -62,8 +62,8 @@ TRACKED_CYCLES = 10
 def _cycles(session, head_name: str):
     """Every complete light cycle of a head, in order: (newest frame, signal, saturated, dark), as
     `photopft process` makes them (without its motion compensation: the subjects stand still)."""
-    from core.photometric import complete_cycles
-    from core.process import cycle_signal
+    from core.reconstruction.photometric import complete_cycles
+    from core.reconstruction.process import cycle_signal
 
     frames, ids, stamps = session.frames(head_name), session.frame_id(head_name), session.timestamp_ns(head_name)
     max_value = session.rig.heads[head_name].max_value
@@ -92,8 +92,8 @@ def _distance_floor(reconstructor, signal: np.ndarray, dark: np.ndarray, true_de
     """The distance noise floor of one cycle: the error of the same photometric distance fit
     (the reconstructor's pixels, binning and noise model) handed the true surface and the true
     lights, so that only the camera noise is left."""
-    from core.distance import PhotometricDistance
-    from core.pipeline import subject_mask
+    from core.reconstruction.distance import PhotometricDistance
+    from core.reconstruction.pipeline import subject_mask
 
     settings = reconstructor.settings
     mask = subject_mask(signal, settings.mask_fraction, settings.mask_edge_fraction) & np.isfinite(true_depth)
@@ -112,12 +112,12 @@ def _cycle(session, head_name: str):
 
 def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ...], seed: int,
                  led_offset_mm: float, write: bool, world: str = "ideal") -> str:
-    from core.light_calibration import CAPTURE_SECONDS, calibrate_lights
-    from core.photometric import near_light_normals
-    from core.pipeline import HeadReconstructor, ReconstructionSettings, RunningDistance
-    from core.prefilter import prefilter_sigma_px, prefiltered
+    from core.calibration.light_sessions import CAPTURE_SECONDS, calibrate_lights
+    from core.reconstruction.photometric import near_light_normals
+    from core.reconstruction.pipeline import HeadReconstructor, ReconstructionSettings, RunningDistance
+    from core.reconstruction.prefilter import prefilter_sigma_px, prefiltered
     from core.rig import thesis_rig
-    from core.session import SessionFile
+    from core.io.session import SessionFile
     from core.sim.breathing import Sway
     from core.sim.simulate import SimConfig, in_world, simulate
 
@@ -219,7 +219,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
             albedo = np.full(true_head.shape, np.nan)
             used = np.zeros(true_head.shape, dtype=np.int64)
             axis, mu = np.tile([0.0, 0.0, 1.0], (4, 1)), np.zeros(4)
-            # the same solver: the images prefiltered as ours has them (core/prefilter.py)
+            # the same solver: the images prefiltered as ours has them (core/reconstruction/prefilter.py)
             solved, solved_saturated = prefiltered(signal, saturated, sigma_px)
             near_light_normals(solved, points, true_positions, true_intensity, true_axis, true_mu, solved_saturated,
                                0.01 * true_head.max_value, floor, albedo, used)
@@ -267,7 +267,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                  "*ours*: per-pixel lights with inverse-square falloff and intensities, distance from the "
                  "photometric residual, iterated; *noise floor*: the same solver with the true surface and "
                  "lights" + (f" (all methods see the images prefiltered with a Gaussian of {sigma_px:.2f} px, "
-                             "core/prefilter.py; *unfiltered*: the floor without it)" if sigma_px > 0 else "")
+                             "core/reconstruction/prefilter.py; *unfiltered*: the floor without it)" if sigma_px > 0 else "")
                  + "; its distance: the same photometric distance fit (same pixels, noise model) handed the "
                  "true surface and lights, each cycle: the scatter that the camera noise alone leaves in one "
                  "cycle's distance. Distance error: median depth over the subject against the truth. Height error: mean "
@@ -552,12 +552,12 @@ def run_speed(write: bool, repeat: int = 20) -> str:
     import cv2
     import numba
 
-    from core.integrate import ROBUST_ITERATIONS, integrate_masked, log_depth_dct, log_depth_gradients
-    from core.lightfield import LightField, light_field, normals_from_field
-    from core.photometric import distant_light_normals
-    from core.pipeline import default_pseudo_light_vectors, subject_mask
-    from core.prefilter import prefilter_frame, prefilter_sigma_px
-    from core.session import SessionFile
+    from core.reconstruction.integrate import ROBUST_ITERATIONS, integrate_masked, log_depth_dct, log_depth_gradients
+    from core.reconstruction.lightfield import LightField, light_field, normals_from_field
+    from core.reconstruction.photometric import distant_light_normals
+    from core.reconstruction.pipeline import default_pseudo_light_vectors, subject_mask
+    from core.reconstruction.prefilter import prefilter_frame, prefilter_sigma_px
+    from core.io.session import SessionFile
     from core.sim.breathing import Sway
     from core.sim.simulate import SimConfig, simulate
 
@@ -596,7 +596,7 @@ def run_speed(write: bool, repeat: int = 20) -> str:
                                                        head.light_intensity), 2),
         "field": _rate(lambda: light_field(head, depth), 5),
     }
-    # At 1400 px wide the pipeline solves from prefiltered images (core/prefilter.py): in a stream
+    # At 1400 px wide the pipeline solves from prefiltered images (core/reconstruction/prefilter.py): in a stream
     # each frame is filtered once as it arrives, so a map costs one frame's filter more.
     sigma_px = prefilter_sigma_px(head.width)
     filtered_lit = np.stack([prefilter_frame(frame, sigma_px) for frame in lit])
@@ -659,8 +659,8 @@ def run_integration(folder: Path, write: bool, repeat: int = 10) -> str:
     absolute depth error after the offset, and the median time of `repeat` runs."""
     import numba
 
-    from core.diligent import load_real_surface, mean_abs_depth_error_mm
-    from core.integrate import ROBUST_ITERATIONS, depth_from_normals
+    from core.io.diligent import load_real_surface, mean_abs_depth_error_mm
+    from core.reconstruction.integrate import ROBUST_ITERATIONS, depth_from_normals
 
     surface = load_real_surface(folder)
     anchor = float(np.median(surface.depth_mm[surface.mask]))
@@ -695,9 +695,9 @@ def run_motion(write: bool, scale: float = 0.25) -> str:
     """Maps during a forced expiration, with and without bringing the lights to one instant."""
     import h5py
 
-    from core.pipeline import ReconstructionSettings
-    from core.process import process_session, with_true_lights
-    from core.session import SessionFile
+    from core.reconstruction.pipeline import ReconstructionSettings
+    from core.reconstruction.process import process_session, with_true_lights
+    from core.io.session import SessionFile
     from core.sim.breathing import Sway
     from core.sim.simulate import SimConfig, simulate
 
@@ -756,7 +756,7 @@ def run_record(seconds: float, write: bool, rate_hz: float = 110.0, compression:
     import subprocess
 
     from core.rig import Rig, thesis_head
-    from core.session import SubjectRecord
+    from core.io.session import SubjectRecord
     from drivers.camera import AravisCamera, CameraSettings, find_aravis_device
     from drivers.flowsensor import FlowSensor, FlowSensorEmulator
     from drivers.light_phase import LightPhase

@@ -57,7 +57,7 @@ def measure(frames: np.ndarray, folder: Path) -> list[tuple[str, float, float, f
 
 
 def run_compression_bench(scale: float, frame_count: int) -> str:
-    from core.session import SessionFile
+    from core.io.session import SessionFile
     from core.sim.simulate import SimConfig, simulate
 
     with tempfile.TemporaryDirectory() as tmp:

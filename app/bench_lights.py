@@ -3,7 +3,7 @@
 Each rig is drawn as the population bench draws them (app/bench_population.py: LEDs 0-15 mm off
 the drawing, and the clinic world's cos^mu falloff with tilted axes, intensity spread, drift,
 mains flicker, lens distortion and vignetting). Its sphere sessions are simulated as the
-calibration wizard records them and calibrated as a user would (core/light_calibration.py): from
+calibration wizard records them and calibrated as a user would (core/calibration/light_sessions.py): from
 the specular sphere alone, and from the specular and the matte sphere. The truth is read only to
 compare (issue 27: every LED within 5 mm from specular sessions alone, better with matte ones).
 """
@@ -25,7 +25,7 @@ WITHIN_MM = 5.0
 
 def run_rig(subject: VirtualSubject, scale: float, folder: str) -> dict:
     """One rig: its LEDs' offsets as built and the errors of both calibrations (or why they failed)."""
-    from core.light_calibration import calibrate_lights
+    from core.calibration.light_sessions import calibrate_lights
     from core.rig import thesis_rig
 
     started = time.perf_counter()

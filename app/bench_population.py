@@ -81,7 +81,7 @@ def _distance_errors(session: Path, results: Path, after_cycles: int) -> list[fl
     that come after `after_cycles` light cycles: how far off the subject's distance is."""
     import h5py
 
-    from core.session import SessionFile
+    from core.io.session import SessionFile
 
     errors = []
     with SessionFile(session) as s, h5py.File(results, "r") as r:
@@ -115,7 +115,7 @@ CALIBRATION_SCALE = 0.5
 def sphere_sessions(subject: VirtualSubject, scale: float, folder: Path,
                     scenes: tuple[str, ...] = ("specular-sphere", "matte-sphere")) -> list[Path]:
     """The subject's rig's sphere sessions at `scale`, as long as the calibration wizard records."""
-    from core.light_calibration import CAPTURE_SECONDS
+    from core.calibration.light_sessions import CAPTURE_SECONDS
     from core.rig import thesis_rig
     from core.sim.simulate import simulate
 
@@ -131,7 +131,7 @@ def sphere_sessions(subject: VirtualSubject, scale: float, folder: Path,
 
 def lights_truth(session: Path) -> dict[str, dict[str, np.ndarray]]:
     """The lights as built, {head: {light_positions_mm, light_axis, light_mu}}, from a simulated session."""
-    from core.session import SessionFile
+    from core.io.session import SessionFile
 
     with SessionFile(session) as s:
         truth = s.truth()
@@ -140,10 +140,10 @@ def lights_truth(session: Path) -> dict[str, dict[str, np.ndarray]]:
 
 
 def calibrate_rig(subject: VirtualSubject, scale: float, folder: Path) -> tuple[object, dict]:
-    """The subject's rig calibrated as a user would (core/light_calibration.py) from its specular and
+    """The subject's rig calibrated as a user would (core/calibration/light_sessions.py) from its specular and
     matte sphere sessions at `scale`, and the truth of its lights (lights_truth). Raises what the
     wizard would show."""
-    from core.light_calibration import calibrate_lights
+    from core.calibration.light_sessions import calibrate_lights
 
     spheres = []
     try:
@@ -173,14 +173,14 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
                 calibration_scale: float | None = None) -> dict:
     """One subject end to end; what each stage gave or why it refused. The lights are calibrated
     from sphere sessions at calibration_scale (default: scale, but no less than CALIBRATION_SCALE)."""
-    from core.process import process_session
-    from core.results import optical_refusal, optical_volume
+    from core.reconstruction.process import process_session
+    from core.io.results import optical_refusal, optical_volume
     from core.rig import thesis_rig
-    from core.session import SessionFile
-    from core.session_analysis import analyse_session
+    from core.io.session import SessionFile
+    from core.analysis.session_analysis import analyse_session
     from core.sim.breathing import ForcedBlow, standard_curve
     from core.sim.simulate import simulate
-    from core.spirometry import read_waveform
+    from core.analysis.spirometry import read_waveform
 
     started = time.perf_counter()
     work = Path(folder)

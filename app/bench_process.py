@@ -12,7 +12,7 @@ from pathlib import Path
 
 
 def run_process_bench(seconds: float, scale: float, worker_counts: tuple[int, ...]) -> str:
-    from core.session import SessionFile
+    from core.io.session import SessionFile
     from core.sim.simulate import SimConfig, simulate
 
     with tempfile.TemporaryDirectory() as tmp:

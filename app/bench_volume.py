@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
-from core.pipeline import ReconstructionSettings
-from core.process import process_session
-from core.results import ResultsFile, optical_volume
-from core.session import SessionFile
-from core.session_analysis import analyse_session
-from core.volume import gradient_volume_correlations
+from core.reconstruction.pipeline import ReconstructionSettings
+from core.reconstruction.process import process_session
+from core.io.results import ResultsFile, optical_volume
+from core.io.session import SessionFile
+from core.analysis.session_analysis import analyse_session
+from core.volume.maps import gradient_volume_correlations
 
 VALUES = (("TV", "TV_l"), ("VC", "VC_l"), ("FVC", "FVC_l"), ("FEV1", "FEV1_l"))
 

@@ -11,8 +11,8 @@ from pathlib import Path
 
 from core import __version__
 from app.errors import UserError
-from core.outputs import OutputError, clear_stop, request_stop
-from core.session import SessionError
+from core.io.outputs import OutputError, clear_stop, request_stop
+from core.io.session import SessionError
 
 log = logging.getLogger("photopft")
 

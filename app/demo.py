@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 
 from app.args import positive
-from core.outputs import OutputError
-from core.pipeline import ReconstructionSettings
-from core.process import process_session
-from core.results import ResultsFile, optical_volume
-from core.session import SessionFile, validate_session
-from core.session_analysis import analyse_session
-from core.volume import gradient_volume_correlations
+from core.io.outputs import OutputError
+from core.reconstruction.pipeline import ReconstructionSettings
+from core.reconstruction.process import process_session
+from core.io.results import ResultsFile, optical_volume
+from core.io.session import SessionFile, validate_session
+from core.analysis.session_analysis import analyse_session
+from core.volume.maps import gradient_volume_correlations
 
 
 def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) -> None:

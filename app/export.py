@@ -20,8 +20,8 @@ import h5py
 import numpy as np
 
 from app.report_data import FLOW_SENSOR, OPTICAL, ReportData
-from core.outputs import atomic_output
-from core.session import SessionError, now_iso, validate_session
+from core.io.outputs import atomic_output
+from core.io.session import SessionError, now_iso, validate_session
 
 DROPPED_ROOT_ATTRS = ("operator", "recovered")
 

@@ -17,9 +17,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from app.report_data import ReportData
-from core.interpretation import NORMAL, NOT_INTERPRETED
-from core.outputs import atomic_output
-from core.reference import Z_LLN
+from core.analysis.interpretation import NORMAL, NOT_INTERPRETED
+from core.io.outputs import atomic_output
+from core.analysis.reference import Z_LLN
 
 LOINC = "http://loinc.org"
 SNOMED = "http://snomed.info/sct"

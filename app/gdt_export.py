@@ -14,7 +14,7 @@ from datetime import datetime
 from pathlib import Path
 
 from app.report_data import ReportData
-from core.outputs import atomic_output
+from core.io.outputs import atomic_output
 
 ENCODING = "iso8859_15"
 GDT_VERSION = "03.00"

@@ -20,15 +20,15 @@ from typing import Callable
 
 import numpy as np
 
-from core.ambient import FLICKER_WINDOW_S, FlickerCorrection
-from core.binning import binned_head, working_binning
-from core.cycle import CycleFrame, cycle_frame, cycle_signal_of
-from core.flow import btps_factor
-from core.metric_volume import LiveMetricVolume
-from core.pipeline import HeadReconstructor, ReconstructionSettings
-from core.process import MAX_OCCLUDED_SIDE_SHARE
+from core.reconstruction.ambient import FLICKER_WINDOW_S, FlickerCorrection
+from core.reconstruction.binning import binned_head, working_binning
+from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
+from core.volume.flow_sensor import btps_factor
+from core.volume.metric import LiveMetricVolume
+from core.reconstruction.pipeline import HeadReconstructor, ReconstructionSettings
+from core.reconstruction.process import MAX_OCCLUDED_SIDE_SHARE
 from core.rig import DARK, Rig
-from core.session import SessionFile, SubjectRecord
+from core.io.session import SessionFile, SubjectRecord
 from drivers.camera import CameraError, CameraStats, Frame, capture_frames
 from drivers.flowsensor import FlowBlock
 from drivers.light_phase import LightPhase, LightPhaseError, RecordedLights
@@ -268,7 +268,7 @@ class HeadView:
     height_mm: np.ndarray | None = None  # above the subject's mean surface, NaN off the subject
     distance_mm: float = float("nan")
     frame_id: int = -1
-    occluded_side_share: float = float("nan")  # core.pipeline.occluded_side_share of the last map
+    occluded_side_share: float = float("nan")  # core.reconstruction.pipeline.occluded_side_share of the last map
     reconstructed: int = 0
     frames: int = 0
     lost: int = 0
@@ -276,7 +276,7 @@ class HeadView:
 
     @property
     def arm_against_trunk(self) -> bool:
-        """The last map shows an arm against the trunk hiding its side (core/process.py's rule)."""
+        """The last map shows an arm against the trunk hiding its side (core/reconstruction/process.py's rule)."""
         return bool(self.occluded_side_share > MAX_OCCLUDED_SIDE_SHARE)
 
 
@@ -343,7 +343,7 @@ class LiveRig:
         # three cycles: the newest complete one and the one before it, for motion compensation
         self._cycles: dict[str, collections.deque] = {h: collections.deque(maxlen=3 * self.rig.cycle_length)
                                                        for h in source.cameras}
-        # the last second's dark frames: the room light's flicker (core/ambient.py)
+        # the last second's dark frames: the room light's flicker (core/reconstruction/ambient.py)
         darks = int(FLICKER_WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length) + 5
         self._darks: dict[str, collections.deque] = {h: collections.deque(maxlen=darks) for h in source.cameras}
         self._new_frame = {h: threading.Condition() for h in source.cameras}
@@ -352,7 +352,7 @@ class LiveRig:
         n = int(WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length * 2) + 10
         self._optical = collections.deque(maxlen=n)
         self._gradient = {h: 0.0 for h in source.cameras}
-        # each head reconstructed binned to about WORKING_WIDTH_PX wide (core/binning.py);
+        # each head reconstructed binned to about WORKING_WIDTH_PX wide (core/reconstruction/binning.py);
         # recordings keep every pixel
         self._binning = {h: working_binning(self.rig.heads[h]) for h in source.cameras}
         self._live_heads = {h: binned_head(self.rig.heads[h], self._binning[h]) for h in source.cameras}
@@ -499,9 +499,9 @@ class LiveRig:
 
     def recorded_values(self, age_years: float | None = None):
         """The pulmonary function values of the recording so far, from the flow sensor, by the same
-        analysis as the report (core.analysis): for feedback after each manoeuvre. None without a
+        analysis as the report (core.analysis.values): for feedback after each manoeuvre. None without a
         calibrated flow sensor."""
-        from core.analysis import analyse_volume
+        from core.analysis.values import analyse_volume
 
         recorded = self._recorded_volume()
         if recorded is None:
@@ -512,8 +512,8 @@ class LiveRig:
     def _recorded_volume(self):
         """(the flow sensor's volume of the recording so far, its first stamp, the events in s from
         it), with the drift removed as the report removes it; None without a calibrated flow sensor."""
-        from core.analysis import tidal_windows
-        from core.flow import flow_sensor_volume
+        from core.analysis.values import tidal_windows
+        from core.volume.flow_sensor import flow_sensor_volume
 
         if self.source.flow_calibration is None or self._recorder is None:
             return None
@@ -535,7 +535,7 @@ class LiveRig:
         manoeuvre's mark, for the forced-blow screen: the flow sensor's from the recording (about
         100 samples a second; the sensor's drift as the report will remove it, taken once from the
         recording up to the mark) and the optical metric volume."""
-        from core.flow import flow_sensor_volume
+        from core.volume.flow_sensor import flow_sensor_volume
 
         out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         from_ns = mark_ns - int(before_s * 1e9)
@@ -677,7 +677,7 @@ class LiveRig:
         factor = self._binning[head]
         flicker = FlickerCorrection(2.0 * self.rig.mains_hz, centred=False)
         fed_id = -1
-        binned: dict[int, CycleFrame] = {}  # each frame binned once (core/cycle.py), by frame id
+        binned: dict[int, CycleFrame] = {}  # each frame binned once (core/reconstruction/cycle.py), by frame id
 
         def framed(frame: Frame) -> CycleFrame:
             if frame.frame_id not in binned:

@@ -83,9 +83,9 @@ def _logged(audit, kind: str, saved: Path) -> None:
 
 
 def run_calibrate_lights(args: argparse.Namespace) -> int:
-    from core.light_calibration import calibrate_lights
-    from core.lights import CalibrationError
-    from core.outputs import check_output
+    from core.calibration.light_sessions import calibrate_lights
+    from core.calibration.sphere_geometry import CalibrationError
+    from core.io.outputs import check_output
 
     check_output(args.output, args.sessions, force=args.force)
     audit = _calibration_audit()
@@ -154,17 +154,17 @@ def add_process(sub: argparse._SubParsersAction) -> None:
 
 
 def run_process(args: argparse.Namespace) -> int:
-    from core.pipeline import ReconstructionSettings
-    from core.process import process_session
-    from core.outputs import check_output
-    from core.profile import ProfileError, load_profile
+    from core.reconstruction.pipeline import ReconstructionSettings
+    from core.reconstruction.process import process_session
+    from core.io.outputs import check_output
+    from core.calibration.rig_profile import ProfileError, load_profile
 
     check_output(args.output, [p for p in (args.session, args.rig, args.volume_calibration) if p is not None],
                  force=args.force)
     volume_calibration = None
     if args.volume_calibration is not None:
-        from core.calibration import CalibrationProfileError, VolumeCalibration
-        from core.calibration import load_profile as load_calibration
+        from core.calibration.spirometer import CalibrationProfileError, VolumeCalibration
+        from core.calibration.spirometer import load_profile as load_calibration
 
         try:
             volume_calibration = load_calibration(args.volume_calibration)
@@ -233,7 +233,7 @@ def steady_flows(source: Path) -> tuple[list[float], list[float]]:
         return means, flows
     if not is_hdf5(source):
         raise UserError(f"{source} is neither a CSV file (.csv) nor a flow-calibration session (HDF5)")
-    from core.session import SessionFile
+    from core.io.session import SessionFile
 
     with SessionFile(source) as s:
         adc, stamps = s.flow_samples()
@@ -257,9 +257,9 @@ def steady_flows(source: Path) -> tuple[list[float], list[float]]:
 
 
 def run_calibrate_flow(args: argparse.Namespace) -> int:
-    from core.calibration import CalibrationProfileError, fit_flow, save_profile
-    from core.outputs import check_output
-    from core.session import now_iso
+    from core.calibration.spirometer import CalibrationProfileError, fit_flow, save_profile
+    from core.io.outputs import check_output
+    from core.io.session import now_iso
 
     check_output(args.output, [args.source], force=args.force)
     audit = _calibration_audit()
@@ -282,11 +282,11 @@ def regression_samples(results_path: Path):
     import h5py
     import numpy as np
 
-    from core.session_analysis import analyse_session
+    from core.analysis.session_analysis import analyse_session
 
-    from core.calibration import regression_features
-    from core.results import ResultsFile, session_of_results
-    from core.results import check_results, is_results_file
+    from core.calibration.spirometer import regression_features
+    from core.io.results import ResultsFile, session_of_results
+    from core.io.results import check_results, is_results_file
 
     if not is_hdf5(results_path) or not is_results_file(results_path):
         raise UserError(f"{results_path} is not a results file of `photopft process`: process the session first")
@@ -310,9 +310,9 @@ def regression_samples(results_path: Path):
 def run_calibrate_volume(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from core.calibration import CalibrationProfileError, fit_volume, save_profile
-    from core.outputs import check_output
-    from core.session import now_iso
+    from core.calibration.spirometer import CalibrationProfileError, fit_volume, save_profile
+    from core.io.outputs import check_output
+    from core.io.session import now_iso
 
     check_output(args.output, args.results, force=args.force)
     audit = _calibration_audit()

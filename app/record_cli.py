@@ -10,7 +10,7 @@ from pathlib import Path
 
 from app.args import positive
 from app.errors import UserError
-from core.session import file_write_failed
+from core.io.session import file_write_failed
 from app.progress import Progress
 
 
@@ -36,9 +36,9 @@ def add_record(sub: argparse._SubParsersAction) -> None:
 
 def run_record(args: argparse.Namespace) -> int:
     from app.calibration_store import in_force
-    from core.calibration import CalibrationProfileError
-    from core.profile import ProfileError
-    from core.session import SubjectRecord
+    from core.calibration.spirometer import CalibrationProfileError
+    from core.calibration.rig_profile import ProfileError
+    from core.io.session import SubjectRecord
     from drivers.assembly import assemble_rig
     from drivers.camera import CameraError
     from drivers.flowsensor import FlowSensorError
@@ -46,7 +46,7 @@ def run_record(args: argparse.Namespace) -> int:
     from drivers.rig import RigConfigError, load_rig_config
     from drivers.sequencer import SequencerError
 
-    from core.outputs import check_output
+    from core.io.outputs import check_output
 
     check_output(args.output, [args.rig] if args.rig else [], replaceable=False)
     try:

@@ -91,7 +91,7 @@ def _open_records(path: Path | None, create: bool, read_only: bool = False):
 def run_report(args: argparse.Namespace) -> int:
     from app.report_data import build_report
     from app.report_pdf import write_report
-    from core.outputs import check_output
+    from core.io.outputs import check_output
 
     check_output(args.output, [p for p in (args.input, args.records) if p is not None], force=args.force)
     records = _open_records(args.records, create=False, read_only=True)
@@ -139,7 +139,7 @@ def run_export(args: argparse.Namespace) -> int:
 def _export(args: argparse.Namespace, records) -> int:
     from app.export import research_copy, values_csv, volume_csv
     from app.report_data import build_report
-    from core.outputs import check_output
+    from core.io.outputs import check_output
 
     if args.fhir is not None or args.gdt is not None:
         from app.fhir_export import write_fhir
@@ -241,7 +241,7 @@ def _patients(records, args: argparse.Namespace) -> int:
 
 def _register(records, args: argparse.Namespace) -> int:
     from app.report_data import build_report
-    from core.session import SessionFile
+    from core.io.session import SessionFile
 
     with SessionFile(args.session) as s:
         if s.subject is None:

@@ -1,5 +1,5 @@
 """What a report shows, gathered from a session (and its results file) by the same processing as
-`photopft process` and the live view: core.session_analysis for the values, core.process.maps_at
+`photopft process` and the live view: core.analysis.session_analysis for the values, core.reconstruction.process.maps_at
 for the height maps. The PDF (app.report_pdf) and the CSV export (app.export) only lay it out.
 """
 
@@ -13,18 +13,18 @@ import h5py
 import numpy as np
 
 from app.records import Patient, Records, ReportState
-from core.analysis import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
-from core.pipeline import ReconstructionSettings
-from core.process import maps_at
-from core.results import ResultsFile, optical_refusal, optical_volume, session_of_results
-from core.hdf5_probe import probe
-from core.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
+from core.analysis.values import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
+from core.reconstruction.pipeline import ReconstructionSettings
+from core.reconstruction.process import maps_at
+from core.io.results import ResultsFile, optical_refusal, optical_volume, session_of_results
+from core.io.hdf5_probe import probe
+from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
                                  bronchodilator_statement, interpret)
-from core.results import READ_ERRORS, RESULTS_FORMAT, check_results
-from core.reference import Reference, ReferenceUnavailable, reference
-from core.session import SessionError, SessionFile
-from core.session_analysis import analyse_session
-from core.volume import body_aligned_displacement, normalised_gradient_volume, torso_rows, trunk_regions
+from core.io.results import READ_ERRORS, RESULTS_FORMAT, check_results
+from core.analysis.reference import Reference, ReferenceUnavailable, reference
+from core.io.session import SessionError, SessionFile
+from core.analysis.session_analysis import analyse_session
+from core.volume.maps import body_aligned_displacement, normalised_gradient_volume, torso_rows, trunk_regions
 
 OPTICAL = "optical"
 FLOW_SENSOR = "flow sensor"
@@ -217,7 +217,7 @@ def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tupl
 
 
 def _manoeuvres(values: SessionValues) -> list[Manoeuvre]:
-    from core.analysis import ANALYSIS_RATE_HZ
+    from core.analysis.values import ANALYSIS_RATE_HZ
 
     if values.forced is None:
         return []

@@ -31,7 +31,7 @@ from reportlab.platypus import (Image, KeepTogether, PageBreak, Paragraph, Simpl
 from app.paths import resources_dir
 from app.report_data import FLOW_SENSOR, OPTICAL, ReportData, ValueRow, best_manoeuvres
 from core import __version__
-from core.outputs import atomic_output
+from core.io.outputs import atomic_output
 
 PAGE_SIZES = {"a4": A4, "letter": letter}
 FONT, BOLD = "DejaVuSans", "DejaVuSans-Bold"

@@ -10,8 +10,8 @@ import numpy as np
 
 from app.args import _positive, finite, positive
 from app.errors import UserError
-from core.outputs import check_output
-from core.session import SessionFile, validate_session
+from core.io.outputs import check_output
+from core.io.session import SessionFile, validate_session
 
 BLOW_KINDS = ("good", "slow-start", "early-stop", "cough", "weak")
 
@@ -146,7 +146,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     blows = args.blows
     if args.blow_waveform is not None:
         from core.sim.breathing import ForcedBlow, standard_curve
-        from core.spirometry import read_waveform
+        from core.analysis.spirometry import read_waveform
 
         try:
             standard = read_waveform(args.blow_waveform)
@@ -300,7 +300,7 @@ def add_recover(sub: argparse._SubParsersAction) -> None:
 
 
 def run_recover(args: argparse.Namespace) -> int:
-    from core.recovery import recover_session
+    from core.io.recovery import recover_session
 
     recovery = recover_session(args.session)
     print(f"recovered {args.session}: " + ", ".join(f"{k} {v}" for k, v in recovery.kept.items())

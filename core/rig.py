@@ -102,7 +102,7 @@ class Rig:
     frame_rate_hz: float = 110.0
     sequence: tuple[int, ...] = DEFAULT_SEQUENCE
     baseline_mm: float | None = None  # front to back camera centre along the shared axis, when known
-    mains_hz: float = 50.0  # the room's mains supply: its lamps flicker at twice this (core/ambient.py)
+    mains_hz: float = 50.0  # the room's mains supply: its lamps flicker at twice this (core/reconstruction/ambient.py)
 
     def __post_init__(self) -> None:
         if "front" not in self.heads:

@@ -114,9 +114,9 @@ def assemble_rig(config: RigConfig, stack: ExitStack, scale: float | None = None
     `flow_profile` (the calibration wizards' profiles in force), else the rig file's own
     `calibration` and flow line. Raises ProfileError or CalibrationProfileError for a profile that
     cannot be used, the device errors for a device that cannot be opened."""
-    from core.calibration import FlowCalibration
-    from core.calibration import load_profile as load_flow
-    from core.profile import load_profile as load_lights
+    from core.calibration.spirometer import FlowCalibration
+    from core.calibration.spirometer import load_profile as load_flow
+    from core.calibration.rig_profile import load_profile as load_lights
 
     if config.simulated:
         sim = config.simulation
@@ -134,7 +134,7 @@ def assemble_rig(config: RigConfig, stack: ExitStack, scale: float | None = None
     if flow_profile is not None and assembled.flow is not None:
         flow = load_flow(flow_profile)
         if not isinstance(flow, FlowCalibration):
-            from core.calibration import CalibrationProfileError
+            from core.calibration.spirometer import CalibrationProfileError
 
             raise CalibrationProfileError(f"{flow_profile}: a volume calibration, not a flow sensor's")
         assembled.flow_calibration = (flow.gain_lps, flow.offset_lps)

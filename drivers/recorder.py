@@ -5,7 +5,7 @@ one writer thread owns the session file (h5py serialises every call). A capture 
 waits on the disk: when the queue is nearly full the recorder reports back-pressure, and if it
 fills it stops cleanly, keeping everything written so far, and says the disk does not keep up.
 The file is written in HDF5 single-writer/multiple-reader mode and flushed about once a second, so
-a crash (or SIGKILL) loses at most the last second; core.session.recover_session trims a file cut
+a crash (or SIGKILL) loses at most the last second; core.io.session.recover_session trims a file cut
 off mid-frame to what all its datasets reached.
 """
 
@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from core.rig import Rig
-from core.session import SessionWriter, SubjectRecord
+from core.io.session import SessionWriter, SubjectRecord
 from drivers.camera import Camera, CameraError, capture_frames
 from drivers.light_phase import LightPhase, LightPhaseError, RecordedLights
 
@@ -55,7 +55,7 @@ class Recorder:
                  lights: LightPhase | RecordedLights, flow=None, flow_calibration: tuple[float, float] | None = None,
                  subject: SubjectRecord | None = None, kind: str = "patient", queue_items: int = 2000,
                  flow_sensor_name: str = "pneumotachometer (12-bit ADC)", compression: str = "none") -> None:
-        """`compression`: the frames' lossless filter (core/session.py FRAME_COMPRESSION)."""
+        """`compression`: the frames' lossless filter (core/io/session.py FRAME_COMPRESSION)."""
         self.path = Path(path)
         self.rig = rig
         self.cameras = cameras

@@ -81,8 +81,8 @@ class RigConfig:
     simulation: dict[str, Any] = field(default_factory=dict)
     calibration: Path | None = None
     optics: dict[str, dict[str, Any]] = field(default_factory=dict)  # head -> lens and sensor (see template.toml)
-    mains_hz: float = 50.0  # the room's mains: its lamps flicker at twice this (core/ambient.py)
-    compression: str = "blosc-lz4"  # the frames' lossless filter (core/session.py FRAME_COMPRESSION)
+    mains_hz: float = 50.0  # the room's mains: its lamps flicker at twice this (core/reconstruction/ambient.py)
+    compression: str = "blosc-lz4"  # the frames' lossless filter (core/io/session.py FRAME_COMPRESSION)
 
     @property
     def simulated(self) -> bool:
@@ -153,7 +153,7 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
     mains = data.get("mains_hz", 50.0)
     if mains not in (50, 60):
         raise RigConfigError(f"{path}: mains_hz must be 50 or 60 (the room's mains frequency), found {mains!r}")
-    from core.session import FRAME_COMPRESSION
+    from core.io.session import FRAME_COMPRESSION
 
     compression = data.get("recording", {}).get("compression", "blosc-lz4")
     if compression not in FRAME_COMPRESSION:

@@ -64,7 +64,7 @@ def settings_rig() -> Path | None:
 def _smoke_test(app, window, seconds: float) -> int:
     """Record on the simulated rig in the real window, then process and report the recording."""
     from app.gui.measure import measure_live_view
-    from core.session import SubjectRecord, validate_session
+    from core.io.session import SubjectRecord, validate_session
 
     folder = Path(tempfile.mkdtemp(prefix="photopft-smoke-"))
     session = folder / "smoke.h5"
@@ -84,7 +84,7 @@ def _smoke_test(app, window, seconds: float) -> int:
         return 1
     from app.report_data import build_report
     from app.report_pdf import write_report
-    from core.process import process_session
+    from core.reconstruction.process import process_session
 
     results = folder / "smoke-results.h5"
     processed = process_session(session, results, every=11)

@@ -12,8 +12,8 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QGridLayout, QLabel, QProgressBar, QTableWidget, QTableWidgetItem, QVBoxLayout,
                                QWidget)
 
-from core.blow_monitor import LiveBlow, best_blow, live_blow
-from core.spirometry import SessionGrade, repeatability_tolerance_l
+from core.analysis.blow_monitor import LiveBlow, best_blow, live_blow
+from core.analysis.spirometry import SessionGrade, repeatability_tolerance_l
 
 SOURCES = {"flow sensor": (31, 119, 180), "optical": (230, 120, 20)}
 CHILD_AGE_YEARS = 12  # younger patients get the incentive bar

@@ -10,7 +10,7 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QGridLayout, QGroupBox, QHBoxLayout, QLabel, QPushButton, QSlider, QVBoxLayout, QWidget
 
 from app.live import WINDOW_S, Snapshot
-from core.process import WORKING_RANGE_MM
+from core.reconstruction.process import WORKING_RANGE_MM
 
 
 HEIGHT_RANGE_MM = 40.0  # the maps' fixed scale: +-40 mm about the subject's mean surface

@@ -335,7 +335,7 @@ class MainWindow(QMainWindow):
             self.replay(Path(path))
 
     def replay(self, path: Path, speed: float = 1.0) -> None:
-        from core.session import SessionError
+        from core.io.session import SessionError
 
         try:
             self.use_source(partial(replay_source, path, speed))

@@ -1,6 +1,6 @@
 """Calibration > 3 L syringe check (daily): the operator pumps the syringe through the flow sensor,
 in and out, at different speeds; each stroke's volume from the flow line in force must lie within
-3 % of 3 L (core/syringe.py). The result is logged for the rig and in the audit trail."""
+3 % of 3 L (core/calibration/syringe.py). The result is logged for the rig and in the audit trail."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (QDialog, QDialogButtonBox, QHBoxLayout, QLabel, QPushButton, QTableWidget,
                                QTableWidgetItem, QVBoxLayout)
 
-from core.syringe import SYRINGE_L, TOLERANCE, SyringeCheck, quiet_samples, syringe_strokes
+from core.calibration.syringe import SYRINGE_L, TOLERANCE, SyringeCheck, quiet_samples, syringe_strokes
 
 
 class RigSyringe:

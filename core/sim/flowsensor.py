@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.flow import btps_factor
+from core.volume.flow_sensor import btps_factor
 
 @dataclass(frozen=True)
 class FlowSensorModel:

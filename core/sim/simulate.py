@@ -12,9 +12,9 @@ from typing import Callable
 
 import numpy as np
 
-from core.outputs import atomic_output, stop_if_requested
+from core.io.outputs import atomic_output, stop_if_requested
 from core.rig import DARK, Head, Rig, thesis_rig
-from core.session import SessionWriter, SubjectRecord
+from core.io.session import SessionWriter, SubjectRecord
 from core.sim import shapes
 from core.sim.bodies import Body, body_surfaces
 from core.sim.textures import fitzpatrick_albedo

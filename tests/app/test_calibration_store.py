@@ -11,9 +11,9 @@ import pytest
 from app.calibration_store import (FLOW_PROFILE, RIG_PROFILE, calibration_dir, history, in_force, keep_previous,
                                    restore)
 from app.cli import main
-from core.profile import HeadCalibration, RigCalibration
+from core.calibration.rig_profile import HeadCalibration, RigCalibration
 from core.rig import thesis_rig
-from core.session import SessionFile
+from core.io.session import SessionFile
 
 
 def _profile(shift_mm: float, created: str) -> RigCalibration:

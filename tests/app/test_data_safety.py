@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from app.cli import build_parser, main
-from core.outputs import OutputError, check_output
-from core.recovery import recover_session
-from core.session import SessionFile, validate_session
+from core.io.outputs import OutputError, check_output
+from core.io.recovery import recover_session
+from core.io.session import SessionFile, validate_session
 
 
 def digest(path: Path) -> str:
@@ -154,7 +154,7 @@ def _crashed_copy(source: Path, target: Path, frames: int = 40) -> Path:
     """A session whose writer died (HDF5's open-for-writing flags left set), in a child process."""
     code = f"""
 import os
-from core.session import SessionFile, SessionWriter
+from core.io.session import SessionFile, SessionWriter
 with SessionFile({str(source)!r}) as s:
     rig, subject = s.rig, s.subject
     parts = {{h: (s.frames(h)[:{frames}], s.light_index(h)[:{frames}], s.timestamp_ns(h)[:{frames}],
@@ -247,7 +247,7 @@ def test_impossible_session_values_are_refused_by_name(session, capsys, change, 
 
 
 def test_a_profile_with_coincident_lights_is_refused(tmp_path, session, capsys):
-    from core.profile import PROFILE_FORMAT
+    from core.calibration.rig_profile import PROFILE_FORMAT
 
     profile = tmp_path / "rig.json"
     profile.write_text(json.dumps({"format": PROFILE_FORMAT, "format_version": 1, "heads": {

@@ -12,8 +12,8 @@ import pytest
 
 from app.engine_process import EngineError, EngineProcess
 from app.live import replay_source, simulated_source
-from core.recovery import recover_session
-from core.session import SessionError, SessionFile, SubjectRecord, validate_session
+from core.io.recovery import recover_session
+from core.io.session import SessionError, SessionFile, SubjectRecord, validate_session
 
 pytestmark = pytest.mark.slow
 

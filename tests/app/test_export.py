@@ -11,7 +11,7 @@ import pytest
 
 from app.cli import main
 from app.export import study_pseudonym
-from core.session import SessionFile, validate_session
+from core.io.session import SessionFile, validate_session
 
 
 def test_research_copy(small_session, tmp_path, capsys):

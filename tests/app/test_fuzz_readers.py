@@ -209,8 +209,8 @@ def tiny_results(tiny_session, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def rig_profile(tiny_session, tmp_path_factory) -> Path:
-    from core.profile import HeadCalibration, RigCalibration
-    from core.session import SessionFile
+    from core.calibration.rig_profile import HeadCalibration, RigCalibration
+    from core.io.session import SessionFile
 
     with SessionFile(tiny_session) as session:
         heads = {name: HeadCalibration(h.light_positions_mm, h.light_intensity, np.full((4, 3), 0.5), np.full(4, 0.3),
@@ -305,7 +305,7 @@ def test_a_damaged_records_database(tmp_path_factory, damage):
 @fuzz(15)
 @given(damage=st.one_of(byte_damage(), text_damage()))
 def test_a_damaged_volume_calibration_profile(tiny_session, tmp_path_factory, damage):
-    from core.calibration import VolumeCalibration, save_profile
+    from core.calibration.spirometer import VolumeCalibration, save_profile
 
     folder = tmp_path_factory.mktemp("fuzz")
     path = folder / "volume.json"
@@ -320,8 +320,8 @@ def test_a_file_whose_reading_never_ends_is_refused_in_time(tiny_session, tmp_pa
     reading a results file's root attribute): the probe's child is stopped and the file refused."""
     import time
 
-    from core import hdf5_probe
-    from core.session import SessionError
+    from core.io import hdf5_probe
+    from core.io.session import SessionError
 
     path = tmp_path / "loops.h5"
     shutil.copyfile(tiny_session, path)

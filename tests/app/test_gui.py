@@ -15,7 +15,7 @@ from app.gui.main_window import MainWindow
 from app.engine_process import EngineProcess
 from app.live import replay_source, simulated_source
 from app.records import Records
-from core.session import SessionFile, validate_session
+from core.io.session import SessionFile, validate_session
 
 pytestmark = pytest.mark.slow
 
@@ -292,8 +292,8 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
     from app.calibration_store import calibration_dir, history
     from app.gui.wizards.sphere import SphereCalibrationWizard
     from app.live import rig_source
-    from core.profile import load_profile
-    from core.session import SubjectRecord
+    from core.calibration.rig_profile import load_profile
+    from core.io.session import SubjectRecord
 
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
     folder = calibration_dir("simulated")
@@ -310,7 +310,7 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
     assert captures.outline.xData is not None and len(captures.spots.data) == 4
     assert len(captures.placed.data) == 3  # the placements so far, over the field of view
     # the profile in force before: the rig's drawing (the simulated sphere's LEDs are 8 mm off it)
-    from core.profile import HeadCalibration, RigCalibration
+    from core.calibration.rig_profile import HeadCalibration, RigCalibration
     from core.rig import thesis_rig
 
     drawing = {name: HeadCalibration(h.light_positions_mm, np.ones(4), np.zeros((4, 3)), np.zeros(4),
@@ -369,7 +369,7 @@ def test_the_sphere_wizard_previews_the_live_camera(qtbot, tmp_path):
 
 def test_the_spirometer_calibration_wizard(qtbot, tmp_path, processed_full_session):
     from app.gui.wizards.spirometer import SpirometerCalibrationWizard
-    from core.calibration import FlowCalibration, VolumeCalibration, load_profile
+    from core.calibration.spirometer import FlowCalibration, VolumeCalibration, load_profile
 
     wizard = SpirometerCalibrationWizard(None, profile_dir=tmp_path)
     qtbot.addWidget(wizard)

@@ -6,10 +6,10 @@ import h5py
 import numpy as np
 import pytest
 
-from core.analysis import analyse_volume, tidal_values
-from core.flow import btps_factor, flow_sensor_volume
-from core.process import process_session
-from core.session_analysis import analyse_session
+from core.analysis.values import analyse_volume, tidal_values
+from core.volume.flow_sensor import btps_factor, flow_sensor_volume
+from core.reconstruction.process import process_session
+from core.analysis.session_analysis import analyse_session
 from core.sim.breathing import ForcedBlow, Sway
 from core.sim.flowsensor import FlowSensorModel
 from core.sim.simulate import SimConfig, simulate

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.binning import bin_all, bin_any, bin_mean, binned_head, working_binning
+from core.reconstruction.binning import bin_all, bin_any, bin_mean, binned_head, working_binning
 from core.rig import thesis_head
 
 
@@ -41,7 +41,7 @@ def test_working_binning_brings_a_head_near_the_live_width():
 
 def test_frame_bins_equal_the_plain_reductions():
     """The one-pass kernel (mean and max of each bin) against numpy's reductions, remainders dropped."""
-    from core.binning import _blocks, frame_bins
+    from core.reconstruction.binning import _blocks, frame_bins
 
     rng = np.random.default_rng(4)
     for dtype, factor, shape in ((np.uint16, 4, (103, 141)), (np.uint8, 3, (50, 61)), (np.uint16, 1, (7, 9))):

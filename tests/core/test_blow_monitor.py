@@ -1,4 +1,4 @@
-"""The forced blow as it happens (core/blow_monitor.py): nothing before the blow starts, the
+"""The forced blow as it happens (core/analysis/blow_monitor.py): nothing before the blow starts, the
 back-extrapolated volume and FET during it, the end-of-test plateau when it comes, the same values
 as the report's analysis of the whole blow, and the best blow by ATS/ERS 2019."""
 
@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.analysis import ANALYSIS_RATE_HZ, resample
-from core.blow_monitor import best_blow, live_blow
-from core.spirometry import forced_values
+from core.analysis.values import ANALYSIS_RATE_HZ, resample
+from core.analysis.blow_monitor import best_blow, live_blow
+from core.analysis.spirometry import forced_values
 
 
 def _session(fvc_l: float = 4.0, tau_s: float = 0.6, rate_hz: float = 100.0):

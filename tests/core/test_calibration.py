@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from core.calibration import (CalibrationProfileError, FlowCalibration, fit_flow, fit_volume, load_profile,
+from core.calibration.spirometer import (CalibrationProfileError, FlowCalibration, fit_flow, fit_volume, load_profile,
                               save_profile)
 
 

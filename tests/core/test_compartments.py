@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.compartments import compartment_shares, phase_angle_deg
+from core.volume.compartments import compartment_shares, phase_angle_deg
 
 PERIOD_S = 4.0
 

@@ -1,8 +1,8 @@
-"""One light cycle's signal (core/cycle.py), as process and the live view both make it."""
+"""One light cycle's signal (core/reconstruction/cycle.py), as process and the live view both make it."""
 
 import numpy as np
 
-from core.cycle import cycle_frame, cycle_signal_of
+from core.reconstruction.cycle import cycle_frame, cycle_signal_of
 
 
 def _frame(value: float, frame_id: int, shape=(8, 12), saturate=False):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.diligent import load_real_surface, mean_abs_depth_error_mm
-from core.integrate import depth_from_normals, integrate_dct, integrate_masked, log_depth_gradients
+from core.io.diligent import load_real_surface, mean_abs_depth_error_mm
+from core.reconstruction.integrate import depth_from_normals, integrate_dct, integrate_masked, log_depth_gradients
 
 
 def _normals_of(depth, fx, fy, cx, cy):

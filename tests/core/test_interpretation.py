@@ -2,9 +2,9 @@
 
 import pytest
 
-from core.interpretation import (NORMAL, NOT_INTERPRETED, OBSTRUCTION, PRISM, bronchodilator_response,
+from core.analysis.interpretation import (NORMAL, NOT_INTERPRETED, OBSTRUCTION, PRISM, bronchodilator_response,
                                  bronchodilator_statement, interpret, severity)
-from core.reference import reference
+from core.analysis.reference import reference
 
 
 def _refs():

@@ -8,8 +8,8 @@ import h5py
 import numpy as np
 import pytest
 
-from core.lens import LensCorrection
-from core.process import process_session
+from core.reconstruction.lens import LensCorrection
+from core.reconstruction.process import process_session
 from core.rig import thesis_head
 from core.sim.breathing import Sway
 from core.sim.render import CameraModel

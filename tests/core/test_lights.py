@@ -7,12 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from core.light_calibration import binned_sphere, calibrate_lights, matte_binning
-from core.lights import (CalibrationError, MattePlacement, sphere_surface, closest_points, detect_highlight,
+from core.calibration.light_sessions import binned_sphere, calibrate_lights, matte_binning
+from core.calibration.sphere_geometry import (CalibrationError, MattePlacement, sphere_surface, closest_points, detect_highlight,
                          detect_sphere, pixel_rays, refine_on_matte, triangulate)
-from core.profile import ProfileError, load_profile
+from core.calibration.rig_profile import ProfileError, load_profile
 from core.rig import thesis_head
-from core.session import SessionFile
+from core.io.session import SessionFile
 from core.sim.render import CameraModel
 from core.sim.scene import Digitiser, SpherePlacement, SphereScene
 from core.sim.simulate import SimConfig, simulate

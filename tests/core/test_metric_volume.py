@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.metric_volume import HeadDisplacements, metric_volume
+from core.volume.metric import HeadDisplacements, metric_volume
 from core.rig import thesis_head
-from core.volume import DisplacementTracker, metric_head_volume_l
+from core.volume.maps import DisplacementTracker, metric_head_volume_l
 
 RIM_MM = 2000.0
 SEMI_AXES_MM = (200.0, 250.0)
@@ -96,8 +96,8 @@ def test_process_writes_the_metric_volume_and_uses_it_without_a_flow_sensor(tmp_
     the true volume, and /parameters come from it."""
     import h5py
 
-    from core.process import process_session
-    from core.session import SessionFile
+    from core.reconstruction.process import process_session
+    from core.io.session import SessionFile
     from core.sim.breathing import Sway
     from core.sim.simulate import SimConfig, simulate
 
@@ -121,7 +121,7 @@ def test_process_writes_the_metric_volume_and_uses_it_without_a_flow_sensor(tmp_
 def test_the_live_volume_follows_the_maps_as_they_come():
     """Causal, map by map: NaN until each head has had a map scaled by both trunk widths; then the
     bulge's volume once both heads have seen it."""
-    from core.metric_volume import LiveMetricVolume
+    from core.volume.metric import LiveMetricVolume
 
     front, back = thesis_head("front", scale=0.25), thesis_head("back", scale=0.25)
     live = LiveMetricVolume({"front": front, "back": back}, 2 * RIM_MM)
@@ -136,7 +136,7 @@ def test_the_live_volume_follows_the_maps_as_they_come():
 def test_the_live_volume_gives_each_head_the_distance_of_the_two_heads_geometry():
     """A map whose photometric distance (its median depth) was 1 % long: the two heads' widths put
     its sides back at the rim's distance, and the map's distance with them."""
-    from core.metric_volume import LiveMetricVolume
+    from core.volume.metric import LiveMetricVolume
 
     front, back = thesis_head("front", scale=0.25), thesis_head("back", scale=0.25)
     live = LiveMetricVolume({"front": front, "back": back}, 2 * RIM_MM)
@@ -151,7 +151,7 @@ def test_the_live_volume_gives_each_head_the_distance_of_the_two_heads_geometry(
 def test_a_volume_curve_noisier_from_map_to_map_than_its_values_allow_is_refused():
     """Quiet breathing (0.5 L at 15/min) sampled at 22 maps/s: the noise estimate sees the noise
     added, not the breathing; above 50 mL the volume is refused with the figure."""
-    from core.metric_volume import MAX_MAP_NOISE_L, MetricVolume, map_noise_l
+    from core.volume.metric import MAX_MAP_NOISE_L, MetricVolume, map_noise_l
 
     t = np.arange(0, 30, 1 / 22)
     breathing = 0.25 * np.sin(2 * np.pi * t / 4.0)

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.distance import PhotometricDistance
-from core.pipeline import HeadReconstructor, ReconstructionSettings
-from core.prefilter import prefilter_frame, prefilter_sigma_px, prefiltered
-from core.process import with_true_lights
+from core.reconstruction.distance import PhotometricDistance
+from core.reconstruction.pipeline import HeadReconstructor, ReconstructionSettings
+from core.reconstruction.prefilter import prefilter_frame, prefilter_sigma_px, prefiltered
+from core.reconstruction.process import with_true_lights
 from core.rig import thesis_head
-from core.session import SessionFile
+from core.io.session import SessionFile
 from core.sim.breathing import Sway
 from core.sim.simulate import SimConfig, simulate
 from tests.core.test_reconstruction import _cycle

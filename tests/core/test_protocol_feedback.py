@@ -1,12 +1,12 @@
 """What the patient-session wizard tells the operator after each manoeuvre, and when a
-manoeuvre is done (core/protocol_feedback.py): the ATS/ERS rules outside the GUI."""
+manoeuvre is done (core/analysis/protocol_feedback.py): the ATS/ERS rules outside the GUI."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from core.analysis import analyse_volume
-from core.protocol_feedback import (MAX_TIDAL_EXTENSION_S, TIDAL_EXTENSION_S, forced_feedback, tidal_extension_s,
+from core.analysis.values import analyse_volume
+from core.analysis.protocol_feedback import (MAX_TIDAL_EXTENSION_S, TIDAL_EXTENSION_S, forced_feedback, tidal_extension_s,
                                     vc_feedback)
 from core.sim.breathing import RATE_HZ, Subject, protocol_waveform
 

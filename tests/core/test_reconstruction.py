@@ -8,14 +8,14 @@ import h5py
 import numpy as np
 import pytest
 
-from core.lightfield import light_field, normals_from_field
-from core.photometric import complete_cycles, distant_light_normals, near_light_normals
-from core.pipeline import (DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance,
+from core.reconstruction.lightfield import light_field, normals_from_field
+from core.reconstruction.photometric import complete_cycles, distant_light_normals, near_light_normals
+from core.reconstruction.pipeline import (DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance,
                            occluded_side_share, side_out_of_view_share, subject_mask, trunk_mask)
-from core.process import process_session, with_true_lights
-from core.profile import HeadCalibration, RigCalibration
+from core.reconstruction.process import process_session, with_true_lights
+from core.calibration.rig_profile import HeadCalibration, RigCalibration
 from core.rig import thesis_head
-from core.session import SessionError, SessionFile
+from core.io.session import SessionError, SessionFile
 from core.sim.breathing import Sway
 from core.sim.simulate import SimConfig, simulate
 
@@ -331,8 +331,8 @@ def test_a_simulated_body_s_arms_held_away_are_left_out_and_arms_held_close_are_
     """Arms held away: both heads' maps hold the trunk alone, and its width is the same in both (the
     metric volume's distances come from it). Arms held close: an occluding contour runs down the
     trunk in one head's view at least, and `process` would refuse the optical volume for it."""
-    from core.process import MAX_OCCLUDED_SIDE_SHARE
-    from core.volume import trunk_width_px
+    from core.reconstruction.process import MAX_OCCLUDED_SIDE_SHARE
+    from core.volume.maps import trunk_width_px
 
     head, maps = _body_cycle(tmp_path, "average-woman", 0.15)
     widths = {name: trunk_width_px(m.depth_mm, m.mask, head) for name, m in maps.items()}
@@ -394,9 +394,9 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     """A distance outside 1500-2600 mm is a measurement gone wrong or a subject out of place: the
     results say so and hold no volume to report. (A subject 3300 mm away measures about 2650 mm:
     the distance search does not follow a subject far outside the working range either.)"""
-    from core.process import (WORKING_RANGE_MM, coverage_refusal, distance_refusal, occlusion_refusal, process_session,
+    from core.reconstruction.process import (WORKING_RANGE_MM, coverage_refusal, distance_refusal, occlusion_refusal, process_session,
                               trunk_area_m2)
-    from core.results import optical_refusal, optical_volume
+    from core.io.results import optical_refusal, optical_volume
     from core.sim.simulate import SimConfig, simulate
 
     assert distance_refusal({"front": 2000.0, "back": 2100.0}) is None
@@ -433,7 +433,7 @@ def test_two_heads_take_the_subject_distance_from_their_geometry_where_glossy_sk
     offset kept beside it."""
     import h5py
 
-    from core.process import process_session
+    from core.reconstruction.process import process_session
 
     session = tmp_path / "glossy.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=1.0, scale=0.1, specular=0.2, clothing="skin",

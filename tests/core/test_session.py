@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from core.rig import thesis_rig
-from core.session import SessionError, SessionFile, SessionWriter, SubjectRecord, validate_session
+from core.io.session import SessionError, SessionFile, SessionWriter, SubjectRecord, validate_session
 
 
 def _rig():

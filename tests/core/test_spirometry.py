@@ -7,9 +7,9 @@ import csv
 import numpy as np
 import pytest
 
-from core.reference import ReferenceUnavailable, reference
+from core.analysis.reference import ReferenceUnavailable, reference
 from core.sim.breathing import ForcedBlow, forced_expiration_curve
-from core.spirometry import forced_values, grade_session, read_waveform, repeatability_tolerance_l
+from core.analysis.spirometry import forced_values, grade_session, read_waveform, repeatability_tolerance_l
 
 
 def _within(got, expected, relative, absolute):

@@ -1,4 +1,4 @@
-"""The 3 L syringe check (core/syringe.py): strokes found in and out, each within 3 %, and a
+"""The 3 L syringe check (core/calibration/syringe.py): strokes found in and out, each within 3 %, and a
 flow line 5 % off found out."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from app.gui.syringe_check import SimulatedSyringe, check_from_samples
-from core.syringe import SyringeCheck, Stroke, syringe_strokes
+from core.calibration.syringe import SyringeCheck, Stroke, syringe_strokes
 
 
 def test_three_strokes_in_and_out_through_the_simulated_sensor_pass_with_the_true_line():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from core.volume import gradient_volume_correlations, two_head_distances
+from core.volume.maps import gradient_volume_correlations, two_head_distances
 
 
 def test_two_silhouettes_and_a_baseline_give_both_distances():
@@ -33,7 +33,7 @@ def test_gradient_volume_correlations_per_head_and_combined():
 def test_the_rim_is_extrapolated_past_the_noisy_outermost_pixels():
     """Depth falling linearly towards the silhouette, the two outermost pixels of every row thrown
     off (dim, grazing light): the rim is where the line through the rest meets the edge."""
-    from core.volume import rim_depths
+    from core.volume.maps import rim_depths
 
     rng = np.random.default_rng(5)
     mask = np.zeros((40, 60), bool)
@@ -52,7 +52,7 @@ def test_the_rim_is_extrapolated_past_the_noisy_outermost_pixels():
 def test_the_side_of_a_round_trunk_lies_beyond_its_silhouette_where_the_surface_turns_parallel():
     """A circular cross-section 150 mm in radius at 2000 mm: the camera sees it up to the tangent
     ray; the circle through the outermost pixels puts the side (X = 150 mm) within 0.05 mm."""
-    from core.volume import rim_side_mm
+    from core.volume.maps import rim_side_mm
 
     radius, centre, fx = 150.0, 2000.0, 844.6
     for offset_px in (0.0, 0.3, 0.6, 0.9):
@@ -71,7 +71,7 @@ def test_the_rim_level_of_a_breathing_band_is_its_common_intercept():
     """Depths that move, edge by edge, in proportion to the regressor plus one common shift: the
     level of the moved map less the level of the first is the shift."""
     from core.rig import thesis_head
-    from core.volume import rim_model
+    from core.volume.maps import rim_model
 
     head = thesis_head("front", scale=0.25)
     rows, cols = np.mgrid[0:head.height, 0:head.width]
@@ -95,7 +95,7 @@ def test_the_trunk_width_stays_when_the_flanks_lose_their_outermost_pixels():
     of them (a flank steepening past the integrator's grazing limit as the chest fills) leaves its
     width; the silhouette's own width drops by the pixels lost."""
     from core.rig import thesis_head
-    from core.volume import trunk_width_px
+    from core.volume.maps import trunk_width_px
 
     head = thesis_head("front", scale=0.25)
     radius, centre = 150.0, 2000.0
@@ -148,7 +148,7 @@ def test_the_body_frame_follows_a_trunk_moving_by_fractions_of_a_pixel():
     feature, moves by half-pixel steps. Moved along the axis, the frame's scale is the distance's
     ratio and its sideways shift the sideways move's."""
     from core.rig import thesis_head
-    from core.volume import BodySilhouette, row_widths_px, trunk_width_px
+    from core.volume.maps import BodySilhouette, row_widths_px, trunk_width_px
 
     head = thesis_head("front", scale=0.25)
     depth, valid = _rendered_trunk(head)
@@ -182,7 +182,7 @@ def test_the_body_aligned_displacement_of_a_swaying_rigid_trunk_is_nil():
     rounded trunk's front and its sides, at different depths, exactly; the outermost pixels' depth,
     used before, left 12 mm)."""
     from core.rig import thesis_head
-    from core.volume import body_aligned_displacement
+    from core.volume.maps import body_aligned_displacement
 
     head = thesis_head("front", scale=0.25)
     depth_b, mask_b = _rendered_trunk(head)
@@ -199,7 +199,7 @@ def test_the_occluding_contour_is_found_where_the_map_lacks_the_silhouettes_oute
     reconstruction solves no normal) still places it within 3 mm at either scale; the last pixel
     with a depth lies tens of mm nearer."""
     from core.rig import thesis_head
-    from core.volume import contour_depth_mm
+    from core.volume.maps import contour_depth_mm
 
     head = thesis_head("front", scale=scale)
     lost_px = int(round(2 * scale / 0.15))

@@ -228,7 +228,7 @@ def test_recording_goes_on_through_a_camera_that_leaves_and_returns(fake_gv_came
     """`photopft record` on the fake GigE rig: the back camera is killed and started again mid-recording."""
     import sys
 
-    from core.session import SessionFile, validate_session
+    from core.io.session import SessionFile, validate_session
     from drivers.rig import DEFAULT_RIG
 
     _aravis_or_skip()

@@ -12,8 +12,8 @@ import time
 import h5py
 import numpy as np
 
-from core.recovery import recover_session
-from core.session import SessionFile, validate_session
+from core.io.recovery import recover_session
+from core.io.session import SessionFile, validate_session
 
 
 def test_sigkill_mid_recording_keeps_the_data(tmp_path):

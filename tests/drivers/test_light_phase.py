@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from core.session import SessionFile, SubjectRecord
+from core.io.session import SessionFile, SubjectRecord
 from core.sim.simulate import SimConfig
 from drivers.camera import CameraStats, Frame
 from drivers.light_phase import LightPhase, LightPhaseError

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from core.session import SessionFile, validate_session
+from core.io.session import SessionFile, validate_session
 from drivers.rig import DEFAULT_RIG, RigConfigError, camera_head, load_rig_config
 
 
@@ -82,7 +82,7 @@ def test_record_the_simulated_rig(tmp_path, capsys):
 def test_compressed_and_plain_frames_read_back_the_same(tmp_path):
     """A session written with each frame filter reads back bit for bit; Blosc halves simulated frames."""
     from core.rig import Rig
-    from core.session import FRAME_COMPRESSION, SessionWriter, SubjectRecord
+    from core.io.session import FRAME_COMPRESSION, SessionWriter, SubjectRecord
     from core.sim.simulate import SimConfig, simulate
 
     source = tmp_path / "source.h5"

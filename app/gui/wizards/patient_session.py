@@ -20,13 +20,13 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDateEdit, QDoubleSpinBox, 
                                QVBoxLayout, QWizard, QWizardPage)
 
 from app.gui.errors import show_error
-from core.process import WORKING_RANGE_MM
+from core.reconstruction.process import WORKING_RANGE_MM
 from app.engine_process import Engine
 from app.paths import data_dir
 from app.records import Patient, Records, RecordsError
-from core.outputs import next_free_path
-from core.session import SubjectRecord
-from core.protocol_feedback import (MAX_BLOWS, MAX_VC, MIN_TIDAL_BREATHS, forced_feedback, tidal_extension_s,
+from core.io.outputs import next_free_path
+from core.io.session import SubjectRecord
+from core.analysis.protocol_feedback import (MAX_BLOWS, MAX_VC, MIN_TIDAL_BREATHS, forced_feedback, tidal_extension_s,
                                     vc_feedback)
 
 CENTRED_FRACTION = 0.12  # the subject's centre within 12 % of the image width of its centre

@@ -23,7 +23,7 @@ from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayo
 from app.calibration_store import RIG_PROFILE, calibration_audit, calibration_dir, keep_previous, log_calibration
 from app.records import RecordsError
 from app.gui.errors import show_error
-from core.outputs import next_free_path
+from core.io.outputs import next_free_path
 
 MIN_CAPTURES = 3
 
@@ -42,7 +42,7 @@ def capture_from_rig(window):
     """A capture on a real rig: CAPTURE_SECONDS of the sphere recorded from the live engine."""
     import time
 
-    from core.light_calibration import CAPTURE_SECONDS
+    from core.calibration.light_sessions import CAPTURE_SECONDS
 
     def capture(folder: Path, index: int) -> Path:
         wizard = window.findChild(SphereCalibrationWizard)
@@ -63,8 +63,8 @@ def capture_from_rig(window):
 
 def detect_capture(path: Path, head_name: str):
     """(summed image, sphere fit, {light: highlight}, problems) of one capture's head."""
-    from core.light_calibration import specular_placements
-    from core.session import SessionFile
+    from core.calibration.light_sessions import specular_placements
+    from core.io.session import SessionFile
 
     with SessionFile(path) as session:
         result = specular_placements(session, head_name, float(session.attrs["sphere_radius_mm"]))[0]
@@ -82,7 +82,7 @@ class IntroPage(QWizardPage):
                       "3. Each capture shows the sphere's outline and the four highlights: all four must be found.")
         text.setWordWrap(True)
         self.radius = QDoubleSpinBox(minimum=10.0, maximum=300.0, value=75.0, suffix=" mm", decimals=2)
-        from core.light_calibration import DEFAULT_MAX_RESIDUAL_MM
+        from core.calibration.light_sessions import DEFAULT_MAX_RESIDUAL_MM
 
         self.threshold = QDoubleSpinBox(minimum=0.5, maximum=100.0, value=DEFAULT_MAX_RESIDUAL_MM, suffix=" mm",
                                         decimals=1)
@@ -247,7 +247,7 @@ class CapturePage(QWizardPage):
 
 def previous_profile(path: Path):
     """(the light calibration in force, a sentence on it) for the comparison, (None, why) without one."""
-    from core.profile import ProfileError, load_profile
+    from core.calibration.rig_profile import ProfileError, load_profile
 
     if not path.is_file():
         return None, "There is no earlier calibration to compare with."
@@ -275,8 +275,8 @@ class ResultPage(QWizardPage):
         self.calibration = None
 
     def initializePage(self) -> None:  # noqa: N802
-        from core.light_calibration import calibrate_lights
-        from core.lights import CalibrationError
+        from core.calibration.light_sessions import calibrate_lights
+        from core.calibration.sphere_geometry import CalibrationError
 
         wizard = self.wizard()
         threshold = wizard.intro.threshold.value()

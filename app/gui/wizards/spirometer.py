@@ -17,10 +17,10 @@ from app.calibration_store import (FLOW_PROFILE, VOLUME_PROFILE, calibration_aud
                                    log_calibration)
 from app.records import RecordsError
 from app.gui.errors import show_error
-from core.calibration import CalibrationProfileError, fit_flow, fit_volume
-from core.flow import btps_factor
-from core.outputs import write_text_atomic
-from core.session import now_iso
+from core.calibration.spirometer import CalibrationProfileError, fit_flow, fit_volume
+from core.volume.flow_sensor import btps_factor
+from core.io.outputs import write_text_atomic
+from core.io.session import now_iso
 
 
 class RigFlowBench:

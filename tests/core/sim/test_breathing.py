@@ -62,7 +62,7 @@ def test_subject_validation():
 
 def test_blows_follow_a_standard_waveform_scaled_to_the_subject(shared_data):
     from core.sim.breathing import standard_curve
-    from core.spirometry import forced_values, read_waveform
+    from core.analysis.spirometry import forced_values, read_waveform
 
     failures = []
     for path in sorted((shared_data / "spirometry-waveforms" / "ISO26782").glob("*.wf")):

@@ -6,9 +6,9 @@ import h5py
 import numpy as np
 import pytest
 
-from core.session import SessionFile, validate_session
+from core.io.session import SessionFile, validate_session
 from core.sim.breathing import Subject, Sway
-from core.flow import btps_factor
+from core.volume.flow_sensor import btps_factor
 from core.sim.simulate import SimConfig, simulate
 
 

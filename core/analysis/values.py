@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import find_peaks
 
-from core.spirometry import ForcedValues, SessionGrade, forced_values, grade_session
+from core.analysis.spirometry import ForcedValues, SessionGrade, forced_values, grade_session
 
 ANALYSIS_RATE_HZ = 200.0
 

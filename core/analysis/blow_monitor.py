@@ -1,7 +1,7 @@
 """A forced expiration as it happens: start detection, back-extrapolated volume, time since time
 zero, the end-of-test plateau, on the volume so far; and the best blow of a session.
 
-The same rules as the report's (core.spirometry.forced_values, ATS/ERS 2019), run on the blow so
+The same rules as the report's (core.analysis.spirometry.forced_values, ATS/ERS 2019), run on the blow so
 far, so that what the operator sees during the blow is what the report will say of it.
 """
 
@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.analysis import ANALYSIS_RATE_HZ, resample
-from core.spirometry import PLATEAU_L, ForcedValues, forced_values
+from core.analysis.values import ANALYSIS_RATE_HZ, resample
+from core.analysis.spirometry import PLATEAU_L, ForcedValues, forced_values
 
 START_FLOW_LPS = 0.5  # the blow has started once the exhaled flow exceeds this after the full inspiration
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from core.analysis import VC_REPEATABILITY_L, SessionValues, vc_repeatability_l
-from core.spirometry import repeatability_tolerance_l
+from core.analysis.values import VC_REPEATABILITY_L, SessionValues, vc_repeatability_l
+from core.analysis.spirometry import repeatability_tolerance_l
 
 MAX_BLOWS = 8
 MIN_BLOWS = 3

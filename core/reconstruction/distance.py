@@ -16,9 +16,9 @@ from numba import njit, prange
 from scipy import ndimage
 from scipy.optimize import minimize, minimize_scalar
 
-from core.binning import bin_all, bin_mean
-from core.lights import closest_points
-from core.photometric import add_row, solve_symmetric3
+from core.reconstruction.binning import bin_all, bin_mean
+from core.calibration.sphere_geometry import closest_points
+from core.reconstruction.photometric import add_row, solve_symmetric3
 
 DMR_THRESHOLD = 0.9
 MIN_FIT_PIXELS = 100  # the photometric distance is not fitted on fewer pixels

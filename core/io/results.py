@@ -1,4 +1,4 @@
-"""Reading a results file (written by core.process): the one reader every part of the program
+"""Reading a results file (written by core.reconstruction.process): the one reader every part of the program
 goes through (`ResultsFile`, `optical_volume`, `optical_refusal`, `session_of_results`).
 
 `check_results` reads every part once and refuses, in one line naming the file and the part,
@@ -15,7 +15,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from core.session import SessionError
+from core.io.session import SessionError
 
 RESULTS_FORMAT = "photopft-results"
 HEAD_SERIES = {"timestamp_ns": "i", "frame_index": "i", "distance_mm": "f", "gradient_volume": "f",
@@ -89,7 +89,7 @@ def _check_parameters(path: Path, f: h5py.File) -> None:
 
 def check_results(path: str | os.PathLike) -> None:
     """Refuses a results file that any reader would stumble on (see the module doc)."""
-    from core.hdf5_probe import probe
+    from core.io.hdf5_probe import probe
 
     path = Path(path)
     probe(path)
@@ -117,7 +117,7 @@ def check_results(path: str | os.PathLike) -> None:
 
 def is_results_file(path: str | os.PathLike) -> bool:
     """True for an HDF5 file that says it is a results file (whether or not it is whole)."""
-    from core.hdf5_probe import probe
+    from core.io.hdf5_probe import probe
 
     probe(path)
     try:

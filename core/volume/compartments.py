@@ -1,7 +1,7 @@
 """Compartments of quiet breathing from regional volumes: each region's share of the breaths and
 the thoraco-abdominal phase angle (what optoelectronic plethysmography reports by compartment).
 
-Both are taken over the stretches of quiet breathing only (core/analysis.py, tidal_windows), each
+Both are taken over the stretches of quiet breathing only (core/analysis/values.py, tidal_windows), each
 stretch detrended, so the slow drift of a long recording does not count as breathing.
 """
 

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from core.jsonfile import load_checked, read_json_object
-from core.outputs import write_text_atomic
+from core.io.jsonfile import load_checked, read_json_object
+from core.io.outputs import write_text_atomic
 
 FLOW_FORMAT = "photopft-flow-calibration"
 VOLUME_FORMAT = "photopft-volume-calibration"

@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from core.jsonfile import load_checked, read_json_object
-from core.outputs import write_text_atomic
+from core.io.jsonfile import load_checked, read_json_object
+from core.io.outputs import write_text_atomic
 
 from core.rig import Rig, light_position_problems
 

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from core.binning import bin_all, bin_mean
-from core.lights import (CalibrationError, Highlight, MattePlacement, SphereFit, closest_points, detect_highlight,
+from core.reconstruction.binning import bin_all, bin_mean
+from core.calibration.sphere_geometry import (CalibrationError, Highlight, MattePlacement, SphereFit, closest_points, detect_highlight,
                          detect_sphere, pixel_rays, refine_on_matte, triangulate)
-from core.photometric import complete_cycles
-from core.profile import HeadCalibration, RigCalibration
+from core.reconstruction.photometric import complete_cycles
+from core.calibration.rig_profile import HeadCalibration, RigCalibration
 from core.rig import Head
-from core.session import SessionFile, now_iso
+from core.io.session import SessionFile, now_iso
 
 DEFAULT_MAX_RESIDUAL_MM = 25.0
 DEFAULT_PRIOR_SIGMA_MM = 15.0

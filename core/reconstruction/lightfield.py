@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from core.photometric import add_row, solve_symmetric3, store_missing, store_normal
+from core.reconstruction.photometric import add_row, solve_symmetric3, store_missing, store_normal
 from core.rig import Head
 
 

@@ -24,14 +24,14 @@ from typing import Callable, Iterator
 import h5py
 import numpy as np
 
-from core.outputs import atomic_output, next_free_path
-from core.results import READ_ERRORS
-from core.session import SessionError, now_iso, validate_session
+from core.io.outputs import atomic_output, next_free_path
+from core.io.results import READ_ERRORS
+from core.io.session import SessionError, now_iso, validate_session
 
 READ_ATTEMPTS = 2
 HEAD_KEYS = ("frames", "light_index", "timestamp_ns", "frame_id")
 BLOCK = 64
-_READ_ERRORS = READ_ERRORS  # what h5py raises for a damaged part (core/results.py)
+_READ_ERRORS = READ_ERRORS  # what h5py raises for a damaged part (core/io/results.py)
 
 
 @dataclass

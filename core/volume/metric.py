@@ -1,6 +1,6 @@
 """The metric optical volume: litres from the height maps of one or both heads, without a training step.
 
-Each head's maps are compared with its first map in the body's own frame (core/volume.py,
+Each head's maps are compared with its first map in the body's own frame (core/volume/maps.py,
 DisplacementTracker): the current map is resampled so its trunk lies on the reference's
 (BodySilhouette: widths between the trunk's sides on the same body rows, the blurred silhouettes'
 shift), both are referred to the level the trunk has at its sides (so a rigid shift along
@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.analysis import tidal_stretches, tidal_values, tidal_windows
-from core.compartments import compartment_shares, phase_angle_deg
+from core.analysis.values import tidal_stretches, tidal_values, tidal_windows
+from core.volume.compartments import compartment_shares, phase_angle_deg
 from core.rig import Head
-from core.volume import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l, metric_head_volume_l,
+from core.volume.maps import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l, metric_head_volume_l,
                          smooth_in_time, two_head_distances)
 
 WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of trunk width is 4 mm of distance
@@ -150,7 +150,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
 def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
     """Each quadrant's share of quiet breathing (`share_upper_left` ...) and the thoraco-abdominal
     phase angle (`phase_angle_deg`, upper against lower half of the trunk) of a session
-    (core.session.SessionFile) over its stretches of quiet breathing."""
+    (core.io.session.SessionFile) over its stretches of quiet breathing."""
     t = (metric.timestamp_ns - metric.timestamp_ns[0]) / 1e9
     start = int(metric.timestamp_ns[0])
     events = sorted(((ts - start) / 1e9, label) for ts, label in session.events())
@@ -193,7 +193,7 @@ class LiveMetricVolume:
 
     def geometric_distance_mm(self, name: str) -> float | None:
         """The head's subject distance (median depth) where the two heads' trunk widths and baseline put
-        its last map (as core/process.py's geometric_distances, causally); None before both heads
+        its last map (as core/reconstruction/process.py's geometric_distances, causally); None before both heads
         have a trunk in view, and with one head."""
         with self._lock:
             return self._geometric.get(name)

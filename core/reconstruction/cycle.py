@@ -1,8 +1,8 @@
 """One light cycle's signal, the same for `photopft process` and the live view: each frame binned
-(core/binning.py), the room light's flicker taken out (core/ambient.py), each light's frame brought
+(core/reconstruction/binning.py), the room light's flicker taken out (core/reconstruction/ambient.py), each light's frame brought
 to the cycle's newest instant (motion compensation), the dark frame subtracted.
 
-Frames come in as CycleFrame, from a session file (core.process) or from the cameras (app.live).
+Frames come in as CycleFrame, from a session file (core.reconstruction.process) or from the cameras (app.live).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 from scipy import ndimage
 
-from core.binning import frame_bins
+from core.reconstruction.binning import frame_bins
 
 # The change of a light's frame over one period is smoothed with this sigma (pixels of the binned
 # frame, about 350 px wide) before it is extrapolated: motion changes shading smoothly, the noise

@@ -8,10 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.analysis import SessionValues, analyse_volume, tidal_windows
-from core.flow import btps_factor, flow_sensor_volume
-from core.reference import Reference, ReferenceUnavailable, reference
-from core.session import SessionError, SessionFile
+from core.analysis.values import SessionValues, analyse_volume, tidal_windows
+from core.volume.flow_sensor import btps_factor, flow_sensor_volume
+from core.analysis.reference import Reference, ReferenceUnavailable, reference
+from core.io.session import SessionError, SessionFile
 
 
 @dataclass

@@ -765,7 +765,7 @@ def _check_truth(c: _Checker, f: h5py.File, heads: dict[str, tuple[int, int, int
 
 def validate_session(path: str | os.PathLike) -> list[str]:
     """Every way the file departs from the spec, each naming the item; empty when it conforms."""
-    from core.hdf5_probe import probe
+    from core.io.hdf5_probe import probe
 
     path = Path(path)
     if not path.exists():

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from core.reference import Z_LLN, Reference
+from core.analysis.reference import Z_LLN, Reference
 
 NORMAL = "normal"
 OBSTRUCTION = "obstruction"

@@ -12,25 +12,25 @@ import h5py
 import numpy as np
 
 from core import __version__
-from core.ambient import FlickerCorrection
-from core.binning import bin_mean, binned_head, working_binning
-from core.cycle import CycleFrame, cycle_frame, cycle_signal_of
-from core.metric_volume import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, side_targets,
+from core.reconstruction.ambient import FlickerCorrection
+from core.reconstruction.binning import bin_mean, binned_head, working_binning
+from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
+from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, side_targets,
                                  tidal_compartments)
-from core.photometric import CycleWindow, complete_cycles
+from core.reconstruction.photometric import CycleWindow, complete_cycles
 from core.rig import DARK
-from core.outputs import atomic_output, stop_if_requested
-from core.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
-from core.profile import ProfileError, RigCalibration
-from core.session import SessionError, SessionFile
-from core.results import RESULTS_FORMAT
-from core.volume import DisplacementTracker, smooth_in_time
+from core.io.outputs import atomic_output, stop_if_requested
+from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
+from core.calibration.rig_profile import ProfileError, RigCalibration
+from core.io.session import SessionError, SessionFile
+from core.io.results import RESULTS_FORMAT
+from core.volume.maps import DisplacementTracker, smooth_in_time
 
 # Work (maps times pixels) from which worker processes repay their start (docs/benchmarks.md, constants).
 AUTO_WORKERS_PIXEL_MAPS = 5e6
 # Outside this a measured distance is a measurement gone wrong, not a subject (docs/reconstruction.md).
 WORKING_RANGE_MM = (1500.0, 2600.0)
-# The share of the trunk's rows an occluding contour may cross (core/pipeline.py,
+# The share of the trunk's rows an occluding contour may cross (core/reconstruction/pipeline.py,
 # occluded_side_share) in a head's typical map before its sides count as hidden by an arm
 MAX_OCCLUDED_SIDE_SHARE = 0.2
 MAX_HIDDEN_MAPS = 0.05  # the share of a head's maps that may show its sides so hidden
@@ -81,7 +81,7 @@ def geometric_distances(surveyed: dict, baseline_mm: float) -> dict[str, tuple[n
     800 mm short, LEDs 15 mm off hundreds of mm (docs/reconstruction.md), and even on matte skin
     with exact lights it scattered 1.5 mm from cycle to cycle and wandered 17 mm in 6 s. The two
     heads see the same trunk sides: their widths in pixels stand in the inverse ratio of their
-    distances and the distances add up to the baseline (core/metric_volume.py, side_targets). Each
+    distances and the distances add up to the baseline (core/volume/metric.py, side_targets). Each
     map's shape (its median depth over its sides' depth) carries that to the map's median depth,
     smoothed over WIDTH_SMOOTHING_S. A head without a trunk in view gets none."""
     heads = {name: HeadDisplacements(r.timestamp_ns, r.sums) for name, r in surveyed.items()}
@@ -141,7 +141,7 @@ def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: 
                       ) -> str | None:
     """Why the optical volume cannot be reported from heads whose trunk's sides an arm hides or the
     image cuts off in more than MAX_HIDDEN_MAPS of their maps, or None. The shares are per map
-    (core/pipeline.py): an arm that swings against the trunk now and then changes the trunk's
+    (core/reconstruction/pipeline.py): an arm that swings against the trunk now and then changes the trunk's
     outline from map to map, and the volume with it."""
     for kind, shares in (("arm", occluded_share), ("edge", out_of_view_share or {})):
         for name, share in shares.items():
@@ -159,7 +159,7 @@ def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: 
 
 
 class DarkFeed:
-    """A head's dark frames, handed to its FlickerCorrection (core/ambient.py) as the cycles move on:
+    """A head's dark frames, handed to its FlickerCorrection (core/reconstruction/ambient.py) as the cycles move on:
     `flicker_of(window)` gives each frame's flicker, fitted on the dark frames around that cycle."""
 
     def __init__(self, frames: h5py.Dataset, light_index: np.ndarray, timestamp_ns: np.ndarray, mains_hz: float,
@@ -193,7 +193,7 @@ def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindo
                  cache: dict[int, CycleFrame], frame_id: np.ndarray, timestamp_ns: np.ndarray,
                  flicker: Callable[[CycleFrame], np.ndarray | None] | None = None, binning: int = 1,
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A window's signal from a session's frames (core/cycle.py, as the live view makes it): with
+    """A window's signal from a session's frames (core/reconstruction/cycle.py, as the live view makes it): with
     `previous` (the cycle one period earlier) motion-compensated; `flicker` (DarkFeed.flicker_of,
     binned alike) the room light's flicker in a frame; `cache` keeps each frame read."""
     def frame(i: int) -> CycleFrame:
@@ -215,11 +215,11 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
     by `every` frames (default: the cycle's length, each cycle once; 1: a map at every frame).
     distance_from: "heads" (two heads and a baseline: each map scaled to the distance the two
     heads' trunk widths give, `geometric_distances`; one head: as "photometric") or
-    "photometric" (each head's own photometric fit, core/distance.py).
+    "photometric" (each head's own photometric fit, core/reconstruction/distance.py).
     `workers` > 1 reconstructs the heads in that many processes at once (one head each, at most);
     None: one per core when the work repays starting them (AUTO_WORKERS_PIXEL_MAPS).
     `binning`: the stream reconstructed on binning x binning bins; None: each head binned to about
-    WORKING_WIDTH_PX wide, as the live view does (core/binning.py); 1: every pixel. Maps asked for
+    WORKING_WIDTH_PX wide, as the live view does (core/reconstruction/binning.py); 1: every pixel. Maps asked for
     in `maps_at` keep every pixel either way.
 
     Maps "at frame i" come from the newest complete cycle ending at frame i; frames asked for
@@ -534,7 +534,7 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
 
 def with_true_lights(session: SessionFile) -> RigCalibration:
     """A calibration profile holding the simulation's true lights (for benchmarks: the noise floor)."""
-    from core.profile import HeadCalibration
+    from core.calibration.rig_profile import HeadCalibration
 
     truth = session.truth()
     heads = {}
@@ -551,7 +551,7 @@ def _write_parameters(session_path: str | os.PathLike, parameters: h5py.Group, o
     instrument), else from /volume (the optical volume in litres); the `source` attribute says
     which. The optical values are also kept as attributes of /volume, to stand beside the flow
     sensor's."""
-    from core.session_analysis import analyse_session
+    from core.analysis.session_analysis import analyse_session
 
     optical = (out["volume/timestamp_ns"][:], out["volume/volume_l"][:]) if "volume" in out else None
     report = analyse_session(session_path, optical_volume=optical)
@@ -605,7 +605,7 @@ def _write_metric_volume(out: h5py.File, metric: MetricVolume, session: SessionF
 
 def _write_regression_volume(out: h5py.File, heads: list[str], calibration) -> None:
     """/volume from the thesis' regression (eqs 5.1-5.3) on the gradient volume, pixels and distance."""
-    from core.calibration import regression_features
+    from core.calibration.spirometer import regression_features
 
     t, features = regression_features(lambda head, name: out[f"heads/{head}/{name}"][:], heads)
     g = _write_volume(out, t, calibration.volume_l(features),

@@ -14,7 +14,7 @@ for sway.
 
 The result scales with the depth map's absolute scale times the relief above the rim (about
 10 L per head for an adult), so every map's scale is set afterwards from a distance that
-breathing does not move (core/metric_volume.py). With both heads it comes from the trunk's widths:
+breathing does not move (core/volume/metric.py). With both heads it comes from the trunk's widths:
 both see the same sides, so their widths in pixels stand in the inverse ratio of the distances,
 D_f / D_b = W_b / W_f, and D_f + D_b is the baseline between the heads.
 """

@@ -52,7 +52,7 @@ def is_session_file(path: str | os.PathLike) -> bool:
         return False
     import h5py
 
-    from core.hdf5_probe import probe
+    from core.io.hdf5_probe import probe
 
     probe(path)
     try:

@@ -6,7 +6,7 @@ The same object serves `photopft process` (offline, over a session file) and the
 Per cycle (thesis Table 4.1, then past it):
 1. subject mask from the summed signal; saturated or shadowed lights left out per pixel;
 2. pseudo normals with the pseudo light vectors (distant-light photometric stereo, eq. 3.4-3.7);
-3. distance from the diffused maxima regions (eq. 4.13, core/distance.py), the thesis' way;
+3. distance from the diffused maxima regions (eq. 4.13, core/reconstruction/distance.py), the thesis' way;
 4. metric depth: the pseudo normals integrated in perspective and scaled so that the depth at
    the regions' centres is the triangulated one;
 5. per-pixel light vectors from that depth, with inverse-square falloff and the LEDs'
@@ -17,7 +17,7 @@ Past the thesis (distance="photometric", the default): on a curved subject the d
 regions do not lie on the lines the thesis triangulates with, so their distance follows the
 subject's shape more than its place (measured: about 1800 mm for a torso anywhere between 1800
 and 2200 mm). Each iteration instead scales the integrated shape to the distance at which the
-near-light model explains all four lights best (core/distance.py). With `track`, a
+near-light model explains all four lights best (core/reconstruction/distance.py). With `track`, a
 reconstructor remembers the last distance and only searches near it.
 """
 
@@ -28,11 +28,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from core.distance import DMR_THRESHOLD, MIN_FIT_PIXELS, DmrEstimate, PhotometricDistance, dmr_distance
-from core.integrate import ROBUST_ITERATIONS, integrate_dct, integrate_masked, log_depth_gradients
-from core.lens import LensCorrection, needs_correction
-from core.photometric import distant_light_normals, gradients_from_normals, near_light_normals
-from core.prefilter import noise_binning, prefilter_sigma_px, prefiltered
+from core.reconstruction.distance import DMR_THRESHOLD, MIN_FIT_PIXELS, DmrEstimate, PhotometricDistance, dmr_distance
+from core.reconstruction.integrate import ROBUST_ITERATIONS, integrate_dct, integrate_masked, log_depth_gradients
+from core.reconstruction.lens import LensCorrection, needs_correction
+from core.reconstruction.photometric import distant_light_normals, gradients_from_normals, near_light_normals
+from core.reconstruction.prefilter import noise_binning, prefilter_sigma_px, prefiltered
 from core.rig import Head
 
 NOMINAL_DISTANCE_MM = 2000.0
@@ -44,7 +44,7 @@ MIN_SUBJECT_PIXELS = MIN_FIT_PIXELS  # fewer lit pixels than this: no subject in
 @dataclass(frozen=True)
 class ReconstructionSettings:
     method: str = "near"  # near: per-pixel lights (this project); distant: traditional photometric stereo
-    integrator: str = "masked"  # masked: least squares on the subject; dct: faster, flattens (core/integrate.py)
+    integrator: str = "masked"  # masked: least squares on the subject; dct: faster, flattens (core/reconstruction/integrate.py)
     iterations: int = 2
     mask_fraction: float = 0.1  # subject: summed signal above this fraction of its 99th percentile
     # ... and its edge grown into what is above this fraction (None: eroded by a pixel instead)
@@ -61,7 +61,7 @@ class ReconstructionSettings:
     # The distance of one cycle scatters by several mm (camera noise); each cycle's estimate is
     # averaged with the previous ones over about this many cycles (1: none; RunningDistance).
     distance_cycles: int = 5
-    # Gaussian sigma (pixels) on the images before the normals are solved (core/prefilter.py);
+    # Gaussian sigma (pixels) on the images before the normals are solved (core/reconstruction/prefilter.py);
     # None: chosen from the head's width (0 up to about 1000 px wide, 0.56 at 1400)
     prefilter_px: float | None = None
 
@@ -133,7 +133,7 @@ def subject_mask(signal: np.ndarray, fraction: float, edge_fraction: float | Non
     Without edge_fraction, eroded by a pixel (mixed pixels at the silhouette). With it, grown
     instead by up to edge_px pixels into what is still above edge_fraction: the flanks of a
     torso, lit at grazing angles, are dim but their normals are good to the last pixel, and the
-    metric volume is referred to the silhouette (core/volume.py), so every pixel lost there is
+    metric volume is referred to the silhouette (core/volume/maps.py), so every pixel lost there is
     breathing lost."""
     total = np.sum(np.clip(signal, 0, None), axis=0)
     reference = np.percentile(total, 99)
@@ -247,7 +247,7 @@ class HeadReconstructor:
         v = (np.arange(head.height) - head.cy) / head.fy
         self._rays = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((head.height, 1))), -1)
         # a wide head's normals from prefiltered images, its distance fit on bins of the same size
-        # (core/prefilter.py): every pixel counts
+        # (core/reconstruction/prefilter.py): every pixel counts
         s = self.settings
         self._prefilter_px = prefilter_sigma_px(head.width) if s.prefilter_px is None else s.prefilter_px
         self._distance_binning = noise_binning(head.width)
@@ -277,7 +277,7 @@ class HeadReconstructor:
 
     def _integrate(self, normals: np.ndarray, mask: np.ndarray, final: bool,
                    start: np.ndarray | None = None) -> np.ndarray:
-        """Log-depth; the masked path's robust reweighting (core/integrate.py) only for a cycle's
+        """Log-depth; the masked path's robust reweighting (core/reconstruction/integrate.py) only for a cycle's
         final depth: the iterations' depths only place the lights' vectors and the distance.
         `start`: the log-depth of the cycle's last iteration, or of the stream's last cycle."""
         h = self.head
@@ -325,7 +325,7 @@ class HeadReconstructor:
         """signal (4, H, W): each light's frame minus the dark frame; saturated (4, H, W) bool;
         dark (H, W), the dark frame, for the noise model of the distance search. distance_mm: the
         subject's median depth when it is known from elsewhere (the two heads' geometry,
-        core/process.py): the maps are scaled to it and no distance is searched or averaged."""
+        core/reconstruction/process.py): the maps are scaled to it and no distance is searched or averaged."""
         h, s = self.head, self.settings
         signal = np.ascontiguousarray(signal, dtype=np.float64)
         if saturated is None:

@@ -1,0 +1,1 @@
+"""Pulmonary function values, their grading, references and interpretation."""

@@ -1,0 +1,1 @@
+"""Files: sessions, results, recovery, safe outputs, and the readers' guards."""

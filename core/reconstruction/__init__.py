@@ -1,0 +1,1 @@
+"""From frames to height maps: a light cycle's signal, normals, depth, distance, and `process`."""

@@ -1,0 +1,1 @@
+"""Volumes: from height maps (gradient and metric) and from the flow sensor."""
