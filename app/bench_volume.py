@@ -70,7 +70,7 @@ def _cell(measured: float | None, truth: float) -> tuple[str, str]:
 
 def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ...] = SCENARIOS,
                      every: int = 2, world: str = "ideal") -> str:
-    from app.session_cli import add_simulate, run_simulate
+    from app.commands.session import add_simulate, run_simulate
 
     parser = argparse.ArgumentParser(prog="photopft")
     add_simulate(parser.add_subparsers())

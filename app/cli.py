@@ -40,21 +40,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"photopft {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log details to standard error")
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
-    from app.demo import add_demo
-    from app.session_cli import add_info, add_recover, add_simulate, add_validate, describe_session, run_simulate
+    from app.commands.demo import add_demo
+    from app.commands.session import add_info, add_recover, add_simulate, add_validate, describe_session, run_simulate
 
     add_simulate(sub)
     add_info(sub)
     add_validate(sub)
     add_recover(sub)
-    from app.reconstruction_cli import add_calibrate, add_process
+    from app.commands.reconstruction import add_calibrate, add_process
 
-    from app.analyze_cli import add_analyze
-    from app.batch import add_batch
-    from app.emulate_cli import add_emulate
-    from app.record_cli import add_record
-    from app.records_cli import add_records_verbs
-    from app.review_cli import add_review_verbs
+    from app.commands.analyze import add_analyze
+    from app.commands.batch import add_batch
+    from app.commands.emulate import add_emulate
+    from app.commands.record import add_record
+    from app.commands.records import add_records_verbs
+    from app.commands.review import add_review_verbs
     from app.gui.app import add_gui
 
     add_calibrate(sub)

@@ -147,7 +147,7 @@ def fit_regression(files: list[Path]):
     """(calibration, features, volumes, None) of the thesis' regression on results files, or
     (None, None, None, why not)."""
     from app.errors import UserError
-    from app.reconstruction_cli import regression_samples
+    from app.commands.reconstruction import regression_samples
 
     try:
         samples = [regression_samples(p) for p in files]

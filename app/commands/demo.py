@@ -32,7 +32,7 @@ def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) ->
             raise OutputError(f"{session} exists (a demo was run there before, and a recorded session is never "
                               "replaced): choose another folder with -o")
         args.output_dir.mkdir(parents=True, exist_ok=True)
-        from app.session_cli import add_simulate
+        from app.commands.session import add_simulate
 
         parser = argparse.ArgumentParser(prog="photopft")
         add_simulate(parser.add_subparsers())
