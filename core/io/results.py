@@ -202,3 +202,99 @@ def session_of_results(results: str | os.PathLike) -> Path:
         if candidate.name and candidate.exists():
             return candidate
     raise SessionError(f"{results}: its session file {named} is not there (nor beside the results file)")
+
+
+class ResultsWriter:
+    """Writes a results file's parts into an open HDF5 file (the caller makes it atomic): plain
+    arrays and values in, the layout of shared/spec/session-format.md and docs/format-extensions.md out."""
+
+    def __init__(self, out: h5py.File, session_path: str | os.PathLike, software: str, **attrs) -> None:
+        self.out = out
+        out.attrs["format"] = RESULTS_FORMAT
+        out.attrs["format_version"] = np.int64(1)
+        out.attrs["session"] = str(session_path)
+        out.attrs["software"] = software
+        for key, value in attrs.items():
+            out.attrs[key] = value
+
+    def attr(self, key: str, value) -> None:
+        self.out.attrs[key] = value
+
+    def refuse_optical(self, reason: str) -> None:
+        """Why no optical volume is given, in words."""
+        self.out.attrs["optical_refused"] = reason
+
+    def photometric_survey(self, head: str, timestamp_ns: np.ndarray, distance_mm: np.ndarray,
+                           geometric_distance_mm: np.ndarray, offset_mm: float | None) -> None:
+        g = self.out.create_group(f"heads/{head}/photometric_survey")
+        g.create_dataset("timestamp_ns", data=timestamp_ns)
+        g.create_dataset("distance_mm", data=distance_mm)
+        g.create_dataset("geometric_distance_mm", data=geometric_distance_mm)
+        if offset_mm is not None:
+            g.attrs["photometric_offset_mm"] = offset_mm
+
+    def head(self, head: str, series: dict[str, np.ndarray], attrs: dict, map_index: list[int],
+             normals: list[np.ndarray], depth_mm: list[np.ndarray], shape: tuple[int, int]) -> None:
+        """A head's per-map series (HEAD_SERIES and the shares), its attributes, and the full maps
+        kept (normals and depth, every pixel)."""
+        g = self.out.require_group(f"heads/{head}")
+        for name, values in series.items():
+            g.create_dataset(name, data=values)
+        for key, value in attrs.items():
+            g.attrs[key] = value
+        m = g.create_group("maps")
+        m.create_dataset("frame_index", data=np.asarray(map_index, dtype=np.int64))
+        empty = (0, *shape)
+        m.create_dataset("normals", data=np.stack(normals) if normals else np.zeros(empty + (3,), np.float32),
+                         compression="gzip")
+        m.create_dataset("depth_mm", data=np.stack(depth_mm) if depth_mm else np.zeros(empty, np.float32),
+                         compression="gzip")
+
+    def volume(self, timestamp_ns: np.ndarray, volume_l: np.ndarray, method: str, **attrs) -> None:
+        """/volume: the optical volume in litres, from its first sample, and how it was made."""
+        g = self.out.create_group("volume")
+        g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
+        g.create_dataset("volume_l", data=np.asarray(volume_l, dtype=np.float64) - volume_l[0])
+        g.attrs["method"] = method
+        for key, value in attrs.items():
+            g.attrs[key] = value
+
+    def has_volume(self) -> bool:
+        return "volume" in self.out
+
+    def written_volume(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return (self.out["volume/timestamp_ns"][:], self.out["volume/volume_l"][:]) if "volume" in self.out else None
+
+    def volume_parameters(self, values: dict) -> None:
+        """The optical values beside the flow sensor's, as /volume's attributes parameter_*."""
+        for key, value in values.items():
+            self.out["volume"].attrs[f"parameter_{key}"] = value
+
+    def metric_volume(self, timestamp_ns: np.ndarray, volume_l: np.ndarray, scale_from: str,
+                      heads: dict[str, np.ndarray], side_distance_mm: dict[str, np.ndarray],
+                      regions: dict[str, np.ndarray], attrs: dict) -> None:
+        """/metric_volume: the metric volume in total, per head and per trunk quadrant (each from its
+        first sample), the distance each head's sides were scaled to, and `attrs` (compartments)."""
+        g = self.out.create_group("metric_volume")
+        g.attrs["scale_from"] = scale_from
+        for key, value in attrs.items():
+            g.attrs[key] = value
+        g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
+        g.create_dataset("volume_l", data=volume_l - volume_l[0])
+        for name, values in heads.items():
+            g.create_dataset(f"heads/{name}/volume_l", data=values - values[0])
+            g.create_dataset(f"heads/{name}/side_distance_mm", data=side_distance_mm[name])
+        for name, values in regions.items():
+            g.create_dataset(f"regions/{name}/volume_l", data=values - values[0])
+
+    def parameters(self, source: str, values: dict, flow_curve: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """/parameters: the pulmonary function values and their `source`; with the flow sensor's
+        curve, /flow_sensor too."""
+        g = self.out.create_group("parameters")
+        g.attrs["source"] = source
+        for key, value in values.items():
+            g.attrs[key] = value
+        if flow_curve is not None:
+            f = self.out.create_group("flow_sensor")
+            f.create_dataset("time_s", data=flow_curve[0])
+            f.create_dataset("volume_l", data=flow_curve[1])

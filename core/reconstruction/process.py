@@ -15,7 +15,7 @@ from core import __version__
 from core.reconstruction.ambient import FlickerCorrection
 from core.reconstruction.binning import bin_mean, binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
-from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, side_targets,
+from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, metric_volume, side_targets,
                                  tidal_compartments)
 from core.reconstruction.photometric import CycleWindow, complete_cycles
 from core.rig import DARK
@@ -23,7 +23,7 @@ from core.io.outputs import atomic_output, stop_if_requested
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
-from core.io.results import RESULTS_FORMAT
+from core.io.results import ResultsWriter
 from core.volume.maps import DisplacementTracker, smooth_in_time
 
 # Work (maps times pixels) from which worker processes repay their start (docs/benchmarks.md, constants).
@@ -99,7 +99,7 @@ def geometric_distances(surveyed: dict, baseline_mm: float) -> dict[str, tuple[n
     return out
 
 
-def _geometric_pass(out: h5py.File, jobs: list[_HeadJob], baseline_mm: float, workers: int,
+def _geometric_pass(results: ResultsWriter, jobs: list[_HeadJob], baseline_mm: float, workers: int,
                     progress: Callable[[float], None]) -> tuple[dict, dict[str, float]]:
     """The first pass of a two-head `process`: the survey's photometric maps, each head's geometric
     distances (geometric_distances) and the photometric fit's median offset from them, written to
@@ -109,13 +109,9 @@ def _geometric_pass(out: h5py.File, jobs: list[_HeadJob], baseline_mm: float, wo
     offsets = {}
     for r in surveyed:
         along = geometric.get(r.name, (None, np.full(len(r.timestamp_ns), np.nan)))[1]
-        g = out.create_group(f"heads/{r.name}/photometric_survey")
-        g.create_dataset("timestamp_ns", data=r.timestamp_ns)
-        g.create_dataset("distance_mm", data=r.distance_mm)
-        g.create_dataset("geometric_distance_mm", data=along)
         if np.isfinite(r.distance_mm - along).any():
             offsets[r.name] = float(np.nanmedian(r.distance_mm - along))
-            g.attrs["photometric_offset_mm"] = offsets[r.name]
+        results.photometric_survey(r.name, r.timestamp_ns, r.distance_mm, along, offsets.get(r.name))
     return geometric, offsets
 
 
@@ -255,14 +251,10 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
         maps_at = sorted(set(maps_at or []))
         counts, distances, displacements, occluded, out_of_view, areas = {}, {}, {}, {}, {}, {}
         with atomic_output(output) as partial, h5py.File(partial, "w") as out:
-            out.attrs["format"] = RESULTS_FORMAT
-            out.attrs["format_version"] = np.int64(1)
-            out.attrs["session"] = str(session_path)
-            out.attrs["software"] = f"photopft {__version__}"
-            out.attrs["method"] = settings.method
-            out.attrs["integrator"] = settings.integrator
-            out.attrs["calibration"] = calibration.created if calibration is not None else "session /rig"
-            out.attrs["motion_compensation"] = bool(motion_compensation)
+            results = ResultsWriter(out, session_path, f"photopft {__version__}", method=settings.method,
+                                    integrator=settings.integrator,
+                                    calibration=calibration.created if calibration is not None else "session /rig",
+                                    motion_compensation=bool(motion_compensation))
             total_windows = 0
             plans, complete = {}, {}
             for name in names:
@@ -284,7 +276,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 pseudo[name] = None if vectors is not None and not np.any(vectors) else vectors
             geometry = (distance_from == "heads" and len(names) == 2 and bool(rig.baseline_mm)
                         and settings.method == "near" and settings.distance == "photometric")
-            out.attrs["distance_from"] = "two heads' trunk widths and baseline" if geometry else "photometric fit"
+            results.attr("distance_from", "two heads' trunk widths and baseline" if geometry else "photometric fit")
             survey = {}
             if geometry:
                 survey = {name: _survey_windows(complete[name], rig.frame_rate_hz) for name in names}
@@ -302,7 +294,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             if geometry:
                 jobs = [_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name], motion_compensation,
                                  (), binning=factors[name]) for name in names]
-                geometric, offsets = _geometric_pass(out, jobs, rig.baseline_mm, workers,
+                geometric, offsets = _geometric_pass(results, jobs, rig.baseline_mm, workers,
                                                      lambda f: overall(f, sum(len(w) for w in survey.values())))
                 done_before = sum(len(w) for w in survey.values())
             jobs = []
@@ -317,23 +309,14 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             pass_windows = sum(len(plans[n]) for n in names)
             for result in _run_heads(jobs, workers, lambda f: overall(f, pass_windows)):
                 name, head = result.name, rig.heads[result.name]
-                g = out.require_group(f"heads/{name}")
-                g.create_dataset("timestamp_ns", data=result.timestamp_ns)
-                g.create_dataset("frame_index", data=result.frame_index)
-                g.create_dataset("distance_mm", data=result.distance_mm)
-                g.create_dataset("gradient_volume", data=result.gradient_volume)
-                g.create_dataset("valid_pixels", data=result.valid_pixels)
-                g.create_dataset("occluded_side_share", data=result.occluded_side_share)
-                g.create_dataset("side_out_of_view_share", data=result.side_out_of_view_share)
-                g.attrs["ambient_flicker"] = result.ambient_flicker
-                g.attrs["binning"] = np.int64(factors[name])  # the stream's; valid_pixels count its bins
-                m = g.create_group("maps")
-                m.create_dataset("frame_index", data=np.asarray(result.saved_index, dtype=np.int64))
-                shape = (0, head.height, head.width)
-                m.create_dataset("normals", data=np.stack(result.saved_normals) if result.saved_normals
-                                 else np.zeros(shape + (3,), np.float32), compression="gzip")
-                m.create_dataset("depth_mm", data=np.stack(result.saved_depth) if result.saved_depth
-                                 else np.zeros(shape, np.float32), compression="gzip")
+                results.head(name, {"timestamp_ns": result.timestamp_ns, "frame_index": result.frame_index,
+                                    "distance_mm": result.distance_mm, "gradient_volume": result.gradient_volume,
+                                    "valid_pixels": result.valid_pixels,
+                                    "occluded_side_share": result.occluded_side_share,
+                                    "side_out_of_view_share": result.side_out_of_view_share},
+                             # binning: the stream's; valid_pixels count its bins
+                             {"ambient_flicker": result.ambient_flicker, "binning": np.int64(factors[name])},
+                             result.saved_index, result.saved_normals, result.saved_depth, (head.height, head.width))
                 counts[name] = len(result.frame_index)
                 displacements[name] = HeadDisplacements(result.timestamp_ns, result.sums)
                 distances[name] = (float(np.nanmean(result.distance_mm)) if len(result.distance_mm)
@@ -344,20 +327,21 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             refused = (distance_refusal(distances) or coverage_refusal(areas)
                        or occlusion_refusal(occluded, out_of_view))
             if refused is not None:
-                out.attrs["optical_refused"] = refused
+                results.refuse_optical(refused)
             metric = (metric_volume(displacements, rig.baseline_mm) if all(counts.values()) and refused is None
                       else None)
             if metric is not None and metric.refusal() is not None:
                 refused, metric = metric.refusal(), None
-                out.attrs["optical_refused"] = refused
-            if metric is not None and np.isfinite(metric.volume_l).all():  # a trunk in every head's view
-                _write_metric_volume(out, metric, session)
+                results.refuse_optical(refused)
+            in_view = metric is not None and np.isfinite(metric.volume_l).all()  # a trunk in every head's view
+            if in_view:
+                results.metric_volume(metric.timestamp_ns, metric.volume_l, metric.scale_from, metric.heads,
+                                      metric.side_distance_mm, metric.regions, tidal_compartments(session, metric))
             if volume_calibration is not None:
-                _write_regression_volume(out, names, volume_calibration)
-            elif "metric_volume" in out:
-                _write_volume(out, metric.timestamp_ns, metric.volume_l, METRIC_METHOD + metric.scale_from)
-            parameters = out.create_group("parameters")
-            _write_parameters(session_path, parameters, out)
+                _write_regression_volume(results, out, names, volume_calibration)
+            elif in_view:
+                results.volume(metric.timestamp_ns, metric.volume_l, METRIC_METHOD + metric.scale_from)
+            _write_parameters(session_path, results)
     return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances, refused, offsets)
 
 
@@ -546,69 +530,31 @@ def with_true_lights(session: SessionFile) -> RigCalibration:
     return RigCalibration("truth", [session.path.name], heads)
 
 
-def _write_parameters(session_path: str | os.PathLike, parameters: h5py.Group, out: h5py.File) -> None:
+def _write_parameters(session_path: str | os.PathLike, results: ResultsWriter) -> None:
     """Pulmonary function values: from the flow sensor where the session has one (the reference
     instrument), else from /volume (the optical volume in litres); the `source` attribute says
-    which. The optical values are also kept as attributes of /volume, to stand beside the flow
-    sensor's."""
+    which. The optical values are also kept as attributes of /volume, beside the flow sensor's."""
     from core.analysis.session_analysis import analyse_session
 
-    optical = (out["volume/timestamp_ns"][:], out["volume/volume_l"][:]) if "volume" in out else None
-    report = analyse_session(session_path, optical_volume=optical)
+    report = analyse_session(session_path, optical_volume=results.written_volume())
     if report.optical is not None:
-        for key, value in report.optical.parameters().items():
-            out["volume"].attrs[f"parameter_{key}"] = value
+        results.volume_parameters(report.optical.parameters())
     if report.flow_sensor is not None:
-        parameters.attrs["source"] = "flow sensor"
-        chosen = report.flow_sensor
-        t, volume = report.flow_volume
-        g = out.create_group("flow_sensor")
-        g.create_dataset("time_s", data=t)
-        g.create_dataset("volume_l", data=volume)
+        results.parameters("flow sensor", report.flow_sensor.parameters(), report.flow_volume)
     elif report.optical is not None:
-        parameters.attrs["source"] = f"optical: {out['volume'].attrs['method']}"
-        chosen = report.optical
+        results.parameters(f"optical: {results.out['volume'].attrs['method']}", report.optical.parameters())
     else:
-        parameters.attrs["source"] = "none: no flow sensor and no optical volume in litres"
-        return
-    for key, value in chosen.parameters().items():
-        parameters.attrs[key] = value
+        results.parameters("none: no flow sensor and no optical volume in litres", {})
 
 
 METRIC_METHOD = "metric: footprint-weighted displacement in the body frame, scale from the "
 
 
-def _write_volume(out: h5py.File, timestamp_ns: np.ndarray, volume_l: np.ndarray, method: str) -> h5py.Group:
-    g = out.create_group("volume")
-    g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
-    g.create_dataset("volume_l", data=np.asarray(volume_l, dtype=np.float64) - volume_l[0])
-    g.attrs["method"] = method
-    return g
-
-
-def _write_metric_volume(out: h5py.File, metric: MetricVolume, session: SessionFile) -> None:
-    """/metric_volume (an extension of the spec): the metric volume in total, per head and per trunk
-    quadrant, and the distance each head's sides were scaled to; as attributes, each quadrant's
-    share of quiet breathing and the thoraco-abdominal phase angle."""
-    g = out.create_group("metric_volume")
-    g.attrs["scale_from"] = metric.scale_from
-    for key, value in tidal_compartments(session, metric).items():
-        g.attrs[key] = value
-    g.create_dataset("timestamp_ns", data=np.asarray(metric.timestamp_ns, dtype=np.int64))
-    g.create_dataset("volume_l", data=metric.volume_l - metric.volume_l[0])
-    for name, values in metric.heads.items():
-        g.create_dataset(f"heads/{name}/volume_l", data=values - values[0])
-        g.create_dataset(f"heads/{name}/side_distance_mm", data=metric.side_distance_mm[name])
-    for name, values in metric.regions.items():
-        g.create_dataset(f"regions/{name}/volume_l", data=values - values[0])
-
-
-def _write_regression_volume(out: h5py.File, heads: list[str], calibration) -> None:
+def _write_regression_volume(results: ResultsWriter, out: h5py.File, heads: list[str], calibration) -> None:
     """/volume from the thesis' regression (eqs 5.1-5.3) on the gradient volume, pixels and distance."""
     from core.calibration.spirometer import regression_features
 
     t, features = regression_features(lambda head, name: out[f"heads/{head}/{name}"][:], heads)
-    g = _write_volume(out, t, calibration.volume_l(features),
-                      "thesis regression (eqs 5.1-5.3) on gradient volume, valid pixels and distance")
-    g.attrs["calibration_created"] = calibration.created
-    g.attrs["calibration_sessions"] = ",".join(calibration.sessions)
+    results.volume(t, calibration.volume_l(features),
+                   "thesis regression (eqs 5.1-5.3) on gradient volume, valid pixels and distance",
+                   calibration_created=calibration.created, calibration_sessions=",".join(calibration.sessions))
