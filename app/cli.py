@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_analyze(sub)
     add_batch(sub)
     try:
-        from app.bench import add_bench
+        from app.benchmarks.bench import add_bench
     except ImportError:  # the bundled application ships without the benchmarks (a source checkout has them)
         add_bench = None
     if add_bench is not None:

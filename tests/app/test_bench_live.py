@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from app.bench_live import run_live_bench
+from app.benchmarks.live import run_live_bench
 
 
 @pytest.mark.slow

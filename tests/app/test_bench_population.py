@@ -6,8 +6,8 @@ from __future__ import annotations
 import cv2
 import pytest
 
-from app.bench import SHARED
-from app.bench_population import agreement, run_population_bench
+from app.benchmarks.bench import SHARED
+from app.benchmarks.population import agreement, run_population_bench
 
 
 @pytest.mark.slow

@@ -18,7 +18,7 @@ from app.args import finite, positive
 
 # The benches write their tables into the repository's docs/benchmarks.md: only from a source
 # checkout (an installed or bundled application has no docs/ to write to, and reads nothing there)
-_CHECKOUT = Path(__file__).resolve().parents[1]
+_CHECKOUT = Path(__file__).resolve().parents[2]
 DOCS = _CHECKOUT / "docs" / "benchmarks.md"
 
 
@@ -28,7 +28,7 @@ SHAPES = ("sphere", "torso", "vase", "relief")
 DISTANCES = (1800, 1900, 2000, 2100, 2200)
 # The project's reference data, beside the checkout (never shipped with the application).
 # ../shared beside the checkout, or where PHOTOPFT_SHARED says (as the tests read it)
-SHARED = Path(os.environ.get("PHOTOPFT_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+SHARED = Path(os.environ.get("PHOTOPFT_SHARED", Path(__file__).resolve().parents[3] / "shared"))
 DILIGENT_BEAR = SHARED / "data" / "diligent-integration" / "bear"
 
 
@@ -376,7 +376,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     vol.add_argument("--no-write", action="store_true", help="print only")
 
     def run_volume(args: argparse.Namespace) -> int:
-        from app.bench_volume import run_volume_bench
+        from app.benchmarks.volume import run_volume_bench
 
         text = run_volume_bench(args.scale, args.seconds, every=args.every, world=args.world)
         section = "volume" if args.world == "ideal" else f"volume-{args.world}"
@@ -393,7 +393,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     pr.add_argument("--no-write", action="store_true", help="print only")
 
     def run_process(args: argparse.Namespace) -> int:
-        from app.bench_process import run_process_bench
+        from app.benchmarks.process import run_process_bench
 
         counts = (tuple(int(w) for w in args.workers.split(",")) if args.workers
                   else tuple(range(1, min(os.cpu_count() or 1, 2) + 1)))
@@ -418,7 +418,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     po.add_argument("--no-write", action="store_true", help="print only")
 
     def run_population(args: argparse.Namespace) -> int:
-        from app.bench_population import run_population_bench
+        from app.benchmarks.population import run_population_bench
 
         if args.subjects < 1:
             from app.errors import UserError
@@ -427,7 +427,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         subjects = 2 if args.quick else args.subjects
         workers = max(1, min(subjects, args.workers or os.cpu_count() or 1))
         images = None if args.no_write or not in_checkout() else DOCS.parent / "images"
-        from app.bench_population import MAX_SHEEN
+        from app.benchmarks.population import MAX_SHEEN
 
         sheen = MAX_SHEEN if args.max_sheen is None else args.max_sheen
         text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images,
@@ -445,7 +445,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     lv.add_argument("--no-write", action="store_true", help="print only")
 
     def run_live(args: argparse.Namespace) -> int:
-        from app.bench_live import run_live_bench
+        from app.benchmarks.live import run_live_bench
 
         text, _ = run_live_bench(args.seconds, args.scale, args.seed)
         return _publish(args, f"live-{args.scale:g}", f"Live volume (`photopft bench live --seconds {args.seconds:g} "
@@ -461,7 +461,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     li.add_argument("--no-write", action="store_true", help="print only")
 
     def run_lights(args: argparse.Namespace) -> int:
-        from app.bench_lights import run_lights_bench
+        from app.benchmarks.lights import run_lights_bench
 
         if args.rigs < 1:
             from app.errors import UserError
@@ -479,7 +479,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     co.add_argument("--no-write", action="store_true", help="print only")
 
     def run_compression(args: argparse.Namespace) -> int:
-        from app.bench_compression import run_compression_bench
+        from app.benchmarks.compression import run_compression_bench
 
         text = run_compression_bench(args.scale, max(1, args.frames))
         return _publish(args, "compression", "Compression (`photopft bench compression`"
@@ -498,7 +498,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     gui.add_argument("--no-write", action="store_true", help="print only")
 
     def run_gui(args: argparse.Namespace) -> int:
-        from app.gui.bench_gui import run_gui_bench
+        from app.benchmarks.gui import run_gui_bench
 
         text = run_gui_bench(args.scale, args.seconds, not args.no_record, args.warmup, args.loop)
         return _publish(args, f"gui-{args.scale:g}-{'live' if args.no_record else 'recording'}"

@@ -1,6 +1,6 @@
 """`photopft bench lights`: the light calibration of rigs as built, against their truth.
 
-Each rig is drawn as the population bench draws them (app/bench_population.py: LEDs 0-15 mm off
+Each rig is drawn as the population bench draws them (app/benchmarks/population.py: LEDs 0-15 mm off
 the drawing, and the clinic world's cos^mu falloff with tilted axes, intensity spread, drift,
 mains flicker, lens distortion and vignetting). Its sphere sessions are simulated as the
 calibration wizard records them and calibrated as a user would (core/calibration/light_sessions.py): from
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.bench_population import VirtualSubject, draw_subjects, light_errors, lights_truth, sphere_sessions
+from app.benchmarks.population import VirtualSubject, draw_subjects, light_errors, lights_truth, sphere_sessions
 
 WITHIN_MM = 5.0
 
