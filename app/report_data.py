@@ -367,6 +367,28 @@ def _patient(records: Records | None, subject) -> Patient | None:
     return records.patient_by_pseudonym(subject.id)
 
 
+def _read_back(results_path: Path, parameters: dict[str, dict]) -> list[str]:
+    """The values stored by `process` go in the table (so the report says what the results file
+    says); where this version's analysis of the same curves gives another number, a note says which
+    and that processing the session again brings the file up to date."""
+    with ResultsFile(results_path) as r:
+        stored = r.stored_values()
+    differ = []
+    for src, values in parameters.items():
+        for key, value in stored.get(src, {}).items():
+            now = values.get(key)
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
+                continue
+            if isinstance(now, (int, float, np.number)) and abs(float(now) - float(value)) > 1e-6 * max(1.0, abs(float(value))):
+                differ.append(f"{src} {key} {float(value):.3f} stored, {float(now):.3f} now")
+            values[key] = value.item() if isinstance(value, np.generic) else value
+    if not differ:
+        return []
+    return [f"The values are those stored when the session was processed; this version analyses the same curves "
+            f"differently ({'; '.join(differ[:4])}{' ...' if len(differ) > 4 else ''}): process the session again "
+            "to bring the results file up to date."]
+
+
 def build_report(path: str | os.PathLike, *, records: Records | None = None, equations: str = "gli-global",
                  with_maps: bool = True, settings: ReconstructionSettings | None = None) -> ReportData:
     """Everything the report shows, for a session file or a results file."""
@@ -401,6 +423,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
         elif analysed.reference_problem:
             notes.append(f"No predicted values: {analysed.reference_problem}")
         parameters = {src: v.parameters() for src, v in sources.items()}
+        if results_path is not None:
+            notes += _read_back(results_path, parameters)
 
         def by_source(key: str) -> dict[str, float]:
             return {src: float(p[key]) for src, p in parameters.items() if key in p}

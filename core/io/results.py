@@ -180,6 +180,18 @@ class ResultsFile:
         """The stored pulmonary function values (/parameters), with their `source`."""
         return dict(self._f["parameters"].attrs) if "parameters" in self._f else {}
 
+    def stored_values(self) -> dict[str, dict]:
+        """The values `process` stored, by source: "flow sensor" (/parameters, where that was its
+        source) and "optical" (/volume's parameter_* attributes)."""
+        out: dict[str, dict] = {}
+        stored = self.parameters()
+        if stored.get("source") == "flow sensor":
+            out["flow sensor"] = {k: v for k, v in stored.items() if k != "source"}
+        optical = {k.removeprefix("parameter_"): v for k, v in self.volume_attrs().items() if k.startswith("parameter_")}
+        if optical:
+            out["optical"] = optical
+        return out
+
 
 def optical_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
     """A results file's /volume as (timestamp_ns, litres), or None if it has none."""

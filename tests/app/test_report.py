@@ -130,3 +130,25 @@ def test_a_missing_or_broken_input_is_named(tmp_path, capsys):
     assert main(["report", str(broken), "-o", str(tmp_path / "x.pdf")]) == 2
     assert "broken.h5" in capsys.readouterr().err
     assert not (tmp_path / "x.pdf").exists()
+
+
+def test_the_report_reads_the_stored_values_back_and_says_when_they_have_aged(processed_full_session, tmp_path):
+    """The table holds what the results file holds; where this version's analysis of the same
+    curves gives another number, a note says so and asks for the session to be processed again."""
+    import shutil
+
+    from app.report_data import build_report
+
+    session, results = processed_full_session
+    fresh = build_report(results, with_maps=False)
+    assert not any("stored when the session was processed" in n for n in fresh.notes)
+    aged = tmp_path / "aged.h5"
+    shutil.copy(results, aged)
+    shutil.copy(session, tmp_path / session.name)  # found beside the results file
+    with h5py.File(aged, "r+") as r:
+        r["parameters"].attrs["FVC_l"] = 3.333
+    report = build_report(aged, with_maps=False)
+    fvc = next(row for row in report.rows if row.key == "FVC_l")
+    assert fvc.values["flow sensor"] == 3.333
+    note = next(n for n in report.notes if "stored when the session was processed" in n)
+    assert "flow sensor FVC_l 3.333 stored" in note and "process the session again" in note
