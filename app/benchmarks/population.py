@@ -396,8 +396,20 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
 def _run_job(job: tuple) -> dict:
     arguments, kept = job
     row = run_subject(*arguments)
+    row["commit"] = source_commit()
     _keep(kept, row)
     return row
+
+
+def source_commit() -> str:
+    """The checkout's commit the subject was run with (kept rows may come from several)."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).resolve().parents[2],
+                              capture_output=True, text=True, timeout=10).stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
 
 
 def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[Path], elapsed: float,
@@ -446,6 +458,7 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
     lines += ["", f"{len(refused)} of {len(rows)} subjects refused before analysis. Run time {elapsed:.0f} s with "
               f"{workers} subject(s) at once on {os.cpu_count()} cores"
               + (f" ({resumed} subjects kept from an earlier run of the same bench)" if resumed else "")
+              + (f"; subjects run at commit(s) {', '.join(sorted({r.get('commit', 'unknown') for r in rows}))}")
               + (f"; {np.median(subject_seconds):.0f} s per subject (median)." if subject_seconds else ".")]
     if pngs:
         lines += ["", "Bland-Altman plots: " + ", ".join(f"![{p.stem}](images/{p.name})" for p in pngs)]
