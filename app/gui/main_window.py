@@ -414,18 +414,21 @@ class MainWindow(QMainWindow):
     def spirometer_calibration(self) -> None:
         from app.gui.wizards.spirometer import RigFlowBench, SimulatedFlowBench, SpirometerCalibrationWizard
 
-        if not self.has_engine():
-            return
-        if self.info.replay:
-            show_error(self, "The spirometer is calibrated on the rig, not on a replay.",
-                       "Session > Live rig goes back to the rig first.")
-            return
-        if self._may_calibrate():
+        if self._on_the_rig("The spirometer is calibrated") and self._may_calibrate():
             bench = SimulatedFlowBench() if self.info.simulated else RigFlowBench(self.engine)
             wizard = SpirometerCalibrationWizard(self, bench, profile_dir=self.profile_dir())
             if wizard.exec() and wizard.saved:
                 self.calibration_changed("Spirometer calibration saved and in force: "
                                          + ", ".join(p.name for p in wizard.saved))
+
+    def _on_the_rig(self, what: str) -> bool:
+        """A rig is running, not a replay; otherwise the operator is told where to go."""
+        if not self.has_engine():
+            return False
+        if self.info.replay:
+            show_error(self, f"{what} on the rig, not on a replay.", "Session > Live rig goes back to the rig first.")
+            return False
+        return True
 
     def profile_dir(self) -> Path:
         from app.calibration_store import calibration_dir
@@ -447,11 +450,7 @@ class MainWindow(QMainWindow):
     def syringe_check(self) -> None:
         from app.gui.syringe_check import RigSyringe, SimulatedSyringe, SyringeCheckDialog
 
-        if not self.has_engine():
-            return
-        if self.info.replay:
-            show_error(self, "The syringe check is done on the rig, not on a replay.",
-                       "Session > Live rig goes back to the rig first.")
+        if not self._on_the_rig("The syringe check is done"):
             return
         bench = SimulatedSyringe() if self.info.simulated else RigSyringe(self.engine)
         flow_from = self.info.calibration.split("flow sensor: ")[-1] if "flow sensor: " in self.info.calibration else ""

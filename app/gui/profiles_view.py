@@ -4,6 +4,7 @@ its date, the ones it replaced, and putting one of those back (engineer; logged)
 from __future__ import annotations
 
 import json
+from contextlib import nullcontext
 from pathlib import Path
 
 from PySide6.QtWidgets import (QDialog, QDialogButtonBox, QHBoxLayout, QLabel, QListWidget, QListWidgetItem,
@@ -72,11 +73,8 @@ class ProfilesWindow(QDialog):
             show_error(self, "You may not change the rig's calibration.", str(exc))
             return
         try:
-            if records is not None:
-                with records:
-                    self.restored = restore(self.rig_name, Path(item.data(256)), records)
-            else:
-                self.restored = restore(self.rig_name, Path(item.data(256)))
+            with records or nullcontext():
+                self.restored = restore(self.rig_name, Path(item.data(256)), records)
         except (OSError, ValueError) as exc:
             show_error(self, "That profile cannot be put back.", str(exc))
             return

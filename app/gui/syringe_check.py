@@ -5,6 +5,7 @@ in and out, at different speeds; each stroke's volume from the flow line in forc
 from __future__ import annotations
 
 import time
+from contextlib import nullcontext
 
 import numpy as np
 from PySide6.QtGui import QColor
@@ -163,11 +164,8 @@ class SyringeCheckDialog(QDialog):
             show_error(self, "The check cannot be logged.", str(exc))
             return
         try:
-            if records is not None:
-                with records:
-                    self.saved = log_syringe_check(self.rig_name, self.check, self.flow_from, records)
-            else:
-                self.saved = log_syringe_check(self.rig_name, self.check, self.flow_from)
+            with records or nullcontext():
+                self.saved = log_syringe_check(self.rig_name, self.check, self.flow_from, records)
         except OSError as exc:
             show_error(self, "The check cannot be logged.", f"{exc}. Check the folder's permissions.")
             return
