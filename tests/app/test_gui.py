@@ -465,3 +465,28 @@ def test_the_daily_syringe_check_is_judged_and_logged(qtbot, tmp_path, monkeypat
     assert [c["passed"] for c in checks] == [False, True] and len(checks[1]["volumes_l"]) == 6
     text, due = syringe_status("simulated")
     assert text.startswith("3 L syringe check: passed at") and not due
+
+
+def test_an_earlier_profile_is_put_back_in_force_from_the_profiles_window(qtbot, tmp_path, monkeypatch):
+    from app.calibration_store import RIG_PROFILE, calibration_dir, history, keep_previous
+    from app.gui.profiles_view import ProfilesWindow
+    from core.calibration.rig_profile import HeadCalibration, RigCalibration
+    from core.rig import thesis_rig
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
+    folder = calibration_dir("simulated")
+    folder.mkdir(parents=True)
+    heads = {n: HeadCalibration(h.light_positions_mm, np.ones(4), np.zeros((4, 3)), np.zeros(4), np.zeros((4, 3)))
+             for n, h in thesis_rig(0.1).heads.items()}
+    RigCalibration("2026-10-01T08:00:00+00:00", [], heads).save(folder / RIG_PROFILE)
+    keep_previous(folder / RIG_PROFILE)
+    RigCalibration("2026-11-20T08:00:00+00:00", [], heads).save(folder / RIG_PROFILE)
+    window = ProfilesWindow(None, "simulated", "lights: rig-calibration.json of 2026-11-20 08:00")
+    qtbot.addWidget(window)
+    earlier = window.lists[RIG_PROFILE]
+    assert earlier.count() == 1 and earlier.item(0).text().startswith("2026-10-01 08:00")
+    earlier.setCurrentRow(0)
+    window._restore(earlier)
+    assert window.restored == folder / RIG_PROFILE
+    assert json.loads((folder / RIG_PROFILE).read_text())["created"].startswith("2026-10-01")
+    assert len(history("simulated", RIG_PROFILE)) == 2  # the one it replaced is kept
