@@ -27,18 +27,6 @@ class AssembledRig:
     flow_from: str = ""
 
 
-def camera_settings(config: RigConfig):
-    """The rig file's [camera] table as the cameras take it."""
-    from drivers.camera import CameraSettings
-
-    cam = config.camera
-    return CameraSettings(width=cam.get("width"), height=cam.get("height"), offset_x=int(cam.get("offset_x", 0)),
-                          offset_y=int(cam.get("offset_y", 0)), binning=int(cam.get("binning", 1)),
-                          pixel_format=cam.get("pixel_format", "Mono12"),
-                          exposure_us=float(cam.get("exposure_us", 1000.0)),
-                          frame_rate_hz=float(cam.get("frame_rate_hz", 110.0)), trigger=cam.get("trigger", "free"))
-
-
 def simulated_rig(heads: tuple[str, ...] = ("front", "back"), scale: float = 0.25, seed: int = 1,
                   protocol: str = "tidal", seconds: float = 1800.0, frame_rate_hz: float = 110.0,
                   loop_cycles: int = 0, with_flow: bool = True) -> AssembledRig:
@@ -68,7 +56,7 @@ def hardware_rig(config: RigConfig, stack: ExitStack) -> AssembledRig:
     from drivers.rig import camera_head
     from drivers.sequencer import Sequencer, SequencerEmulator
 
-    settings = camera_settings(config)
+    settings = config.camera
     cameras, heads = {}, {}
     for head, identifier in config.cameras.items():
         camera = AravisCamera(identifier, name=f"{head} ({identifier})")
@@ -122,7 +110,7 @@ def assemble_rig(config: RigConfig, stack: ExitStack, scale: float | None = None
         sim = config.simulation
         assembled = simulated_rig(tuple(config.cameras), scale or float(sim.get("scale", 0.25)),
                                   int(sim.get("seed", 1)), sim.get("protocol", "tidal"), seconds,
-                                  float(config.camera.get("frame_rate_hz", 110.0)), loop_cycles,
+                                  config.camera.frame_rate_hz, loop_cycles,
                                   with_flow=config.flow_port is not None)
     else:
         assembled = hardware_rig(config, stack)

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from core.rig import Head, thesis_head
+from drivers.camera import CameraSettings
 
 RIGS = Path(__file__).resolve().parents[1] / "resources" / "rigs"
 DEFAULT_RIG = RIGS / "simulated.toml"
@@ -77,7 +78,7 @@ class RigConfig:
     flow_port: str | None
     flow_gain_lps: float | None
     flow_offset_lps: float | None
-    camera: dict[str, Any] = field(default_factory=dict)
+    camera: CameraSettings = field(default_factory=CameraSettings)  # [camera], parsed and checked once
     simulation: dict[str, Any] = field(default_factory=dict)
     calibration: Path | None = None
     optics: dict[str, dict[str, Any]] = field(default_factory=dict)  # head -> lens and sensor (see template.toml)
@@ -160,7 +161,8 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
         raise RigConfigError(f"{path}: [recording] compression must be one of {', '.join(FRAME_COMPRESSION)}, found "
                              f"{compression!r}")
     return RigConfig(path, str(data.get("name", path.stem)), cameras, str(sequencer), flow_port,
-                     None if gain is None else float(gain), None if offset is None else float(offset), camera,
+                     None if gain is None else float(gain), None if offset is None else float(offset),
+                     _camera_settings(camera),
                      simulation, Path(calibration) if calibration else None, optics, float(mains), compression)
 
 
@@ -190,6 +192,16 @@ def _optics(path: Path, name: str, head: dict) -> dict[str, Any]:
                                  f"[k1, k2, p1, p2, k3], found {coeffs!r}")
         optics["dist_coeffs"] = [float(c) for c in coeffs]
     return optics
+
+
+def _camera_settings(camera: dict[str, Any]) -> CameraSettings:
+    """The [camera] table (checked by load_rig_config) as the cameras take it."""
+    return CameraSettings(width=camera.get("width"), height=camera.get("height"),
+                          offset_x=int(camera.get("offset_x", 0)), offset_y=int(camera.get("offset_y", 0)),
+                          binning=int(camera.get("binning", 1)), pixel_format=camera.get("pixel_format", "Mono12"),
+                          exposure_us=float(camera.get("exposure_us", 1000.0)),
+                          frame_rate_hz=float(camera.get("frame_rate_hz", 110.0)),
+                          trigger=camera.get("trigger", "free"))
 
 
 def camera_head(name: str, optics: dict[str, Any], sensor_size: tuple[int, int],

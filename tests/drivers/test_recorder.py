@@ -17,7 +17,7 @@ def test_shipped_rig_configs_load():
     fake = load_rig_config(DEFAULT_RIG.parent / "fake-gige.toml")
     assert fake.cameras == {"front": "FRONT01", "back": "BACK01"} and fake.sequencer_port == "emulator"
     template = load_rig_config(DEFAULT_RIG.parent / "template.toml")
-    assert template.camera["trigger"] == "line"
+    assert template.camera.trigger == "line"
     assert template.optics["front"] == {"focal_length_mm": 25.0, "pixel_size_um": 7.4}
 
 
