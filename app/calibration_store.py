@@ -23,7 +23,8 @@ FLOW_PROFILE = "flow-calibration.json"
 VOLUME_PROFILE = "volume-calibration.json"
 
 
-PROFILES = {RIG_PROFILE: "lights (sphere calibration)", FLOW_PROFILE: "flow sensor", VOLUME_PROFILE: "volume regression"}
+PROFILES = {RIG_PROFILE: "lights (sphere calibration)", FLOW_PROFILE: "flow sensor",
+            VOLUME_PROFILE: "volume regression"}
 
 
 def calibration_dir(rig_name: str = "simulated") -> Path:
@@ -69,7 +70,8 @@ def restore(rig_name: str, kept: Path, records: Records | None = None) -> Path:
     target.with_suffix(".part").replace(target)
     if records is not None:
         records.log("calibration saved", str(target.resolve()),
-                    {"kind": PROFILES[kind], "restored_from": str(kept), "previous": str(previous) if previous else None})
+                    {"kind": PROFILES[kind], "restored_from": str(kept),
+                     "previous": str(previous) if previous else None})
     return target
 
 

@@ -32,7 +32,8 @@ def calibration_in_force(info: EngineInfo) -> str:
 
     if info.replay:
         stamps = {h.calibrated for h in info.rig.heads.values() if h.calibrated}
-        return f"as recorded (lights calibrated {min(stamps)[:10]})" if stamps else "as recorded (lights not calibrated)"
+        return (f"as recorded (lights calibrated {min(stamps)[:10]})" if stamps
+                else "as recorded (lights not calibrated)")
     from app.calibration_store import syringe_status
 
     text = info.calibration or "lights as the rig file gives them"
