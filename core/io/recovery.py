@@ -125,6 +125,17 @@ def _written_prefix(timestamp_ns: np.ndarray) -> int:
     return int(bad[0]) + 1 if len(bad) else n
 
 
+def _same_filter(dataset: h5py.Dataset) -> dict:
+    """The copy compressed as the original was: Blosc (the recorder's frames) or HDF5's own."""
+    from core.io.session import frame_filter
+
+    if "32001" in dataset._filters:  # h5py names a plugin filter by its id
+        return frame_filter("blosc-lz4")
+    if dataset.compression:
+        return {"compression": dataset.compression, "compression_opts": dataset.compression_opts}
+    return {}
+
+
 def _copy_readable(source: h5py.Group, target: h5py.Group, keys: tuple[str, ...], limit: int,
                    entry_written: Callable[[dict, int], bool] | None = None) -> int:
     """Copies the keys' leading entries in one pass, block by block and all keys alike: up to
@@ -133,7 +144,7 @@ def _copy_readable(source: h5py.Group, target: h5py.Group, keys: tuple[str, ...]
     `entry_written` tested from the end). Returns how many were kept."""
     sources = {k: source[k] for k in keys}
     copies = {k: target.create_dataset(k, shape=(0,) + d.shape[1:], dtype=d.dtype, maxshape=(None,) + d.shape[1:],
-                                       chunks=d.chunks) for k, d in sources.items()}
+                                       chunks=d.chunks, **_same_filter(d)) for k, d in sources.items()}
     n = 0
     while n < limit:
         stop = min(n + BLOCK, limit)

@@ -57,6 +57,8 @@ def test_sigkill_mid_recording_keeps_the_data(tmp_path):
         adc, stamps = s.flow_samples()
         assert len(adc) > 500
         assert "recovered" in s.attrs
+    with h5py.File(out, "r") as f:  # the copy is compressed as the recording was
+        assert all("32001" in f[f"heads/{h}/frames"]._filters for h in ("front", "back"))
     assert time.monotonic() - killed_at < 60
 
 
