@@ -58,6 +58,7 @@ class Source:
     simulated: object | None = None  # drivers.simulated.SimulatedRigState: a subject that follows prompts
     compression: str = "blosc-lz4"  # the frames' lossless filter when recording (the rig file's [recording])
     calibration: str = ""  # the calibrations in force, in words (drivers/assembly.py)
+    flow_from: str = ""  # where the flow line in force comes from (drivers/assembly.py)
     replay_clock: _ReplayClock | None = None  # a replay's position, pause and seek
 
 
@@ -78,7 +79,8 @@ def _source(assembled, name: str, closers: list | None = None) -> Source:
     return Source(assembled.rig, assembled.cameras, assembled.flow, assembled.lights, assembled.flow_calibration,
                   name, closers=closers or [], simulated=assembled.simulated,
                   calibration=f"lights: {assembled.lights_from}"
-                  + (f"; flow sensor: {assembled.flow_from}" if assembled.flow_from else ""))
+                  + (f"; flow sensor: {assembled.flow_from}" if assembled.flow_from else ""),
+                  flow_from=assembled.flow_from)
 
 
 class _FileCamera:
@@ -317,6 +319,7 @@ class EngineInfo:
     simulated: bool  # the simulated rig: its subject follows the operator's prompts (LiveRig.perform)
     calibration: str = ""  # the calibrations in force, in words; "" for a replay (the file's /rig holds them)
     flow_calibration: tuple[float, float] | None = None  # the flow line in force (gain, offset L/s)
+    flow_from: str = ""  # where that line comes from
 
 
 class _Rate:
@@ -360,7 +363,7 @@ class LiveRig:
         self._metric_curve = collections.deque(maxlen=n)
         self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
         self._recent_flow: collections.deque = collections.deque(maxlen=9000)  # (arrival ns, block), ~90 s
-        self._blow_drift_lps: dict[int, float] = {}  # the flow sensor's drift at a blow's mark
+        self._blow_drift: tuple[int, float] | None = None  # (a blow's mark, the flow sensor's drift there, L/s)
         self._flow_state = {"volume": 0.0, "last_ns": None, "means": collections.deque(maxlen=3000), "sum": 0.0}
         self._problems: list[str] = []
         self._t0: int | None = None
@@ -426,7 +429,7 @@ class LiveRig:
     def info(self) -> EngineInfo:
         s = self.source
         return EngineInfo(self.rig, tuple(s.cameras), s.name, s.replay, s.simulated is not None, s.calibration,
-                          s.flow_calibration)
+                          s.flow_calibration, s.flow_from)
 
     def flow_adc_mean(self, seconds: float = 2.0) -> float:
         """The flow sensor's mean raw reading (ADC counts) over the next `seconds`: a steady flow
@@ -539,9 +542,9 @@ class LiveRig:
 
         out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         from_ns = mark_ns - int(before_s * 1e9)
-        if mark_ns not in self._blow_drift_lps:
+        if self._blow_drift is None or self._blow_drift[0] != mark_ns:
             recorded = self._recorded_volume()
-            self._blow_drift_lps = {mark_ns: float(recorded[0].drift_lps[-1]) if recorded is not None else 0.0}
+            self._blow_drift = (mark_ns, float(recorded[0].drift_lps[-1]) if recorded is not None else 0.0)
         with self._lock:
             adc, stamps = self._recorded_flow.samples() if self._recorder is not None else (np.zeros(0), np.zeros(0))
             metric = np.array(self._metric_curve, dtype=float).reshape(-1, 2)
@@ -550,7 +553,7 @@ class LiveRig:
             adc, stamps = adc[keep], stamps[keep]
             if len(stamps) > 20:
                 gain, offset = self.source.flow_calibration
-                drift = self._blow_drift_lps[mark_ns]
+                drift = self._blow_drift[1]
                 volume = flow_sensor_volume(adc, stamps, gain, offset - drift / self._btps, self._btps, drift_degree=0)
                 step = max(1, len(stamps) // max(1, int((stamps[-1] - stamps[0]) / 1e7)))  # about 100 per second
                 out["flow sensor"] = ((volume.timestamp_ns[::step] - mark_ns) / 1e9, volume.volume_l[::step])

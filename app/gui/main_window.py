@@ -30,8 +30,8 @@ def calibration_in_force(info: EngineInfo) -> str:
     """The calibrations in force on the source, and the age of the lights' (a replay: as recorded)."""
     from datetime import datetime, timezone
 
+    stamps = {h.calibrated for h in info.rig.heads.values() if h.calibrated}
     if info.replay:
-        stamps = {h.calibrated for h in info.rig.heads.values() if h.calibrated}
         return (f"as recorded (lights calibrated {min(stamps)[:10]})" if stamps
                 else "as recorded (lights not calibrated)")
     from app.calibration_store import syringe_status
@@ -39,7 +39,6 @@ def calibration_in_force(info: EngineInfo) -> str:
     text = info.calibration or "lights as the rig file gives them"
     if info.flow_calibration is not None:
         text += "; " + syringe_status(info.rig.name)[0]
-    stamps = {h.calibrated for h in info.rig.heads.values() if h.calibrated}
     if stamps:
         try:
             days = (datetime.now(timezone.utc) - datetime.fromisoformat(min(stamps))).total_seconds() / 86400
@@ -454,8 +453,7 @@ class MainWindow(QMainWindow):
         if not self._on_the_rig("The syringe check is done"):
             return
         bench = SimulatedSyringe() if self.info.simulated else RigSyringe(self.engine)
-        flow_from = self.info.calibration.split("flow sensor: ")[-1] if "flow sensor: " in self.info.calibration else ""
-        dialog = SyringeCheckDialog(self, bench, self.info.flow_calibration, self.info.rig.name, flow_from)
+        dialog = SyringeCheckDialog(self, bench, self.info.flow_calibration, self.info.rig.name, self.info.flow_from)
         if dialog.exec() and dialog.saved is not None:
             self.calibration_text = calibration_in_force(self.info)
             self.statusBar().showMessage(f"Syringe check logged: {dialog.saved['verdict']}", 10000)
