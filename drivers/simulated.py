@@ -57,9 +57,9 @@ class SimulatedRigState:
         rng = np.random.default_rng(self.config.seed + int(self.now_s() * 1000))
         subject = self.config.subject
         if manoeuvre == "vc":
-            samples, _ = slow_vc(subject, rng, lead_breaths=0)
+            samples, _ = slow_vc(subject, rng, lead_count=0)
         elif manoeuvre == "forced":
-            samples, _ = forced(subject, blow or ForcedBlow(), rng, lead_breaths=0)
+            samples, _ = forced(subject, blow or ForcedBlow(), rng, lead_count=0)
         else:
             raise ValueError(f"unknown manoeuvre {manoeuvre!r}: vc or forced")
         self.waveform.splice(self.now_s() + 0.3, samples, tidal(subject, 600.0, rng))

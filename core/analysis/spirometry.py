@@ -15,6 +15,10 @@ import numpy as np
 
 PEF_WINDOW_S = 0.08  # ATS/ERS: the steepest slope for back-extrapolation over an 80 ms window
 PLATEAU_L = 0.025  # end of forced expiration: less than this in the last second
+# The exhalation ends where the volume first comes within this of its largest value: the sensor's
+# noise on a flat end (a closed glottis, a held breath) then cannot move the end later and make the
+# last second look like a plateau.
+END_OF_EXHALATION_L = 0.001
 REPEATABILITY_L = 0.150
 COUGH_REBOUND_OF_PEF = 0.2  # flow rising again after PEF by this fraction of PEF, in the first second
 
@@ -69,6 +73,13 @@ class ForcedValues:
 MIN_BLOW_L = 0.1  # below this there is no blow to grade (a small child's FVC is about 1 L)
 
 
+def end_of_exhalation(exhaled_l: np.ndarray) -> int:
+    """Index of the end of the exhalation: the first sample within END_OF_EXHALATION_L of the
+    largest exhaled volume."""
+    exhaled_l = np.asarray(exhaled_l, dtype=float)
+    return int(np.argmax(exhaled_l >= exhaled_l.max() - END_OF_EXHALATION_L))
+
+
 def _at(t: np.ndarray, values: np.ndarray, when: float) -> float:
     return float(np.interp(when, t, values))
 
@@ -99,7 +110,7 @@ def forced_values(volume_l: np.ndarray, rate_hz: float) -> ForcedValues:
     time_zero = t_mid - v_mid / slope
     bev = _at(t, v, time_zero) if time_zero > 0 else 0.0
     fvc = float(v.max())
-    end_index = int(np.argmax(v >= fvc - 1e-9))
+    end_index = end_of_exhalation(v)
     t_end = t[end_index]
     fet = t_end - time_zero
     last = t >= t_end - 1.0

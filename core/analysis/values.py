@@ -29,6 +29,7 @@ class TidalValues:
     tptef_te: float  # time to peak tidal expiratory flow over expiratory time
     ie50: float  # inspiratory over expiratory flow at half the tidal volume
     end_expiratory_level_l: float
+    sighs: int = 0  # breaths of twice the median tidal volume or more, left out of the values above
 
 
 # Slow VC (ATS/ERS 2005, lung volumes): the exhalation ends on a plateau, and the two largest
@@ -86,7 +87,7 @@ class SessionValues:
             t = self.tidal
             out.update(TV_l=t.tidal_volume_l, RR_bpm=t.respiratory_rate_bpm, VE_lpm=t.minute_ventilation_lpm,
                        Ti_s=t.inspiratory_time_s, Te_s=t.expiratory_time_s, IE_ratio=t.ie_ratio,
-                       tPTEF_tE=t.tptef_te, IE50=t.ie50, breaths=t.breaths)
+                       tPTEF_tE=t.tptef_te, IE50=t.ie50, breaths=t.breaths, sighs=t.sighs)
         if self.vital_capacity is not None:
             v = self.vital_capacity
             out.update(VC_l=v.vc_l, IC_l=v.ic_l, ERV_l=v.erv_l, IRV_l=v.irv_l, VC_manoeuvres=len(self.vc_manoeuvres),
@@ -158,6 +159,9 @@ def _without_wiggles(smooth: np.ndarray, minima: np.ndarray) -> np.ndarray:
 # Quiet breathing expires longer than it inspires: a "breath" with Te under 0.3 Ti is the rise into a
 # manoeuvre, not a breath (docs/benchmarks.md, constants).
 MIN_EXPIRATION_PER_INSPIRATION = 0.3
+# A breath starts and ends near one end-expiratory level: minima further apart than half the
+# breath's volume are a stretch cut mid-breath (a window opening during an inspiration), not a breath.
+MAX_LEVEL_CHANGE_OF_TIDAL = 0.5
 
 
 def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: int,
@@ -169,6 +173,8 @@ def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: 
         return None
     ti, te = t[peak] - t[a], t[b] - t[peak]
     if te < MIN_EXPIRATION_PER_INSPIRATION * ti:  # a rise cut off by the stretch's end, not a breath
+        return None
+    if abs(smooth[a] - smooth[b]) > MAX_LEVEL_CHANGE_OF_TIDAL * vt:
         return None
     tptef = int(np.argmin(flow[peak:b])) / ANALYSIS_RATE_HZ / te
     half = smooth[a] + 0.5 * vt
@@ -200,11 +206,22 @@ def tidal_stretches(t_s: np.ndarray, volume_l: np.ndarray,
     return out
 
 
+# A sigh is a breath of at least twice the median tidal volume (Bendixen et al. 1964; the usual
+# definition in tidal breathing analysis): it is counted, and left out of the tidal values.
+SIGH_OF_MEDIAN = 2.0
+
+
 def tidal_values(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: float = 1.2,
                  min_tidal_l: float = 0.08) -> TidalValues | None:
-    """Breaths between consecutive end-expiratory minima, pooled over stretches of quiet breathing;
-    None with fewer than two breaths."""
+    """Breaths between consecutive end-expiratory minima, pooled over stretches of quiet breathing,
+    sighs left out; None with fewer than two breaths."""
     breaths = tidal_breaths(stretches, min_breath_s, min_tidal_l)
+    sighs = 0
+    if len(breaths) >= 3:
+        median = float(np.median([b[0] for b in breaths]))
+        quiet = [b for b in breaths if b[0] < SIGH_OF_MEDIAN * median]
+        sighs = len(breaths) - len(quiet)
+        breaths = quiet
     if len(breaths) < 2:
         return None
     vt, ti, te, tptef, ie50, levels, _, _ = (np.array(column) for column in zip(*breaths))
@@ -213,7 +230,7 @@ def tidal_values(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: f
     rr = 60.0 / period
     return TidalValues(len(breaths), tv, rr, tv * rr, float(np.mean(ti)), float(np.mean(te)),
                        float(np.mean(ti) / np.mean(te)), float(np.mean(tptef)), float(np.nanmean(ie50)),
-                       float(np.mean(levels)))
+                       float(np.mean(levels)), sighs)
 
 
 def _windows(events: list[tuple[float, str]], start_label: str,

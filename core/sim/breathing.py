@@ -165,32 +165,44 @@ def _ease_out(level_from: float, level_to: float, duration_s: float) -> np.ndarr
     return level_from + (level_to - level_from) * (1 - (1 - t / duration_s) ** 3)
 
 
+def _breath(subject: Subject, rng: np.random.Generator, level_l: float) -> np.ndarray:
+    """One tidal breath from the end-expiratory level back to it: raised-cosine inspiration,
+    passive (exponential) expiration, breath-to-breath variability, now and then a sigh."""
+    spread = subject.rate_variability
+    period = 60.0 / subject.respiratory_rate_bpm * float(np.clip(1 + spread * rng.standard_normal(), 0.5, 1.8))
+    vt = subject.tidal_volume * float(np.clip(1 + 4 / 3 * spread * rng.standard_normal(), 0.4, 2.0))
+    if subject.sigh_every and rng.random() < 1.0 / subject.sigh_every:
+        vt *= rng.uniform(2.0, 3.0)
+        period *= 1.6
+    ti = period / (1 + subject.ie_ratio)
+    te = period - ti
+    inspiration = level_l + vt * 0.5 * (1 - np.cos(np.pi * _samples(ti) / ti))
+    tau = te / 4.0
+    t = _samples(te)
+    expiration = level_l + vt * (np.exp(-t / tau) - np.exp(-te / tau)) / (1 - np.exp(-te / tau))
+    return np.concatenate([inspiration, expiration])
+
+
 def tidal(subject: Subject, duration_s: float, rng: np.random.Generator, level_l: float = 0.0) -> np.ndarray:
-    """Tidal breaths: raised-cosine inspiration, passive (exponential) expiration, 8% variability."""
+    """Whole tidal breaths covering at least `duration_s`: the last one is finished, so the volume
+    ends at the end-expiratory level and what follows starts from it without a jump."""
     parts: list[np.ndarray] = [np.zeros(0)]
     total = int(round(duration_s * RATE_HZ))
     while sum(len(p) for p in parts) < total:
-        spread = subject.rate_variability
-        period = 60.0 / subject.respiratory_rate_bpm * float(np.clip(1 + spread * rng.standard_normal(), 0.5, 1.8))
-        vt = subject.tidal_volume * float(np.clip(1 + 4 / 3 * spread * rng.standard_normal(), 0.4, 2.0))
-        if subject.sigh_every and rng.random() < 1.0 / subject.sigh_every:
-            vt *= rng.uniform(2.0, 3.0)
-            period *= 1.6
-        ti = period / (1 + subject.ie_ratio)
-        te = period - ti
-        inspiration = level_l + vt * 0.5 * (1 - np.cos(np.pi * _samples(ti) / ti))
-        tau = te / 4.0
-        t = _samples(te)
-        expiration = level_l + vt * (np.exp(-t / tau) - np.exp(-te / tau)) / (1 - np.exp(-te / tau))
-        parts += [inspiration, expiration]
-    return np.concatenate(parts)[:total]
+        parts.append(_breath(subject, rng, level_l))
+    return np.concatenate(parts)
+
+
+def lead_breaths(subject: Subject, count: int, rng: np.random.Generator) -> np.ndarray:
+    """`count` whole tidal breaths before a manoeuvre."""
+    return np.concatenate([np.zeros(0)] + [_breath(subject, rng, 0.0) for _ in range(count)])
 
 
 def slow_vc(subject: Subject, rng: np.random.Generator,
-            lead_breaths: int = 0) -> tuple[np.ndarray, list[tuple[float, str]]]:
+            lead_count: int = 0) -> tuple[np.ndarray, list[tuple[float, str]]]:
     """Tidal breaths, a slow full inspiration to TLC, a slow full expiration to RV, back to FRC."""
     ic, erv = subject.inspiratory_capacity, subject.expiratory_reserve
-    lead = tidal(subject, lead_breaths * 60.0 / subject.respiratory_rate_bpm, rng)
+    lead = lead_breaths(subject, lead_count, rng)
     parts = [lead, _ramp(0.0, ic, 3.0), np.full(int(0.5 * RATE_HZ), ic), _ease_out(ic, -erv, 7.0),
              np.full(int(0.4 * RATE_HZ), -erv), _ramp(-erv, 0.0, 2.0)]
     start = len(lead) / RATE_HZ
@@ -247,7 +259,7 @@ def forced_expiration_curve(fvc: float, fev1: float, pef: float, blow: ForcedBlo
 
 
 def forced(subject: Subject, blow: ForcedBlow, rng: np.random.Generator, blow_s: float | None = None,
-           lead_breaths: int = 1) -> tuple[np.ndarray, list[tuple[float, str]]]:
+           lead_count: int = 1) -> tuple[np.ndarray, list[tuple[float, str]]]:
     """Tidal breaths, a full inspiration to TLC, a short hold, the blow, back to the tidal level.
 
     The blow lasts 6 s, or 10 s when FEV1/FVC < 0.7 (obstructed lungs empty slowly).
@@ -255,7 +267,7 @@ def forced(subject: Subject, blow: ForcedBlow, rng: np.random.Generator, blow_s:
     ic = subject.inspiratory_capacity
     if blow_s is None:
         blow_s = 6.0 if subject.fev1 / subject.fvc >= 0.7 else 10.0
-    lead = tidal(subject, lead_breaths * 60.0 / subject.respiratory_rate_bpm, rng)
+    lead = lead_breaths(subject, lead_count, rng)
     inhale = _ramp(0.0, ic, 1.6)
     hold = np.full(int(0.4 * RATE_HZ), ic)
     if blow.standard is not None:
@@ -316,12 +328,12 @@ def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, se
         tidal_s = TIDAL_SECONDS.get(protocol, seconds or 30.0)
         add(tidal(subject, tidal_s, rng), [(0.0, "tidal-start")])
         if whole:
-            events.append((tidal_s, "maneuver-end"))
+            events.append((len(parts[-1]) / RATE_HZ, "maneuver-end"))
     if protocol == "vc" or whole:
-        add(*slow_vc(subject, rng, lead_breaths=0 if whole else 1))
+        add(*slow_vc(subject, rng, lead_count=0 if whole else 1))
     if protocol == "forced" or whole:
         for k, blow in enumerate(blows[:2] if protocol == "short" else blows):
-            add(*forced(subject, blow, rng, lead_breaths=0 if k == 0 and whole else 1))
+            add(*forced(subject, blow, rng, lead_count=0 if k == 0 and whole else 1))
     volume = np.concatenate(parts)
     if seconds is not None:
         n = int(round(seconds * RATE_HZ))

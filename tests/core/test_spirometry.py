@@ -94,6 +94,18 @@ def test_ats_ers_2019_criteria_on_constructed_curves():
     assert session.acceptable_fvc == 3
 
 
+def test_sensor_noise_after_an_early_stop_does_not_make_a_plateau():
+    """A blow stopped after 2 s (a closed glottis), then flat with a sensor's noise (0.3 mL): the
+    noise's largest value comes seconds after the stop; the exhalation still ends at the stop, so
+    the last second is the blow's, not the flat, and it is no plateau."""
+    exhaled = forced_expiration_curve(4.9, 4.1, 9.6, ForcedBlow(stop_after_s=2.0), 6.0)
+    noisy = exhaled + 0.0003 * np.random.default_rng(3).standard_normal(len(exhaled))
+    for curve in (exhaled, noisy):
+        values = forced_values(curve, 1000.0)
+        assert not values.eofe and values.fet_s < 2.0
+        assert values.plateau_l > 0.1
+
+
 def test_grades_and_reported_values():
     a, b = _blow(), _blow(fvc=4.5, fev1=3.7, pef=8.8)
     grade = grade_session([a, b])
