@@ -23,6 +23,7 @@ import threading
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 from core.analysis.values import tidal_stretches, tidal_values, tidal_windows
 from core.volume.compartments import compartment_shares, phase_angle_deg
@@ -39,6 +40,12 @@ MAX_SCALE_MISMATCH = 0.08
 # volumes within 50 mL and breaths counted as breaths. Measured: 0.005-0.011 L on simulated subjects
 # whose volume follows the truth, 0.42 L on a population subject whose optical RR read 31/min for 15.
 MAX_MAP_NOISE_L = 0.05
+# Maps whose volume stands out of its neighbours' (the median over JUMP_WINDOW_S) by more than
+# JUMP_L: a jump away and back within a few maps, faster than any breath. A curve with more than
+# MAX_JUMP_SHARE of them is refused (docs/volume.md, "On bodies it was not tuned to").
+JUMP_WINDOW_S = 0.4
+JUMP_L = 0.1
+MAX_JUMP_SHARE = 0.01
 
 
 def map_noise_l(volume_l: np.ndarray) -> float:
@@ -50,6 +57,22 @@ def map_noise_l(volume_l: np.ndarray) -> float:
         return float("nan")
     second = np.diff(v, 2)
     return float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0))
+
+
+def jump_share(timestamp_ns: np.ndarray, volume_l: np.ndarray) -> tuple[float, float]:
+    """(share of maps, largest jump in L) whose volume lies more than JUMP_L from the median of
+    the maps within JUMP_WINDOW_S: a breath, even a forced one, moves the volume steadily one way
+    over that time, so the median follows it, and a map off it by 100 mL has jumped."""
+    t = np.asarray(timestamp_ns, dtype=float) / 1e9
+    v = np.asarray(volume_l, dtype=float)
+    good = np.isfinite(v)
+    t, v = t[good], v[good]
+    if len(v) < 5:
+        return float("nan"), float("nan")
+    step = float(np.median(np.diff(t)))
+    width = max(3, int(round(JUMP_WINDOW_S / step)) | 1) if step > 0 else 3
+    off = np.abs(v - ndimage.median_filter(v, width, mode="nearest"))
+    return float(np.mean(off > JUMP_L)), float(off.max())
 
 
 @dataclass
@@ -81,12 +104,18 @@ class MetricVolume:
 
     def refusal(self) -> str | None:
         """Why this volume cannot be reported, or None: a head whose maps had to be rescaled by more
-        than MAX_SCALE_MISMATCH to put their sides where the two heads' trunk widths put them, or a
-        curve noisier from map to map than MAX_MAP_NOISE_L."""
+        than MAX_SCALE_MISMATCH to put their sides where the two heads' trunk widths put them, a
+        curve noisier from map to map than MAX_MAP_NOISE_L, or one that jumps away and back in more
+        than MAX_JUMP_SHARE of its maps (jump_share)."""
         noise = map_noise_l(self.volume_l)
         if noise > MAX_MAP_NOISE_L:
             return (f"the optical volume's noise from map to map is {1000 * noise:.0f} mL (at most "
                     f"{1000 * MAX_MAP_NOISE_L:.0f} mL for values within tolerance): its values would be the noise's")
+        share, largest = jump_share(self.timestamp_ns, self.volume_l)
+        if share > MAX_JUMP_SHARE:
+            return (f"the optical volume jumps away and back (up to {1000 * largest:.0f} mL) in {100 * share:.1f} % "
+                    f"of its maps (at most {100 * MAX_JUMP_SHARE:.0f} %): its tidal volume, rate and peak flow "
+                    "would be the jumps'")
         for name, mismatch in self.scale_mismatch.items():
             if mismatch > MAX_SCALE_MISMATCH:
                 return (f"head {name}: the trunk's width in the two heads' views and its depth in this head's maps "

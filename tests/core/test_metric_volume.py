@@ -165,3 +165,35 @@ def test_a_volume_curve_noisier_from_map_to_map_than_its_values_allow_is_refused
     assert volume(breathing + 0.02 * noise).refusal() is None
     refused = volume(breathing + 0.3 * noise).refusal()
     assert refused is not None and "noise from map to map is" in refused and f"{1000 * MAX_MAP_NOISE_L:.0f} mL" in refused
+
+
+def test_a_volume_curve_that_jumps_away_and_back_is_refused():
+    """Tidal breathing, a full inspiration (3 L over 1.6 s, its flow falling to nothing at the top,
+    0.3 s held), then a forced blow (4 L out, 2.5 L of them in the first 0.4 s) at 22 maps/s with
+    5 mL of noise: the running median follows the blow and nothing counts as a jump. The same curve with
+    a jump of 0.6 L for two maps every two seconds (as a population subject's showed, where the
+    trunk's sides glitched) is refused; its robust map-to-map noise stays under the noise limit."""
+    from core.volume.metric import MAX_MAP_NOISE_L, MetricVolume, jump_share, map_noise_l
+
+    t = np.arange(0, 40, 1 / 22)
+    curve = 0.25 * np.sin(2 * np.pi * t / 4.0)
+    blow = t >= 30.0
+    rise = np.clip((t - 28.1) / 1.6, 0.0, 1.0)
+    curve = np.where(t >= 28.0, 0.25 + 3.0 * 0.5 * (1 - np.cos(np.pi * rise)), curve)
+    curve = np.where(blow, 3.25 - 4.0 * (1 - np.exp(-(t - 30.0) / 0.4)), curve)
+    curve = curve + np.random.default_rng(2).normal(0.0, 0.005, len(t))
+    stamps = (t * 1e9).astype(np.int64)
+    assert jump_share(stamps, curve)[0] == 0.0
+    jumped = curve.copy()
+    for start in range(10, len(t) - 2, 44):
+        jumped[start:start + 2] += 0.6
+    share, largest = jump_share(stamps, jumped)
+    assert share > 0.03 and largest == pytest.approx(0.6, abs=0.05)
+    assert map_noise_l(jumped) < MAX_MAP_NOISE_L
+
+    def volume(values: np.ndarray) -> MetricVolume:
+        return MetricVolume(stamps, values, {}, {}, {}, "test", {"front": 0.0})
+
+    assert volume(curve).refusal() is None
+    refused = volume(jumped).refusal()
+    assert refused is not None and "jumps away and back" in refused
