@@ -300,8 +300,12 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
     for key, label, unit, absolute, relative in VALUES:
         fig, ax = plt.subplots(figsize=(5.0, 3.6), dpi=110)
         plotted = False
+        refused_note = []
         for source, colour in (("optical", "tab:blue"), ("flow", "tab:orange")):
-            measured, truth, _ = _pairs(rows, source, key)
+            measured, truth, missing = _pairs(rows, source, key)
+            if missing:
+                refused_note.append(f"{'optical' if source == 'optical' else 'flow sensor'}: no value for "
+                                    f"{missing} of {len(measured) + missing} subjects")
             if len(measured) == 0:
                 continue
             plotted = True
@@ -316,6 +320,8 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
         if not plotted:
             plt.close(fig)
             continue
+        if refused_note:
+            ax.text(0.02, 0.03, "\n".join(refused_note), transform=ax.transAxes, fontsize=7, color="dimgrey")
         ax.axhline(absolute, color="grey", linestyle=":", linewidth=0.8)
         ax.axhline(-absolute, color="grey", linestyle=":", linewidth=0.8)
         suffix = f" ({unit})" if unit else ""
@@ -433,8 +439,10 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
              "|---|---|---|---|---|---|---|"]
     for label, unit, source, n, missing, bias, low, high, share, absolute, relative in agreement(rows):
         tolerance = f"{absolute:g} {unit}".strip() + (f" or {relative:.0%}" if relative else "")
+        given = (f"{bias:+.3f} | {low:+.3f} to {high:+.3f} | {share:.0%} (±{tolerance})" if n
+                 else f"no value given | | (±{tolerance})")
         lines.append(f"| {label}{f' ({unit})' if unit else ''} | {'optical' if source == 'optical' else 'flow sensor'} | "
-                     f"{n} | {missing} | {bias:+.3f} | {low:+.3f} to {high:+.3f} | {share:.0%} (±{tolerance}) |")
+                     f"{n} | {missing} | {given} |")
     lines += ["", "Distance: the worst median depth error on the subject over the truth's maps after 10 cycles, per subject.",
               "", "| # | body | sex, age, height, BMI | arms | distance (mm) | skin | sheen | blow | LED error (mm, worst) | "
               "optical TV / truth (L) | optical FVC / truth (L) | distance error (mm) |",
@@ -445,7 +453,8 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
         led = max((max(v) for v in row.get("led_error_mm", {}).values()), default=float("nan"))
         truth, optical = row.get("truth", {}), row.get("optical", {})
         errors = row.get("distance_errors_mm") or []
-        cells = [f"{optical.get(k, float('nan')):.3f} / {truth.get(k, float('nan')):.3f}" for k in ("TV_l", "FVC_l")]
+        cells = [(f"{optical[k]:.3f}" if k in optical else "none") + f" / {truth.get(k, float('nan')):.3f}"
+                 for k in ("TV_l", "FVC_l")]
         lines.append(f"| {s['index']} | {body.get('name', s['body'])} | {body.get('sex', '?')}, "
                      f"{body.get('age_years', float('nan')):.0f} y, {body.get('height_cm', float('nan')):.0f} cm, "
                      f"{body.get('bmi', float('nan')):.1f} | {body.get('arms', '?')} | {s['distance_mm']:.0f} | "
