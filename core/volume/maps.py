@@ -114,9 +114,10 @@ class BodySilhouette:
         self._band = np.nonzero(band)[::-1]
         self._band_values = blurred[band]
 
-    def frame(self, valid: np.ndarray, widths_px: np.ndarray, scale: float) -> BodyFrame:
+    def frame(self, valid: np.ndarray, widths_px: np.ndarray, scale: float, refine_scale: bool = True) -> BodyFrame:
         """The body frame of a map (its valid pixels and row_widths_px) against the reference, from a
-        first guess of its scale (e.g. the ratio of trunk_width_px)."""
+        first guess of its scale (e.g. the ratio of trunk_width_px), refined on the trunk's widths
+        unless `refine_scale` is False (the scale held)."""
         (u, v), (u_ref, v_ref) = _silhouette_centre_px(valid), self._centre
         cx, cy = self.head.cx, self.head.cy
         frame = BodyFrame(scale, u - cx - (u_ref - cx) * scale, v - cy - (v_ref - cy) * scale)
@@ -125,6 +126,8 @@ class BodySilhouette:
         blurred = _blurred(valid)
         gradient = np.gradient(blurred)
         frame = self._shifted(frame, blurred, gradient, iterations=3)
+        if not refine_scale:
+            return frame
         frame = BodyFrame(self._width_ratio(widths_px, frame), frame.shift_u_px, frame.shift_v_px)
         return self._shifted(frame, blurred, gradient, iterations=2)
 
@@ -496,6 +499,14 @@ def trunk_width_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head, widths_p
     return float(np.nanmean(widths))
 
 
+# The body's image scale cannot change by more than this from one map to the next: 3 % is 60 mm at
+# 2 m, a step's whole length, where sway moves at most 0.5 % between maps at 22 maps a second and
+# 2.5 % at 2 a second. A population subject's trunk width jumped 5 % for single maps (an arm's edge
+# taken for the trunk's side), each map a jump of 0.2-0.7 L in the volume (docs/volume.md).
+SCALE_JUMP = 0.03
+SCALE_JUMP_MAPS = 3  # a jump held back over this many maps in a row is taken: the subject moved
+
+
 class DisplacementTracker:
     """A head's metric volume, map by map: the first map with a trunk becomes the reference."""
 
@@ -505,6 +516,20 @@ class DisplacementTracker:
         self._band_px = 0
         self._reference: tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]] | None = None
         self._rim: RimModel | None = None
+        self._scale = 1.0  # the last map's image scale that was taken
+        self._refused_in_a_row = 0
+
+    def _gated(self, frame: BodyFrame, valid: np.ndarray, row_widths: np.ndarray, width: float,
+               ) -> tuple[BodyFrame, float]:
+        """The frame, and the width, with a jump of the image scale from one map to the next held
+        back (SCALE_JUMP): the scale of the last map taken instead, unless the jump persists over
+        SCALE_JUMP_MAPS maps (then the subject did move)."""
+        if abs(frame.scale / self._scale - 1.0) <= SCALE_JUMP or self._refused_in_a_row >= SCALE_JUMP_MAPS:
+            self._scale, self._refused_in_a_row = frame.scale, 0
+            return frame, width
+        self._refused_in_a_row += 1
+        held = self._silhouette.frame(valid, row_widths, self._scale, refine_scale=False)
+        return held, self._reference_width * self._scale
 
     def add(self, depth_mm: np.ndarray, mask: np.ndarray, silhouette: np.ndarray | None = None) -> DisplacementSums:
         """silhouette: the trunk's mask with the pixels that have no depth (HeadMap.silhouette); with
@@ -528,7 +553,8 @@ class DisplacementTracker:
             side = contour if np.isfinite(contour) else self._rim.side_depth_mm
             self._side_per_rim = side / rim_of_reference
         ref_depth, ref_mask, footprint, regions = self._reference
-        frame = self._silhouette.frame(valid, row_widths, width / self._reference_width)
+        frame, width = self._gated(self._silhouette.frame(valid, row_widths, width / self._reference_width),
+                                   valid, row_widths, width)
         z = frame.resampled(depth_mm, valid, ref_mask.shape, self.head)
         both = ref_mask & np.isfinite(z)
         _, rim = rim_depths(ref_depth, z, both, self._band_px)

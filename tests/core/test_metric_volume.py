@@ -197,3 +197,38 @@ def test_a_volume_curve_that_jumps_away_and_back_is_refused():
     assert volume(curve).refusal() is None
     refused = volume(jumped).refusal()
     assert refused is not None and "jumps away and back" in refused
+
+
+def _widened(current: tuple[np.ndarray, np.ndarray], columns: int) -> tuple[np.ndarray, np.ndarray]:
+    """The map with `columns` more pixels on one side of every row, at the rim's depth: an arm's
+    edge taken for the trunk's side."""
+    depth, mask = (a.copy() for a in current)
+    for row in np.nonzero(mask.any(axis=1))[0]:
+        last = np.nonzero(mask[row])[0][-1]
+        stop = min(last + 1 + columns, mask.shape[1])
+        mask[row, last + 1:stop] = True
+        depth[row, last + 1:stop] = RIM_MM
+    return depth, mask
+
+
+def test_a_single_map_whose_trunk_widens_at_once_keeps_the_last_scale():
+    """A map whose trunk reads 5 % wider than the one before (what an arm's edge did to a population
+    subject's maps) would be resampled as if the subject had come 100 mm closer; its scale is held
+    at the last map's, and the volume stays that of the maps around it. A widening that lasts is
+    taken after SCALE_JUMP_MAPS maps."""
+    from core.volume.maps import SCALE_JUMP_MAPS
+
+    head = thesis_head("front", scale=0.25)
+    tracker = DisplacementTracker(head)
+    clean = _trunk_map(head, BULGE_MM)
+    columns = int(round(0.05 * clean[1].any(axis=0).sum()))
+    maps = [_trunk_map(head, 0.0), clean, _widened(clean, columns), clean]
+    sums = [tracker.add(*m) for m in maps]
+    volume = metric_head_volume_l(np.array([s.reference["all"] for s in sums]),
+                                  np.array([s.current["all"] for s in sums]),
+                                  np.array([s.side_mm for s in sums]), np.full(len(sums), RIM_MM))
+    assert volume[1] == pytest.approx(BULGE_VOLUME_L, rel=0.03)
+    assert volume[2] == pytest.approx(volume[1], abs=0.05)
+    assert sums[2].width_px == pytest.approx(sums[1].width_px, rel=0.005)
+    lasting = [tracker.add(*_widened(clean, columns)) for _ in range(SCALE_JUMP_MAPS + 1)]
+    assert lasting[-1].width_px > 1.03 * sums[1].width_px
