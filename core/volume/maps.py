@@ -499,12 +499,13 @@ def trunk_width_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head, widths_p
     return float(np.nanmean(widths))
 
 
-# The body's image scale cannot change by more than this from one map to the next: 3 % is 60 mm at
-# 2 m, a step's whole length, where sway moves at most 0.5 % between maps at 22 maps a second and
-# 2.5 % at 2 a second. A population subject's trunk width jumped 5 % for single maps (an arm's edge
-# taken for the trunk's side), each map a jump of 0.2-0.7 L in the volume (docs/volume.md).
+# The body's image scale cannot move by more than this from the median of the last few maps': 3 %
+# is 60 mm at 2 m, a step's whole length, where sway moves it at most 0.5 % between maps at 22 maps a
+# second and 2.5 % at 2 a second. A population subject's trunk width jumped 5 % for one to four maps
+# (an arm's edge taken for the trunk's side), each map a jump of 0.2-0.9 L in the volume
+# (docs/volume.md). A jump that lasts over half the window moves the median: the subject moved.
 SCALE_JUMP = 0.03
-SCALE_JUMP_MAPS = 3  # a jump held back over this many maps in a row is taken: the subject moved
+SCALE_WINDOW_MAPS = 9
 
 
 class DisplacementTracker:
@@ -516,20 +517,19 @@ class DisplacementTracker:
         self._band_px = 0
         self._reference: tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]] | None = None
         self._rim: RimModel | None = None
-        self._scale = 1.0  # the last map's image scale that was taken
-        self._refused_in_a_row = 0
+        self._scales: list[float] = []  # the image scales the last SCALE_WINDOW_MAPS maps measured
 
     def _gated(self, frame: BodyFrame, valid: np.ndarray, row_widths: np.ndarray, width: float,
                ) -> tuple[BodyFrame, float]:
-        """The frame, and the width, with a jump of the image scale from one map to the next held
-        back (SCALE_JUMP): the scale of the last map taken instead, unless the jump persists over
-        SCALE_JUMP_MAPS maps (then the subject did move)."""
-        if abs(frame.scale / self._scale - 1.0) <= SCALE_JUMP or self._refused_in_a_row >= SCALE_JUMP_MAPS:
-            self._scale, self._refused_in_a_row = frame.scale, 0
+        """The frame, and the width, with an image scale that jumps by more than SCALE_JUMP from the
+        median of the last SCALE_WINDOW_MAPS maps' (this one's included) replaced by that median: a
+        jump over fewer than half of them is held back; one that lasts moves the median, and is taken."""
+        self._scales = (self._scales + [frame.scale])[-SCALE_WINDOW_MAPS:]
+        median = float(np.median(self._scales))
+        if abs(frame.scale / median - 1.0) <= SCALE_JUMP:
             return frame, width
-        self._refused_in_a_row += 1
-        held = self._silhouette.frame(valid, row_widths, self._scale, refine_scale=False)
-        return held, self._reference_width * self._scale
+        held = self._silhouette.frame(valid, row_widths, median, refine_scale=False)
+        return held, self._reference_width * median
 
     def add(self, depth_mm: np.ndarray, mask: np.ndarray, silhouette: np.ndarray | None = None) -> DisplacementSums:
         """silhouette: the trunk's mask with the pixels that have no depth (HeadMap.silhouette); with

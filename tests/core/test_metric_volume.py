@@ -214,9 +214,9 @@ def _widened(current: tuple[np.ndarray, np.ndarray], columns: int) -> tuple[np.n
 def test_a_single_map_whose_trunk_widens_at_once_keeps_the_last_scale():
     """A map whose trunk reads 5 % wider than the one before (what an arm's edge did to a population
     subject's maps) would be resampled as if the subject had come 100 mm closer; its scale is held
-    at the last map's, and the volume stays that of the maps around it. A widening that lasts is
-    taken after SCALE_JUMP_MAPS maps."""
-    from core.volume.maps import SCALE_JUMP_MAPS
+    at the median of the last maps', and the volume stays that of the maps around it. A widening that
+    lasts is taken once it fills half of SCALE_WINDOW_MAPS."""
+    from core.volume.maps import SCALE_WINDOW_MAPS
 
     head = thesis_head("front", scale=0.25)
     tracker = DisplacementTracker(head)
@@ -230,5 +230,5 @@ def test_a_single_map_whose_trunk_widens_at_once_keeps_the_last_scale():
     assert volume[1] == pytest.approx(BULGE_VOLUME_L, rel=0.03)
     assert volume[2] == pytest.approx(volume[1], abs=0.05)
     assert sums[2].width_px == pytest.approx(sums[1].width_px, rel=0.005)
-    lasting = [tracker.add(*_widened(clean, columns)) for _ in range(SCALE_JUMP_MAPS + 1)]
+    lasting = [tracker.add(*_widened(clean, columns)) for _ in range(SCALE_WINDOW_MAPS // 2 + 1)]
     assert lasting[-1].width_px > 1.03 * sums[1].width_px
