@@ -330,8 +330,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 results.refuse_optical(refused)
             metric = (metric_volume(displacements, rig.baseline_mm) if all(counts.values()) and refused is None
                       else None)
-            if metric is not None and metric.refusal() is not None:
-                refused, metric = metric.refusal(), None
+            if metric is not None and (refused := metric.refusal()) is not None:
+                metric = None
                 results.refuse_optical(refused)
             in_view = metric is not None and np.isfinite(metric.volume_l).all()  # a trunk in every head's view
             if in_view:

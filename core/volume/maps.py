@@ -21,6 +21,7 @@ D_f / D_b = W_b / W_f, and D_f + D_b is the baseline between the heads.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -517,14 +518,14 @@ class DisplacementTracker:
         self._band_px = 0
         self._reference: tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]] | None = None
         self._rim: RimModel | None = None
-        self._scales: list[float] = []  # the image scales the last SCALE_WINDOW_MAPS maps measured
+        self._scales: deque[float] = deque(maxlen=SCALE_WINDOW_MAPS)  # the scales the last maps measured
 
     def _gated(self, frame: BodyFrame, valid: np.ndarray, row_widths: np.ndarray, width: float,
                ) -> tuple[BodyFrame, float]:
         """The frame, and the width, with an image scale that jumps by more than SCALE_JUMP from the
         median of the last SCALE_WINDOW_MAPS maps' (this one's included) replaced by that median: a
         jump over fewer than half of them is held back; one that lasts moves the median, and is taken."""
-        self._scales = (self._scales + [frame.scale])[-SCALE_WINDOW_MAPS:]
+        self._scales.append(frame.scale)
         median = float(np.median(self._scales))
         if abs(frame.scale / median - 1.0) <= SCALE_JUMP:
             return frame, width
