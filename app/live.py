@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import numba
 import numpy as np
 
 from core.reconstruction.ambient import FLICKER_WINDOW_S, FlickerCorrection
@@ -673,6 +674,10 @@ class LiveRig:
         return found if len(found) == len(wanted) else None
 
     def _reconstruct(self, head: str) -> None:
+        # each head's thread keeps to its share of the cores: numba's parallel kernels (OpenMP) and
+        # the DCTs of two heads running at once on all of them oversubscribed the cores
+        numba.set_num_threads(max(1, min(numba.config.NUMBA_NUM_THREADS,
+                                         (os.cpu_count() or 1) // len(self._live_heads))))
         reconstructor = HeadReconstructor(self._live_heads[head], None, self.settings)
         done_id = -1
         condition = self._new_frame[head]

@@ -115,16 +115,18 @@ class LightPhase:
             self._add(head, state, frame_id, image)
 
     def _add(self, head: str, state: _HeadPhase, frame_id: int, image: np.ndarray) -> None:
-        small = np.asarray(image[::STRIDE_PX, ::STRIDE_PX], dtype=np.float64)
-        total = small.sum()
+        small = np.asarray(image)[::STRIDE_PX, ::STRIDE_PX]
+        # the centroid from the row and column sums: two reductions of the strided view, no copies
+        column_sums = small.sum(axis=0, dtype=np.float64)
+        row_sums = column_sums if small.shape[0] == 0 else small.sum(axis=1, dtype=np.float64)
+        total = float(column_sums.sum())
         if total > 0:
-            rows, cols = np.indices(small.shape)
             # in fractions of the image's width and height
-            cx = float((cols * small).sum() / total / small.shape[1])
-            cy = float((rows * small).sum() / total / small.shape[0])
+            cx = float(column_sums @ np.arange(len(column_sums)) / total / len(column_sums))
+            cy = float(row_sums @ np.arange(len(row_sums)) / total / len(row_sums))
         else:
             cx = cy = float("nan")
-        state.stats.append((int(frame_id), float(small.mean()), cx, cy))
+        state.stats.append((int(frame_id), total / max(small.size, 1), cx, cy))
         state.since_check += 1
         if len(state.stats) >= 2 * len(self.sequence) and state.since_check >= len(self.sequence):
             state.since_check = 0

@@ -29,6 +29,7 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
+import numba
 from numba import njit, prange
 from scipy.fft import dctn, idctn, next_fast_len
 
@@ -50,14 +51,11 @@ def log_depth_gradients(normals: np.ndarray, fx: float, fy: float, cx: float, cy
                         ) -> tuple[np.ndarray, np.ndarray]:
     """d(log Z)/du and d(log Z)/dv per pixel (columns, rows) from unit normals (H, W, 3); NaN where
     the normal is more than MAX_VIEW_ANGLE_DEG from the viewing ray."""
-    height, width = normals.shape[:2]
-    x = ((np.arange(width) - cx) / fx)[None, :]
-    y = ((np.arange(height) - cy) / fy)[:, None]
-    denominator = normals[..., 0] * x + normals[..., 1] * y + normals[..., 2]
-    grazing = np.abs(denominator) < MIN_VIEW_COSINE * np.sqrt(x * x + y * y + 1.0)
-    denominator = np.where(grazing, np.nan, denominator)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return -normals[..., 0] / (fx * denominator), -normals[..., 1] / (fy * denominator)
+    normals = np.ascontiguousarray(normals, dtype=np.float64)
+    gu, gv = np.empty(normals.shape[:2]), np.empty(normals.shape[:2])
+    _log_depth_gradients(normals, np.isfinite(normals[..., 2]), float(fx), float(fy), float(cx), float(cy),
+                         MIN_VIEW_COSINE, gu, gv)
+    return gu, gv
 
 
 @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
@@ -91,7 +89,7 @@ def _dct_eigenvalues(height: int, width: int) -> np.ndarray:
     return -1.0 / denominator
 
 
-def integrate_dct(gu: np.ndarray, gv: np.ndarray, workers: int = -1) -> np.ndarray:
+def integrate_dct(gu: np.ndarray, gv: np.ndarray, workers: int | None = None) -> np.ndarray:
     """Least-squares surface from its gradients on the whole rectangle (DCT Poisson, Neumann boundary).
 
     gu, gv: derivatives along columns and rows (per pixel); NaN counts as zero. The result has
@@ -122,7 +120,7 @@ def _log_depth_gradients(normals, mask, fx, fy, cx, cy, min_cosine, gu, gv):
 
 
 def log_depth_dct(normals: np.ndarray, mask: np.ndarray, fx: float, fy: float, cx: float, cy: float,
-                  workers: int = -1) -> np.ndarray:
+                  workers: int | None = None) -> np.ndarray:
     """Log-depth (zero mean, NaN off the mask) from normals in one pass: the live view's fast path."""
     height, width = mask.shape
     gu = np.empty((height, width), dtype=np.float32)
@@ -268,8 +266,12 @@ def _cg_step(z, residual, direction, product, mask, step):
     return rows.sum()
 
 
-def _dct_poisson(image: np.ndarray, workers: int) -> np.ndarray:
-    """The rectangle's Neumann Poisson solve of a right-hand side (the DCT path), single precision."""
+def _dct_poisson(image: np.ndarray, workers: int | None) -> np.ndarray:
+    """The rectangle's Neumann Poisson solve of a right-hand side (the DCT path), single precision.
+    workers None: as many as the numba kernels of this thread use (numba.set_num_threads is per
+    thread), so a thread given one core keeps to it."""
+    if workers is None:
+        workers = numba.get_num_threads()
     transformed = dctn(image.astype(np.float32, copy=False), type=2, norm="ortho", workers=workers)
     transformed *= _dct_eigenvalues(*image.shape)
     transformed[0, 0] = 0.0
@@ -288,7 +290,7 @@ def _fast_box(mask: np.ndarray) -> tuple[slice, slice]:
 
 
 def integrate_masked(gu: np.ndarray, gv: np.ndarray, mask: np.ndarray, tolerance: float = 1e-4,
-                     max_iterations: int = 200, workers: int = -1,
+                     max_iterations: int = 200, workers: int | None = None,
                      robust_iterations: int = ROBUST_ITERATIONS, start: np.ndarray | None = None) -> np.ndarray:
     """Least-squares surface over the mask's own pixel edges; NaN off the mask; zero mean over it.
 
