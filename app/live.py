@@ -683,7 +683,7 @@ class LiveRig:
         condition = self._new_frame[head]
         max_value = self.rig.heads[head].max_value
         factor = self._binning[head]
-        flicker = FlickerCorrection(2.0 * self.rig.mains_hz, centred=False)
+        flicker = FlickerCorrection(2.0 * self.rig.mains_hz, centred=False, binning=factor)
         fed_id = -1
         binned: dict[int, CycleFrame] = {}  # each frame binned once (core/reconstruction/cycle.py), by frame id
 
@@ -700,7 +700,7 @@ class LiveRig:
                 before = self._cycle_before(head, window) if window is not None else None
                 darks = [d for d in self._darks[head] if d.frame_id > fed_id]
             for d in darks:
-                flicker.add_dark(d.timestamp_ns / 1e9, framed(d).level)
+                flicker.add_dark(d.timestamp_ns / 1e9, d.image)
                 fed_id = d.frame_id
             if window is None or window[-1][0].frame_id <= done_id:
                 continue

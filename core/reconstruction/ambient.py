@@ -27,6 +27,8 @@ from collections import deque
 
 import numpy as np
 
+from core.reconstruction.binning import bin_mean, frame_mean
+
 FLICKER_WINDOW_S = 1.0  # ten beats of a 100 Hz flicker against 110 frames/s; the subject moves little in it
 MIN_DARK_FRAMES = 10
 # The mean dark level's flicker amplitude over its standard error below which nothing is corrected.
@@ -72,19 +74,29 @@ class FlickerCorrection:
     the window is centred on the asked time (offline processing, which has the dark frames after
     it too); otherwise it ends there (the live view)."""
 
-    def __init__(self, flicker_hz: float, window_s: float = FLICKER_WINDOW_S, centred: bool = True) -> None:
+    def __init__(self, flicker_hz: float, window_s: float = FLICKER_WINDOW_S, centred: bool = True,
+                 binning: int = 1) -> None:
         self.flicker_hz = float(flicker_hz)
         self.window_s = float(window_s)
         self.centred = centred
-        self._darks: deque[tuple[float, np.ndarray, float]] = deque()
+        self.binning = int(binning)  # the frames' binning (core/reconstruction/binning.py): m(x) is on its bins
+        # [time s, the frame as it came, its mean level, the frame binned once a fit needed it]
+        self._darks: deque[list] = deque()
         self._fitted_for: tuple[float, float] | None = None
         self._fit: tuple[float, np.ndarray] | None = None  # (phase, m(x))
         self.amplitudes: list[float] = []  # each fit's flicker amplitude over the mean dark level
 
     def add_dark(self, t_s: float, frame: np.ndarray) -> None:
-        """A dark frame (kept as it came: a window of full-resolution frames is large)."""
+        """A dark frame as the camera gave it (unbinned; kept by reference). Only its mean level
+        is taken now: it is binned when a flicker is found and m(x) fitted, so a room without one
+        costs no binning (a full-resolution frame takes about 1.5 ms)."""
         image = np.asarray(frame)
-        self._darks.append((float(t_s), image, float(image.mean(dtype=np.float64))))
+        self._darks.append([float(t_s), image, frame_mean(image, self.binning), None])
+
+    def _binned(self, dark: list) -> np.ndarray:
+        if dark[3] is None:
+            dark[3] = bin_mean(dark[1], self.binning)
+        return dark[3]
 
     def span(self, t_s: float) -> tuple[float, float]:
         """The window of dark frames used for a frame at t_s."""
@@ -93,7 +105,7 @@ class FlickerCorrection:
         return t_s - self.window_s, t_s
 
     def _fit_window(self, start: float, stop: float) -> tuple[float, np.ndarray] | None:
-        while self._darks and self._darks[0][0] < start - self.window_s:
+        while self._darks and self._darks[0][0] < start:  # windows only move on
             self._darks.popleft()
         inside = [d for d in self._darks if start <= d[0] <= stop]
         if len(inside) < MIN_DARK_FRAMES:
@@ -107,9 +119,9 @@ class FlickerCorrection:
         u = np.cos(2.0 * np.pi * self.flicker_hz * t - phase)
         design = np.column_stack([_steady_and_trend(t), u])
         solve = np.linalg.pinv(design)[2].astype(np.float32)  # the row that gives m(x)
-        amplitude_image = np.zeros(inside[0][1].shape, dtype=np.float32)
-        for weight, (_, frame, _) in zip(solve, inside):
-            amplitude_image += weight * frame.astype(np.float32)
+        amplitude_image = np.zeros(self._binned(inside[0]).shape, dtype=np.float32)
+        for weight, dark in zip(solve, inside):
+            amplitude_image += weight * self._binned(dark).astype(np.float32)
         return phase, amplitude_image
 
     def excess(self, t_s: float, around_s: float | None = None) -> np.ndarray | None:

@@ -79,6 +79,25 @@ def frame_bins(frame: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
     return _frame_bins(frame, factor)
 
 
+def frame_mean(frame: np.ndarray, factor: int) -> float:
+    """The mean of a 2-D frame over the part that bins into factor x factor blocks: the mean of
+    bin_mean(frame, factor), without binning it."""
+    frame = np.asarray(frame)
+    h, w = frame.shape[-2] // factor * factor, frame.shape[-1] // factor * factor
+    if frame.ndim == 2 and frame.dtype.kind in "ui" and h * w:
+        return _integer_mean(frame, h, w)
+    return float(frame[..., :h, :w].mean(dtype=np.float64))
+
+
+@njit(cache=True, nogil=True)
+def _integer_mean(frame: np.ndarray, h: int, w: int) -> float:
+    total = 0
+    for i in range(h):
+        for j in range(w):
+            total += frame[i, j]
+    return total / (h * w)
+
+
 def bin_mean(image: np.ndarray, factor: int) -> np.ndarray:
     """The mean over factor x factor blocks of the last two axes (float64), remainders dropped."""
     image = np.asarray(image)

@@ -263,6 +263,8 @@ class HeadReconstructor:
         # the last cycle's log-depth from its distant-light normals, where the next cycle's first
         # solve starts
         self._last_pseudo_log_depth: np.ndarray | None = None
+        # the last cycle's final log-depth (near lights): the next cycle's lights are placed on it
+        self._last_log_depth: np.ndarray | None = None
 
     @property
     def last_distance_mm(self) -> float | None:
@@ -363,8 +365,14 @@ class HeadReconstructor:
             return self._scaled(log_depth, dmr, problem, guess_mm, search)
 
         normals = pseudo_normals
-        log_depth = self._integrate(normals, mask, final=s.method != "near", start=self._last_pseudo_log_depth)
-        self._last_pseudo_log_depth = log_depth
+        warm = s.method == "near" and tracked and self._last_log_depth is not None
+        if warm:
+            # a stream's cycle: the lights placed on the last cycle's surface, 45 ms (or a few cycles)
+            # earlier, where the distant-light surface is a first guess for a cycle on its own
+            log_depth = np.where(mask, self._last_log_depth, np.nan)
+        else:
+            log_depth = self._integrate(normals, mask, final=s.method != "near", start=self._last_pseudo_log_depth)
+            self._last_pseudo_log_depth = log_depth
         depth, distance = scaled(log_depth, guess, "keep" if tracked else "wide")
         done = 0
         if s.method == "near":
@@ -390,6 +398,7 @@ class HeadReconstructor:
             if s.integrator == "masked" and ROBUST_ITERATIONS > 0:
                 log_depth = self._integrate(normals, mask, final=True, start=log_depth)
                 depth, distance = scaled(log_depth, distance, "keep")
+            self._last_log_depth = log_depth
         if problem is not None and s.fit_intensity and self.intensity_factors is None and np.isfinite(distance):
             scale, factors = problem.scale_and_intensity(self._rays, depth / distance, distance)
             if np.isfinite(scale):

@@ -13,7 +13,7 @@ import numpy as np
 
 from core import __version__
 from core.reconstruction.ambient import FlickerCorrection
-from core.reconstruction.binning import bin_mean, binned_head, working_binning
+from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, metric_volume, side_targets,
                                  tidal_compartments)
@@ -160,9 +160,8 @@ class DarkFeed:
 
     def __init__(self, frames: h5py.Dataset, light_index: np.ndarray, timestamp_ns: np.ndarray, mains_hz: float,
                  binning: int = 1) -> None:
-        self.correction = FlickerCorrection(2.0 * mains_hz)
+        self.correction = FlickerCorrection(2.0 * mains_hz, binning=binning)
         self._frames = frames
-        self._binning = binning
         self._t = np.asarray(timestamp_ns, dtype=np.int64) / 1e9
         self._darks = np.flatnonzero(np.asarray(light_index) == DARK)
         self._dark_t = self._t[self._darks]
@@ -174,7 +173,7 @@ class DarkFeed:
         self._next = max(self._next, int(np.searchsorted(self._dark_t, start)))
         while self._next < len(self._darks) and self._dark_t[self._next] <= stop:
             j = int(self._darks[self._next])
-            self.correction.add_dark(float(self._t[j]), bin_mean(self._frames[j], self._binning))
+            self.correction.add_dark(float(self._t[j]), self._frames[j])
             self._next += 1
         return lambda frame: self.correction.excess(frame.time_s, t_cycle)
 

@@ -25,6 +25,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, prange
 from scipy import ndimage
 
 from core.rig import Head
@@ -61,14 +62,44 @@ class BodyFrame:
 
     def resampled(self, depth_mm: np.ndarray, valid: np.ndarray, shape: tuple[int, int], head: Head) -> np.ndarray:
         """The other map's depth on the reference's pixels; NaN where it shows no valid pixel."""
-        if not all(np.isfinite([self.scale, self.shift_u_px, self.shift_v_px])):
-            return np.full(shape, np.nan)
-        v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
-        u_other = head.cx + (u - head.cx) * self.scale + self.shift_u_px
-        v_other = head.cy + (v - head.cy) * self.scale + self.shift_v_px
-        z = ndimage.map_coordinates(np.where(valid, depth_mm, 0.0), [v_other, u_other], order=1, cval=0.0)
-        weight = ndimage.map_coordinates(valid.astype(float), [v_other, u_other], order=1, cval=0.0)
-        return np.where(weight > 0.99, z / np.maximum(weight, 1e-9), np.nan)
+        out = np.full(shape, np.nan)
+        if all(np.isfinite([self.scale, self.shift_u_px, self.shift_v_px])):
+            _resample_bilinear(np.ascontiguousarray(depth_mm, dtype=np.float64), np.ascontiguousarray(valid),
+                               float(head.cx), float(head.cy), float(self.scale), float(self.shift_u_px),
+                               float(self.shift_v_px), out)
+        return out
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _resample_bilinear(depth, valid, cx, cy, scale, shift_u, shift_v, out):
+    """BodyFrame.resampled's kernel: each of out's pixels (u, v) takes the depth at (cx + (u - cx)
+    scale + shift_u, likewise v) bilinearly from the valid pixels around it, where they carry more
+    than 0.99 of its weight (so a pixel on the silhouette's edge or off the image stays NaN)."""
+    height, width = depth.shape
+    for i in prange(out.shape[0]):
+        y = cy + (i - cy) * scale + shift_v
+        if y < 0.0 or y > height - 1:
+            continue
+        i0 = min(int(y), height - 1)
+        i1 = min(i0 + 1, height - 1)
+        fy = y - i0
+        for j in range(out.shape[1]):
+            x = cx + (j - cx) * scale + shift_u
+            if x < 0.0 or x > width - 1:
+                continue
+            j0 = min(int(x), width - 1)
+            j1 = min(j0 + 1, width - 1)
+            fx = x - j0
+            total = 0.0
+            weight = 0.0
+            for a, wa in ((i0, 1.0 - fy), (i1, fy)):
+                for b, wb in ((j0, 1.0 - fx), (j1, fx)):
+                    w = wa * wb
+                    if w > 0.0 and valid[a, b]:
+                        total += w * depth[a, b]
+                        weight += w
+            if weight > 0.99:
+                out[i, j] = total / weight
 
 
 # Body-frame fit (BodySilhouette.frame): the silhouettes are compared blurred by FRAME_BLUR_PX (a
@@ -261,11 +292,8 @@ def rim_depths(depth_a: np.ndarray, depth_b: np.ndarray, mask: np.ndarray, band_
     the depths, so the rim of a difference is the difference of the rims."""
     width = skip_px + band_px
     sums_a, sums_b, counts = np.zeros(width), np.zeros(width), np.zeros(width)
-    for r, edge in _row_edges(mask, width):
-        n = len(edge)
-        sums_a[:n] += depth_a[r, edge]
-        sums_b[:n] += depth_b[r, edge]
-        counts[:n] += 1
+    _edge_sums(np.ascontiguousarray(depth_a, dtype=np.float64), np.ascontiguousarray(depth_b, dtype=np.float64),
+               np.ascontiguousarray(mask), torso_rows(mask), sums_a, sums_b, counts)
     used = counts > 0
     used[:skip_px] = False
     if used.sum() < 2:
@@ -273,6 +301,29 @@ def rim_depths(depth_a: np.ndarray, depth_b: np.ndarray, mask: np.ndarray, band_
     j = np.arange(width)[used]
     at_rim = [np.polyval(np.polyfit(j, sums[used] / counts[used], 1), -0.5) for sums in (sums_a, sums_b)]
     return float(at_rim[0]), float(at_rim[1])
+
+
+@njit(cache=True, nogil=True)
+def _edge_sums(depth_a, depth_b, mask, rows, sums_a, sums_b, counts):
+    """rim_depths' sums over _row_edges: the k-th pixel from each side of every trunk row, for k up to
+    len(sums_a) or half the row's pixels, added to sums_a[k], sums_b[k] and counted."""
+    width = len(sums_a)
+    for r in rows:
+        n = 0
+        for j in range(mask.shape[1]):
+            if mask[r, j]:
+                n += 1
+        reach = min(width, n // 2)
+        for direction in (1, -1):
+            k = 0
+            j = 0 if direction == 1 else mask.shape[1] - 1
+            while k < reach:
+                if mask[r, j]:
+                    sums_a[k] += depth_a[r, j]
+                    sums_b[k] += depth_b[r, j]
+                    counts[k] += 1.0
+                    k += 1
+                j += direction
 
 
 # Outermost pixels of each trunk row whose depth profile places the body's side (rim_side_mm), the
