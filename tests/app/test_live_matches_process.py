@@ -1,0 +1,50 @@
+"""What the operator sees is what the report says: a recorded session replayed through the live engine
+gives the metric volume `photopft process` writes for it, from the same code path (cycle assembly,
+binning, motion compensation, reconstruction, displacement tracking). The live view is causal (its
+distances smoothed by what it has seen so far) and reconstructs the newest cycle when it falls
+behind, so the curves agree within tens of mL, not to the digit."""
+
+from __future__ import annotations
+
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from app.live import LiveRig, replay_source
+from core.io.session import SessionFile
+from core.reconstruction.process import process_session
+from core.sim.simulate import SimConfig, simulate
+
+pytestmark = pytest.mark.slow
+
+
+def test_the_live_volume_is_the_processed_volume(tmp_path):
+    session = tmp_path / "s.h5"
+    simulate(session, SimConfig(protocol="tidal", seconds=4.0, scale=0.1, seed=3, flow_sensor=None))
+    process_session(session, tmp_path / "r.h5", workers=1)
+    with h5py.File(tmp_path / "r.h5") as f, SessionFile(session) as s:
+        first = min(int(s.timestamp_ns(h)[0]) for h in s.heads)
+        processed_t = (f["metric_volume/timestamp_ns"][:] - first) / 1e9
+        processed = f["metric_volume/volume_l"][:]
+    rig = LiveRig(replay_source(session))
+    rig.start()
+    try:
+        deadline = time.monotonic() + 60.0
+        while not rig.snapshot().replay_finished:
+            assert time.monotonic() < deadline, "the replay did not finish"
+            time.sleep(0.1)
+        time.sleep(0.5)
+        snapshot = rig.snapshot()
+    finally:
+        rig.stop()
+    settled = snapshot.metric_t_s > 0.5  # both heads' first maps in, the live distance settled
+    live = snapshot.metric_volume_l[settled]
+    assert len(live) >= 30, len(live)  # most of the 4 s session's 88 cycles a head made a live map
+    on_live_times = np.interp(snapshot.metric_t_s[settled], processed_t, processed)
+    difference = (live - live.mean()) - (on_live_times - on_live_times.mean())
+    # measured: r 0.994, slope 1.02, rms 25 mL of a 1.04 L swing (73 live maps after 0.5 s)
+    assert np.corrcoef(live, on_live_times)[0, 1] > 0.97
+    assert 0.9 < np.polyfit(on_live_times, live, 1)[0] < 1.1
+    assert np.sqrt(np.mean(difference ** 2)) < 0.06
