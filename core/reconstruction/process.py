@@ -99,12 +99,12 @@ def geometric_distances(surveyed: dict, baseline_mm: float) -> dict[str, tuple[n
     return out
 
 
-def _geometric_pass(results: ResultsWriter, jobs: list[_HeadJob], baseline_mm: float, workers: int,
+def _geometric_pass(results: ResultsWriter, jobs: list[_HeadJob], baseline_mm: float, workers: _HeadWorkers,
                     progress: Callable[[float], None]) -> tuple[dict, dict[str, float]]:
     """The first pass of a two-head `process`: the survey's photometric maps, each head's geometric
     distances (geometric_distances) and the photometric fit's median offset from them, written to
     /heads/<head>/photometric_survey."""
-    surveyed = _run_heads(jobs, workers, progress)
+    surveyed = workers.run(jobs, progress)
     geometric = geometric_distances({r.name: r for r in surveyed}, baseline_mm)
     offsets = {}
     for r in surveyed:
@@ -289,40 +289,42 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 if progress is not None and total_windows:
                     progress((done_before + fraction_of_pass * pass_windows) / total_windows)
 
-            geometric, offsets = {}, {}
-            if geometry:
-                jobs = [_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name], motion_compensation,
-                                 (), binning=factors[name]) for name in names]
-                geometric, offsets = _geometric_pass(results, jobs, rig.baseline_mm, workers,
-                                                     lambda f: overall(f, sum(len(w) for w in survey.values())))
-                done_before = sum(len(w) for w in survey.values())
-            jobs = []
-            for name in names:
-                distances_mm = None
-                if name in geometric:
-                    stamps = session.timestamp_ns(name)
-                    t, d = geometric[name]
-                    distances_mm = np.interp(np.array([stamps[w.newest] for w in plans[name]], dtype=float), t, d)
-                jobs.append(_HeadJob(Path(session_path), rig, name, plans[name], settings, pseudo[name],
-                                     motion_compensation, tuple(maps_at), distances_mm, factors[name]))
-            pass_windows = sum(len(plans[n]) for n in names)
-            for result in _run_heads(jobs, workers, lambda f: overall(f, pass_windows)):
-                name, head = result.name, rig.heads[result.name]
-                results.head(name, {"timestamp_ns": result.timestamp_ns, "frame_index": result.frame_index,
-                                    "distance_mm": result.distance_mm, "gradient_volume": result.gradient_volume,
-                                    "valid_pixels": result.valid_pixels,
-                                    "occluded_side_share": result.occluded_side_share,
-                                    "side_out_of_view_share": result.side_out_of_view_share},
-                             # binning: the stream's; valid_pixels count its bins
-                             {"ambient_flicker": result.ambient_flicker, "binning": np.int64(factors[name])},
-                             result.saved_index, result.saved_normals, result.saved_depth, (head.height, head.width))
-                counts[name] = len(result.frame_index)
-                displacements[name] = HeadDisplacements(result.timestamp_ns, result.sums)
-                distances[name] = (float(np.nanmean(result.distance_mm)) if len(result.distance_mm)
-                                   else float("nan"))
-                occluded[name] = result.occluded_side_share
-                out_of_view[name] = result.side_out_of_view_share
-                areas[name] = trunk_area_m2(result.valid_pixels, result.distance_mm, stream_heads[name])
+            with _HeadWorkers(workers, len(names)) as pool:
+                geometric, offsets = {}, {}
+                if geometry:
+                    jobs = [_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name],
+                                     motion_compensation, (), binning=factors[name]) for name in names]
+                    geometric, offsets = _geometric_pass(results, jobs, rig.baseline_mm, pool,
+                                                         lambda f: overall(f, sum(len(w) for w in survey.values())))
+                    done_before = sum(len(w) for w in survey.values())
+                jobs = []
+                for name in names:
+                    distances_mm = None
+                    if name in geometric:
+                        stamps = session.timestamp_ns(name)
+                        t, d = geometric[name]
+                        distances_mm = np.interp(np.array([stamps[w.newest] for w in plans[name]], dtype=float), t, d)
+                    jobs.append(_HeadJob(Path(session_path), rig, name, plans[name], settings, pseudo[name],
+                                         motion_compensation, tuple(maps_at), distances_mm, factors[name]))
+                pass_windows = sum(len(plans[n]) for n in names)
+                for result in pool.run(jobs, lambda f: overall(f, pass_windows)):
+                    name, head = result.name, rig.heads[result.name]
+                    results.head(name, {"timestamp_ns": result.timestamp_ns, "frame_index": result.frame_index,
+                                        "distance_mm": result.distance_mm, "gradient_volume": result.gradient_volume,
+                                        "valid_pixels": result.valid_pixels,
+                                        "occluded_side_share": result.occluded_side_share,
+                                        "side_out_of_view_share": result.side_out_of_view_share},
+                                 # binning: the stream's; valid_pixels count its bins
+                                 {"ambient_flicker": result.ambient_flicker, "binning": np.int64(factors[name])},
+                                 result.saved_index, result.saved_normals, result.saved_depth,
+                                 (head.height, head.width))
+                    counts[name] = len(result.frame_index)
+                    displacements[name] = HeadDisplacements(result.timestamp_ns, result.sums)
+                    distances[name] = (float(np.nanmean(result.distance_mm)) if len(result.distance_mm)
+                                       else float("nan"))
+                    occluded[name] = result.occluded_side_share
+                    out_of_view[name] = result.side_out_of_view_share
+                    areas[name] = trunk_area_m2(result.valid_pixels, result.distance_mm, stream_heads[name])
             refused = (distance_refusal(distances) or coverage_refusal(areas)
                        or occlusion_refusal(occluded, out_of_view))
             if refused is not None:
@@ -452,33 +454,52 @@ def _process_head_in_worker(job: _HeadJob) -> _HeadResult:
     return _process_head(job, lambda: _worker_ticks.put(1))
 
 
-def _run_heads(jobs: list[_HeadJob], workers: int, progress: Callable[[float], None]) -> list[_HeadResult]:
-    """Each head's reconstruction, here or, with workers > 1, in spawned worker processes (fork is
-    unsafe once OpenMP threads run), each with its share of the cores; `progress` gets the share
-    of their windows done."""
-    done = 0
-    total = sum(len(job.windows) for job in jobs)
+class _HeadWorkers:
+    """Where `process_session` reconstructs its heads: here (workers <= 1), or in spawned worker
+    processes (fork is unsafe once OpenMP threads run), each with its share of the cores, started
+    once for both of its passes: a worker takes about 2 s to start (imports, numba's cached kernels),
+    and a pool per pass spent that twice."""
 
-    def tick(count: int = 1) -> None:
-        nonlocal done
-        done += count
-        if total:
-            progress(done / total)
+    def __init__(self, workers: int, heads: int) -> None:
+        self._count = min(workers, heads)
+        self._pool = None
+        self._ticks = None
 
-    if workers <= 1 or len(jobs) <= 1:
-        return [_process_head(job, tick) for job in jobs]
-    import multiprocessing
-    import queue
+    def __enter__(self) -> "_HeadWorkers":
+        if self._count > 1:
+            import multiprocessing
 
-    context = multiprocessing.get_context("spawn")
-    ticks = context.Queue()
-    count = min(workers, len(jobs))
-    with context.Pool(count, initializer=_start_worker, initargs=(ticks, max(1, (os.cpu_count() or 1) // count))) as pool:
-        pending = pool.map_async(_process_head_in_worker, jobs, chunksize=1)
+            context = multiprocessing.get_context("spawn")
+            self._ticks = context.Queue()
+            self._pool = context.Pool(self._count, initializer=_start_worker,
+                                      initargs=(self._ticks, max(1, (os.cpu_count() or 1) // self._count)))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+
+    def run(self, jobs: list[_HeadJob], progress: Callable[[float], None]) -> list[_HeadResult]:
+        """Each job's head reconstructed; `progress` gets the share of their windows done."""
+        done = 0
+        total = sum(len(job.windows) for job in jobs)
+
+        def tick(count: int = 1) -> None:
+            nonlocal done
+            done += count
+            if total:
+                progress(done / total)
+
+        if self._pool is None or len(jobs) <= 1:
+            return [_process_head(job, tick) for job in jobs]
+        import queue
+
+        pending = self._pool.map_async(_process_head_in_worker, jobs, chunksize=1)
         while not pending.ready():
             stop_if_requested()
             try:
-                tick(ticks.get(timeout=0.2))
+                tick(self._ticks.get(timeout=0.2))
             except queue.Empty:
                 pass
         return pending.get()
