@@ -70,6 +70,16 @@ class BodyFrame:
         return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _bracket(position, size):
+    """(lower index, upper index, fraction towards the upper) of a position along an axis of `size`
+    samples; lower index -1 when the position lies off the axis."""
+    if position < 0.0 or position > size - 1:
+        return -1, -1, 0.0
+    lower = min(int(position), size - 1)
+    return lower, min(lower + 1, size - 1), position - lower
+
+
 @njit(cache=True, parallel=True, nogil=True)
 def _resample_bilinear(depth, valid, cx, cy, scale, shift_u, shift_v, out):
     """BodyFrame.resampled's kernel: each of out's pixels (u, v) takes the depth at (cx + (u - cx)
@@ -77,19 +87,13 @@ def _resample_bilinear(depth, valid, cx, cy, scale, shift_u, shift_v, out):
     than 0.99 of its weight (so a pixel on the silhouette's edge or off the image stays NaN)."""
     height, width = depth.shape
     for i in prange(out.shape[0]):
-        y = cy + (i - cy) * scale + shift_v
-        if y < 0.0 or y > height - 1:
+        i0, i1, fy = _bracket(cy + (i - cy) * scale + shift_v, height)
+        if i0 < 0:
             continue
-        i0 = min(int(y), height - 1)
-        i1 = min(i0 + 1, height - 1)
-        fy = y - i0
         for j in range(out.shape[1]):
-            x = cx + (j - cx) * scale + shift_u
-            if x < 0.0 or x > width - 1:
+            j0, j1, fx = _bracket(cx + (j - cx) * scale + shift_u, width)
+            if j0 < 0:
                 continue
-            j0 = min(int(x), width - 1)
-            j1 = min(j0 + 1, width - 1)
-            fx = x - j0
             total = 0.0
             weight = 0.0
             for a, wa in ((i0, 1.0 - fy), (i1, fy)):

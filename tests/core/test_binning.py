@@ -50,3 +50,13 @@ def test_frame_bins_equal_the_plain_reductions():
         blocks = _blocks(frame, factor)
         np.testing.assert_allclose(mean, blocks.mean(axis=(-3, -1)), rtol=1e-12)
         np.testing.assert_array_equal(peak, blocks.max(axis=(-3, -1)))
+
+
+def test_a_frames_mean_is_its_bins_mean_without_binning_it():
+    from core.reconstruction.binning import frame_mean
+
+    rng = np.random.default_rng(4)
+    frame = rng.integers(0, 4096, size=(103, 141)).astype(np.uint16)  # remainders on both axes
+    for factor in (1, 2, 4):
+        assert frame_mean(frame, factor) == pytest.approx(bin_mean(frame, factor).mean(), rel=1e-12)
+    assert frame_mean(frame.astype(float), 4) == pytest.approx(bin_mean(frame, 4).mean(), rel=1e-12)

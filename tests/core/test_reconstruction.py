@@ -184,6 +184,25 @@ def test_the_distance_does_not_follow_an_intensity_error(torso_2200):
     np.testing.assert_allclose(factors / factors.mean(), (1 / brighter) / np.mean(1 / brighter), atol=0.002)
 
 
+def test_a_streams_cycle_started_on_the_last_surface_is_the_cycle_on_its_own(torso_2200):
+    """A stream's cycle places its lights on the last cycle's final surface instead of integrating
+    the distant-light normals first (one integration fewer, the live view's rate): the same map as
+    the cycle reconstructed on its own. Measured: median 0.001 mm, largest 0.02 mm, normals 0.001 deg."""
+    with SessionFile(torso_2200) as s:
+        head = with_true_lights(s).apply(s.rig).heads["front"]
+        first, second = _cycle(s, 4), _cycle(s, 9)
+    stream = HeadReconstructor(head)
+    stream.reconstruct(first[0], dark=first[2], distance_mm=2150.0)
+    warm = stream.reconstruct(second[0], dark=second[2], distance_mm=2150.0)
+    alone = HeadReconstructor(head).reconstruct(second[0], dark=second[2], distance_mm=2150.0)
+    both = warm.mask & alone.mask
+    assert both.sum() > 0.95 * alone.mask.sum()
+    difference = np.abs(warm.depth_mm - alone.depth_mm)[both]
+    assert np.median(difference) < 0.01 and difference.max() < 0.2
+    angle = np.degrees(np.arccos(np.clip(np.sum(warm.normals * alone.normals, axis=-1)[both], -1.0, 1.0)))
+    assert np.percentile(angle, 99) < 0.1
+
+
 def test_running_distance_averages_small_changes_and_restarts_on_a_jump():
     running = RunningDistance(5)
     assert running.update(2010.0) == 2010.0  # the first cycle as it is

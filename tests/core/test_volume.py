@@ -216,3 +216,29 @@ def test_the_occluding_contour_is_found_where_the_map_lacks_the_silhouettes_oute
     assert contour_depth_mm(depth, valid, silhouette, head) == pytest.approx(truth, abs=3.0)
     outermost = np.nanmax(np.where(valid, depth, np.nan))
     assert truth - outermost > 20.0
+
+
+def test_the_body_frame_resampling_is_bilinear_on_the_valid_pixels():
+    """BodyFrame.resampled (a numba kernel) against scipy's map_coordinates of the depth and of the
+    valid pixels, the reference it replaced: the same pixels NaN, the same depths."""
+    from core.volume.maps import BodyFrame
+    from core.rig import thesis_head
+
+    head = thesis_head(scale=0.25)
+    rng = np.random.default_rng(2)
+    depth = 2000.0 + 10.0 * rng.normal(size=head.shape)
+    valid = np.zeros(head.shape, bool)
+    valid[30:220, 60:300] = True
+    valid[100:110, 100:105] = False
+    v, u = np.mgrid[0:head.height, 0:head.width].astype(float)
+    for frame in (BodyFrame(1.0, 0.0, 0.0), BodyFrame(1.013, 2.3, -1.7), BodyFrame(0.97, -40.2, 31.5),
+                  BodyFrame(1.0, 3.5, 2.5)):
+        for shown in (valid, np.ones(head.shape, bool)):
+            at = [head.cy + (v - head.cy) * frame.scale + frame.shift_v_px,
+                  head.cx + (u - head.cx) * frame.scale + frame.shift_u_px]
+            z = ndimage.map_coordinates(np.where(shown, depth, 0.0), at, order=1, cval=0.0)
+            weight = ndimage.map_coordinates(shown.astype(float), at, order=1, cval=0.0)
+            expected = np.where(weight > 0.99, z / np.maximum(weight, 1e-9), np.nan)
+            got = frame.resampled(depth, shown, head.shape, head)
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
+            np.testing.assert_allclose(got, expected, atol=1e-9, equal_nan=True)
