@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import numba
 import numpy as np
 
 from core.reconstruction.ambient import FLICKER_WINDOW_S, FlickerCorrection
@@ -27,7 +26,7 @@ from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.volume.flow_sensor import btps_factor
 from core.volume.metric import LiveMetricVolume
 from core.reconstruction.pipeline import HeadReconstructor, ReconstructionSettings
-from core.reconstruction.process import MAX_OCCLUDED_SIDE_SHARE
+from core.reconstruction.process import MAX_OCCLUDED_SIDE_SHARE, use_threads
 from core.rig import DARK, Rig
 from core.io.session import SessionFile, SubjectRecord
 from drivers.camera import CameraError, CameraStats, Frame, capture_frames
@@ -676,8 +675,7 @@ class LiveRig:
     def _reconstruct(self, head: str) -> None:
         # each head's thread keeps to its share of the cores: numba's parallel kernels (OpenMP) and
         # the DCTs of two heads running at once on all of them oversubscribed the cores
-        numba.set_num_threads(max(1, min(numba.config.NUMBA_NUM_THREADS,
-                                         (os.cpu_count() or 1) // len(self._live_heads))))
+        use_threads((os.cpu_count() or 1) // len(self._live_heads))
         reconstructor = HeadReconstructor(self._live_heads[head], None, self.settings)
         done_id = -1
         condition = self._new_frame[head]

@@ -76,14 +76,12 @@ def already_done(session: Path, results: Path) -> bool:
 
 def process_one(session: str, results: str, options: BatchOptions) -> tuple[str, str | None, float]:
     """The task a Dask worker runs: (session, None or the one-line reason it failed, seconds)."""
-    from core.reconstruction.process import process_session
+    from core.reconstruction.process import process_session, use_threads
     from core.calibration.rig_profile import load_profile
 
     started = time.perf_counter()
     if options.threads is not None:
-        import numba
-
-        numba.set_num_threads(max(1, min(options.threads, numba.config.NUMBA_NUM_THREADS)))
+        use_threads(options.threads)
     try:
         calibration = load_profile(options.calibration) if options.calibration is not None else None
         if os.path.exists(results):

@@ -442,12 +442,19 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
 _worker_ticks = None  # in a worker process: the queue its progress goes to
 
 
-def _start_worker(ticks, threads: int) -> None:
+def use_threads(threads: int) -> None:
+    """The calling thread's numba kernels, and the DCTs that follow them (core/reconstruction/integrate.py),
+    on `threads` cores: at least one, at most numba's pool. Per thread: a live head's reconstruction
+    thread, a worker process, a Dask task each take their share of the cores."""
     import numba
 
+    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+
+
+def _start_worker(ticks, threads: int) -> None:
     global _worker_ticks
     _worker_ticks = ticks
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    use_threads(threads)
 
 
 def _process_head_in_worker(job: _HeadJob) -> _HeadResult:

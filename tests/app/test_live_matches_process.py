@@ -28,7 +28,9 @@ def test_the_live_volume_is_the_processed_volume(tmp_path):
         first = min(int(s.timestamp_ns(h)[0]) for h in s.heads)
         processed_t = (f["metric_volume/timestamp_ns"][:] - first) / 1e9
         processed = f["metric_volume/volume_l"][:]
-    rig = LiveRig(replay_source(session))
+    # played at half speed: on a loaded machine (the CI's two test workers beside it) the engine made
+    # 25 maps in 4 s at full speed; the comparison is of the path, not of the rate
+    rig = LiveRig(replay_source(session, speed=0.5))
     rig.start()
     try:
         deadline = time.monotonic() + 60.0
@@ -41,10 +43,11 @@ def test_the_live_volume_is_the_processed_volume(tmp_path):
         rig.stop()
     settled = snapshot.metric_t_s > 0.5  # both heads' first maps in, the live distance settled
     live = snapshot.metric_volume_l[settled]
-    assert len(live) >= 30, len(live)  # most of the 4 s session's 88 cycles a head made a live map
+    assert len(live) >= 30, len(live)  # a good share of the 4 s session's 88 cycles a head
     on_live_times = np.interp(snapshot.metric_t_s[settled], processed_t, processed)
     difference = (live - live.mean()) - (on_live_times - on_live_times.mean())
-    # measured: r 0.994, slope 1.02, rms 25 mL of a 1.04 L swing (73 live maps after 0.5 s)
+    # measured at half speed: r 0.998, slope 1.00, rms 16 mL of a 1.04 L swing (104 live maps after 0.5 s;
+    # at full speed on an idle machine 73 maps, r 0.994, slope 1.02, rms 25 mL)
     assert np.corrcoef(live, on_live_times)[0, 1] > 0.97
     assert 0.9 < np.polyfit(on_live_times, live, 1)[0] < 1.1
     assert np.sqrt(np.mean(difference ** 2)) < 0.06
