@@ -110,6 +110,7 @@ def _distance_errors(session: Path, results: Path, after_cycles: int) -> list[fl
 # at scale 0.15, 1.4-3.7 mm at 0.3, 0.2-0.5 mm at 0.5; docs/benchmarks.md, lights). The rig's
 # camera calibrates at its full 1400 x 1024 whatever the subject's scale here; the lights are in mm.
 CALIBRATION_SCALE = 0.5
+RECORDING_COMPRESSION = "blosc-lz4"
 
 
 def sphere_sessions(subject: VirtualSubject, scale: float, folder: Path,
@@ -201,8 +202,10 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
         curve = standard_curve(standard.volume_l, standard.rate_hz)
         blows = [ForcedBlow(effort=e, standard=curve) for e in (1.0, 0.97, 1.02)]
     session, results = work / f"{subject.index}-session.h5", work / f"{subject.index}-results.h5"
+    # written as the recorder writes (Blosc LZ4, bit-shuffle): a subject's short protocol at the camera's
+    # full 1400 x 1024 is about 40 GB of raw frames, 17 GB compressed (docs/benchmarks.md, Compression)
     config = _config(subject, scale, protocol=protocol, seconds=seconds, distance_mm=subject.distance_mm,
-                     distance_back_mm=subject.distance_mm, blows=blows)
+                     distance_back_mm=subject.distance_mm, blows=blows, compression=RECORDING_COMPRESSION)
     config = replace(config, subject=replace(config.subject, rate_variability=0.15, sigh_every=12))
     simulate(session, config)
     stages["simulate subject"] = time.perf_counter() - started - sum(stages.values())
