@@ -424,6 +424,10 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
             from app.errors import UserError
 
             raise UserError("--subjects must be 1 or more")
+        if args.keep is not None and args.keep.exists() and not args.keep.is_dir():
+            from app.errors import UserError
+
+            raise UserError(f"{args.keep}: --keep must be a folder (the finished subjects are kept in it), this is a file")
         subjects = 2 if args.quick else args.subjects
         workers = max(1, min(subjects, args.workers or os.cpu_count() or 1))
         images = None if args.no_write or not in_checkout() else DOCS.parent / "images"

@@ -37,3 +37,17 @@ def test_the_quick_population_runs_end_to_end_and_reports_what_it_found(tmp_path
     again, rows_again = run_population_bench(2, 0.1, 1, True, 1, waveforms, None, keep=kept)
     assert "2 subjects kept from an earlier run" in again
     assert [r.get("truth") for r in rows_again] == [r.get("truth") for r in rows]
+
+
+def test_wrong_arguments_get_one_line_before_any_subject_runs(tmp_path, capsys):
+    """A keep folder that is a file would have failed after the first subject (tens of minutes in);
+    no subjects at all is refused, and the complaint about an option names no file."""
+    from app.cli import main
+
+    not_a_folder = tmp_path / "kept"
+    not_a_folder.write_text("")
+    assert main(["bench", "population", "--subjects", "1", "--no-write", "--keep", str(not_a_folder)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"photopft bench: error: {not_a_folder}: --keep must be a folder (the finished subjects are kept in it), this is a file"
+    assert main(["bench", "population", "--subjects", "0", "--no-write"]) == 2
+    assert capsys.readouterr().err.strip() == "photopft bench: error: --subjects must be 1 or more"
