@@ -312,7 +312,9 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
             if len(measured) == 0:
                 continue
             plotted = True
-            mean = truth if key == "distance_mm" else 0.5 * (measured + truth)
+            # the distance's error against the subject's true distance (the error is all _pairs keeps)
+            mean = (np.array([row["subject"]["distance_mm"] for row in rows if row.get("distance_errors_mm")])
+                    if key == "distance_mm" else 0.5 * (measured + truth))
             difference = measured - truth
             name = "optical" if source == "optical" else "flow sensor"
             ax.scatter(mean, difference, s=14, color=colour, label=name)
@@ -328,7 +330,7 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
         ax.axhline(absolute, color="grey", linestyle=":", linewidth=0.8)
         ax.axhline(-absolute, color="grey", linestyle=":", linewidth=0.8)
         suffix = f" ({unit})" if unit else ""
-        ax.set_xlabel(("true distance error" if key == "distance_mm" else f"mean of measured and true {label}")
+        ax.set_xlabel(("the subject's true distance" if key == "distance_mm" else f"mean of measured and true {label}")
                       + suffix)
         ax.set_ylabel(f"measured − true{suffix}")
         ax.set_title(f"{label}: Bland-Altman, {len(rows)} subjects")
