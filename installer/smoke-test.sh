@@ -9,7 +9,7 @@ scratch=$(mktemp -d)
 trap 'rm -rf "$scratch"' EXIT
 tar -C "$scratch" -xzf "$tarball"
 app=$(ls -d "$scratch"/photopft-*/photopft)/photopft
-export HOME="$scratch/home" QT_QPA_PLATFORM=offscreen
+export HOME="$scratch/home" TMPDIR="$scratch" QT_QPA_PLATFORM=offscreen
 mkdir -p "$HOME"
 "$app" --version
 started=$(date +%s)
