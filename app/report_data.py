@@ -15,7 +15,7 @@ import numpy as np
 from app.records import Patient, Records, ReportState
 from core.analysis.values import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.reconstruction.pipeline import ReconstructionSettings
-from core.reconstruction.process import maps_at
+from core.reconstruction.process import maps_at, processed_distance_mm
 from core.io.results import ResultsFile, optical_refusal, optical_volume, session_of_results
 from core.io.hdf5_probe import probe
 from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
@@ -76,7 +76,8 @@ class HeadMaps:
     expiration_mm: np.ndarray
     displacement_mm: np.ndarray  # towards the camera from end expiration to end inspiration
     regions: dict[str, float]  # share of the displacement volume, per region (0..1)
-    distance_mm: float
+    distance_mm: float  # the subject's distance the maps were made at
+    distance_from: str  # where that distance comes from (DISTANCE_FROM_PROCESS or DISTANCE_FROM_FIT)
 
 
 @dataclass
@@ -251,13 +252,26 @@ def _regions(head: str, displacement: np.ndarray, depth: np.ndarray, fx: float, 
     return {name: value / total for name, value in sums.items()}
 
 
+DISTANCE_FROM_PROCESS = "as processed"
+DISTANCE_FROM_FIT = "photometric fit, not processed"
+# `process` refused the optical values: the distance its geometry gave (the trunk's widths) is then
+# not vouched for either (an arm against the trunk puts it hundreds of millimetres off)
+DISTANCE_REFUSED = "not given: the optical values were refused"
+
+
 def _head_maps(session_path: Path, session: SessionFile, times_s: tuple[float, float], start_ns: int,
-               settings: ReconstructionSettings) -> list[HeadMaps]:
+               settings: ReconstructionSettings, results_path: Path | None) -> list[HeadMaps]:
+    """Each head's maps at end inspiration and end expiration, made at the distance `process` measured
+    (the two heads' geometry) when there are results: the photometric fit alone is tens to hundreds
+    of millimetres off with glossy skin or lights a few millimetres from their calibration."""
     out = []
+    refused = optical_refusal(results_path) if results_path is not None else None
     for name in session.heads:
         stamps = (session.timestamp_ns(name) - start_ns) / 1e9
         frames = [int(np.clip(np.searchsorted(stamps, t), 0, len(stamps) - 1)) for t in times_s]
-        inspiration, expiration = maps_at(session_path, name, frames, settings=settings)
+        known = (processed_distance_mm(results_path, name, frames) if results_path is not None
+                 else [float("nan")] * len(frames))
+        inspiration, expiration = maps_at(session_path, name, frames, settings=settings, distances_mm=known)
         head = session.rig.heads[name]
         depth_in = np.where(inspiration.mask, inspiration.depth_mm, np.nan)
         depth_ex = np.where(expiration.mask, expiration.depth_mm, np.nan)
@@ -268,7 +282,9 @@ def _head_maps(session_path: Path, session: SessionFile, times_s: tuple[float, f
         displacement[~trunk] = np.nan  # the neck and head are not the trunk
         # heights above each map's own mean surface: sway does not show as an offset
         out.append(HeadMaps(name, np.nanmean(depth_in) - depth_in, np.nanmean(depth_ex) - depth_ex, displacement,
-                            _regions(name, displacement, depth_ex, head.fx, head.fy), inspiration.distance_mm))
+                            _regions(name, displacement, depth_ex, head.fx, head.fy), inspiration.distance_mm,
+                            DISTANCE_REFUSED if refused else
+                            DISTANCE_FROM_PROCESS if np.isfinite(known[0]) else DISTANCE_FROM_FIT))
     return out
 
 
@@ -446,7 +462,7 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
                 chosen = sorted(breaths, key=lambda b: b[0])[len(breaths) // 2]  # the median tidal breath
                 breath = (float(chosen[6]), float(chosen[7]))
         if with_maps and breath is not None:
-            maps = _head_maps(session_path, s, breath, start, settings or ReconstructionSettings())
+            maps = _head_maps(session_path, s, breath, start, settings or ReconstructionSettings(), results_path)
         elif with_maps:
             notes.append("Height maps: no tidal breath found to place end inspiration and end expiration.")
         calibration = [f"lights of the {h} head calibrated {s.rig.heads[h].calibrated}" for h in s.heads]

@@ -29,7 +29,7 @@ from reportlab.platypus import (Image, KeepTogether, PageBreak, Paragraph, Simpl
                                 TableStyle)
 
 from app.paths import resources_dir
-from app.report_data import FLOW_SENSOR, OPTICAL, ReportData, ValueRow, best_manoeuvres
+from app.report_data import DISTANCE_REFUSED, FLOW_SENSOR, OPTICAL, HeadMaps, ReportData, ValueRow, best_manoeuvres
 from core import __version__
 from core.io.outputs import atomic_output
 
@@ -472,7 +472,7 @@ def _maps(data: ReportData, styles, width: float) -> list:
                          "after removing the subject's sway.", styles["small"]))
     column = (width - 12) / 3
     height_range = _symmetric_range([m.inspiration_mm for m in data.maps] + [m.expiration_mm for m in data.maps])
-    rows = [[Paragraph(f"<b>{m.head.capitalize()} head</b> ({m.distance_mm:.0f} mm)", styles["small"]), "", ""]
+    rows = [[Paragraph(f"<b>{m.head.capitalize()} head</b> ({_distance_text(m)})", styles["small"]), "", ""]
             for m in data.maps]
     table_rows = []
     for m, title in zip(data.maps, rows):
@@ -487,9 +487,18 @@ def _maps(data: ReportData, styles, width: float) -> list:
     table = Table(table_rows, colWidths=[column] * 3)
     table.setStyle(TableStyle([("FONT", (0, 0), (-1, -1), FONT, 8), ("ALIGN", (0, 0), (-1, -1), "CENTER"),
                                ("VALIGN", (0, 0), (-1, -1), "MIDDLE"),
-                               ("TOPPADDING", (0, 0), (-1, -1), 3), ("BOTTOMPADDING", (0, 0), (-1, -1), 3)]))
+                               ("TOPPADDING", (0, 0), (-1, -1), 3), ("BOTTOMPADDING", (0, 0), (-1, -1), 3)]
+                              # each head's title across the three columns
+                              + [("SPAN", (0, 3 * k), (-1, 3 * k)) for k in range(len(data.maps))]))
     out.append(table)
     return out
+
+
+def _distance_text(maps: HeadMaps) -> str:
+    """The subject's distance for a head's maps, with where it comes from; none when refused."""
+    if maps.distance_from == DISTANCE_REFUSED:
+        return f"subject distance {maps.distance_from}"
+    return f"subject at {maps.distance_mm:.0f} mm, {maps.distance_from}"
 
 
 def _regions(data: ReportData, styles) -> list:

@@ -23,7 +23,7 @@ from core.io.outputs import atomic_output, stop_if_requested
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
-from core.io.results import ResultsWriter
+from core.io.results import ResultsFile, ResultsWriter
 from core.volume.maps import DisplacementTracker, smooth_in_time
 
 # Work (maps times pixels) from which worker processes repay their start (docs/benchmarks.md, constants).
@@ -514,9 +514,12 @@ class _HeadWorkers:
 
 def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list[int], *,
             settings: ReconstructionSettings | None = None, motion_compensation: bool = True,
-            ) -> list[HeadMap]:
+            distances_mm: list[float] | None = None) -> list[HeadMap]:
     """Maps of one head at the given frames (each the newest complete cycle ending at or before
-    it), by the same reconstruction `process_session` runs, for reports and reviews."""
+    it), by the same reconstruction `process_session` runs, for reports and reviews.
+    distances_mm: the subject's distance at each frame as `process` measured it (processed_distance_mm);
+    without it, or where it is NaN, each map's distance is the photometric fit's, which the
+    lights' and the skin's errors move by tens to hundreds of millimetres (docs/reconstruction.md)."""
     settings = settings or ReconstructionSettings()
     with SessionFile(session_path) as session:
         rig = session.rig
@@ -533,14 +536,31 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
         reconstructor = HeadReconstructor(head, None, settings)
         lights, stamps = session.light_index(head_name), session.timestamp_ns(head_name)
         out = []
-        for index in frame_indices:
+        known = list(distances_mm) if distances_mm is not None else [float("nan")] * len(frame_indices)
+        for index, distance in zip(frame_indices, known):
             window = windows[max(0, int(np.searchsorted(ends, index, side="right")) - 1)]
             previous = by_id.get(int(ids[window.newest]) - rig.cycle_length) if motion_compensation else None
             darks = DarkFeed(frames, lights, stamps, rig.mains_hz)  # a feed per frame asked: they come in any order
             signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, {}, ids, stamps,
                                                    darks.flicker_of(window))
-            out.append(reconstructor.reconstruct(signal, saturated, dark))
+            out.append(reconstructor.reconstruct(signal, saturated, dark,
+                                                 float(distance) if np.isfinite(distance) else None))
     return out
+
+
+def processed_distance_mm(results_path: str | os.PathLike, head_name: str, frame_indices: list[int]) -> list[float]:
+    """The subject's distance `process` reconstructed a head's maps at (from the two heads' geometry
+    where it had both), at the given frames: interpolated between its maps; NaN where it has none."""
+    with ResultsFile(results_path) as r:
+        if head_name not in r.heads or not (r.has_series(head_name, "frame_index")
+                                            and r.has_series(head_name, "distance_mm")):
+            return [float("nan")] * len(frame_indices)
+        frames = r.series(head_name, "frame_index").astype(float)
+        distance = r.series(head_name, "distance_mm").astype(float)
+    good = np.isfinite(distance)
+    if not good.any():
+        return [float("nan")] * len(frame_indices)
+    return [float(d) for d in np.interp(np.asarray(frame_indices, dtype=float), frames[good], distance[good])]
 
 
 def with_true_lights(session: SessionFile) -> RigCalibration:

@@ -62,6 +62,12 @@ def test_report_numbers_equal_the_results_file(processed_full_session, tmp_path)
     assert f"{p['acceptable_FVC']} for FVC, of {p['manoeuvres']}" in page1
     assert re.search(r"Volume curves \(litres\): r = 0\.\d{3}", page1)
     assert "Height maps" in page2 and "Front head" in page2 and "Back head" in page2
+    # the maps are made at the distance `process` measured (the two heads' geometry), not the photometric fit's
+    with h5py.File(results, "r") as r:
+        for head in ("front", "back"):
+            shown = float(re.search(rf"{head.capitalize()} head \(subject at (\d+) mm, as processed\)", page2).group(1))
+            processed = r[f"heads/{head}/distance_mm"][:]
+            assert processed.min() - 1 <= shown <= processed.max() + 1, (head, shown, processed.min(), processed.max())
     assert "Regional contributions" in page2 and "Tidal breathing indices" in page2
     reader = PdfReader(pdf)
     fonts = [f.get_object() for page in reader.pages for f in page["/Resources"]["/Font"].values()]
@@ -110,6 +116,7 @@ def test_a_front_only_session(small_sessions, tmp_path):
     assert main(["report", str(small_sessions["front-only"]), "-o", str(pdf)]) == 0
     page1, page2 = _parts(pdf)
     assert "Front head" in page2 and "Back head" not in page2
+    assert re.search(r"Front head \(subject at \d+ mm, photometric fit, not processed\)", page2)
     assert _row(page1, "Tidal volume", "L")[0] != "–"
     assert "the session has not been processed" in page1.replace("\n", " ").lower()
 
@@ -152,3 +159,25 @@ def test_the_report_reads_the_stored_values_back_and_says_when_they_have_aged(pr
     assert fvc.values["flow sensor"] == 3.333
     note = next(n for n in report.notes if "stored when the session was processed" in n)
     assert "flow sensor FVC_l 3.333 stored" in note and "process the session again" in note
+
+
+def test_no_subject_distance_is_printed_where_process_refused_the_optical_values(processed_full_session, tmp_path):
+    """An arm against the trunk puts the two heads' distance hundreds of millimetres off; `process` then
+    refuses the optical values, and the report gives no distance for the maps."""
+    import shutil
+
+    session, results = processed_full_session
+    refused = tmp_path / "refused.h5"
+    shutil.copy(results, refused)
+    with h5py.File(refused, "r+") as r:
+        for name in ("volume", "metric_volume"):
+            if name in r:
+                del r[name]
+        r.attrs["optical_refused"] = "head front: an arm lies against the trunk"
+        r.attrs["session"] = str(session)
+    pdf = tmp_path / "r.pdf"
+    assert main(["report", str(refused), "-o", str(pdf)]) == 0
+    page1, page2 = _parts(pdf)
+    assert "Optical values refused: head front: an arm lies against the trunk" in page1.replace("\n", " ")
+    assert "Front head (subject distance not given: the optical values were refused)" in page2
+    assert not re.search(r"head \(subject at \d+ mm", page2)
