@@ -77,7 +77,7 @@ class HeadMaps:
     displacement_mm: np.ndarray  # towards the camera from end expiration to end inspiration
     regions: dict[str, float]  # share of the displacement volume, per region (0..1)
     distance_mm: float  # the subject's distance the maps were made at
-    distance_from: str  # where that distance comes from (DISTANCE_FROM_PROCESS or DISTANCE_FROM_FIT)
+    distance_from: str  # where that distance comes from (DISTANCE_FROM_PROCESS, _FROM_FIT, _NOT_STORED, _REFUSED)
 
 
 @dataclass
@@ -254,6 +254,7 @@ def _regions(head: str, displacement: np.ndarray, depth: np.ndarray, fx: float, 
 
 DISTANCE_FROM_PROCESS = "as processed"
 DISTANCE_FROM_FIT = "photometric fit, not processed"
+DISTANCE_NOT_STORED = "photometric fit, the results file holds no distance"
 # `process` refused the optical values: the distance its geometry gave (the trunk's widths) is then
 # not vouched for either (an arm against the trunk puts it hundreds of millimetres off)
 DISTANCE_REFUSED = "not given: the optical values were refused"
@@ -283,8 +284,8 @@ def _head_maps(session_path: Path, session: SessionFile, times_s: tuple[float, f
         # heights above each map's own mean surface: sway does not show as an offset
         out.append(HeadMaps(name, np.nanmean(depth_in) - depth_in, np.nanmean(depth_ex) - depth_ex, displacement,
                             _regions(name, displacement, depth_ex, head.fx, head.fy), inspiration.distance_mm,
-                            DISTANCE_REFUSED if refused else
-                            DISTANCE_FROM_PROCESS if np.isfinite(known[0]) else DISTANCE_FROM_FIT))
+                            DISTANCE_REFUSED if refused else DISTANCE_FROM_PROCESS if np.isfinite(known[0]) else
+                            DISTANCE_FROM_FIT if results_path is None else DISTANCE_NOT_STORED))
     return out
 
 
