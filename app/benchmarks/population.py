@@ -444,7 +444,8 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
              "|---|---|---|---|---|---|---|"]
     for label, unit, source, n, missing, bias, low, high, share, absolute, relative in agreement(rows):
         tolerance = f"{absolute:g} {unit}".strip() + (f" or {relative:.0%}" if relative else "")
-        given = (f"{bias:+.3f} | {low:+.3f} to {high:+.3f} | {share:.0%} (±{tolerance})" if n
+        limits = f"{low:+.3f} to {high:+.3f}" if n > 1 else "one value: no limits"
+        given = (f"{bias:+.3f} | {limits} | {share:.0%} (±{tolerance})" if n
                  else f"no value given | | (±{tolerance})")
         lines.append(f"| {label}{f' ({unit})' if unit else ''} | {'optical' if source == 'optical' else 'flow sensor'} | "
                      f"{n} | {missing} | {given} |")
