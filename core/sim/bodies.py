@@ -32,6 +32,14 @@ SEXES = ("male", "female")
 MAX_LATERAL_SLOPE = 4.0  # the sides' lateral expansion, in mm of height per mm of sideways motion, at most
 
 
+# The ranges a body's fields must lie in (Body refuses others; random_body draws within them).
+BODY_RANGES = {"age_years": (5, 100), "height_cm": (100, 215), "weight_kg": (15, 220),
+               "shoulder_width_mm": (220, 520), "shoulder_slope_deg": (0, 40), "chest_width_mm": (180, 480),
+               "waist_width_mm": (160, 520), "hip_width_mm": (180, 560), "chest_depth_mm": (130, 400),
+               "waist_depth_mm": (110, 450), "breast_mm": (0, 120), "abdominal_protrusion_mm": (0, 150),
+               "arm_radius_mm": (25, 80), "kyphosis_mm": (0, 60), "lordosis_mm": (0, 60)}
+
+
 @dataclass(frozen=True)
 class Body:
     """One subject's trunk. Lengths in millimetres; y runs down from the xiphoid."""
@@ -64,12 +72,7 @@ class Body:
             value = getattr(self, f.name)
             if isinstance(value, float | int) and not np.isfinite(value):
                 raise ValueError(f"body {self.name!r}: {f.name} must be finite")
-        checks = {"age_years": (5, 100), "height_cm": (100, 215), "weight_kg": (15, 220),
-                  "shoulder_width_mm": (220, 520), "shoulder_slope_deg": (0, 40), "chest_width_mm": (180, 480),
-                  "waist_width_mm": (160, 520), "hip_width_mm": (180, 560), "chest_depth_mm": (130, 400),
-                  "waist_depth_mm": (110, 450), "breast_mm": (0, 120), "abdominal_protrusion_mm": (0, 150),
-                  "arm_radius_mm": (25, 80), "kyphosis_mm": (0, 60), "lordosis_mm": (0, 60)}
-        for key, (lo, hi) in checks.items():
+        for key, (lo, hi) in BODY_RANGES.items():
             value = getattr(self, key)
             if not lo <= value <= hi:
                 raise ValueError(f"body {self.name!r}: {key} {value:g} outside {lo}-{hi}")
@@ -115,6 +118,9 @@ def anthropometric_body(name: str, sex: str, age_years: float, height_cm: float,
         base["chest_depth_mm"] *= 0.95
     base["abdominal_protrusion_mm"] = float(np.clip(6.0 * (bmi - reference_bmi) + 10.0, 0.0, 120.0))
     base["shoulder_width_mm"] = max(base["shoulder_width_mm"], base["chest_width_mm"] - 30.0)
+    # the smallest children's breadths scaled so fall just below the ranges Body holds (population
+    # seed 1, subject 11: chest 176 mm); they are taken at the ranges' edges
+    base = {k: float(np.clip(v, *BODY_RANGES[k])) for k, v in base.items()}
     base.update(traits)
     return Body(name=name, sex=sex, age_years=age_years, height_cm=height_cm, weight_kg=weight_kg, **base)
 
@@ -158,7 +164,7 @@ def random_body(seed: int) -> Body:
     if body.breast_mm > 0:
         jitter["breast_mm"] = body.breast_mm * float(rng.uniform(0.5, 1.6))
     jitter["chest_width_mm"] = min(jitter["chest_width_mm"], body.shoulder_width_mm + 30.0)
-    return replace(body, **jitter)
+    return replace(body, **{k: float(np.clip(v, *BODY_RANGES[k])) for k, v in jitter.items()})
 
 
 def body_from_toml(path: str | Path) -> Body:
