@@ -273,6 +273,11 @@ def _pairs(rows: list[dict], source: str, key: str) -> tuple[np.ndarray, np.ndar
     return np.array(measured), np.array(truth), missing
 
 
+def _or_dash(value: float, spec: str) -> str:
+    """A table cell: the value, or a dash where there is none (a subject refused before analysis)."""
+    return format(value, spec) if np.isfinite(value) else "–"
+
+
 def agreement(rows: list[dict]) -> list[tuple]:
     """Per value and source: n, refused, bias, 95 % limits of agreement, share within tolerance."""
     table = []
@@ -459,14 +464,14 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
         led = max((max(v) for v in row.get("led_error_mm", {}).values()), default=float("nan"))
         truth, optical = row.get("truth", {}), row.get("optical", {})
         errors = row.get("distance_errors_mm") or []
-        cells = [(f"{optical[k]:.3f}" if k in optical else "none") + f" / {truth.get(k, float('nan')):.3f}"
+        cells = [(f"{optical[k]:.3f}" if k in optical else "none") + (f" / {truth[k]:.3f}" if k in truth else "")
                  for k in ("TV_l", "FVC_l")]
         lines.append(f"| {s['index']} | {body.get('name', s['body'])} | {body.get('sex', '?')}, "
                      f"{body.get('age_years', float('nan')):.0f} y, {body.get('height_cm', float('nan')):.0f} cm, "
                      f"{body.get('bmi', float('nan')):.1f} | {body.get('arms', '?')} | {s['distance_mm']:.0f} | "
                      f"{s['skin_type']} | {s['specular']:.2f} | {Path(s['standard']).stem if s['standard'] else 'model'} | "
-                     f"{led:.1f} | "
-                     f"{' | '.join(cells)} | {max(errors, key=abs) if errors else float('nan'):+.1f} |"
+                     f"{_or_dash(led, '.1f')} | "
+                     f"{' | '.join(cells)} | {_or_dash(max(errors, key=abs) if errors else float('nan'), '+.1f')} |"
                      + (f" refused: {row['refused']}" if "refused" in row else "")
                      + (f" optical refused: {row['optical_refused']}" if row.get("optical_refused") else ""))
     subject_seconds = [r["seconds"] for r in rows if "seconds" in r]
