@@ -254,10 +254,10 @@ def _pairs(rows: list[dict], source: str, key: str) -> tuple[np.ndarray, np.ndar
             if source != "optical":
                 continue
             errors = row.get("distance_errors_mm") or []
-            if errors:
-                worst = max(errors, key=abs)
-                measured.append(worst)
-                truth.append(0.0)
+            if errors:  # the subject's median depth as measured, at its worst map, and as it was
+                true_distance = row["subject"]["distance_mm"]
+                measured.append(true_distance + max(errors, key=abs))
+                truth.append(true_distance)
             else:
                 missing += 1
             continue
@@ -317,9 +317,7 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
             if len(measured) == 0:
                 continue
             plotted = True
-            # the distance's error against the subject's true distance (the error is all _pairs keeps)
-            mean = (np.array([row["subject"]["distance_mm"] for row in rows if row.get("distance_errors_mm")])
-                    if key == "distance_mm" else 0.5 * (measured + truth))
+            mean = truth if key == "distance_mm" else 0.5 * (measured + truth)
             difference = measured - truth
             name = "optical" if source == "optical" else "flow sensor"
             ax.scatter(mean, difference, s=14, color=colour, label=name)
