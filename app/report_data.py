@@ -270,8 +270,7 @@ def _head_maps(session_path: Path, session: SessionFile, times_s: tuple[float, f
     for name in session.heads:
         stamps = (session.timestamp_ns(name) - start_ns) / 1e9
         frames = [int(np.clip(np.searchsorted(stamps, t), 0, len(stamps) - 1)) for t in times_s]
-        known = (processed_distance_mm(results_path, name, frames) if results_path is not None
-                 else [float("nan")] * len(frames))
+        known = processed_distance_mm(results_path, name, frames) if results_path is not None else None
         inspiration, expiration = maps_at(session_path, name, frames, settings=settings, distances_mm=known)
         head = session.rig.heads[name]
         depth_in = np.where(inspiration.mask, inspiration.depth_mm, np.nan)
@@ -284,8 +283,8 @@ def _head_maps(session_path: Path, session: SessionFile, times_s: tuple[float, f
         # heights above each map's own mean surface: sway does not show as an offset
         out.append(HeadMaps(name, np.nanmean(depth_in) - depth_in, np.nanmean(depth_ex) - depth_ex, displacement,
                             _regions(name, displacement, depth_ex, head.fx, head.fy), inspiration.distance_mm,
-                            DISTANCE_REFUSED if refused else DISTANCE_FROM_PROCESS if np.isfinite(known[0]) else
-                            DISTANCE_FROM_FIT if results_path is None else DISTANCE_NOT_STORED))
+                            DISTANCE_REFUSED if refused else DISTANCE_FROM_FIT if known is None else
+                            DISTANCE_FROM_PROCESS if np.isfinite(known[0]) else DISTANCE_NOT_STORED))
     return out
 
 
