@@ -325,7 +325,9 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
     moved = [float(result.table.item(r, 6).text()) for r in range(8)]
     assert 1.0 < max(moved) < 25.0  # each LED moved from the drawing (8 mm off it per axis, fitted at 350 px)
     assert "profile in force of 2026-10-01" in result.message.text()
+    assert all(path.exists() for path in captures.captures)
     wizard.accept()
+    assert not captures.folder.exists()  # the sphere sessions do not pile up in the temporary folder
     profile = load_profile(folder / "rig-calibration.json")
     assert set(profile.heads) == {"front", "back"}
     assert len(history("simulated", "rig-calibration.json")) == 1
@@ -363,6 +365,7 @@ def test_the_sphere_wizard_previews_the_live_camera(qtbot, tmp_path):
         assert page.live_image.image.shape[1] == 140 and page.live_image.image.max() > 0
         wizard.reject()
         assert not page.preview_timer.isActive()
+        assert not page.folder.exists()
     finally:
         engine.stop()
 

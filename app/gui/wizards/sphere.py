@@ -10,6 +10,7 @@ at the next place; on a real rig it records a second of the sphere.
 
 from __future__ import annotations
 
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -358,7 +359,9 @@ class SphereCalibrationWizard(QWizard):
         job.signals.failed.connect(lambda *_: self.capture_page.capture_failed())
 
     def done(self, result: int) -> None:
+        """Finish or Cancel: the captures' folder goes (the profile keeps each light's fit and residual)."""
         self.capture_page.preview_timer.stop()
+        shutil.rmtree(self.capture_page.folder, ignore_errors=True)
         super().done(result)
 
     def accept(self) -> None:
