@@ -25,6 +25,7 @@ from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
 from core.io.results import ResultsFile, ResultsWriter
 from core.volume.maps import DisplacementTracker, smooth_in_time
+from core.volume.sides import bend_refusal, paired_tilts, side_profile_mm
 
 # Work (maps times pixels) from which worker processes repay their start (docs/benchmarks.md, constants).
 AUTO_WORKERS_PIXEL_MAPS = 5e6
@@ -60,6 +61,29 @@ def distance_refusal(distances_mm: dict[str, float]) -> str | None:
             return (f"head {name}: the subject measured at {distance:.0f} mm, outside the rig's working range "
                     f"{lo:.0f}-{hi:.0f} mm (a subject out of place, or skin or lights the calibration does not "
                     "describe)")
+    return None
+
+
+# The most the photometric fit's median distance may lie from the two heads' geometric one before the
+# skin counts as not matte (docs/volume.md, "Skin the light model does not describe"): matte skin with
+# sphere-calibrated lights 8-35 mm on every head of 12 simulated sessions; a sheen of 0.05 48-92, of
+# 0.15-0.3 92-702 mm on at least one head, and those maps' volumes read 0.01-0.75 of the truth.
+MAX_PHOTOMETRIC_OFFSET_MM = 60.0
+
+
+def reflectance_refusal(offsets_mm: dict[str, float]) -> str | None:
+    """Why the optical volume cannot be reported from heads whose shading puts the subject more than
+    MAX_PHOTOMETRIC_OFFSET_MM from where the two heads' geometry does (the photometric fit's median
+    offset, _geometric_pass), or None. The shading's distance cue is a few parts in a thousand; a
+    sheen on the skin, which the Lambertian model leaves out, moves it by tens to hundreds of mm and
+    bends the normals by degrees (docs/reconstruction.md, "Glossy skin")."""
+    for name, offset in offsets_mm.items():
+        if np.isfinite(offset) and abs(offset) > MAX_PHOTOMETRIC_OFFSET_MM:
+            where = "nearer" if offset < 0 else "farther"
+            return (f"head {name}: its shading puts the subject {abs(offset):.0f} mm {where} than the two heads' "
+                    f"geometry does (at most {MAX_PHOTOMETRIC_OFFSET_MM:.0f} mm): the skin is not matte (a sheen, "
+                    "which cross-polarised lighting removes) or the lights are not where the calibration puts them, "
+                    "and the maps' shape, and so the volume, would not be the body's")
     return None
 
 
@@ -298,6 +322,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                                                          lambda f: overall(f, sum(len(w) for w in survey.values())))
                     done_before = sum(len(w) for w in survey.values())
                 jobs = []
+                # the sides' agreement (core/volume/sides.py) is looked at on maps made at the geometric distance
+                maps_per_survey = max(1, int(round(SURVEY_INTERVAL_S * rig.frame_rate_hz / every)))
                 for name in names:
                     distances_mm = None
                     if name in geometric:
@@ -305,9 +331,12 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                         t, d = geometric[name]
                         distances_mm = np.interp(np.array([stamps[w.newest] for w in plans[name]], dtype=float), t, d)
                     jobs.append(_HeadJob(Path(session_path), rig, name, plans[name], settings, pseudo[name],
-                                         motion_compensation, tuple(maps_at), distances_mm, factors[name]))
+                                         motion_compensation, tuple(maps_at), distances_mm, factors[name],
+                                         maps_per_survey if geometric else 0))
                 pass_windows = sum(len(plans[n]) for n in names)
+                profiles = {}
                 for result in pool.run(jobs, lambda f: overall(f, pass_windows)):
+                    profiles[result.name] = result.side_profiles
                     name, head = result.name, rig.heads[result.name]
                     results.head(name, {"timestamp_ns": result.timestamp_ns, "frame_index": result.frame_index,
                                         "distance_mm": result.distance_mm, "gradient_volume": result.gradient_volume,
@@ -325,8 +354,12 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                     occluded[name] = result.occluded_side_share
                     out_of_view[name] = result.side_out_of_view_share
                     areas[name] = trunk_area_m2(result.valid_pixels, result.distance_mm, stream_heads[name])
+            tilts = paired_tilts(*profiles.values()) if len(profiles) == 2 and geometric else np.zeros(0)
+            if np.isfinite(tilts).any():
+                results.attr("sides_tilt", float(np.nanmedian(tilts)))
             refused = (distance_refusal(distances) or coverage_refusal(areas)
-                       or occlusion_refusal(occluded, out_of_view))
+                       or occlusion_refusal(occluded, out_of_view) or reflectance_refusal(offsets)
+                       or bend_refusal(tilts))
             if refused is not None:
                 results.refuse_optical(refused)
             metric = (metric_volume(displacements, rig.baseline_mm) if all(counts.values()) and refused is None
@@ -359,6 +392,7 @@ class _HeadJob:
     maps_at: tuple[int, ...]
     distances_mm: np.ndarray | None = None  # each window's subject distance, when known from elsewhere
     binning: int = 1  # the stream reconstructed on binning x binning bins (maps_at frames at full resolution)
+    profile_every: int = 0  # every so many maps, the trunk's sides along its height (side_profile_mm); 0 none
 
 
 @dataclass
@@ -376,6 +410,7 @@ class _HeadResult:
     saved_depth: list[np.ndarray]
     sums: list
     ambient_flicker: float = 0.0  # DarkFeed.flicker_share
+    side_profiles: tuple[np.ndarray, list] = (np.zeros(0, np.int64), [])  # (timestamp_ns, side_profile_mm)
 
 
 def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
@@ -390,6 +425,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
     rows: dict[str, list] = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": [],
                              "valid_pixels": [], "occluded_side_share": [], "side_out_of_view_share": []}
     saved_index, saved_normals, saved_depth, sums = [], [], [], []
+    profile_times, profiles = [], []
     with SessionFile(job.session_path) as session:
         frames = session.frames(name)
         stamps = session.timestamp_ns(name)
@@ -416,6 +452,10 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             for key in ("occluded_side_share", "side_out_of_view_share"):
                 rows[key].append(result.extra.get(key, np.nan))
             sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette))
+            if job.profile_every and number % job.profile_every == 0:
+                profile_times.append(stamps[window.newest])
+                profiles.append(side_profile_mm(result.depth_mm, result.mask & np.isfinite(result.depth_mm),
+                                                result.silhouette, head))
             if window.newest in job.maps_at:
                 full = result
                 if job.binning > 1:
@@ -436,7 +476,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                        np.asarray(rows["valid_pixels"], dtype=np.int64),
                        np.asarray(rows["occluded_side_share"], dtype=np.float64),
                        np.asarray(rows["side_out_of_view_share"], dtype=np.float64), saved_index, saved_normals,
-                       saved_depth, sums, darks.flicker_share)
+                       saved_depth, sums, darks.flicker_share, (np.asarray(profile_times, dtype=np.int64), profiles))
 
 
 _worker_ticks = None  # in a worker process: the queue its progress goes to

@@ -499,26 +499,36 @@ def contour_depth_mm(depth_mm: np.ndarray, valid: np.ndarray, silhouette: np.nda
     which hold tens of mm of depth: extrapolating the rim's
     band to the side put the maps 22-37 mm too far on a population subject; the contour model
     within 10 mm (docs/reconstruction.md). NaN where fewer than MIN_SIDE_ROWS row sides give one."""
+    _, sides = contour_rows_mm(depth_mm, valid, silhouette, head)
+    found = sides[np.isfinite(sides)]
+    return float(np.median(found)) if len(found) >= MIN_SIDE_ROWS else float("nan")
+
+
+def contour_rows_mm(depth_mm: np.ndarray, valid: np.ndarray, silhouette: np.ndarray, head: Head,
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(trunk rows, (rows, 2) depth of the occluding contour at each row's left and right side):
+    contour_depth_mm's model on each row side; NaN where a side gives none."""
+    rows = torso_rows(valid)
+    sides = np.full((len(rows), 2), np.nan)
     pixel_mm = float(np.nanmedian(depth_mm[valid])) / head.fx if valid.any() else float("nan")
     if not np.isfinite(pixel_mm):
-        return float("nan")
+        return rows, sides
     fit_px = max(4, int(round(CONTOUR_FIT_MM / pixel_mm)))
     gap_px = max(2.0, CONTOUR_MAX_GAP_MM / pixel_mm)
-    found = []
-    for row in torso_rows(valid):
+    for k, row in enumerate(rows):
         run = np.flatnonzero(silhouette[row])
         cols = np.flatnonzero(valid[row] & np.isfinite(depth_mm[row]))
         if len(run) == 0 or len(cols) < 3 * fit_px:
             continue
-        for edge, inner in ((run[0] - 0.5, cols[:fit_px]), (run[-1] + 0.5, cols[::-1][:fit_px])):
+        for side, (edge, inner) in enumerate(((run[0] - 0.5, cols[:fit_px]), (run[-1] + 0.5, cols[::-1][:fit_px]))):
             if abs(inner[0] - edge) > gap_px:
                 continue
             away = np.abs(inner - edge)
             design = np.column_stack([np.ones(len(away)), -np.sqrt(away), away])
             (z_contour, a, _), *_ = np.linalg.lstsq(design, depth_mm[row, inner], rcond=None)
             if a > 0:  # the surface recedes towards its contour
-                found.append(z_contour)
-    return float(np.median(found)) if len(found) >= MIN_SIDE_ROWS else float("nan")
+                sides[k, side] = z_contour
+    return rows, sides
 
 
 def row_widths_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> np.ndarray:

@@ -447,9 +447,10 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
 def test_two_heads_take_the_subject_distance_from_their_geometry_where_glossy_skin_misleads_the_photometric_fit(
         tmp_path):
     """Skin with a sheen (Blinn-Phong, 0.2 of white): the photometric fit puts the subject about 900 mm
-    short and `process` refuses its volume; from the two heads' trunk widths and baseline (the
-    default) the distance is within 100 mm and the volume is written, with the photometric fit's
-    offset kept beside it."""
+    short and `process` refuses its volume for the distance; from the two heads' trunk widths and
+    baseline (the default) the distance is within 100 mm, with the photometric fit's offset kept
+    beside it, and the volume is refused again, now because the offset shows skin the light model
+    does not describe (its maps' shape would not be the body's)."""
     import h5py
 
     from core.reconstruction.process import process_session
@@ -462,13 +463,14 @@ def test_two_heads_take_the_subject_distance_from_their_geometry_where_glossy_sk
     photometric = process_session(session, tmp_path / "p.h5", distance_from="photometric")
     assert "outside the rig's working range" in photometric.optical_refused
     geometric = process_session(session, tmp_path / "g.h5")
-    assert geometric.optical_refused is None
+    assert "the skin is not matte" in geometric.optical_refused and "nearer than the two heads' geometry" in (
+        geometric.optical_refused)
     for name, distance in geometric.mean_distance_mm.items():
         assert abs(distance - truth[name]) < 100.0
         assert geometric.photometric_offset_mm[name] < -500.0
     with h5py.File(tmp_path / "g.h5", "r") as r:
         assert r.attrs["distance_from"].startswith("two heads")
-        assert len(r["heads/front/photometric_survey/geometric_distance_mm"]) >= 2 and "metric_volume" in r
+        assert len(r["heads/front/photometric_survey/geometric_distance_mm"]) >= 2 and "metric_volume" not in r
 
 
 def test_a_binned_stream_keeps_full_resolution_maps(small_session, tmp_path):

@@ -1,0 +1,79 @@
+"""Whether the two heads' height maps agree on where the trunk's sides lie, along its height.
+
+The heads face each other on one axis. The trunk's occluding contour (its side, where the surface
+turns parallel to the axis) is about the same curve in both views, so at every height its depth
+from the front head and from the back head add up to the baseline. The maps' scale is set from the
+two heads' widths (core/reconstruction/process.py, geometric_distances), which fixes that sum on
+average; what is left is its change along the height. Maps bent by normals the light model does not
+explain (a sheen on the skin: docs/reconstruction.md, "Glossy skin") tilt the sum by tens of mm per
+100 mm of height, and their volume is not the breathing's (docs/volume.md, "Bent maps").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from core.rig import Head
+from core.volume.maps import contour_rows_mm
+
+# Measured (docs/volume.md, "Bent maps"), as mm of the sum per 100 mm of height: the true depth of
+# simulated subjects 2-5 (the two perspective views' contours are not quite one curve), matte
+# reconstructions 4-5, a faint sheen (0.05) 11-12, population subjects whose optical volume read a
+# tenth to a quarter of the truth 67-86.
+MAX_SIDES_TILT = 0.25
+SIDES_GRID_MM = 10.0
+MIN_SIDES_SPAN_MM = 150.0  # the heights both heads' sides must share for a tilt: half a child's trunk
+
+
+def side_profile_mm(depth_mm: np.ndarray, valid: np.ndarray, silhouette: np.ndarray, head: Head,
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(height, depth) in mm of the trunk's sides along its height: each trunk row whose both sides
+    give a contour (core/volume/maps.py, contour_rows_mm), at their mean depth, its height
+    (v - cy) Z / fy in the head's camera frame (y down)."""
+    rows, sides = contour_rows_mm(depth_mm, valid, silhouette, head)
+    both = np.isfinite(sides).all(axis=1)
+    depth = sides[both].mean(axis=1)
+    return (rows[both] - head.cy) * depth / head.fy, depth
+
+
+def sides_tilt(front: tuple[np.ndarray, np.ndarray], back: tuple[np.ndarray, np.ndarray]) -> float:
+    """The slope (mm per mm of height) of the front and back side depths' sum over the heights both
+    profiles (side_profile_mm) cover; NaN where they share less than MIN_SIDES_SPAN_MM."""
+    (h_front, z_front), (h_back, z_back) = front, back
+    if len(h_front) < 2 or len(h_back) < 2:
+        return float("nan")
+    low, high = max(h_front.min(), h_back.min()), min(h_front.max(), h_back.max())
+    if high - low < MIN_SIDES_SPAN_MM:
+        return float("nan")
+    grid = np.arange(low, high, SIDES_GRID_MM)
+    order_front, order_back = np.argsort(h_front), np.argsort(h_back)
+    total = (np.interp(grid, h_front[order_front], z_front[order_front])
+             + np.interp(grid, h_back[order_back], z_back[order_back]))
+    return float(np.polyfit(grid, total, 1)[0])
+
+
+def paired_tilts(front: tuple[np.ndarray, list], back: tuple[np.ndarray, list]) -> np.ndarray:
+    """sides_tilt of each front profile with the back profile nearest it in time; front and back are
+    (timestamp_ns, profiles)."""
+    (t_front, p_front), (t_back, p_back) = front, back
+    if not len(t_front) or not len(t_back):
+        return np.zeros(0)
+    t_back = np.asarray(t_back, dtype=float)
+    nearest = [int(np.argmin(np.abs(t_back - float(t)))) for t in t_front]
+    return np.array([sides_tilt(p, p_back[j]) for p, j in zip(p_front, nearest)])
+
+
+def bend_refusal(tilts: np.ndarray) -> str | None:
+    """Why the optical volume cannot be reported from maps whose sides the two heads place at
+    depths that drift apart along the trunk's height by more than MAX_SIDES_TILT (the median over
+    the pairs of maps compared), or None."""
+    tilts = np.asarray(tilts, dtype=float)
+    tilts = tilts[np.isfinite(tilts)]
+    if not len(tilts):
+        return None
+    tilt = float(np.median(tilts))
+    if abs(tilt) <= MAX_SIDES_TILT:
+        return None
+    return (f"the two heads' maps place the trunk's sides {100 * abs(tilt):.0f} mm apart per 100 mm of its height "
+            f"(at most {100 * MAX_SIDES_TILT:.0f} mm): the maps are bent, by a sheen on the skin or lights the "
+            "calibration does not describe, and their volume would not be the breathing's")
