@@ -65,9 +65,9 @@ def distance_refusal(distances_mm: dict[str, float]) -> str | None:
 
 
 # The most the photometric fit's median distance may lie from the two heads' geometric one before the
-# skin counts as not matte (docs/volume.md, "Skin the light model does not describe"): matte skin with
-# sphere-calibrated lights 8-35 mm on every head of 12 simulated sessions; a sheen of 0.05 48-92, of
-# 0.15-0.3 92-702 mm on at least one head, and those maps' volumes read 0.01-0.75 of the truth.
+# skin counts as not matte (docs/volume.md, "Skin the light model does not describe, and bent maps"):
+# matte skin with sphere-calibrated lights 8-35 mm on every head of 11 simulated sessions; any sheen
+# tried (0.05-0.29) 72-702 mm on at least one head, and those maps' volumes read 0.01-0.79 of the truth.
 MAX_PHOTOMETRIC_OFFSET_MM = 60.0
 
 

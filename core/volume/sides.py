@@ -6,7 +6,8 @@ from the front head and from the back head add up to the baseline. The maps' sca
 two heads' widths (core/reconstruction/process.py, geometric_distances), which fixes that sum on
 average; what is left is its change along the height. Maps bent by normals the light model does not
 explain (a sheen on the skin: docs/reconstruction.md, "Glossy skin") tilt the sum by tens of mm per
-100 mm of height, and their volume is not the breathing's (docs/volume.md, "Bent maps").
+100 mm of height, and their volume is not the breathing's (docs/volume.md, "Skin the light model
+does not describe, and bent maps").
 """
 
 from __future__ import annotations
@@ -16,10 +17,10 @@ import numpy as np
 from core.rig import Head
 from core.volume.maps import contour_rows_mm
 
-# Measured (docs/volume.md, "Bent maps"), as mm of the sum per 100 mm of height: the true depth of
-# simulated subjects 2-5 (the two perspective views' contours are not quite one curve), matte
-# reconstructions 4-5, a faint sheen (0.05) 11-12, population subjects whose optical volume read a
-# tenth to a quarter of the truth 67-86.
+# Measured (docs/volume.md, "... and bent maps"), as mm of the sum per 100 mm of height: the true
+# depth of a simulated subject 2-5 (the two perspective views' contours are not quite one curve),
+# matte reconstructions 4-5, a faint sheen (0.05) 9-12, population subject 9 (a sheen of 0.16, its
+# VC read 0.02 of the truth) 75.
 MAX_SIDES_TILT = 0.25
 SIDES_GRID_MM = 10.0
 MIN_SIDES_SPAN_MM = 150.0  # the heights both heads' sides must share for a tilt: half a child's trunk

@@ -473,6 +473,25 @@ def test_two_heads_take_the_subject_distance_from_their_geometry_where_glossy_sk
         assert len(r["heads/front/photometric_survey/geometric_distance_mm"]) >= 2 and "metric_volume" not in r
 
 
+def test_matte_skin_passes_the_checks_of_its_reflectance_and_of_its_maps_sides(tmp_path):
+    """The same subject as the glossy one above with matte skin: the photometric fit lies within
+    MAX_PHOTOMETRIC_OFFSET_MM of the geometry, the two heads' maps agree on the trunk's sides along
+    its height (`/@sides_tilt` well under MAX_SIDES_TILT), and the volume is written."""
+    import h5py
+
+    from core.reconstruction.process import MAX_PHOTOMETRIC_OFFSET_MM, process_session
+    from core.volume.sides import MAX_SIDES_TILT
+
+    session = tmp_path / "matte.h5"
+    simulate(session, SimConfig(protocol="tidal", seconds=1.0, scale=0.1, specular=0.0, clothing="skin",
+                                flow_sensor=None, sway=Sway(0, 0, 0)))
+    summary = process_session(session, tmp_path / "m.h5")
+    assert summary.optical_refused is None
+    assert all(abs(offset) < MAX_PHOTOMETRIC_OFFSET_MM for offset in summary.photometric_offset_mm.values())
+    with h5py.File(tmp_path / "m.h5", "r") as r:
+        assert abs(r.attrs["sides_tilt"]) < 0.4 * MAX_SIDES_TILT and "metric_volume" in r
+
+
 def test_a_binned_stream_keeps_full_resolution_maps(small_session, tmp_path):
     """The stream on 2 x 2 bins (as `process` does by default above WORKING_WIDTH_PX): its rows say
     so, the maps asked for keep every pixel, and the distance agrees with the unbinned stream."""

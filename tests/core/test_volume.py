@@ -192,6 +192,21 @@ def test_the_body_aligned_displacement_of_a_swaying_rigid_trunk_is_nil():
     assert np.nanmedian(np.abs(displacement[inner])) < 1.5
 
 
+def _cylinder_map(head, axis_mm: float, radius_mm: float = 150.0, lost_px: int = 2):
+    """A vertical cylinder's depth map (axis axis_mm away) with the outermost lost_px of each side
+    left out, as the reconstruction leaves them: (depth, valid, silhouette)."""
+    u = (np.arange(head.width) - head.cx) / head.fx  # x / z of each column's ray
+    a = 1.0 + u ** 2  # the ray x = u z meets x^2 + (z - Z0)^2 = R^2 at the smaller root
+    disc = axis_mm ** 2 - a * (axis_mm ** 2 - radius_mm ** 2)
+    z_row = np.where(disc >= 0, (axis_mm - np.sqrt(np.maximum(disc, 0.0))) / a, np.nan)
+    depth = np.tile(z_row, (head.height, 1))
+    depth[:10] = np.nan  # rows without the subject
+    silhouette = np.isfinite(depth)
+    valid = silhouette & ~ndimage.binary_dilation(~silhouette, structure=np.ones((1, 2 * lost_px + 1)))
+    return depth, valid, silhouette
+
+
+
 @pytest.mark.parametrize("scale", [0.15, 0.5])
 def test_the_occluding_contour_is_found_where_the_map_lacks_the_silhouettes_outermost_pixels(scale):
     """A vertical cylinder (radius 150 mm, axis 2300 mm away): its contour lies at Z0 - R^2 / Z0.
@@ -202,16 +217,8 @@ def test_the_occluding_contour_is_found_where_the_map_lacks_the_silhouettes_oute
     from core.volume.maps import contour_depth_mm
 
     head = thesis_head("front", scale=scale)
-    lost_px = int(round(2 * scale / 0.15))
     radius, axis_mm = 150.0, 2300.0
-    u = (np.arange(head.width) - head.cx) / head.fx  # x / z of each column's ray
-    a = 1.0 + u ** 2  # the ray x = u z meets x^2 + (z - Z0)^2 = R^2 at the smaller root
-    disc = axis_mm ** 2 - a * (axis_mm ** 2 - radius ** 2)
-    z_row = np.where(disc >= 0, (axis_mm - np.sqrt(np.maximum(disc, 0.0))) / a, np.nan)
-    depth = np.tile(z_row, (head.height, 1))
-    depth[:10] = np.nan  # rows without the subject
-    silhouette = np.isfinite(depth)
-    valid = silhouette & ~ndimage.binary_dilation(~silhouette, structure=np.ones((1, 2 * lost_px + 1)))
+    depth, valid, silhouette = _cylinder_map(head, axis_mm, radius, lost_px=int(round(2 * scale / 0.15)))
     truth = axis_mm - radius ** 2 / axis_mm
     assert contour_depth_mm(depth, valid, silhouette, head) == pytest.approx(truth, abs=3.0)
     outermost = np.nanmax(np.where(valid, depth, np.nan))
@@ -242,3 +249,32 @@ def test_the_body_frame_resampling_is_bilinear_on_the_valid_pixels():
             got = frame.resampled(depth, shown, head.shape, head)
             np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
             np.testing.assert_allclose(got, expected, atol=1e-9, equal_nan=True)
+
+
+def test_the_two_heads_sides_agree_on_an_upright_trunk_and_not_on_a_bent_map():
+    """A vertical cylinder seen from both heads: its contour's depths add up to the same sum at every
+    height (tilt 0). The front map bent by 0.4 mm per mm of height, as a sheen bends it, tilts the
+    sum by that much and the volume is refused; 0.1 is let through."""
+    from core.rig import thesis_head
+    from core.volume.sides import MAX_SIDES_TILT, bend_refusal, paired_tilts, side_profile_mm, sides_tilt
+
+    front_head, back_head = thesis_head("front", scale=0.15), thesis_head("back", scale=0.15)
+    baseline = 4000.0
+    front = _cylinder_map(front_head, 2100.0)
+    back = _cylinder_map(back_head, baseline - 2100.0)
+    back_profile = side_profile_mm(*back, back_head)
+    upright = sides_tilt(side_profile_mm(*front, front_head), back_profile)
+    assert abs(upright) < 0.01
+    rows = np.arange(front_head.height)[:, None]
+    for bend in (0.1, 0.4):
+        depth, valid, silhouette = front
+        bent = depth * (1.0 + bend * (rows - front_head.cy) / front_head.fy)  # + bend * height
+        tilt = sides_tilt(side_profile_mm(bent, valid, silhouette, front_head), back_profile)
+        assert tilt == pytest.approx(bend, abs=0.02)
+        refusal = bend_refusal(paired_tilts((np.array([0, 10]), [side_profile_mm(bent, valid, silhouette, front_head)] * 2),
+                                            (np.array([5]), [back_profile])))
+        assert (refusal is not None) == (bend > MAX_SIDES_TILT)
+    assert "40 mm apart per 100 mm" in refusal
+    short = (np.array([0.0, 100.0]), np.array([2000.0, 2000.0]))
+    assert np.isnan(sides_tilt(short, short))  # less height in common than MIN_SIDES_SPAN_MM
+    assert bend_refusal(np.array([np.nan])) is None
