@@ -312,7 +312,7 @@ def _world_words(world: str) -> str:
     settings = WORLDS[world]
     if not settings:
         return "the rig as drawn: isotropic point LEDs, matte surfaces, a pinhole camera"
-    return ", ".join(f"{k} {v:g}" for k, v in settings.items())
+    return ", ".join(k if v is True else f"{k} {v:g}" for k, v in settings.items())
 
 
 def _publish(args: argparse.Namespace, section: str, heading: str, text: str) -> int:
@@ -339,7 +339,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--distances", default=",".join(map(str, DISTANCES)))
     a.add_argument("--seed", type=int, default=3)
     a.add_argument("--led-offset-mm", type=finite, default=12.0)
-    a.add_argument("--world", choices=("ideal", "clinic"), default="ideal", help="realism of the simulated rig")
+    a.add_argument("--world", choices=("ideal", "clinic", "clinic-polarised"), default="ideal",
+                   help="realism of the simulated rig")
     a.add_argument("--no-write", action="store_true", help="print only")
 
     def run(args: argparse.Namespace) -> int:
@@ -372,7 +373,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     vol.add_argument("--scale", type=positive, default=0.25)
     vol.add_argument("--seconds", type=positive, default=60.0)
     vol.add_argument("--every", type=int, default=2, help="reconstruct every Nth cycle window (1: at the camera rate)")
-    vol.add_argument("--world", choices=("ideal", "clinic"), default="ideal", help="realism of the simulated rig")
+    vol.add_argument("--world", choices=("ideal", "clinic", "clinic-polarised"), default="ideal",
+                   help="realism of the simulated rig")
     vol.add_argument("--no-write", action="store_true", help="print only")
 
     def run_volume(args: argparse.Namespace) -> int:
@@ -413,6 +415,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                     help="the standard test waveforms the blows follow (default ../shared/data/spirometry-waveforms)")
     po.add_argument("--max-sheen", type=finite, default=None,
                     help="skin sheen drawn from 0 to this (default 0.3; 0: matte skin)")
+    po.add_argument("--world", choices=("clinic", "clinic-polarised"), default="clinic",
+                    help="the clinic's rig, or the same behind crossed polarisers on the LEDs and lenses")
     po.add_argument("--keep", type=Path, default=None,
                     help="keep each finished subject here and, run again, go on from them (long runs)")
     po.add_argument("--no-write", action="store_true", help="print only")
@@ -431,13 +435,14 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         subjects = 2 if args.quick else args.subjects
         workers = max(1, min(subjects, args.workers or os.cpu_count() or 1))
         images = None if args.no_write or not in_checkout() else DOCS.parent / "images"
-        from app.benchmarks.population import MAX_SHEEN
+        from app.benchmarks.population import MAX_SHEEN, WORLD, population_section
 
         sheen = MAX_SHEEN if args.max_sheen is None else args.max_sheen
         text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images,
-                                       sheen, args.keep)
-        suffix = "" if sheen == MAX_SHEEN else f" --max-sheen {sheen:g}"
-        section = f"population-{args.scale:g}" + ("" if sheen == MAX_SHEEN else f"-sheen{sheen:g}")
+                                       sheen, args.keep, args.world)
+        suffix = ("" if sheen == MAX_SHEEN else f" --max-sheen {sheen:g}") + (
+            "" if args.world == WORLD else f" --world {args.world}")
+        section = population_section(args.scale, sheen, args.world)
         return _publish(args, section, f"Population (`photopft bench population --subjects {subjects} --scale "
                                        f"{args.scale:g} --seed {args.seed}{suffix}`)", text)
 

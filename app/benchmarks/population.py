@@ -66,11 +66,14 @@ def draw_subjects(count: int, seed: int, blows: list[Path], quick: bool = False,
     return subjects
 
 
-def _config(subject: VirtualSubject, scale: float, **changes):
+WORLD = "clinic"  # the population's world (core/sim/simulate.py, WORLDS); clinic-polarised: behind crossed polarisers
+
+
+def _config(subject: VirtualSubject, scale: float, world: str = WORLD, **changes):
     from core.sim.bodies import body_named
     from core.sim.simulate import SimConfig, in_world
 
-    config = in_world(SimConfig(scale=scale, seed=subject.seed, rig_seed=subject.seed), "clinic")
+    config = in_world(SimConfig(scale=scale, seed=subject.seed, rig_seed=subject.seed), world)
     return replace(config, led_offset_mm=subject.led_offset_mm, specular=subject.specular,
                    skin_type=subject.skin_type, body=body_named(subject.body, subject.seed), clothing="skin",
                    **changes)
@@ -114,7 +117,7 @@ RECORDING_COMPRESSION = "blosc-lz4"
 
 
 def sphere_sessions(subject: VirtualSubject, scale: float, folder: Path,
-                    scenes: tuple[str, ...] = ("specular-sphere", "matte-sphere")) -> list[Path]:
+                    scenes: tuple[str, ...] = ("specular-sphere", "matte-sphere"), world: str = WORLD) -> list[Path]:
     """The subject's rig's sphere sessions at `scale`, as long as the calibration wizard records."""
     from core.calibration.light_sessions import CAPTURE_SECONDS
     from core.rig import thesis_rig
@@ -125,7 +128,7 @@ def sphere_sessions(subject: VirtualSubject, scale: float, folder: Path,
     paths = []
     for scene in scenes:
         path = folder / f"{subject.index}-{scene}-{scale:g}.h5"
-        simulate(path, _config(subject, scale, scene=scene, placement_cycles=hold, steps=0, drop_rate=0.0))
+        simulate(path, _config(subject, scale, world, scene=scene, placement_cycles=hold, steps=0, drop_rate=0.0))
         paths.append(path)
     return paths
 
@@ -140,7 +143,7 @@ def lights_truth(session: Path) -> dict[str, dict[str, np.ndarray]]:
                     if f"{h}/{k}" in truth} for h in s.heads}
 
 
-def calibrate_rig(subject: VirtualSubject, scale: float, folder: Path) -> tuple[object, dict]:
+def calibrate_rig(subject: VirtualSubject, scale: float, folder: Path, world: str = WORLD) -> tuple[object, dict]:
     """The subject's rig calibrated as a user would (core/calibration/light_sessions.py) from its specular and
     matte sphere sessions at `scale`, and the truth of its lights (lights_truth). Raises what the
     wizard would show."""
@@ -148,7 +151,7 @@ def calibrate_rig(subject: VirtualSubject, scale: float, folder: Path) -> tuple[
 
     spheres = []
     try:
-        spheres = sphere_sessions(subject, scale, folder)
+        spheres = sphere_sessions(subject, scale, folder, world=world)
         return calibrate_lights(spheres)[0], lights_truth(spheres[0])
     finally:
         for path in spheres:
@@ -171,7 +174,7 @@ def light_errors(calibration, lights: dict) -> dict[str, dict[str, list[float]]]
 
 
 def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: str, seconds: float | None,
-                calibration_scale: float | None = None) -> dict:
+                calibration_scale: float | None = None, world: str = WORLD) -> dict:
     """One subject end to end; what each stage gave or why it refused. The lights are calibrated
     from sphere sessions at calibration_scale (default: scale, but no less than CALIBRATION_SCALE)."""
     from core.reconstruction.process import process_session
@@ -188,7 +191,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     out: dict = {"subject": asdict(subject), "stage_seconds": {}}
     stages = out["stage_seconds"]
     try:
-        calibration, lights = calibrate_rig(subject, calibration_scale or max(scale, CALIBRATION_SCALE), work)
+        calibration, lights = calibrate_rig(subject, calibration_scale or max(scale, CALIBRATION_SCALE), work, world)
     except Exception as exc:  # the bench reports a refusal, as a user would see it
         out["refused"] = f"light calibration: {exc}"
         return out
@@ -204,7 +207,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     session, results = work / f"{subject.index}-session.h5", work / f"{subject.index}-results.h5"
     # written as the recorder writes (Blosc LZ4, bit-shuffle): a subject's short protocol at the camera's
     # full 1400 x 1024 is about 40 GB of raw frames, 17 GB compressed (docs/benchmarks.md, Compression)
-    config = _config(subject, scale, protocol=protocol, seconds=seconds, distance_mm=subject.distance_mm,
+    config = _config(subject, scale, world, protocol=protocol, seconds=seconds, distance_mm=subject.distance_mm,
                      distance_back_mm=subject.distance_mm, blows=blows, compression=RECORDING_COMPRESSION)
     config = replace(config, subject=replace(config.subject, rate_variability=0.15, sigh_every=12))
     simulate(session, config)
@@ -346,8 +349,12 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
     return written
 
 
-def _kept(folder: Path | None, subject: VirtualSubject, scale: float) -> Path | None:
-    return None if folder is None else folder / f"subject-{subject.seed}-{scale:g}.json"
+def _kept(folder: Path | None, subject: VirtualSubject, scale: float, world: str = WORLD) -> Path | None:
+    return None if folder is None else folder / f"subject-{subject.seed}-{scale:g}{_world_suffix(world)}.json"
+
+
+def _world_suffix(world: str) -> str:
+    return "" if world == WORLD else f"-{world}"
 
 
 def _keep(path: Path | None, row: dict) -> None:
@@ -363,7 +370,8 @@ def _keep(path: Path | None, row: dict) -> None:
 
 def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, workers: int,
                          standards: Path | None, images: Path | None,
-                         max_sheen: float = MAX_SHEEN, keep: Path | None = None) -> tuple[str, list[dict]]:
+                         max_sheen: float = MAX_SHEEN, keep: Path | None = None, world: str = WORLD,
+                         ) -> tuple[str, list[dict]]:
     """The bench's table and rows. With `keep`, each finished subject's row is kept there and a
     later run with the same arguments takes it instead of running the subject again."""
     from app.progress import Progress
@@ -376,13 +384,13 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
     calibration_scale = scale if quick else max(scale, CALIBRATION_SCALE)
     done: dict[int, dict] = {}
     for s in population:
-        path = _kept(keep, s, scale)
+        path = _kept(keep, s, scale, world)
         if path is not None and path.is_file():
             row = json.loads(path.read_text())
             if row.get("subject") == asdict(s):
                 done[s.index] = row
     with tempfile.TemporaryDirectory() as tmp, Progress("bench population") as progress:
-        jobs = [((s, scale, protocol, tmp, seconds, calibration_scale), _kept(keep, s, scale))
+        jobs = [((s, scale, protocol, tmp, seconds, calibration_scale, world), _kept(keep, s, scale, world))
                 for s in population if s.index not in done]
         progress(len(done) / len(population), f"{len(done)} of {len(population)} subjects")
         if workers > 1 and len(jobs) > 1:
@@ -401,10 +409,15 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
     resumed = len(population) - len(jobs)
     elapsed = time.perf_counter() - started
     describe_bodies(rows)
-    stem = f"population-{scale:g}" + ("" if max_sheen == MAX_SHEEN else f"-sheen{max_sheen:g}")
+    stem = population_section(scale, max_sheen, world)
     pngs = bland_altman_pngs(rows, images, stem) if images is not None else []
-    return _table(rows, scale, seed, quick, blows, elapsed, workers, pngs, WORLDS["clinic"], max_sheen,
+    return _table(rows, scale, seed, quick, blows, elapsed, workers, pngs, WORLDS[world], max_sheen,
                   calibration_scale, resumed), rows
+
+
+def population_section(scale: float, max_sheen: float, world: str) -> str:
+    """The bench's name in docs/benchmarks.md and its plots' stem."""
+    return f"population-{scale:g}" + ("" if max_sheen == MAX_SHEEN else f"-sheen{max_sheen:g}") + _world_suffix(world)
 
 
 def _run_job(job: tuple) -> dict:
@@ -439,7 +452,8 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
              f"blows following {'the standard waveforms (' + ', '.join(STANDARD_SETS) + f', {len(blows)} files)' if blows else 'the simulator own model (no standard waveforms found)'}, "
              "scaled to each subject's predicted FVC. The world: random bodies (core/sim/bodies.py), distance 1700-2300 mm, "
              f"Fitzpatrick I-VI, skin sheen 0-{max_sheen:g}, LEDs 0-15 mm off the drawing, and the clinic's "
-             + ", ".join(f"{k} {v:g}" for k, v in world.items() if k not in ("led_offset_mm", "specular"))
+             + ", ".join(k if v is True else f"{k} {v:g}" for k, v in world.items() if k not in ("led_offset_mm", "specular"))
+             + (" (crossed polarisers on the LEDs and lenses; the sphere sessions without)" if world.get("polarisers") else "")
              + f". Lights calibrated from each rig's simulated sphere sessions (specular and matte, {sphere.width} x "
              f"{sphere.height} pixels); processed with "
              "`photopft process` defaults; no calibration on the subject. Truth read only to compare.", "",

@@ -81,10 +81,11 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
     c = p.add_argument_group("camera and lights")
     c.add_argument("--bits", type=int, choices=(8, 10, 12, 16), default=12)
     c.add_argument("--fps", type=_positive(float), default=110.0)
-    c.add_argument("--world", choices=("ideal", "clinic"), default="ideal",
+    c.add_argument("--world", choices=("ideal", "clinic", "clinic-polarised"), default="ideal",
                    help="realism: ideal (today's rig as drawn) or clinic (LEDs as built with cos^mu falloff, tilt and "
                         "drift, mains flicker, oily skin, lens distortion and vignetting, steps, lost frames); "
-                        "the clinic's values replace the options below")
+                        "clinic-polarised: the clinic behind crossed polarisers on the LEDs and lenses; "
+                        "the world's values replace the options below")
     c.add_argument("--skin-type", type=int, choices=range(1, 7), metavar="1-6",
                    help="Fitzpatrick skin type of a --body's bare skin (default: albedo 0.45)")
     c.add_argument("--clothing", choices=("tshirt", "skin"), default="tshirt")

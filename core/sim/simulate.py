@@ -68,6 +68,10 @@ class SimConfig:
     skin_type: int | None = None  # Fitzpatrick I-VI of a body's bare skin (None: albedo 0.45)
     flow_sensor: FlowSensorModel | None = field(default_factory=FlowSensorModel)
     drop_rate: float = 0.0  # fraction of frames lost on the way (gaps in frame_id)
+    # crossed linear polarisers on the LEDs and the lenses (polarised_camera, POLARISER_EXTINCTION): the
+    # skin's surface reflection cut, every light dimmer; the sphere sessions are recorded with the lens's
+    # polariser turned parallel, and render as without
+    polarisers: bool = False
     truth_maps_at: list[int] | None = None  # frame indices; None: five spread over the session
     grid_step_mm: float = 1.0
     sphere_radius_mm: float = 75.0
@@ -157,6 +161,27 @@ class Drift:
         return 1.0 + self.flicker * float(np.sin(2 * np.pi * self.flicker_hz * t_s + self.flicker_phase))
 
 
+# Crossed polarisers (docs/simulator.md): the LED's polariser passes POLARISED_LED of its light; the
+# skin's diffuse reflection, scattered under the surface, comes back unpolarised and the lens's
+# polariser passes half of it, as of the room's light; the surface reflection keeps the LED's
+# polarisation and the crossed lens polariser passes POLARISER_EXTINCTION of it (100:1, a plain film).
+POLARISED_LED = 0.4
+POLARISER_EXTINCTION = 0.01
+
+
+def polarised_camera(camera: CameraModel) -> CameraModel:
+    """The camera behind crossed polarisers: the LEDs' diffuse light at POLARISED_LED / 2, the room's
+    and the backdrop's at half."""
+    return replace(camera, white_level=camera.white_level * POLARISED_LED * 0.5,
+                   ambient_level=camera.ambient_level * 0.5, background_level=camera.background_level * 0.5)
+
+
+def polarised_specular(specular: float) -> float:
+    """A surface's specular weight (relative to a white Lambertian surface) behind crossed
+    polarisers, relative to the diffuse light that now reaches the camera (polarised_camera)."""
+    return specular * POLARISER_EXTINCTION / 0.5
+
+
 WORLDS: dict[str, dict[str, float]] = {
     "ideal": {},
     # the issue's clinic: LEDs as built, room light, oily skin, a real lens, a subject who moves
@@ -164,6 +189,8 @@ WORLDS: dict[str, dict[str, float]] = {
                "led_tilt_deg": 10.0, "led_drift": 0.02, "ambient_flicker": 0.3, "specular": 0.15,
                "lens_k1": -0.08, "vignetting": 0.15, "steps": 2, "arm_swing_mm": 10.0, "drop_rate": 0.002},
 }
+# the clinic with crossed polarisers on the LEDs and lenses (the rig the glossy-skin refusal asks for)
+WORLDS["clinic-polarised"] = dict(WORLDS["clinic"], polarisers=True)
 
 
 def in_world(config: SimConfig, world: str) -> SimConfig:
@@ -177,7 +204,7 @@ def world_json(config: SimConfig) -> str:
     """The simulated world's realism settings, for /truth."""
     keys = ("led_offset_mm", "led_intensity_spread", "led_mu", "led_mu_spread", "led_tilt_deg", "led_drift",
             "ambient_flicker", "mains_hz", "specular", "clothing", "skin_type", "lens_k1", "vignetting", "steps",
-            "arm_swing_mm", "drop_rate", "distance_mm",
+            "arm_swing_mm", "drop_rate", "polarisers", "distance_mm",
             "distance_back_mm", "scale", "seed")
     values = {k: getattr(config, k) for k in keys}
     return json.dumps(values, sort_keys=True)
@@ -193,11 +220,12 @@ def breathing_subject(config: SimConfig) -> Subject:
 
 
 def _torso_surfaces(config: SimConfig):
+    specular = polarised_specular(config.specular) if config.polarisers else config.specular
     if config.body is None:
-        return shapes.torso(config.grid_step_mm, config.clothing, config.seed, config.specular)
+        return shapes.torso(config.grid_step_mm, config.clothing, config.seed, specular)
     skin = 0.45 if config.skin_type is None else fitzpatrick_albedo(config.skin_type)
     return body_surfaces(config.body, config.grid_step_mm, config.clothing, config.seed, skin_albedo=skin,
-                         specular=config.specular, arm_motion=config.arm_swing_mm > 0)
+                         specular=specular, arm_motion=config.arm_swing_mm > 0)
 
 
 def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> HeightFieldScene:
@@ -313,8 +341,12 @@ def session_length_s(config: SimConfig, rig: Rig, waveform: Waveform | None, sce
 
 def sim_digitisers(config: SimConfig, rig) -> dict[str, Digitiser]:
     """Each head's sensor: the full-resolution camera model, binned by 1 / scale (scale 0.5 reads
-    2 x 2 pixels as one, as the rig does to fit a gigabit link)."""
-    return {h: Digitiser(config.camera.binned(1.0 / config.scale), config.bit_depth) for h in rig.heads}
+    2 x 2 pixels as one, as the rig does to fit a gigabit link); behind crossed polarisers but for the
+    sphere sessions (SimConfig.polarisers)."""
+    camera = config.camera
+    if config.polarisers and config.scene not in CALIBRATION_SCENES:
+        camera = polarised_camera(camera)
+    return {h: Digitiser(camera.binned(1.0 / config.scale), config.bit_depth) for h in rig.heads}
 
 
 def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], None] | None = None) -> SimSummary:

@@ -111,3 +111,34 @@ def test_the_clinic_builds_leds_off_the_drawing_tilted_and_anisotropic():
         assert np.all(np.abs(head.light_intensity - 1) <= 0.1)
     again = as_built_heads(rig, replace(config, seed=99, rig_seed=2))
     np.testing.assert_array_equal(again["front"].light_positions_mm, built["front"].light_positions_mm)
+
+
+def test_crossed_polarisers_cut_the_surface_reflection_to_their_extinction_and_dim_the_rest():
+    """Behind crossed polarisers a glossy board's diffuse light is POLARISED_LED / 2 of what it was, its
+    highlight (the surface reflection, which keeps the LED's polarisation) POLARISED_LED times the
+    extinction; the sphere sessions are recorded without them."""
+    from core.sim.simulate import (POLARISED_LED, POLARISER_EXTINCTION, polarised_camera, polarised_specular,
+                                   sim_digitisers)
+
+    head = thesis_head("front", scale=0.1)
+    grid = BodyGrid.covering(400.0, -320.0, 320.0, 1.0)
+    x, _ = grid.coordinates()
+
+    def render(specular: float, camera: CameraModel) -> np.ndarray:
+        board = build_height_field(grid, np.full_like(x, 10.0), np.full_like(x, 0.5), specular=specular,
+                                   shininess=30.0)
+        frame, _ = HeightFieldScene({"front": board}, 2010.0, 4000.0).render(head, 0.0, 0, np.uint64(0),
+                                                                              Digitiser(camera, 16))
+        return frame.astype(float)
+
+    diffuse, glossy = render(0.0, QUIET), render(0.3, QUIET)
+    behind = polarised_camera(QUIET)
+    diffuse_p, glossy_p = render(0.0, behind), render(polarised_specular(0.3), behind)
+    highlight = glossy - diffuse
+    assert highlight.max() > 0.2 * diffuse.max()  # a highlight worth cutting
+    np.testing.assert_allclose(diffuse_p, diffuse * POLARISED_LED / 2, atol=1.0)
+    np.testing.assert_allclose(glossy_p - diffuse_p, highlight * POLARISED_LED * POLARISER_EXTINCTION, atol=1.5)
+    rig = thesis_rig(0.1)
+    config = in_world(SimConfig(scale=0.1), "clinic-polarised")
+    assert sim_digitisers(config, rig)["front"].camera.white_level == QUIET.white_level * POLARISED_LED / 2
+    assert sim_digitisers(replace(config, scene="specular-sphere"), rig)["front"].camera.white_level == QUIET.white_level
