@@ -79,9 +79,12 @@ def build_parser() -> argparse.ArgumentParser:
 def _one_line_naming_the_input(exc: Exception, args: argparse.Namespace) -> str:
     """The error in one line that names the file: a read that failed deep in a library (HDF5's
     words for a damaged file) is prefixed with the command's input; a complaint about an option's
-    value (it starts with the option) is not."""
+    value (it starts with the option) is not, nor an output that could not be written (OutputError
+    names it: a bench's scratch file is no input of the command)."""
     lines = str(exc).splitlines()
     message = lines[0] if lines else type(exc).__name__
+    if isinstance(exc, OutputError):
+        return message
     named = [str(v) for k, v in vars(args).items() if isinstance(v, Path) and k != "output"]
     about_an_option = message.startswith("--")
     if named and not about_an_option and not any(name in message or Path(name).name in message for name in named):

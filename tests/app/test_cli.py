@@ -89,3 +89,17 @@ def test_a_negative_prefilter_is_refused_by_name(tmp_path, capsys):
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert "--prefilter-px" in err and "0 or more pixels" in err
+
+
+def test_an_output_that_was_not_written_is_named_alone(tmp_path):
+    """A bench whose scratch session went missing said '<the --waveforms folder>: <the session> was
+    not written', naming an input that had nothing to do with it; an OutputError names its output."""
+    import argparse
+
+    from app.cli import _one_line_naming_the_input
+    from core.io.outputs import OutputError
+
+    args = argparse.Namespace(waveforms=tmp_path / "waveforms", verb="bench")
+    missing = tmp_path / "scratch" / "15-session.h5"
+    assert _one_line_naming_the_input(OutputError(f"{missing} was not written"), args) == f"{missing} was not written"
+    assert _one_line_naming_the_input(OSError("bad header"), args).startswith(str(tmp_path / "waveforms"))
