@@ -410,7 +410,8 @@ class _HeadResult:
     saved_depth: list[np.ndarray]
     sums: list
     ambient_flicker: float = 0.0  # DarkFeed.flicker_share
-    side_profiles: tuple[np.ndarray, list] = (np.zeros(0, np.int64), [])  # (timestamp_ns, side_profile_mm)
+    # (timestamp_ns, side_profile_mm) every job.profile_every maps
+    side_profiles: tuple[np.ndarray, list] = field(default_factory=lambda: (np.zeros(0, np.int64), []))
 
 
 def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
