@@ -81,9 +81,10 @@ def reflectance_refusal(offsets_mm: dict[str, float]) -> str | None:
         if np.isfinite(offset) and abs(offset) > MAX_PHOTOMETRIC_OFFSET_MM:
             where = "nearer" if offset < 0 else "farther"
             return (f"head {name}: its shading puts the subject {abs(offset):.0f} mm {where} than the two heads' "
-                    f"geometry does (at most {MAX_PHOTOMETRIC_OFFSET_MM:.0f} mm): the skin is not matte (a sheen, "
-                    "which cross-polarised lighting removes) or the lights are not where the calibration puts them, "
-                    "and the maps' shape, and so the volume, would not be the body's")
+                    f"geometry does (at most {MAX_PHOTOMETRIC_OFFSET_MM:.0f} mm): the shading does not follow the light "
+                    "model (a sheen on the skin, which cross-polarised lighting removes; lights not where the "
+                    "calibration puts them; too little of their light against the room's), and the maps' shape, and "
+                    "so the volume, would not be the body's")
     return None
 
 

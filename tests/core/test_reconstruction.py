@@ -463,7 +463,7 @@ def test_two_heads_take_the_subject_distance_from_their_geometry_where_glossy_sk
     photometric = process_session(session, tmp_path / "p.h5", distance_from="photometric")
     assert "outside the rig's working range" in photometric.optical_refused
     geometric = process_session(session, tmp_path / "g.h5")
-    assert "the skin is not matte" in geometric.optical_refused and "nearer than the two heads' geometry" in (
+    assert "a sheen on the skin" in geometric.optical_refused and "nearer than the two heads' geometry" in (
         geometric.optical_refused)
     for name, distance in geometric.mean_distance_mm.items():
         assert abs(distance - truth[name]) < 100.0
