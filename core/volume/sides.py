@@ -75,6 +75,6 @@ def bend_refusal(tilts: np.ndarray) -> str | None:
     tilt = float(np.median(tilts))
     if abs(tilt) <= MAX_SIDES_TILT:
         return None
-    return (f"the two heads' maps place the trunk's sides {100 * abs(tilt):.0f} mm apart per 100 mm of its height "
-            f"(at most {100 * MAX_SIDES_TILT:.0f} mm): the maps are bent, by a sheen on the skin or lights the "
-            "calibration does not describe, and their volume would not be the breathing's")
+    return (f"the front and back maps disagree on the depth of the trunk's sides by {100 * abs(tilt):.0f} mm more "
+            f"for every 100 mm of its height (at most {100 * MAX_SIDES_TILT:.0f} mm): the maps are bent (a sheen on "
+            "the skin, lights the calibration does not describe), and their volume would not be the breathing's")

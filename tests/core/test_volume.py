@@ -274,7 +274,7 @@ def test_the_two_heads_sides_agree_on_an_upright_trunk_and_not_on_a_bent_map():
         refusal = bend_refusal(paired_tilts((np.array([0, 10]), [side_profile_mm(bent, valid, silhouette, front_head)] * 2),
                                             (np.array([5]), [back_profile])))
         assert (refusal is not None) == (bend > MAX_SIDES_TILT)
-    assert "40 mm apart per 100 mm" in refusal
+    assert "by 40 mm more for every 100 mm of its height" in refusal
     short = (np.array([0.0, 100.0]), np.array([2000.0, 2000.0]))
     assert np.isnan(sides_tilt(short, short))  # less height in common than MIN_SIDES_SPAN_MM
     assert bend_refusal(np.array([np.nan])) is None
