@@ -307,12 +307,12 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
 
 def _world_words(world: str) -> str:
     """What a named world of the simulator holds, for a bench's table."""
-    from core.sim.simulate import WORLDS
+    from core.sim.simulate import WORLDS, world_words
 
     settings = WORLDS[world]
     if not settings:
         return "the rig as drawn: isotropic point LEDs, matte surfaces, a pinhole camera"
-    return ", ".join(k if v is True else f"{k} {v:g}" for k, v in settings.items())
+    return world_words(settings)
 
 
 def _publish(args: argparse.Namespace, section: str, heading: str, text: str) -> int:

@@ -443,6 +443,7 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
            workers: int, pngs: list[Path], world: dict, max_sheen: float = MAX_SHEEN,
            calibration_scale: float | None = None, resumed: int = 0) -> str:
     from core.rig import thesis_head
+    from core.sim.simulate import world_words
 
     head = thesis_head(scale=scale)
     sphere = thesis_head(scale=calibration_scale or scale)
@@ -452,7 +453,7 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
              f"blows following {'the standard waveforms (' + ', '.join(STANDARD_SETS) + f', {len(blows)} files)' if blows else 'the simulator own model (no standard waveforms found)'}, "
              "scaled to each subject's predicted FVC. The world: random bodies (core/sim/bodies.py), distance 1700-2300 mm, "
              f"Fitzpatrick I-VI, skin sheen 0-{max_sheen:g}, LEDs 0-15 mm off the drawing, and the clinic's "
-             + ", ".join(k if v is True else f"{k} {v:g}" for k, v in world.items() if k not in ("led_offset_mm", "specular"))
+             + world_words(world, leave_out=("led_offset_mm", "specular"))
              + (" (crossed polarisers on the LEDs and lenses; the sphere sessions without)" if world.get("polarisers") else "")
              + f". Lights calibrated from each rig's simulated sphere sessions (specular and matte, {sphere.width} x "
              f"{sphere.height} pixels); processed with "

@@ -167,22 +167,24 @@ class Drift:
 # polarisation and the crossed lens polariser passes POLARISER_EXTINCTION of it (100:1, a plain film).
 POLARISED_LED = 0.4
 POLARISER_EXTINCTION = 0.01
+UNPOLARISED_PASSED = 0.5  # the share of unpolarised light (diffuse, the room's) a polariser passes
 
 
 def polarised_camera(camera: CameraModel) -> CameraModel:
     """The camera behind crossed polarisers: the LEDs' diffuse light at POLARISED_LED / 2, the room's
     and the backdrop's at half."""
-    return replace(camera, white_level=camera.white_level * POLARISED_LED * 0.5,
-                   ambient_level=camera.ambient_level * 0.5, background_level=camera.background_level * 0.5)
+    return replace(camera, white_level=camera.white_level * POLARISED_LED * UNPOLARISED_PASSED,
+                   ambient_level=camera.ambient_level * UNPOLARISED_PASSED,
+                   background_level=camera.background_level * UNPOLARISED_PASSED)
 
 
 def polarised_specular(specular: float) -> float:
     """A surface's specular weight (relative to a white Lambertian surface) behind crossed
     polarisers, relative to the diffuse light that now reaches the camera (polarised_camera)."""
-    return specular * POLARISER_EXTINCTION / 0.5
+    return specular * POLARISER_EXTINCTION / UNPOLARISED_PASSED
 
 
-WORLDS: dict[str, dict[str, float]] = {
+WORLDS: dict[str, dict[str, float | bool]] = {
     "ideal": {},
     # the issue's clinic: LEDs as built, room light, oily skin, a real lens, a subject who moves
     "clinic": {"led_offset_mm": 10.0, "led_intensity_spread": 0.10, "led_mu": 2.0, "led_mu_spread": 1.0,
@@ -198,6 +200,11 @@ def in_world(config: SimConfig, world: str) -> SimConfig:
     if world not in WORLDS:
         raise ValueError(f"unknown world {world!r}: one of {', '.join(WORLDS)}")
     return replace(config, **WORLDS[world])
+
+
+def world_words(settings: dict[str, float | bool], leave_out: tuple[str, ...] = ()) -> str:
+    """A world's settings (WORLDS) for a bench's table: each by name and value, a switch by name."""
+    return ", ".join(k if v is True else f"{k} {v:g}" for k, v in settings.items() if k not in leave_out)
 
 
 def world_json(config: SimConfig) -> str:
