@@ -179,5 +179,9 @@ def test_no_subject_distance_is_printed_where_process_refused_the_optical_values
     assert main(["report", str(refused), "-o", str(pdf)]) == 0
     page1, page2 = _parts(pdf)
     assert "Optical values refused: head front: an arm lies against the trunk" in page1.replace("\n", " ")
+    # the notes give the same reason (a session without a flow sensor has no comparison to say it in)
+    assert "refused when the session was processed: head front: an arm lies against the trunk" in (
+        page1.replace("\n", " "))
+    assert "no volume calibration profile" not in page1
     assert "Front head (subject distance not given: the optical values were refused)" in page2
     assert not re.search(r"head \(subject at \d+ mm", page2)
