@@ -23,8 +23,10 @@ import numpy as np
 from core.reconstruction.ambient import FLICKER_WINDOW_S, FlickerCorrection
 from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
+from core.reconstruction.live_checks import LiveOpticalChecks
 from core.volume.flow_sensor import btps_factor
 from core.volume.metric import LiveMetricVolume
+from core.volume.sides import side_profile_mm
 from core.reconstruction.pipeline import HeadReconstructor, ReconstructionSettings
 from core.reconstruction.process import MAX_OCCLUDED_SIDE_SHARE, use_threads
 from core.rig import DARK, Rig
@@ -298,6 +300,9 @@ class Snapshot:
     metric_volume_l: np.ndarray  # the metric optical volume (litres, both heads)
     flow_until_ns: int = 0  # the recording's newest flow sample (no limit without a recording or flow sensor)
     replay_finished: bool = False
+    # why `process` would refuse the optical volume of what the heads see now (skin, bent maps), or None
+    optical_refused: str | None = None
+    optical_checked: bool = False  # whether the heads' last seconds gave those checks anything to judge by
     replay_position_s: float = float("nan")  # a replay's position and length in its recording, and pause
     replay_length_s: float = float("nan")
     replay_paused: bool = False
@@ -360,6 +365,7 @@ class LiveRig:
         self._binning = {h: working_binning(self.rig.heads[h]) for h in source.cameras}
         self._live_heads = {h: binned_head(self.rig.heads[h], self._binning[h]) for h in source.cameras}
         self._metric = LiveMetricVolume(self._live_heads, self.rig.baseline_mm)
+        self._checks = LiveOpticalChecks(list(source.cameras))
         self._metric_curve = collections.deque(maxlen=n)
         self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
         self._recent_flow: collections.deque = collections.deque(maxlen=9000)  # (arrival ns, block), ~90 s
@@ -677,6 +683,8 @@ class LiveRig:
         # the DCTs of two heads running at once on all of them oversubscribed the cores
         use_threads((os.cpu_count() or 1) // len(self._live_heads))
         reconstructor = HeadReconstructor(self._live_heads[head], None, self.settings)
+        # every LOOK_INTERVAL_S a cycle again at the photometric fit's own distance, as `process`'s survey
+        surveyor = HeadReconstructor(self._live_heads[head], None, self.settings)
         done_id = -1
         condition = self._new_frame[head]
         max_value = self.rig.heads[head].max_value
@@ -712,9 +720,10 @@ class LiveRig:
                 lambda f: flicker.excess(f.time_s, newest_s))
             for stale in [i for i in binned if i < done_id - 3 * self.rig.cycle_length]:
                 del binned[stale]
+            # the distance the two heads' geometry gave the last maps (as `process` does), once it has one
+            geometric = self._metric.geometric_distance_mm(head)
             try:
-                # the distance the two heads' geometry gave the last maps (as `process` does), once it has one
-                result = reconstructor.reconstruct(signal, saturated, dark, self._metric.geometric_distance_mm(head))
+                result = reconstructor.reconstruct(signal, saturated, dark, geometric)
             except Exception as exc:  # a map that cannot be made is skipped, and said once
                 self._problem(f"{head}: reconstruction failed: {exc}")
                 continue
@@ -725,6 +734,8 @@ class LiveRig:
             litres = (self._metric.add(head, t_s, result.depth_mm, result.mask, result.distance_mm,
                                          result.silhouette) if t_s is not None
                       else float("nan"))
+            if geometric is not None and t_s is not None and result.mask.any() and self._checks.due(head, t_s):
+                self._look(head, t_s, result, geometric, surveyor, (signal, saturated, dark))
             view = self._views[head]
             with self._lock:
                 view.height_mm = height
@@ -737,6 +748,20 @@ class LiveRig:
                     self._optical.append((t_s, sum(self._gradient.values())))
                     if np.isfinite(litres):
                         self._metric_curve.append((t_s, litres))
+
+    def _look(self, head: str, t_s: float, result, geometric_mm: float, surveyor: HeadReconstructor,
+              cycle: tuple) -> None:
+        """What `process` checks on a map made at the geometric distance: its sides along the height,
+        and where the photometric fit alone would put the subject."""
+        self._checks.add_profile(head, t_s, side_profile_mm(result.depth_mm, result.mask & np.isfinite(result.depth_mm),
+                                                            result.silhouette, self._live_heads[head]))
+        try:
+            photometric = surveyor.reconstruct(*cycle).distance_mm
+        except Exception as exc:  # said once; the check goes without this look
+            self._problem(f"{head}: the photometric check failed: {exc}")
+            return
+        if np.isfinite(photometric):
+            self._checks.add_offset(head, t_s, photometric - geometric_mm)
 
     def _problem(self, message: str) -> None:
         log.warning(message)
@@ -763,7 +788,7 @@ class LiveRig:
                             recorder.frames_written() if recorder is not None else {},
                             recorder.dropped if recorder is not None else 0, problems,
                             time.monotonic() - self._started, metric[:, 0], metric[:, 1], flow_until,
-                            self.replay_finished)
+                            self.replay_finished, self._checks.refusal(), self._checks.checked)
         clock = self.source.replay_clock
         if clock is not None:
             snapshot.replay_position_s = (min(clock.now_ns(), clock.last_ns) - clock.first_ns) / 1e9
@@ -789,6 +814,7 @@ class LiveRig:
                     buffer.clear()
                 self._flow_state.update(volume=0.0, last_ns=None, sum=0.0, shown_ns=0)
                 self._flow_state["means"].clear()
+            self._checks.clear()
         else:
             raise ValueError(f"unknown replay action {action!r}: pause, resume or seek")
 

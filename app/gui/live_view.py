@@ -55,6 +55,15 @@ class HeadMapView(pg.GraphicsLayoutWidget):
 VOLUME_STEPS_L = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0)  # half-ranges of the volume axis (L)
 
 
+METRIC_PEN = pg.mkPen((200, 80, 20), width=2)
+REFUSED_METRIC_PEN = pg.mkPen((150, 150, 150), width=2, style=Qt.PenStyle.DashLine)
+# the legend in the title: inside the plot it covered the newest data
+LITRES_TITLE = ("Volume (L, BTPS), last 30 s: <span style='color:#141414'>━ flow sensor</span> &nbsp; "
+                "<span style='color:#c85014'>━ optical (metric)</span>")
+REFUSED_LITRES_TITLE = ("Volume (L, BTPS), last 30 s: <span style='color:#141414'>━ flow sensor</span> &nbsp; "
+                        "<span style='color:#969696'>- - optical (metric): not valid, see Status</span>")
+
+
 class VolumeView(pg.GraphicsLayoutWidget):
     """The volume curve (litres, last 30 s): the flow sensor and the metric optical volume, and the
     gradient volume (relative) under them."""
@@ -62,9 +71,7 @@ class VolumeView(pg.GraphicsLayoutWidget):
     def __init__(self, parent=None) -> None:
         super().__init__(parent)
         self.setBackground("w")
-        # the legend in the title: inside the plot it covered the newest data
-        self.litres = self.addPlot(title="Volume (L, BTPS), last 30 s: <span style='color:#141414'>━ flow sensor"
-                                         "</span> &nbsp; <span style='color:#c85014'>━ optical (metric)</span>")
+        self.litres = self.addPlot(title=LITRES_TITLE)
         self.litres.setLabel("left", "volume", units="L")
         self.litres.getAxis("left").enableAutoSIPrefix(False)
         self.litres.showGrid(y=True, alpha=0.3)
@@ -73,7 +80,8 @@ class VolumeView(pg.GraphicsLayoutWidget):
         # 3000 points a curve in a few hundred pixels: draw each pixel column's extremes only
         self.flow_curve.setDownsampling(auto=True, method="peak")
         self.flow_curve.setClipToView(True)
-        self.metric_curve = self.litres.plot(pen=pg.mkPen((200, 80, 20), width=2))
+        self.metric_curve = self.litres.plot(pen=METRIC_PEN)
+        self._metric_refused = False
         self.nextRow()
         self.relative = self.addPlot(title="Optical: gradient volume (thesis eq. 3.27, relative)")
         # a fixed time axis, now at the right: the curves move, the axes and the grid are drawn once
@@ -98,6 +106,11 @@ class VolumeView(pg.GraphicsLayoutWidget):
             self.litres.setYRange(-needed, needed, padding=0)
 
     def show_curves(self, s: Snapshot) -> None:
+        refused = s.optical_refused is not None
+        if refused != self._metric_refused:  # drawn grey and dashed while `process` would refuse it
+            self._metric_refused = refused
+            self.metric_curve.setPen(REFUSED_METRIC_PEN if refused else METRIC_PEN)
+            self.litres.setTitle(REFUSED_LITRES_TITLE if refused else LITRES_TITLE)
         end = max(s.flow_t_s[-1] if len(s.flow_t_s) else 0.0, s.optical_t_s[-1] if len(s.optical_t_s) else 0.0)
         start = end - WINDOW_S
         largest_l = 0.0
@@ -133,7 +146,7 @@ class StatusPanel(QGroupBox):
         self.labels: dict[str, QLabel] = {}
         rows = [(f"{h}_rate", f"{h.capitalize()} camera") for h in heads]
         rows += [(f"{h}_distance", f"{h.capitalize()} distance") for h in heads]
-        rows += [("recording", "Recording"), ("calibration", "Calibration"), ("source", "Source")]
+        rows += [("optical", "Optical volume"), ("recording", "Recording"), ("calibration", "Calibration"), ("source", "Source")]
         for k, (key, title) in enumerate(rows):
             grid.addWidget(QLabel(f"<b>{title}</b>"), k, 0, Qt.AlignmentFlag.AlignTop)
             label = QLabel("–")
@@ -267,6 +280,11 @@ class LiveView(QWidget):
             if arm:
                 text += "; an arm against the trunk hides its side: arms away from the body"
             self.status.set(f"{h}_distance", text, warn=not ok or arm)
+        if s.optical_refused is not None:
+            self.status.set("optical", f"not valid now: {s.optical_refused}", warn=True)
+        else:
+            self.status.set("optical", "the skin's shading and the maps' sides pass the checks" if s.optical_checked
+                            else "not checked yet: both heads must see the trunk")
         if s.recording is not None:
             frames = ", ".join(f"{h} {n}" for h, n in s.recorded_frames.items())
             self.status.set("recording", f"{s.recording.name}: {frames} frames written, {s.dropped} dropped",

@@ -59,6 +59,7 @@ def test_live_view_draws_both_heads_and_the_curves(window, qtbot):
     assert window.view.maps["front"].image.levels.tolist() == [-40.0, 40.0]  # the fixed scale
     assert "frames/s" in window.view.status.labels["front_rate"].text()
     assert "mm" in window.view.status.labels["front_distance"].text()
+    qtbot.waitUntil(lambda: "pass the checks" in window.view.status.labels["optical"].text(), timeout=30000)
 
 
 def test_replay_of_a_recorded_session(small_session, qtbot):
@@ -69,6 +70,29 @@ def test_replay_of_a_recorded_session(small_session, qtbot):
     qtbot.waitUntil(lambda: all(v.reconstructed > 0 for v in w.engine.snapshot().heads.values()), timeout=10000)
     with SessionFile(small_session) as s:
         assert w.engine.snapshot().heads["front"].frames == s.n_frames("front")
+    w.close()
+
+
+def test_the_live_view_marks_an_optical_volume_process_would_refuse(tmp_path, qtbot):
+    """Skin with a sheen: the status says why the optical volume is not valid, in red, and its curve
+    is drawn grey and dashed, its legend saying so; on matte skin (the window above) it passes."""
+    from PySide6.QtCore import Qt
+
+    from app.gui.live_view import REFUSED_METRIC_PEN
+    from core.sim.breathing import Sway
+    from core.sim.simulate import SimConfig, simulate
+
+    session = tmp_path / "glossy.h5"
+    simulate(session, SimConfig(protocol="tidal", seconds=2.0, scale=0.1, specular=0.2, clothing="skin",
+                                flow_sensor=None, sway=Sway(0, 0, 0)))
+    w = MainWindow(partial(replay_source, session, speed=0.5))
+    qtbot.addWidget(w)
+    w.show()
+    label = w.view.status.labels["optical"]
+    qtbot.waitUntil(lambda: "not valid now" in label.text(), timeout=60000)
+    assert "a sheen on the skin" in label.text() and "b00020" in label.styleSheet()
+    assert w.view.volume.metric_curve.opts["pen"].style() == Qt.PenStyle.DashLine == REFUSED_METRIC_PEN.style()
+    assert "not valid" in w.view.volume.litres.titleLabel.text
     w.close()
 
 

@@ -15,6 +15,7 @@ import pytest
 from app.live import LiveRig, replay_source
 from core.io.session import SessionFile
 from core.reconstruction.process import process_session
+from core.sim.breathing import Sway
 from core.sim.simulate import SimConfig, simulate
 
 pytestmark = pytest.mark.slow
@@ -30,17 +31,9 @@ def test_the_live_volume_is_the_processed_volume(tmp_path):
         processed = f["metric_volume/volume_l"][:]
     # played at half speed: on a loaded machine (the CI's two test workers beside it) the engine made
     # 25 maps in 4 s at full speed; the comparison is of the path, not of the rate
-    rig = LiveRig(replay_source(session, speed=0.5))
-    rig.start()
-    try:
-        deadline = time.monotonic() + 60.0
-        while not rig.snapshot().replay_finished:
-            assert time.monotonic() < deadline, "the replay did not finish"
-            time.sleep(0.1)
-        time.sleep(0.5)
-        snapshot = rig.snapshot()
-    finally:
-        rig.stop()
+    snapshot = replayed(session)
+    # the checks `process` makes on the skin's shading and the maps' sides pass live too
+    assert snapshot.optical_checked and snapshot.optical_refused is None
     settled = snapshot.metric_t_s > 0.5  # both heads' first maps in, the live distance settled
     live = snapshot.metric_volume_l[settled]
     assert len(live) >= 30, len(live)  # a good share of the 4 s session's 88 cycles a head
@@ -51,3 +44,29 @@ def test_the_live_volume_is_the_processed_volume(tmp_path):
     assert np.corrcoef(live, on_live_times)[0, 1] > 0.97
     assert 0.9 < np.polyfit(on_live_times, live, 1)[0] < 1.1
     assert np.sqrt(np.mean(difference ** 2)) < 0.06
+
+
+def replayed(session, speed: float = 0.5):
+    """The live engine's last snapshot of a whole replay of `session`."""
+    rig = LiveRig(replay_source(session, speed=speed))
+    rig.start()
+    try:
+        deadline = time.monotonic() + 60.0
+        while not rig.snapshot().replay_finished:
+            assert time.monotonic() < deadline, "the replay did not finish"
+            time.sleep(0.1)
+        time.sleep(0.5)
+        return rig.snapshot()
+    finally:
+        rig.stop()
+
+
+def test_the_live_view_says_when_the_skin_does_not_follow_the_light_model(tmp_path):
+    """Skin with a sheen (0.2 of white), which `process` refuses (tests/core/test_reconstruction.py):
+    the live engine says so while the session runs, with the same reason."""
+    session = tmp_path / "glossy.h5"
+    simulate(session, SimConfig(protocol="tidal", seconds=2.0, scale=0.1, specular=0.2, clothing="skin",
+                                flow_sensor=None, sway=Sway(0, 0, 0)))
+    snapshot = replayed(session)
+    assert snapshot.optical_checked
+    assert "a sheen on the skin" in snapshot.optical_refused, snapshot.optical_refused

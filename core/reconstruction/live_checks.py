@@ -1,0 +1,90 @@
+"""The checks `photopft process` makes before it gives an optical volume, made as the maps come in,
+for the live view: the operator learns during the session, not from the report, that the skin or
+the lights do not follow the light model (reflectance_refusal) or that the two heads' maps are bent
+against each other (core/volume/sides.py, bend_refusal), and can act (polarising filters, a towel
+on oily skin, the rig's calibration).
+
+Both checks look at a map of each head's stream every LOOK_INTERVAL_S (`process`: every
+SURVEY_INTERVAL_S) and take the median of what the last WINDOW_S gave, where `process` takes the
+whole session's."""
+
+from __future__ import annotations
+
+import collections
+import threading
+
+import numpy as np
+
+from core.reconstruction.process import reflectance_refusal
+from core.volume.sides import bend_refusal, sides_tilt
+
+# A look costs a map at the photometric fit's own distance and a side profile: a look a second took the
+# live view at scale 1 from 6.0 to 5.1 maps/s a head (`photopft bench gui --scale 1 --loop 11`)
+LOOK_INTERVAL_S = 2.0
+WINDOW_S = 10.0  # five looks a head: one map's verdict is not the subject's
+
+
+class LiveOpticalChecks:
+    """Each head's thread tells it, every LOOK_INTERVAL_S (`due`), the photometric fit's distance
+    less the geometric one (`add_offset`) and its map's side profile (`add_profile`,
+    core/volume/sides.py side_profile_mm); `refusal` says why the optical volume would be refused
+    now, or None."""
+
+    def __init__(self, heads: list[str]) -> None:
+        self._heads = list(heads)
+        self._lock = threading.Lock()
+        self._last_look: dict[str, float] = {}
+        self._offsets: dict[str, collections.deque] = {h: collections.deque() for h in heads}
+        self._profiles: dict[str, collections.deque] = {h: collections.deque() for h in heads}
+        self._tilts: collections.deque = collections.deque()
+
+    def due(self, head: str, t_s: float) -> bool:
+        """Whether the head's map at t_s is to be looked at (then it counts as looked at)."""
+        with self._lock:
+            last = self._last_look.get(head)
+            if last is not None and 0.0 <= t_s - last < LOOK_INTERVAL_S:
+                return False
+            self._last_look[head] = t_s
+            return True
+
+    def add_offset(self, head: str, t_s: float, offset_mm: float) -> None:
+        with self._lock:
+            self._offsets[head].append((t_s, float(offset_mm)))
+            self._forget(t_s)
+
+    def add_profile(self, head: str, t_s: float, profile: tuple[np.ndarray, np.ndarray]) -> None:
+        """A head's side profile; paired with the other head's newest one if that lies within
+        LOOK_INTERVAL_S (two heads only)."""
+        with self._lock:
+            self._profiles[head].append((t_s, profile))
+            others = [h for h in self._heads if h != head]
+            if len(self._heads) == 2 and self._profiles[others[0]]:
+                t_other, other = self._profiles[others[0]][-1]
+                if abs(t_other - t_s) <= LOOK_INTERVAL_S:
+                    front, back = (profile, other) if head == self._heads[0] else (other, profile)
+                    self._tilts.append((t_s, sides_tilt(front, back)))
+            self._forget(t_s)
+
+    def _forget(self, now_s: float) -> None:
+        for series in (*self._offsets.values(), *self._profiles.values(), self._tilts):
+            while series and series[0][0] < now_s - WINDOW_S:
+                series.popleft()
+
+    def clear(self) -> None:
+        """Forget everything (a replay moved: its time runs afresh)."""
+        with self._lock:
+            self._last_look.clear()
+            for series in (*self._offsets.values(), *self._profiles.values(), self._tilts):
+                series.clear()
+
+    @property
+    def checked(self) -> bool:
+        """Whether the last WINDOW_S gave anything to judge by."""
+        with self._lock:
+            return any(self._offsets.values()) or bool(self._tilts)
+
+    def refusal(self) -> str | None:
+        with self._lock:
+            offsets = {h: float(np.median([o for _, o in s])) for h, s in self._offsets.items() if s}
+            tilts = np.array([t for _, t in self._tilts], dtype=float)
+        return reflectance_refusal(offsets) or bend_refusal(tilts)
