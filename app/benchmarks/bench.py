@@ -114,7 +114,8 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                  led_offset_mm: float, write: bool, world: str = "ideal") -> str:
     from core.calibration.light_sessions import CAPTURE_SECONDS, calibrate_lights
     from core.reconstruction.photometric import near_light_normals
-    from core.reconstruction.pipeline import HeadReconstructor, ReconstructionSettings, RunningDistance
+    from core.reconstruction.pipeline import (HeadReconstructor, ReconstructionSettings, RunningDistance,
+                                              shadow_threshold)
     from core.reconstruction.prefilter import prefilter_sigma_px, prefiltered
     from core.rig import thesis_rig
     from core.io.session import SessionFile
@@ -212,6 +213,7 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
                                 offset, height, tracked_error if ours else float("nan"),
                                 float(np.std(cycle_errors)) if ours else float("nan")))
             # The noise floor: the same solver handed the true surface and the true lights.
+            shadow = shadow_threshold(signal, valid, ours_settings.shadow_fraction)
             rays = HeadReconstructor(true_head)._rays
             points = np.ascontiguousarray(rays * np.nan_to_num(true_depth, nan=float(distance))[..., None])
             floor = np.full(true_head.shape + (3,), np.nan)
@@ -222,16 +224,16 @@ def run_accuracy(scale: float, shapes: tuple[str, ...], distances: tuple[int, ..
             # the same solver: the images prefiltered as ours has them (core/reconstruction/prefilter.py)
             solved, solved_saturated = prefiltered(signal, saturated, sigma_px)
             near_light_normals(solved, points, true_positions, true_intensity, true_axis, true_mu, solved_saturated,
-                               0.01 * true_head.max_value, floor, albedo, used)
+                               shadow, floor, albedo, used)
             near_light_normals(solved, points, cal.light_positions_mm, cal.light_intensity, axis, mu,
-                               solved_saturated, 0.01 * true_head.max_value, calibrated, albedo, used)
+                               solved_saturated, shadow, calibrated, albedo, used)
             ok = valid & np.isfinite(floor[..., 2])
             rows.append(Row(shape, distance, "noise floor", _angular_error(floor, true_normals, ok), floor_errors[0],
                             float("nan"), distance_sd_mm=float(np.std(floor_errors))))
             if sigma_px > 0:
                 unfiltered = np.full(true_head.shape + (3,), np.nan)
                 near_light_normals(signal, points, true_positions, true_intensity, true_axis, true_mu, saturated,
-                                   0.01 * true_head.max_value, unfiltered, albedo, used)
+                                   shadow, unfiltered, albedo, used)
                 rows.append(Row(shape, distance, "noise floor, unfiltered",
                                 _angular_error(unfiltered, true_normals, ok & np.isfinite(unfiltered[..., 2])),
                                 float("nan"), float("nan")))
