@@ -36,3 +36,8 @@ positive = _positive(float)
 def add_force(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace an existing output (never an input or a recorded session)")
+
+
+# The simulator's worlds by name (core/sim/simulate.py, WORLDS; a test keeps the two the same), here
+# so that building the parser does not import the simulator
+WORLD_NAMES = ("ideal", "clinic", "clinic-polarised")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.args import finite, positive
+from app.args import WORLD_NAMES, finite, positive
 
 # The benches write their tables into the repository's docs/benchmarks.md: only from a source
 # checkout (an installed or bundled application has no docs/ to write to, and reads nothing there)
@@ -341,7 +341,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--distances", default=",".join(map(str, DISTANCES)))
     a.add_argument("--seed", type=int, default=3)
     a.add_argument("--led-offset-mm", type=finite, default=12.0)
-    a.add_argument("--world", choices=("ideal", "clinic", "clinic-polarised"), default="ideal",
+    a.add_argument("--world", choices=WORLD_NAMES, default="ideal",
                    help="realism of the simulated rig")
     a.add_argument("--no-write", action="store_true", help="print only")
 
@@ -375,7 +375,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     vol.add_argument("--scale", type=positive, default=0.25)
     vol.add_argument("--seconds", type=positive, default=60.0)
     vol.add_argument("--every", type=int, default=2, help="reconstruct every Nth cycle window (1: at the camera rate)")
-    vol.add_argument("--world", choices=("ideal", "clinic", "clinic-polarised"), default="ideal",
+    vol.add_argument("--world", choices=WORLD_NAMES, default="ideal",
                    help="realism of the simulated rig")
     vol.add_argument("--no-write", action="store_true", help="print only")
 
@@ -417,7 +417,7 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                     help="the standard test waveforms the blows follow (default ../shared/data/spirometry-waveforms)")
     po.add_argument("--max-sheen", type=finite, default=None,
                     help="skin sheen drawn from 0 to this (default 0.3; 0: matte skin)")
-    po.add_argument("--world", choices=("clinic", "clinic-polarised"), default="clinic",
+    po.add_argument("--world", choices=tuple(w for w in WORLD_NAMES if w != "ideal"), default="clinic",
                     help="the clinic's rig, or the same behind crossed polarisers on the LEDs and lenses")
     po.add_argument("--keep", type=Path, default=None,
                     help="keep each finished subject here and, run again, go on from them (long runs)")

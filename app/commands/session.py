@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.args import _positive, finite, positive
+from app.args import WORLD_NAMES, _positive, finite, positive
 from app.errors import UserError
 from core.io.outputs import check_output
 from core.io.session import SessionFile, validate_session
@@ -81,7 +81,7 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
     c = p.add_argument_group("camera and lights")
     c.add_argument("--bits", type=int, choices=(8, 10, 12, 16), default=12)
     c.add_argument("--fps", type=_positive(float), default=110.0)
-    c.add_argument("--world", choices=("ideal", "clinic", "clinic-polarised"), default="ideal",
+    c.add_argument("--world", choices=WORLD_NAMES, default="ideal",
                    help="realism: ideal (today's rig as drawn) or clinic (LEDs as built with cos^mu falloff, tilt and "
                         "drift, mains flicker, oily skin, lens distortion and vignetting, steps, lost frames); "
                         "clinic-polarised: the clinic behind crossed polarisers on the LEDs and lenses; "

@@ -103,3 +103,10 @@ def test_an_output_that_was_not_written_is_named_alone(tmp_path):
     missing = tmp_path / "scratch" / "15-session.h5"
     assert _one_line_naming_the_input(OutputError(f"{missing} was not written"), args) == f"{missing} was not written"
     assert _one_line_naming_the_input(OSError("bad header"), args).startswith(str(tmp_path / "waveforms"))
+
+
+def test_the_world_choices_are_the_simulators_worlds():
+    from app.args import WORLD_NAMES
+    from core.sim.simulate import WORLDS
+
+    assert WORLD_NAMES == tuple(WORLDS)
