@@ -27,7 +27,7 @@ from core.reconstruction.live_checks import LiveOpticalChecks
 from core.volume.flow_sensor import btps_factor
 from core.volume.metric import LiveMetricVolume
 from core.volume.sides import side_profile_mm
-from core.reconstruction.pipeline import HeadReconstructor, ReconstructionSettings
+from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.reconstruction.process import MAX_OCCLUDED_SIDE_SHARE, use_threads
 from core.rig import DARK, Rig
 from core.io.session import SessionFile, SubjectRecord
@@ -749,17 +749,18 @@ class LiveRig:
                     if np.isfinite(litres):
                         self._metric_curve.append((t_s, litres))
 
-    def _look(self, head: str, t_s: float, result, geometric_mm: float, surveyor: HeadReconstructor,
+    def _look(self, head: str, t_s: float, result: HeadMap, geometric_mm: float, surveyor: HeadReconstructor,
               cycle: tuple) -> None:
         """What `process` checks on a map made at the geometric distance: its sides along the height,
         and where the photometric fit alone would put the subject."""
-        self._checks.add_profile(head, t_s, side_profile_mm(result.depth_mm, result.mask & np.isfinite(result.depth_mm),
-                                                            result.silhouette, self._live_heads[head]))
         try:
+            profile = side_profile_mm(result.depth_mm, result.mask & np.isfinite(result.depth_mm), result.silhouette,
+                                      self._live_heads[head])
             photometric = surveyor.reconstruct(*cycle).distance_mm
-        except Exception as exc:  # said once; the check goes without this look
-            self._problem(f"{head}: the photometric check failed: {exc}")
+        except Exception as exc:  # said once; the checks go without this look, the live view goes on
+            self._problem(f"{head}: the optical volume's checks failed: {exc}")
             return
+        self._checks.add_profile(head, t_s, profile)
         if np.isfinite(photometric):
             self._checks.add_offset(head, t_s, photometric - geometric_mm)
 

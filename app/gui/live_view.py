@@ -284,7 +284,8 @@ class LiveView(QWidget):
             self.status.set("optical", f"not valid now: {s.optical_refused}", warn=True)
         else:
             self.status.set("optical", "the skin's shading and the maps' sides pass the checks" if s.optical_checked
-                            else "not checked yet: both heads must see the trunk")
+                            else "not checked yet: both heads must see the trunk" if len(self.heads) == 2
+                            else "not checked: the checks take two heads")
         if s.recording is not None:
             frames = ", ".join(f"{h} {n}" for h, n in s.recorded_frames.items())
             self.status.set("recording", f"{s.recording.name}: {frames} frames written, {s.dropped} dropped",

@@ -83,7 +83,7 @@ def test_the_live_view_marks_an_optical_volume_process_would_refuse(tmp_path, qt
     from core.sim.simulate import SimConfig, simulate
 
     session = tmp_path / "glossy.h5"
-    simulate(session, SimConfig(protocol="tidal", seconds=2.0, scale=0.1, specular=0.2, clothing="skin",
+    simulate(session, SimConfig(protocol="tidal", seconds=3.0, scale=0.1, specular=0.2, clothing="skin",
                                 flow_sensor=None, sway=Sway(0, 0, 0)))
     w = MainWindow(partial(replay_source, session, speed=0.5))
     qtbot.addWidget(w)

@@ -65,7 +65,7 @@ def test_the_live_view_says_when_the_skin_does_not_follow_the_light_model(tmp_pa
     """Skin with a sheen (0.2 of white), which `process` refuses (tests/core/test_reconstruction.py):
     the live engine says so while the session runs, with the same reason."""
     session = tmp_path / "glossy.h5"
-    simulate(session, SimConfig(protocol="tidal", seconds=2.0, scale=0.1, specular=0.2, clothing="skin",
+    simulate(session, SimConfig(protocol="tidal", seconds=3.0, scale=0.1, specular=0.2, clothing="skin",
                                 flow_sensor=None, sway=Sway(0, 0, 0)))
     snapshot = replayed(session)
     assert snapshot.optical_checked
