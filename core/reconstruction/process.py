@@ -185,13 +185,11 @@ class DarkFeed:
 
     def __init__(self, frames: h5py.Dataset, light_index: np.ndarray, timestamp_ns: np.ndarray, mains_hz: float,
                  binning: int = 1) -> None:
+        self.correction = FlickerCorrection(2.0 * mains_hz, binning=binning)
         self._frames = frames
         self._t = np.asarray(timestamp_ns, dtype=np.int64) / 1e9
         self._darks = np.flatnonzero(np.asarray(light_index) == DARK)
         self._dark_t = self._t[self._darks]
-        self.correction = FlickerCorrection(2.0 * mains_hz, binning=binning,
-                                            recorded_s=(float(self._dark_t[0]), float(self._dark_t[-1]))
-                                            if len(self._dark_t) else None)
         self._next = 0
 
     def flicker_of(self, window: CycleWindow) -> Callable[[CycleFrame], np.ndarray | None]:
