@@ -146,7 +146,8 @@ class StatusPanel(QGroupBox):
         self.labels: dict[str, QLabel] = {}
         rows = [(f"{h}_rate", f"{h.capitalize()} camera") for h in heads]
         rows += [(f"{h}_distance", f"{h.capitalize()} distance") for h in heads]
-        rows += [("optical", "Optical volume"), ("recording", "Recording"), ("calibration", "Calibration"), ("source", "Source")]
+        rows += [("optical", "Optical volume"), ("recording", "Recording"), ("calibration", "Calibration"),
+                 ("source", "Source")]
         for k, (key, title) in enumerate(rows):
             grid.addWidget(QLabel(f"<b>{title}</b>"), k, 0, Qt.AlignmentFlag.AlignTop)
             label = QLabel("–")
