@@ -365,6 +365,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 results.refuse_optical(refused)
             metric = (metric_volume(displacements, rig.baseline_mm) if all(counts.values()) and refused is None
                       else None)
+            if metric is not None and np.isfinite(metric.top_referred_slope):
+                results.attr("top_referred_slope", metric.top_referred_slope)
             if metric is not None and (refused := metric.refusal()) is not None:
                 metric = None
                 results.refuse_optical(refused)

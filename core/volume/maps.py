@@ -263,7 +263,8 @@ class DisplacementSums:
     """One map against the reference map of its head, in footprint-weighted sums (mm^3) over the
     pixels both show, per region ("all" is every such pixel, the neck and shoulders included):
     reference = sum fp (Z_ref - level_ref), current = sum fp (z - level) with z the current map
-    resampled into the reference's body frame and level each map's RimModel.level.
+    resampled into the reference's body frame and level each map's RimModel.level; TOP_REFERRED is
+    "all" with the level instead the mean depth of the top of the view (top_band).
     Kept apart so the two maps' scales can be set afterwards (metric_head_volume_l)."""
 
     side_mm: float  # depth of the trunk's sides (RimModel.side_depth_mm, followed by rim_depths), at the map's own scale
@@ -537,6 +538,28 @@ def row_widths_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> np.nda
     return np.diff(side_columns(depth_mm, valid, head, np.arange(valid.shape[0])), axis=1)[:, 0]
 
 
+# The sums of every pixel referred to the top of the view instead of the trunk's sides (DisplacementSums)
+TOP_REFERRED = "all, referred to the top of the view"
+TOP_BAND_SHARE = 0.1  # of the rows in view, from the top
+TOP_BAND_MAX_SLOPE = 0.5  # depth change per mm across the image: the flat parts (base of the neck, shoulders' tops)
+
+
+def top_band(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> np.ndarray:
+    """The flat pixels (surface slope under TOP_BAND_MAX_SLOPE, a pixel in from any edge) of the top
+    TOP_BAND_SHARE of the rows in view: the base of the neck and the shoulders' tops, which breathing
+    moves little (docs/volume.md, "A reference that breathing does not move")."""
+    rows = np.flatnonzero(valid.any(axis=1))
+    band = np.zeros(valid.shape, dtype=bool)
+    if not len(rows):
+        return band
+    band[rows[0]:rows[0] + max(2, int(TOP_BAND_SHARE * (rows[-1] - rows[0] + 1)))] = True
+    z = np.where(valid, depth_mm, np.nan)
+    gy, gx = np.gradient(z)
+    with np.errstate(invalid="ignore"):
+        flat = np.hypot(gx / (z / head.fx), gy / (z / head.fy)) < TOP_BAND_MAX_SLOPE
+    return band & ndimage.binary_erosion(valid & flat, np.ones((3, 3)))
+
+
 def rim_band_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head, rim_band_mm: float = RIM_BAND_MM) -> int:
     """The rim's band (rim_model, rim_depths) in pixels on a map: rim_band_mm at its median depth."""
     return max(4, int(round(rim_band_mm * head.fx / np.median(depth_mm[valid]))))
@@ -618,6 +641,7 @@ class DisplacementTracker:
             contour = contour_depth_mm(depth_mm, valid, silhouette, self.head) if silhouette is not None else float("nan")
             side = contour if np.isfinite(contour) else self._rim.side_depth_mm
             self._side_per_rim = side / rim_of_reference
+            self._top = top_band(depth_mm, valid, self.head)
         ref_depth, ref_mask, footprint, regions = self._reference
         frame, width = self._gated(self._silhouette.frame(valid, row_widths, width / self._reference_width),
                                    valid, row_widths, width)
@@ -628,8 +652,14 @@ class DisplacementTracker:
         reference = np.where(both, footprint * (ref_depth - level_ref), 0.0)
         current = np.where(both, footprint * (z - level), 0.0)
         parts = dict(regions, all=ref_mask)
-        return DisplacementSums(rim * self._side_per_rim, width, {k: float(reference[m].sum()) for k, m in parts.items()},
+        sums = DisplacementSums(rim * self._side_per_rim, width, {k: float(reference[m].sum()) for k, m in parts.items()},
                                 {k: float(current[m].sum()) for k, m in parts.items()})
+        top = self._top & both
+        if top.any():  # sum fp (z - top) = sum fp (z - level) + (level - top) sum fp
+            area = float(footprint[both].sum())
+            sums.reference[TOP_REFERRED] = sums.reference["all"] + (level_ref - float(ref_depth[top].mean())) * area
+            sums.current[TOP_REFERRED] = sums.current["all"] + (level - float(z[top].mean())) * area
+        return sums
 
 
 def head_volume_l(reference, current, k_reference, k):

@@ -28,8 +28,8 @@ from scipy import ndimage
 from core.analysis.values import tidal_stretches, tidal_values, tidal_windows
 from core.volume.compartments import compartment_shares, phase_angle_deg
 from core.rig import Head
-from core.volume.maps import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l, metric_head_volume_l,
-                         smooth_in_time, two_head_distances)
+from core.volume.maps import (REGIONS, TOP_REFERRED, DisplacementSums, DisplacementTracker, head_volume_l,
+                              metric_head_volume_l, smooth_in_time, two_head_distances)
 
 WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of trunk width is 4 mm of distance
 SIDE_SMOOTHING_S = 3.0
@@ -46,6 +46,16 @@ MAX_MAP_NOISE_L = 0.05
 JUMP_WINDOW_S = 0.4
 JUMP_L = 0.1
 MAX_JUMP_SHARE = 0.01
+# The volume is referred to the trunk's sides (RimModel). Referred instead to the top of the view
+# (the base of the neck, the shoulders' tops: on true depth maps of nine bodies it kept 0.92-0.99 of
+# the breath) it may read at most this share more (the slope of the one on the other over the
+# session): on bodies whose sides move out as they breathe the sides' level follows them and the
+# volume loses that part (simulated slow VCs at scale 0.25: the rim read 0.35-0.41 of the truth and
+# the top 1.7-1.9 times the rim; our own torso 0.93-1.02 times; docs/volume.md, "Two references").
+# Reading less, the top of the view moved with the breathing or is too few pixels to follow it
+# (0.29-0.72 at scale 0.1), which says nothing against the sides; a negative slope is refused too.
+MAX_REFERENCE_DISAGREEMENT = 0.15
+MIN_REFERENCE_SWING_L = 0.2  # a session whose volume swings less tells too little to compare them
 
 
 def map_noise_l(volume_l: np.ndarray) -> float:
@@ -101,6 +111,9 @@ class MetricVolume:
     side_distance_mm: dict[str, np.ndarray]  # the distance each head's sides were scaled to
     scale_from: str
     scale_mismatch: dict[str, float] = field(default_factory=dict)  # median |k - 1| of each head's maps
+    # both heads' volume with each map referred to the top of its view instead of the trunk's sides
+    # (maps.TOP_REFERRED), on timestamp_ns: the cross-check of reference_refusal
+    top_referred_l: np.ndarray | None = None
 
     def refusal(self) -> str | None:
         """Why this volume cannot be reported, or None: a head whose maps had to be rescaled by more
@@ -121,7 +134,24 @@ class MetricVolume:
                 return (f"head {name}: the trunk's width in the two heads' views and its depth in this head's maps "
                         f"disagree by {100 * mismatch:.0f} % (arms against the trunk's sides, or the trunk not "
                         "wholly in view)")
+        slope = self.top_referred_slope
+        if np.isfinite(slope) and (slope > 1.0 + MAX_REFERENCE_DISAGREEMENT or slope < 0.0):
+            return (f"referred to the top of the view the optical volume reads {100 * slope:.0f} % of what it reads "
+                    f"referred to the trunk's sides (at most {100 * (1 + MAX_REFERENCE_DISAGREEMENT):.0f} %): the "
+                    "trunk's sides move with the breathing on this body, and the volume referred to them would miss "
+                    "what they move")
         return None
+
+    @property
+    def top_referred_slope(self) -> float:
+        """The slope of the volume referred to the top of the view on the volume referred to the trunk's
+        sides, over the session; NaN where the volume swings less than MIN_REFERENCE_SWING_L."""
+        if self.top_referred_l is None:
+            return float("nan")
+        both = np.isfinite(self.volume_l) & np.isfinite(self.top_referred_l)
+        if both.sum() < 10 or np.ptp(self.volume_l[both]) < MIN_REFERENCE_SWING_L:
+            return float("nan")
+        return float(np.polyfit(self.volume_l[both], self.top_referred_l[both], 1)[0])
 
 
 def side_targets(heads: dict[str, HeadDisplacements], baseline_mm: float | None) -> tuple[dict[str, np.ndarray], str]:
@@ -151,7 +181,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
     """Both heads' volumes on the first head's times, their sum and the regions' sums."""
     targets, scale_from = side_targets(heads, baseline_mm)
     t = next(iter(heads.values())).timestamp_ns
-    per_head, regions = {}, {r: np.zeros(len(t)) for r in REGIONS}
+    per_head, regions, top_referred = {}, {r: np.zeros(len(t)) for r in REGIONS}, {}
     mismatch = {}
     for name, h in heads.items():
         side, target = h.side_mm, targets[name]
@@ -166,6 +196,8 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
                                                    side, target))
         for r in REGIONS:
             regions[r] += on_t(metric_head_volume_l(h.series("reference", r), h.series("current", r), side, target))
+        top_referred[name] = on_t(metric_head_volume_l(h.series("reference", TOP_REFERRED),
+                                                       h.series("current", TOP_REFERRED), side, target))
     seconds = t.astype(float) / 1e9
 
     def smooth(values: np.ndarray) -> np.ndarray:
@@ -173,7 +205,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
 
     per_head = {name: smooth(v) for name, v in per_head.items()}
     return MetricVolume(t, sum(per_head.values()), per_head, {r: smooth(v) for r, v in regions.items()},
-                        targets, scale_from, mismatch)
+                        targets, scale_from, mismatch, smooth(sum(top_referred.values())))
 
 
 def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
