@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.volume.metric import HeadDisplacements, metric_volume
+from core.volume.metric import HeadDisplacements, MetricVolume, metric_volume
 from core.rig import thesis_head
 from core.volume.maps import DisplacementTracker, metric_head_volume_l
 
@@ -232,3 +232,29 @@ def test_a_single_map_whose_trunk_widens_at_once_keeps_the_last_scale():
     assert sums[2].width_px == pytest.approx(sums[1].width_px, rel=0.005)
     lasting = [tracker.add(*_widened(clean, columns)) for _ in range(SCALE_WINDOW_MAPS // 2 + 1)]
     assert lasting[-1].width_px > 1.03 * sums[1].width_px
+
+
+def _breathing_volume(top_per_rim: float, swing_l: float = 1.0):
+    t = np.arange(0, 20, 0.05)
+    rim = 0.5 * swing_l * (1 - np.cos(2 * np.pi * t / 4.0))
+    noise = 0.02 * np.random.default_rng(1).standard_normal(len(t))
+    return MetricVolume((t * 1e9).astype(np.int64), rim, {}, {}, {}, "test", {},
+                        top_per_rim * rim + noise)
+
+
+def test_a_volume_whose_sides_lose_the_breath_that_the_top_of_the_view_keeps_is_refused():
+    """Referred to the top of the view a population body's slow VC read 1.7-1.9 times what it read
+    referred to the trunk's sides (which read 0.35-0.41 of the truth): refused. Reading less (the top
+    of the view moving with the breath, or too few pixels to follow it) says nothing against the
+    sides, and a session that hardly breathes cannot compare them."""
+    from core.volume.metric import MAX_REFERENCE_DISAGREEMENT
+
+    assert _breathing_volume(1.0).refusal() is None
+    assert _breathing_volume(1.0).top_referred_slope == pytest.approx(1.0, abs=0.01)
+    assert _breathing_volume(0.7).refusal() is None
+    assert _breathing_volume(1.0 + 0.5 * MAX_REFERENCE_DISAGREEMENT).refusal() is None
+    refused = _breathing_volume(1.8).refusal()
+    assert "reads 180 % of what it reads referred to the trunk's sides" in refused and "move with the breathing" in refused
+    assert _breathing_volume(-0.3).refusal() is not None
+    assert np.isnan(_breathing_volume(1.8, swing_l=0.1).top_referred_slope)
+    assert _breathing_volume(1.8, swing_l=0.1).refusal() is None

@@ -278,31 +278,3 @@ def test_the_two_heads_sides_agree_on_an_upright_trunk_and_not_on_a_bent_map():
     short = (np.array([0.0, 100.0]), np.array([2000.0, 2000.0]))
     assert np.isnan(sides_tilt(short, short))  # less height in common than MIN_SIDES_SPAN_MM
     assert bend_refusal(np.array([np.nan])) is None
-
-
-def _breathing_volume(top_per_rim: float, swing_l: float = 1.0):
-    from core.volume.metric import MetricVolume
-
-    t = np.arange(0, 20, 0.05)
-    rim = 0.5 * swing_l * (1 - np.cos(2 * np.pi * t / 4.0))
-    noise = 0.02 * np.random.default_rng(1).standard_normal(len(t))
-    return MetricVolume((t * 1e9).astype(np.int64), rim, {}, {}, {}, "test", {},
-                        top_per_rim * rim + noise)
-
-
-def test_a_volume_whose_sides_lose_the_breath_that_the_top_of_the_view_keeps_is_refused():
-    """Referred to the top of the view a population body's slow VC read 1.7-1.9 times what it read
-    referred to the trunk's sides (which read 0.35-0.41 of the truth): refused. Reading less (the top
-    of the view moving with the breath, or too few pixels to follow it) says nothing against the
-    sides, and a session that hardly breathes cannot compare them."""
-    from core.volume.metric import MAX_REFERENCE_DISAGREEMENT
-
-    assert _breathing_volume(1.0).refusal() is None
-    assert _breathing_volume(1.0).top_referred_slope == pytest.approx(1.0, abs=0.01)
-    assert _breathing_volume(0.7).refusal() is None
-    assert _breathing_volume(1.0 + 0.5 * MAX_REFERENCE_DISAGREEMENT).refusal() is None
-    refused = _breathing_volume(1.8).refusal()
-    assert "reads 180 % of what it reads referred to the trunk's sides" in refused and "move with the breathing" in refused
-    assert _breathing_volume(-0.3).refusal() is not None
-    assert np.isnan(_breathing_volume(1.8, swing_l=0.1).top_referred_slope)
-    assert _breathing_volume(1.8, swing_l=0.1).refusal() is None
