@@ -754,8 +754,7 @@ class LiveRig:
         """What `process` checks on a map made at the geometric distance: its sides along the height,
         and where the photometric fit alone would put the subject."""
         try:
-            profile = side_profile_mm(result.depth_mm, result.mask & np.isfinite(result.depth_mm), result.silhouette,
-                                      self._live_heads[head])
+            profile = side_profile_mm(result.depth_mm, result.mask, result.silhouette, self._live_heads[head])
             photometric = surveyor.reconstruct(*cycle).distance_mm
         except Exception as exc:  # said once; the checks go without this look, the live view goes on
             self._problem(f"{head}: the optical volume's checks failed: {exc}")

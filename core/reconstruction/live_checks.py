@@ -18,8 +18,9 @@ import numpy as np
 from core.reconstruction.process import reflectance_refusal
 from core.volume.sides import bend_refusal, sides_tilt
 
-# A look costs a map at the photometric fit's own distance and a side profile: a look a second took the
-# live view at scale 1 from 6.0 to 5.1 maps/s a head (`photopft bench gui --scale 1 --loop 11`)
+# A look costs a map at the photometric fit's own distance and a side profile: at scale 1 the live view
+# made 6.0 maps/s a head without looks, 5.1 with a look a second, 5.3-5.5 with one every 2 s
+# (`photopft bench gui --scale 1 --seconds 20 --no-record --loop 11`)
 LOOK_INTERVAL_S = 2.0
 WINDOW_S = 10.0  # five looks a head: one map's verdict is not the subject's
 
@@ -35,7 +36,7 @@ class LiveOpticalChecks:
         self._lock = threading.Lock()
         self._last_look: dict[str, float] = {}
         self._offsets: dict[str, collections.deque] = {h: collections.deque() for h in heads}
-        self._profiles: dict[str, collections.deque] = {h: collections.deque() for h in heads}
+        self._newest_profile: dict[str, tuple[float, tuple[np.ndarray, np.ndarray]]] = {}
         self._tilts: collections.deque = collections.deque()
 
     def due(self, head: str, t_s: float) -> bool:
@@ -56,17 +57,16 @@ class LiveOpticalChecks:
         """A head's side profile; paired with the other head's newest one if that lies within
         LOOK_INTERVAL_S (two heads only)."""
         with self._lock:
-            self._profiles[head].append((t_s, profile))
-            others = [h for h in self._heads if h != head]
-            if len(self._heads) == 2 and self._profiles[others[0]]:
-                t_other, other = self._profiles[others[0]][-1]
-                if abs(t_other - t_s) <= LOOK_INTERVAL_S:
-                    front, back = (profile, other) if head == self._heads[0] else (other, profile)
-                    self._tilts.append((t_s, sides_tilt(front, back)))
+            self._newest_profile[head] = (t_s, profile)
+            others = [self._newest_profile[h] for h in self._heads if h != head and h in self._newest_profile]
+            if len(self._heads) == 2 and others and abs(others[0][0] - t_s) <= LOOK_INTERVAL_S:
+                other = others[0][1]
+                front, back = (profile, other) if head == self._heads[0] else (other, profile)
+                self._tilts.append((t_s, sides_tilt(front, back)))
             self._forget(t_s)
 
     def _forget(self, now_s: float) -> None:
-        for series in (*self._offsets.values(), *self._profiles.values(), self._tilts):
+        for series in (*self._offsets.values(), self._tilts):
             while series and series[0][0] < now_s - WINDOW_S:
                 series.popleft()
 
@@ -74,7 +74,8 @@ class LiveOpticalChecks:
         """Forget everything (a replay moved: its time runs afresh)."""
         with self._lock:
             self._last_look.clear()
-            for series in (*self._offsets.values(), *self._profiles.values(), self._tilts):
+            self._newest_profile.clear()
+            for series in (*self._offsets.values(), self._tilts):
                 series.clear()
 
     @property

@@ -458,8 +458,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette))
             if job.profile_every and number % job.profile_every == 0:
                 profile_times.append(stamps[window.newest])
-                profiles.append(side_profile_mm(result.depth_mm, result.mask & np.isfinite(result.depth_mm),
-                                                result.silhouette, head))
+                profiles.append(side_profile_mm(result.depth_mm, result.mask, result.silhouette, head))
             if window.newest in job.maps_at:
                 full = result
                 if job.binning > 1:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy import ndimage
@@ -51,7 +52,7 @@ MAX_JUMP_SHARE = 0.01
 # the breath) it may read at most this share more (the slope of the one on the other over the
 # session): on bodies whose sides move out as they breathe the sides' level follows them and the
 # volume loses that part (simulated slow VCs at scale 0.25: the rim read 0.35-0.41 of the truth and
-# the top 1.7-1.9 times the rim; our own torso 0.93-1.02 times; docs/volume.md, "Two references").
+# the top 1.7-1.9 times the rim; our own torso 0.93-1.03 times; docs/volume.md, "Two references").
 # Reading less, the top of the view moved with the breathing or is too few pixels to follow it
 # (0.29-0.72 at scale 0.1), which says nothing against the sides; a negative slope is refused too.
 MAX_REFERENCE_DISAGREEMENT = 0.15
@@ -112,7 +113,7 @@ class MetricVolume:
     scale_from: str
     scale_mismatch: dict[str, float] = field(default_factory=dict)  # median |k - 1| of each head's maps
     # both heads' volume with each map referred to the top of its view instead of the trunk's sides
-    # (maps.TOP_REFERRED), on timestamp_ns: the cross-check of reference_refusal
+    # (maps.TOP_REFERRED), on timestamp_ns: the cross-check in `refusal` (MAX_REFERENCE_DISAGREEMENT)
     top_referred_l: np.ndarray | None = None
 
     def refusal(self) -> str | None:
@@ -142,7 +143,7 @@ class MetricVolume:
                     "what they move")
         return None
 
-    @property
+    @cached_property
     def top_referred_slope(self) -> float:
         """The slope of the volume referred to the top of the view on the volume referred to the trunk's
         sides, over the session; NaN where the volume swings less than MIN_REFERENCE_SWING_L."""
