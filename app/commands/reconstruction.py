@@ -98,7 +98,7 @@ def run_calibrate_lights(args: argparse.Namespace) -> int:
     for report in reports:
         cal = calibration.heads[report.head]
         print(f"{report.head}: {report.placements} placements, "
-              f"{'refined on the matte sphere' if report.refined else 'specular triangulation only'}")
+              f"{'refined on ' + report.refined_on if report.refined_on else 'specular triangulation only'}")
         for k in range(4):
             x, y, z = cal.light_positions_mm[k]
             sx, sy, sz = cal.light_position_sigma_mm[k]

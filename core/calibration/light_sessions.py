@@ -28,6 +28,16 @@ MATTE_BINS_PER_PLACEMENT = 16000
 # LEDs whose fitted falloff is below this are point sources to within 1 % over +-15 degrees
 # (cos(15 deg)^0.25 = 0.991): the isotropic model, with fewer unknowns, places them better
 ISOTROPIC_MU = 0.25
+# A glossy sphere's diffuse shading is read away from its highlights: beyond this many of the
+# highlight's own widths (Gaussian sigma) its lobe is below 1e-8 of its peak.
+HIGHLIGHT_CLEARANCE_WIDTHS = 6.0
+# ... and only where it stands this many times above a pixel's noise (a mirror ball has no shading).
+DIFFUSE_MIN_SNR = 3.0
+# The highlights pin each light's direction from every placement; a shading fit that moves a light
+# off those rays by more than this many times the triangulation's own residual (and this many mm)
+# fits a finish it does not describe, and is not taken.
+MAX_SHADING_OFF_RAYS = 3.0
+MIN_SHADING_OFF_RAYS_MM = 3.0
 
 
 @dataclass
@@ -80,6 +90,7 @@ class PlacementResult:
     highlights: dict[int, Highlight] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
     image: np.ndarray | None = None  # the four lights' signals summed: what the sphere was found in
+    diffuse: MattePlacement | None = None  # the sphere's shading away from its highlights, if it has any
 
 
 def specular_placements(session: SessionFile, head_name: str, radius_mm: float) -> list[PlacementResult]:
@@ -96,8 +107,30 @@ def specular_placements(session: SessionFile, head_name: str, radius_mm: float) 
                                                             placement.saturated[light])
             except CalibrationError as exc:
                 result.problems.append(f"placement {placement.index + 1}, light {light}: {exc}")
+        result.diffuse = _diffuse_shading(head, placement, result, radius_mm)
         results.append(result)
     return results
+
+
+def _diffuse_shading(head: Head, placement: PlacementImages, result: PlacementResult,
+                     radius_mm: float) -> MattePlacement | None:
+    """A glossy sphere's diffuse shading as a matte sphere's (dichromatic reflection: a diffuse body
+    under a specular surface), with each highlight's neighbourhood and every clipped pixel left out;
+    None where a highlight is missing or the shading does not stand out of the noise."""
+    if len(result.highlights) < 4:
+        return None
+    rows, cols = np.indices(placement.signal.shape[1:])
+    mask = result.sphere.mask & ~placement.saturated.any(axis=0)
+    for highlight in result.highlights.values():
+        clearance = max(2.0, HIGHLIGHT_CLEARANCE_WIDTHS * highlight.width_px)
+        mask &= (cols - highlight.uv[0]) ** 2 + (rows - highlight.uv[1]) ** 2 > clearance**2
+    if mask.sum() < 100:
+        return None
+    shading = placement.signal / head.relative_illumination()[None] if head.vignetting else placement.signal
+    if np.min(np.median(shading[:, mask], axis=1)) < DIFFUSE_MIN_SNR * result.sphere.background_noise:
+        return None
+    rays, signal = binned_sphere(head, shading, mask, matte_binning(int(mask.sum())))
+    return MattePlacement(rays, signal, result.sphere.centre_mm, radius_mm)
 
 
 def matte_binning(sphere_pixels: int, max_bins: int = MATTE_BINS_PER_PLACEMENT) -> int:
@@ -143,7 +176,7 @@ class HeadReport:
     placements: int
     thesis_pair_error_mm: np.ndarray  # eq. 4.5 with the first two placements, per light
     triangulated_mm: np.ndarray
-    refined: bool
+    refined_on: str  # what refined the triangulated lights ('' when nothing did)
     problems: list[str]
 
 
@@ -186,23 +219,55 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
     extra: dict[str, object] = {"width": int(head.width), "height": int(head.height),
                                 "triangulated_positions_mm": np.round(triangulated, 4).tolist(),
                                 "thesis_pair_error_mm": np.round(pair_error, 4).tolist()}
-    refined = False
-    if matte:
-        placements = [p for session, radius in matte for p in _matte_placements(session, head.name, radius)]
-        fit = refine_on_matte(placements, triangulated, anisotropic=True)
-        if np.all(fit.mu < ISOTROPIC_MU):
-            fit = refine_on_matte(placements, triangulated, anisotropic=False)
-        positions, intensity = fit.positions_mm, fit.intensity
-        refined = True
-        extra["matte_fit_rms"] = np.round(fit.rms, 6).tolist()
-        extra["matte_distance_factors"] = np.round(fit.distance_factors, 6).tolist()
-
+    refined_on = ""
     axis = mu = None
-    if refined and fit.mu is not None:
-        axis, mu = fit.axis, fit.mu
+    shaded = [r.diffuse for r in results if r.diffuse is not None]
+    if matte:
+        shading = _refine(triangulated, [p for session, radius in matte for p in _matte_placements(session, head.name, radius)])
+        refined_on = "the matte sphere"
+    elif len(shaded) >= 3:
+        shading = _refine(triangulated, shaded)
+        off_rays = [_ray_rms_mm(shading.positions_mm[k], [r.highlights[k] for r in results if k in r.highlights])
+                    for k in range(4)]
+        strayed = [k for k in range(4) if off_rays[k] > max(MAX_SHADING_OFF_RAYS * residual[k], MIN_SHADING_OFF_RAYS_MM)]
+        if strayed:
+            k = strayed[0]
+            problems.append(f"the specular sphere's diffuse shading put light {k} {off_rays[k]:.1f} mm rms off its "
+                            f"highlight rays ({residual[k]:.1f} mm triangulated): a finish the shading model does not "
+                            "describe; the lights are triangulated only")
+            shading = None
+        else:
+            refined_on = "the specular sphere's diffuse shading"
+    else:
+        shading = None
+        problems.append("the specular sphere shows no diffuse shading to refine on (a mirror finish, or too dark): "
+                        "the lights are triangulated only, their distances to about 15 mm; a matte sphere session "
+                        "places them better")
+    if shading is not None:
+        positions, intensity = shading.positions_mm, shading.intensity
+        axis, mu = shading.axis, shading.mu
+        extra["refined_on"] = refined_on
+        extra["shading_fit_rms"] = np.round(shading.rms, 6).tolist()
+        extra["shading_distance_factors"] = np.round(shading.distance_factors, 6).tolist()
     calibration = HeadCalibration(positions, intensity, sigma, residual, pseudo, extra, axis, mu)
-    report = HeadReport(head.name, len(results), pair_error, triangulated, refined, problems)
+    report = HeadReport(head.name, len(results), pair_error, triangulated, refined_on, problems)
     return calibration, report
+
+
+def _refine(triangulated_mm: np.ndarray, placements: list[MattePlacement]):
+    """The lights refined on a sphere's shading: anisotropic LEDs, or point sources where every
+    fitted falloff is that of one."""
+    fit = refine_on_matte(placements, triangulated_mm, anisotropic=True)
+    if np.all(fit.mu < ISOTROPIC_MU):
+        fit = refine_on_matte(placements, triangulated_mm, anisotropic=False)
+    return fit
+
+
+def _ray_rms_mm(position_mm: np.ndarray, highlights: list[Highlight]) -> float:
+    """The rms distance of a light from the rays its highlights reflect towards it."""
+    offsets = [(position_mm - h.point_mm) - ((position_mm - h.point_mm) @ h.light_vector) * h.light_vector
+               for h in highlights]
+    return float(np.sqrt(np.mean(np.sum(np.square(offsets), axis=1))))
 
 
 def calibrate_lights(paths: list[str | os.PathLike], prior_sigma_mm: float = DEFAULT_PRIOR_SIGMA_MM,

@@ -43,6 +43,7 @@ class SphereFit:
     thesis_centre_mm: np.ndarray  # eqs 4.6 and 4.7, for comparison
     outline_rms_px: float
     mask: np.ndarray  # pixels on the sphere, eroded away from the outline
+    background_noise: float = 0.0  # rms of the image around the sphere (its units)
 
 
 def _outline_points(image: np.ndarray, centre: np.ndarray, radius: float, background: float, noise: float,
@@ -133,7 +134,7 @@ def detect_sphere(image: np.ndarray, head: Head, radius_mm: float) -> SphereFit:
     residual_px = np.sqrt(np.mean(fit.fun**2)) * head.fx
     centre_px = np.array([head.fx * centre[0] / centre[2] + head.cx, head.fy * centre[1] / centre[2] + head.cy])
     mask = ndimage.binary_erosion(filled, iterations=2)
-    return SphereFit(centre, centre_px, pixel_radius, thesis_centre, float(residual_px), mask)
+    return SphereFit(centre, centre_px, pixel_radius, thesis_centre, float(residual_px), mask, noise)
 
 
 @dataclass(frozen=True)
@@ -143,6 +144,7 @@ class Highlight:
     point_mm: np.ndarray  # on the sphere (eq. 4.12: P = C + R n)
     normal: np.ndarray  # sphere normal at the highlight (towards the camera side)
     light_vector: np.ndarray  # unit, from the highlight towards the light (eq. 4.1)
+    width_px: float = 1.0  # the peak's Gaussian sigma, the wider of its two axes
 
 
 def detect_highlight(signal: np.ndarray, sphere: SphereFit, head: Head, radius_mm: float,
@@ -172,6 +174,9 @@ def detect_highlight(signal: np.ndarray, sphere: SphereFit, head: Head, radius_m
     du = 0.5 * (log[1, 0] - log[1, 2]) / (log[1, 0] - 2 * log[1, 1] + log[1, 2])
     dv = 0.5 * (log[0, 1] - log[2, 1]) / (log[0, 1] - 2 * log[1, 1] + log[2, 1])
     uv = np.array([col + np.clip(du, -0.5, 0.5), row + np.clip(dv, -0.5, 0.5)])
+    # a Gaussian's log is a parabola whose second difference is -1 / sigma^2
+    curvature = max(log[1, 0] - 2 * log[1, 1] + log[1, 2], log[0, 1] - 2 * log[1, 1] + log[2, 1])
+    width = float(np.sqrt(-1.0 / curvature)) if curvature < 0 else float(max(signal.shape))
     ray = pixel_rays(head, uv[None])[0]
     ray /= np.linalg.norm(ray)
     c = sphere.centre_mm
@@ -182,7 +187,7 @@ def detect_highlight(signal: np.ndarray, sphere: SphereFit, head: Head, radius_m
     normal = (point - c) / radius_mm
     view = -ray  # from the surface towards the camera
     light = 2 * (normal @ view) * normal - view  # eq. 4.1 in the camera frame
-    return Highlight(uv, peak, point, normal, light / np.linalg.norm(light))
+    return Highlight(uv, peak, point, normal, light / np.linalg.norm(light), width)
 
 
 def closest_points(p1: np.ndarray, l1: np.ndarray, p2: np.ndarray, l2: np.ndarray) -> tuple[np.ndarray, float]:

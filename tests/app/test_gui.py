@@ -349,6 +349,7 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
     moved = [float(result.table.item(r, 6).text()) for r in range(8)]
     assert 1.0 < max(moved) < 25.0  # each LED moved from the drawing (8 mm off it per axis, fitted at 350 px)
     assert "profile in force of 2026-10-01" in result.message.text()
+    assert "Front: refined on the specular sphere's diffuse shading." in result.message.text()
     assert all(path.exists() for path in captures.captures)
     wizard.accept()
     assert not captures.folder.exists()  # the sphere sessions do not pile up in the temporary folder

@@ -41,9 +41,9 @@ def test_triangulation_of_many_rays_and_prior():
     assert np.linalg.norm(pulled.position_mm - light) < 5.0
 
 
-def _sphere_frame(centre, light, specular=1.5, scale=0.5, saturate=False):
+def _sphere_frame(centre, light, specular=1.5, scale=0.5, saturate=False, albedo=0.08):
     head = thesis_head("front", scale=scale)
-    scene = SphereScene(75.0, [SpherePlacement(0.0, np.asarray(centre, float))], 4300.0, albedo=0.08,
+    scene = SphereScene(75.0, [SpherePlacement(0.0, np.asarray(centre, float))], 4300.0, albedo=albedo,
                         specular=specular, shininess=3000.0)
     camera = CameraModel(white_level=3.0 if saturate else 0.6)
     digitiser = Digitiser(camera, 12)
@@ -115,6 +115,41 @@ def test_calibrated_lights_within_10mm_of_the_built_rig(calibration_sessions, tm
     calibration.save(path)
     again = load_profile(path)
     np.testing.assert_allclose(again.heads["front"].light_positions_mm, got.light_positions_mm, atol=1e-3)
+
+
+def test_a_glossy_sphere_alone_places_the_lights_by_its_diffuse_shading(calibration_sessions):
+    """The specular session alone: the highlights give each light's direction from every placement,
+    the sphere's own diffuse shading away from them the distance along those rays (measured: 2.1-2.7 mm
+    and intensities to 0.04 %, where the highlights' triangulation left 4.6-8.3 mm)."""
+    import h5py
+
+    calibration, reports = calibrate_lights(calibration_sessions[:1])
+    with h5py.File(calibration_sessions[0]) as f:
+        true = f["truth/front/light_positions_mm"][:]
+        intensity = f["truth/front/light_intensity"][:]
+    assert reports[0].refined_on == "the specular sphere's diffuse shading"
+    refined = np.linalg.norm(calibration.heads["front"].light_positions_mm - true, axis=1)
+    triangulated = np.linalg.norm(reports[0].triangulated_mm - true, axis=1)
+    assert np.all(refined < 3.5) and np.max(refined) < 0.6 * np.max(triangulated)
+    np.testing.assert_allclose(calibration.heads["front"].light_intensity, intensity / intensity.mean(), atol=0.002)
+
+
+def test_a_mirror_sphere_has_no_diffuse_shading_to_refine_on():
+    """A mirror finish (no diffuse body): the highlights are found, the shading is not used."""
+    from core.calibration.light_sessions import PlacementImages, PlacementResult, _diffuse_shading
+
+    centre = np.array([40.0, -30.0, 2050.0])
+    frames = [_sphere_frame(centre, k, albedo=0.0) for k in range(4)]
+    head = frames[0][0]
+    signal = np.stack([f[1] for f in frames])
+    saturated = np.stack([f[2] for f in frames])
+    lit = np.stack([_sphere_frame(centre, k, specular=0.0, albedo=0.8)[1] for k in range(4)])
+    sphere = detect_sphere(lit.sum(0), head, 75.0)  # the outline, seen as the wizard's image would show it
+    result = PlacementResult(0, sphere, {k: detect_highlight(signal[k], sphere, head, 75.0, saturated[k]) for k in range(4)})
+    assert _diffuse_shading(head, PlacementImages(0, signal, saturated), result, 75.0) is None
+    glossy = np.stack([_sphere_frame(centre, k)[1] for k in range(4)])
+    shaded = _diffuse_shading(head, PlacementImages(0, glossy, np.zeros_like(saturated)), result, 75.0)
+    assert shaded is not None and shaded.signal.shape[0] == 4
 
 
 def test_profile_with_a_wrong_field_is_rejected(tmp_path):

@@ -1,5 +1,6 @@
 """Sphere calibration (engineer): light positions from a specular sphere (thesis eqs 4.1-4.12,
-all placements in one least-squares triangulation).
+all placements in one least-squares triangulation), their distances along the highlight rays
+refined on the glossy sphere's own diffuse shading where it has one.
 
 The sphere is captured at the centre of the view, then at two or more other places; each capture
 shows the detected outline and highlights. The result lists each light's position, residual
@@ -285,7 +286,7 @@ class ResultPage(QWizardPage):
         self.table.setRowCount(0)
         try:
             # every light is solved, then judged here, so the table shows which fail
-            calibration, _ = calibrate_lights(wizard.capture_page.captures, max_residual_mm=float("inf"))
+            calibration, reports = calibrate_lights(wizard.capture_page.captures, max_residual_mm=float("inf"))
         except CalibrationError as exc:
             self.message.setText(f"<b>The calibration failed:</b> {exc}. Go back and capture again.")
             self.completeChanged.emit()
@@ -310,6 +311,7 @@ class ResultPage(QWizardPage):
                     item.setBackground(QColor("#1b7f3b" if residual <= threshold else "#b00020"))
                 self.table.setItem(r, c, item)
         self.comparison = previous_note
+        previous_note = " ".join(_refinement_notes(reports)) + " " + previous_note
         self.table.resizeColumnsToContents()
         failed = [f"{name} L{k}" for name, k, head in rows if head.residual_mm[k] > threshold]
         if failed:
@@ -325,6 +327,15 @@ class ResultPage(QWizardPage):
 
     def isComplete(self) -> bool:  # noqa: N802
         return self.calibration is not None
+
+
+def _refinement_notes(reports) -> list[str]:
+    """What placed each head's lights along their highlight rays, in the wizard's words."""
+    notes = []
+    for report in reports:
+        how = f"refined on {report.refined_on}" if report.refined_on else "triangulated from the highlights only"
+        notes.append(f"{report.head.capitalize()}: {how}" + "".join(f"; {p}" for p in report.problems) + ".")
+    return notes
 
 
 class SphereCalibrationWizard(QWizard):
