@@ -581,6 +581,11 @@ class LiveRig:
     def recording(self) -> bool:
         return self._recorder is not None
 
+    @property
+    def checks(self) -> LiveOpticalChecks:
+        """The checks `process` makes on the optical volume, as the live maps come in."""
+        return self._checks
+
     # threads
     def _capture(self, head: str, camera) -> None:
         try:
@@ -748,6 +753,7 @@ class LiveRig:
                     self._optical.append((t_s, sum(self._gradient.values())))
                     if np.isfinite(litres):
                         self._metric_curve.append((t_s, litres))
+                        self._checks.add_volumes(t_s, litres, self._metric.top_referred_l())
 
     def _look(self, head: str, t_s: float, result: HeadMap, geometric_mm: float, surveyor: HeadReconstructor,
               cycle: tuple) -> None:

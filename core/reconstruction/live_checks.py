@@ -1,12 +1,14 @@
 """The checks `photopft process` makes before it gives an optical volume, made as the maps come in,
 for the live view: the operator learns during the session, not from the report, that the skin or
-the lights do not follow the light model (reflectance_refusal) or that the two heads' maps are bent
-against each other (core/volume/sides.py, bend_refusal), and can act (polarising filters, a towel
-on oily skin, the rig's calibration).
+the lights do not follow the light model (reflectance_refusal), that the two heads' maps are bent
+against each other (core/volume/sides.py, bend_refusal), or that the trunk's sides move with the
+breathing (core/volume/metric.py, reference_refusal), and can act (polarising filters, a towel on
+oily skin, the rig's calibration, the arms held away).
 
-Both checks look at a map of each head's stream every LOOK_INTERVAL_S (`process`: every
+The first two look at a map of each head's stream every LOOK_INTERVAL_S (`process`: every
 SURVEY_INTERVAL_S) and take the median of what the last WINDOW_S gave, where `process` takes the
-whole session's."""
+whole session's. The third compares the live volume referred to the sides and to the top of the
+view over the last REFERENCE_WINDOW_S, every map."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ import threading
 import numpy as np
 
 from core.reconstruction.process import reflectance_refusal
+from core.volume.metric import reference_refusal, reference_slope
 from core.volume.sides import bend_refusal, sides_tilt
 
 # A look costs a map at the photometric fit's own distance and a side profile: at scale 1 the live view
@@ -23,6 +26,9 @@ from core.volume.sides import bend_refusal, sides_tilt
 # (`photopft bench gui --scale 1 --seconds 20 --no-record --loop 11`)
 LOOK_INTERVAL_S = 2.0
 WINDOW_S = 10.0  # five looks a head: one map's verdict is not the subject's
+# The two references' slope wants the volume to swing (metric.MIN_REFERENCE_SWING_L): several breaths,
+# so that one breath's noise does not decide it
+REFERENCE_WINDOW_S = 30.0
 
 
 class LiveOpticalChecks:
@@ -38,6 +44,7 @@ class LiveOpticalChecks:
         self._offsets: dict[str, collections.deque] = {h: collections.deque() for h in heads}
         self._newest_profile: dict[str, tuple[float, tuple[np.ndarray, np.ndarray]]] = {}
         self._tilts: collections.deque = collections.deque()
+        self._volumes: collections.deque = collections.deque()  # (t, referred to the sides, to the top)
 
     def due(self, head: str, t_s: float) -> bool:
         """Whether the head's map at t_s is to be looked at (then it counts as looked at)."""
@@ -65,27 +72,47 @@ class LiveOpticalChecks:
                 self._tilts.append((t_s, sides_tilt(front, back)))
             self._forget(t_s)
 
+    def add_volumes(self, t_s: float, side_referred_l: float, top_referred_l: float) -> None:
+        """The live volume at t_s referred to the trunk's sides and to the top of the view
+        (core/volume/metric.py, LiveMetricVolume.top_referred_l)."""
+        with self._lock:
+            self._volumes.append((t_s, float(side_referred_l), float(top_referred_l)))
+            self._forget(t_s)
+
     def _forget(self, now_s: float) -> None:
         for series in (*self._offsets.values(), self._tilts):
             while series and series[0][0] < now_s - WINDOW_S:
                 series.popleft()
+        while self._volumes and self._volumes[0][0] < now_s - REFERENCE_WINDOW_S:
+            self._volumes.popleft()
 
     def clear(self) -> None:
         """Forget everything (a replay moved: its time runs afresh)."""
         with self._lock:
             self._last_look.clear()
             self._newest_profile.clear()
-            for series in (*self._offsets.values(), self._tilts):
+            for series in (*self._offsets.values(), self._tilts, self._volumes):
                 series.clear()
 
     @property
     def checked(self) -> bool:
         """Whether the last WINDOW_S gave anything to judge by."""
         with self._lock:
-            return any(self._offsets.values()) or bool(self._tilts)
+            return any(self._offsets.values()) or bool(self._tilts) or np.isfinite(self._reference_slope())
+
+    def reference_slope(self) -> float:
+        """The slope of the top-referred volume on the side-referred one over the last
+        REFERENCE_WINDOW_S (core/volume/metric.py, reference_slope)."""
+        with self._lock:
+            return self._reference_slope()
+
+    def _reference_slope(self) -> float:
+        volumes = np.array([v[1:] for v in self._volumes], dtype=float).reshape(-1, 2)
+        return reference_slope(volumes[:, 0], volumes[:, 1])
 
     def refusal(self) -> str | None:
         with self._lock:
             offsets = {h: float(np.median([o for _, o in s])) for h, s in self._offsets.items() if s}
             tilts = np.array([t for _, t in self._tilts], dtype=float)
-        return reflectance_refusal(offsets) or bend_refusal(tilts)
+            slope = self._reference_slope()
+        return reflectance_refusal(offsets) or bend_refusal(tilts) or reference_refusal(slope)

@@ -135,24 +135,35 @@ class MetricVolume:
                 return (f"head {name}: the trunk's width in the two heads' views and its depth in this head's maps "
                         f"disagree by {100 * mismatch:.0f} % (arms against the trunk's sides, or the trunk not "
                         "wholly in view)")
-        slope = self.top_referred_slope
-        if np.isfinite(slope) and (slope > 1.0 + MAX_REFERENCE_DISAGREEMENT or slope < 0.0):
-            return (f"referred to the top of the view the optical volume reads {100 * slope:.0f} % of what it reads "
-                    f"referred to the trunk's sides (at most {100 * (1 + MAX_REFERENCE_DISAGREEMENT):.0f} %): the "
-                    "trunk's sides move with the breathing on this body, and the volume referred to them would miss "
-                    "what they move")
-        return None
+        return reference_refusal(self.top_referred_slope)
 
     @cached_property
     def top_referred_slope(self) -> float:
         """The slope of the volume referred to the top of the view on the volume referred to the trunk's
-        sides, over the session; NaN where the volume swings less than MIN_REFERENCE_SWING_L."""
+        sides, over the session (reference_slope)."""
         if self.top_referred_l is None:
             return float("nan")
-        both = np.isfinite(self.volume_l) & np.isfinite(self.top_referred_l)
-        if both.sum() < 10 or np.ptp(self.volume_l[both]) < MIN_REFERENCE_SWING_L:
-            return float("nan")
-        return float(np.polyfit(self.volume_l[both], self.top_referred_l[both], 1)[0])
+        return reference_slope(self.volume_l, self.top_referred_l)
+
+
+def reference_slope(side_referred_l: np.ndarray, top_referred_l: np.ndarray) -> float:
+    """The slope of the volume referred to the top of the view on the same volume referred to the
+    trunk's sides; NaN where the volume swings less than MIN_REFERENCE_SWING_L."""
+    side, top = np.asarray(side_referred_l, dtype=float), np.asarray(top_referred_l, dtype=float)
+    both = np.isfinite(side) & np.isfinite(top)
+    if both.sum() < 10 or np.ptp(side[both]) < MIN_REFERENCE_SWING_L:
+        return float("nan")
+    return float(np.polyfit(side[both], top[both], 1)[0])
+
+
+def reference_refusal(slope: float) -> str | None:
+    """Why a volume whose two references disagree this much (reference_slope) cannot be reported, or None."""
+    if np.isfinite(slope) and (slope > 1.0 + MAX_REFERENCE_DISAGREEMENT or slope < 0.0):
+        return (f"referred to the top of the view the optical volume reads {100 * slope:.0f} % of what it reads "
+                f"referred to the trunk's sides (at most {100 * (1 + MAX_REFERENCE_DISAGREEMENT):.0f} %): the "
+                "trunk's sides move with the breathing on this body, and the volume referred to them would miss "
+                "what they move")
+    return None
 
 
 def side_targets(heads: dict[str, HeadDisplacements], baseline_mm: float | None) -> tuple[dict[str, np.ndarray], str]:
@@ -243,6 +254,7 @@ class LiveMetricVolume:
         self._k_reference: dict[str, float] = {}
         self._reference_side: dict[str, float] = {}
         self._volume = {name: 0.0 for name in heads}
+        self._top_referred = {name: float("nan") for name in heads}  # each head's, referred to the top of its view
         self._geometric: dict[str, float] = {}  # each head's subject distance from the two heads' geometry
 
     def _smoothed(self, name: str, t_s: float, value: float, time_constant_s: float) -> float:
@@ -286,4 +298,16 @@ class LiveMetricVolume:
                 self._geometric[name] = float(distance_mm * k)
             k_reference = self._k_reference.setdefault(name, target / reference_side)
             self._volume[name] = float(head_volume_l(sums.reference["all"], sums.current["all"], k_reference, k))
+            if TOP_REFERRED in sums.reference and TOP_REFERRED in sums.current:
+                self._top_referred[name] = float(head_volume_l(sums.reference[TOP_REFERRED],
+                                                               sums.current[TOP_REFERRED], k_reference, k))
             return sum(self._volume.values()) if len(self._k_reference) == len(self._names) else float("nan")
+
+    def top_referred_l(self) -> float:
+        """The volume (L) as `add` last gave it, with each head's maps referred to the top of its view
+        instead of the trunk's sides (maps.TOP_REFERRED): the cross-check of reference_slope. NaN until
+        every head has such a map."""
+        with self._lock:
+            if len(self._k_reference) < len(self._names):
+                return float("nan")
+            return float(sum(self._top_referred.values()))

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.reconstruction.live_checks import LOOK_INTERVAL_S, WINDOW_S, LiveOpticalChecks
+from core.reconstruction.live_checks import LOOK_INTERVAL_S, REFERENCE_WINDOW_S, WINDOW_S, LiveOpticalChecks
 from core.reconstruction.process import MAX_PHOTOMETRIC_OFFSET_MM
+from core.volume.metric import MAX_REFERENCE_DISAGREEMENT, MIN_REFERENCE_SWING_L
 from core.volume.sides import MAX_SIDES_TILT
 
 
@@ -46,3 +47,22 @@ def test_bent_maps_are_paired_across_the_heads_and_refused():
     for t in (0.3, 0.4):
         checks.add_profile("front", 0.2 + 2 * LOOK_INTERVAL_S + t, _profile(0.6 * MAX_SIDES_TILT, 2000.0))
     assert checks.refusal() is None  # the median of three pairs: two of them untilted
+
+
+def test_sides_that_move_with_the_breathing_are_refused_over_the_last_breaths():
+    """The live volume referred to the trunk's sides against the same referred to the top of the view,
+    as `process` compares them (MetricVolume.refusal), over the last REFERENCE_WINDOW_S."""
+    checks = LiveOpticalChecks(["front", "back"])
+    t = np.arange(0.0, REFERENCE_WINDOW_S, 0.2)
+    breath = 0.5 * np.sin(2 * np.pi * t / 4.0)
+    for when, side in zip(t, breath):  # the sides' level took 40 % of the breath away
+        checks.add_volumes(float(when), side, side / 0.6)
+    assert checks.checked and "top of the view" in checks.refusal()
+    assert f"{100 * (1 + MAX_REFERENCE_DISAGREEMENT):.0f} %" in checks.refusal()
+    for when, side in zip(t + REFERENCE_WINDOW_S + 1.0, breath):  # the patient held the arms away
+        checks.add_volumes(float(when), side, 1.02 * side)
+    assert checks.checked and checks.refusal() is None
+    shallow = LiveOpticalChecks(["front", "back"])
+    for when, side in zip(t, 0.4 * MIN_REFERENCE_SWING_L * np.sin(2 * np.pi * t / 4.0)):
+        shallow.add_volumes(float(when), side, side / 0.6)
+    assert not shallow.checked and shallow.refusal() is None  # too little breathing to tell
