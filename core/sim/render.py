@@ -174,6 +174,33 @@ def _surface_at(fields, amps, gx0, gy0, inv_step, xb, yb):
     return hh, gx, gy, alb
 
 
+@njit(parallel=True, fastmath=_FAST, nogil=True, cache=True)
+def breathing_surface(fields, amps):
+    """The height field at one instant: its rest height, gradient and albedo plus each breathing
+    mode's height and gradient times its amplitude, on the grid (H, W, 4). Interpolating this once a
+    frame is what _surface_at does per ray with all the modes, since both are linear."""
+    rows, cols = fields.shape[0], fields.shape[1]
+    out = np.empty((rows, cols, 4))
+    for i in prange(rows):
+        for j in range(cols):
+            hh = fields[i, j, 0]
+            gx = fields[i, j, 1]
+            gy = fields[i, j, 2]
+            for c in range(amps.shape[0]):
+                a = amps[c]
+                if a == 0.0:
+                    continue
+                k = 4 + 3 * c
+                hh += a * fields[i, j, k]
+                gx += a * fields[i, j, k + 1]
+                gy += a * fields[i, j, k + 2]
+            out[i, j, 0] = hh
+            out[i, j, 1] = gx
+            out[i, j, 2] = gy
+            out[i, j, 3] = fields[i, j, 3]
+    return out
+
+
 # The march that backs up Newton's method: the surface comes towards a ray at most 1 + slope * ray slope
 # mm per mm of depth (grid slopes are cut at 80 degrees, build_height_field; rays stay within 15
 # degrees of the axis), so steps of a third of the gap to the surface cannot pass through it; then

@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from core.rig import Head
-from core.sim.render import CameraModel, camera_rays, pack_lights, render_height_field, render_spheres
+from core.sim.render import CameraModel, breathing_surface, camera_rays, pack_lights, render_height_field, render_spheres
 from core.sim.surfaces import F_H, HeightField, Sphere, mode_volumes_mm3
 
 HEAD_KEYS = {"front": 0, "back": 1}
@@ -139,8 +139,10 @@ class HeightFieldScene(Scene):
         lights = pack_lights(head)
         g = surface.grid
         amps = self.amplitudes(t_s).astype(np.float64)
-        render_height_field(out, self._z_state[head.name], u, v, vignette, surface.fields, g.x0, g.y0, g.step,
-                            amps, sign_x, sx, sy, z0, surface.front_mm(amps), surface.specular,
+        # the modes summed once a frame on the grid, not per ray and Newton step: the same surface
+        fields = breathing_surface(surface.fields, amps) if np.any(amps) else surface.fields
+        render_height_field(out, self._z_state[head.name], u, v, vignette, fields, g.x0, g.y0, g.step,
+                            np.zeros(0), sign_x, sx, sy, z0, surface.front_mm(amps), surface.specular,
                             surface.shininess, lights[max(light, 0)], light >= 0, *digitiser.args(), key,
                             want_maps, depth, normals)
         return out, (RenderedMaps(depth, normals) if want_maps else None)

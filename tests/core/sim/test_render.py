@@ -184,3 +184,27 @@ def test_steep_flanks_are_rendered_up_to_the_silhouette():
     assert np.isfinite(rendered[gentle]).all()
     np.testing.assert_allclose(rendered[gentle], first[gentle], atol=0.05)
     assert not np.isfinite(rendered[~met]).any()
+
+
+def test_the_modes_summed_on_the_grid_render_the_surface_summed_per_ray():
+    """breathing_surface sums the breathing modes once a frame; the renderer's own sum of each mode's
+    interpolation along every ray (both linear) gives the same depths and grey levels."""
+    from core.sim.render import pack_lights, render_height_field
+
+    x, _ = BodyGrid.covering(400.0, -320.0, 320.0, 1.0).coordinates()
+    grid, board = _board(0.1, 0.05, modes={"bump": np.exp(-x**2 / 8000.0), "tilt": 0.01 * x})
+    amps = np.array([4.0, -2.5])
+    scene = HeightFieldScene({"front": board}, 2010.0, 4000.0, mode_amplitudes=lambda t: amps)
+    head = thesis_head("front", scale=0.25)
+    digitiser = Digitiser(QUIET, 12)
+    frame, maps = scene.render(head, 0.0, 1, np.uint64(0), digitiser, want_maps=True)
+    u, v, vignette = scene._optics.of(head)
+    per_ray = np.empty(head.shape, dtype=head.frame_dtype)
+    depth, normals = np.empty(head.shape), np.empty((*head.shape, 3))
+    render_height_field(per_ray, np.full(head.shape, np.nan), u, v, vignette, board.fields, grid.x0, grid.y0, grid.step,
+                        amps, 1.0, 0.0, 0.0, 2010.0, board.front_mm(amps), board.specular, board.shininess,
+                        pack_lights(head)[1], True, *digitiser.args(), np.uint64(0), True, depth, normals)
+    assert np.isfinite(maps.depth_mm).sum() > 1000
+    np.testing.assert_allclose(maps.depth_mm, depth, atol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(maps.normals, normals, atol=1e-9, equal_nan=True)
+    assert np.abs(frame.astype(int) - per_ray.astype(int)).max() <= 1
