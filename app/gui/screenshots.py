@@ -128,6 +128,8 @@ def main(out: Path) -> int:
     _wait(app, 0.5)
     _grab(sphere, out / "sphere-2-captures.png")
     sphere.next()
+    result = sphere.currentPage()
+    _wait(app, 120, lambda: result.table.rowCount() > 0)
     _wait(app, 0.5)
     _grab(sphere, out / "sphere-3-result.png")
     sphere.reject()

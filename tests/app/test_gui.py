@@ -319,9 +319,22 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
     from core.calibration.rig_profile import load_profile
     from core.io.session import SubjectRecord
 
+    from PySide6.QtCore import QThreadPool
+
+    from app.gui.main_window import Job
+
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
     folder = calibration_dir("simulated")
-    wizard = SphereCalibrationWizard(None, ("front", "back"), 0.25, profile_dir=folder)
+    jobs = []
+
+    def start_job(work, what, done):  # as the main window runs them: on the thread pool
+        job = Job(work, what)
+        job.signals.done.connect(done)
+        jobs.append(job)
+        QThreadPool.globalInstance().start(job)
+        return job
+
+    wizard = SphereCalibrationWizard(None, ("front", "back"), 0.25, profile_dir=folder, start_job=start_job)
     qtbot.addWidget(wizard)
     wizard.show()
     _press(qtbot, wizard)
@@ -343,7 +356,8 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
     RigCalibration("2026-10-01T08:00:00+00:00", [], drawing).save(folder / "rig-calibration.json")
     _press(qtbot, wizard)
     result = wizard.currentPage()
-    assert result.isComplete(), result.message.text()
+    assert "Calibrating the lights from 3 placements" in result.message.text()  # the window is not held meanwhile
+    qtbot.waitUntil(result.isComplete, timeout=120000)
     assert result.table.rowCount() == 8 and all(result.table.item(r, 5).text() == "pass" for r in range(8))
     assert result.table.item(0, 5).background().color().name() == "#1b7f3b"
     moved = [float(result.table.item(r, 6).text()) for r in range(8)]

@@ -275,22 +275,45 @@ class ResultPage(QWizardPage):
         layout.addWidget(self.table)
         layout.addWidget(self.message)
         self.calibration = None
+        self._runs = 0  # the newest calibration started: an older one's result is not shown
 
     def initializePage(self) -> None:  # noqa: N802
         from core.calibration.light_sessions import calibrate_lights
         from core.calibration.sphere_geometry import CalibrationError
 
         wizard = self.wizard()
-        threshold = wizard.intro.threshold.value()
+        captures = list(wizard.capture_page.captures)
         self.calibration = None
         self.table.setRowCount(0)
-        try:
-            # every light is solved, then judged here, so the table shows which fail
-            calibration, reports = calibrate_lights(wizard.capture_page.captures, max_residual_mm=float("inf"))
-        except CalibrationError as exc:
-            self.message.setText(f"<b>The calibration failed:</b> {exc}. Go back and capture again.")
+        self._runs += 1
+        run = self._runs
+        self.message.setText(f"Calibrating the lights from {len(captures)} placements (a few seconds a head: the "
+                             "highlights, then the sphere's shading) …")
+
+        def work():
+            try:
+                # every light is solved, then judged here, so the table shows which fail
+                return calibrate_lights(captures, max_residual_mm=float("inf"))
+            except CalibrationError as exc:
+                return exc
+
+        wizard.start_job(work, "The light calibration", lambda result: self._calibrated(run, result),
+                         failed=lambda: self._failed(run))
+
+    def _failed(self, run: int) -> None:
+        if run == self._runs:
+            self.message.setText("<b>The calibration failed</b> (see the message). Go back and capture again.")
+
+    def _calibrated(self, run: int, result) -> None:
+        wizard = self.wizard()
+        if run != self._runs or wizard is None:
+            return
+        threshold = wizard.intro.threshold.value()
+        if isinstance(result, Exception):
+            self.message.setText(f"<b>The calibration failed:</b> {result}. Go back and capture again.")
             self.completeChanged.emit()
             return
+        calibration, reports = result
         rows = [(name, k, head) for name, head in calibration.heads.items() for k in range(4)]
         previous, previous_note = previous_profile(wizard.profile_dir / RIG_PROFILE)
         self.table.setRowCount(len(rows))
@@ -362,12 +385,14 @@ class SphereCalibrationWizard(QWizard):
             return self._capture(folder, index)
         return capture_simulated(folder, index, self.scale, tuple(self.heads), self.intro.radius.value())
 
-    def start_job(self, work, what: str, done) -> None:
+    def start_job(self, work, what: str, done, failed=None) -> None:
+        """`work` on the main window's thread pool (here, without one), then `done` with its result on the
+        GUI thread; `failed` (default: the capture page's) after the window has shown the failure."""
         if self._start_job is None:
             done(work())
             return
         job = self._start_job(work, what, done)
-        job.signals.failed.connect(lambda *_: self.capture_page.capture_failed())
+        job.signals.failed.connect(lambda *_: (failed or self.capture_page.capture_failed)())
 
     def done(self, result: int) -> None:
         """Finish or Cancel: the captures' folder goes (the profile keeps each light's fit and residual)."""
