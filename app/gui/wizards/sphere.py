@@ -267,7 +267,7 @@ class ResultPage(QWizardPage):
         self.setTitle("Result")
         self.setSubTitle("Light positions in each head's camera frame; every residual must pass.")
         self.table = QTableWidget(0, 8)
-        self.table.setHorizontalHeaderLabels(["Head", "Light", "Position (mm)", "± (mm)", "Residual (mm)",
+        self.table.setHorizontalHeaderLabels(["Head", "Light", "Position (mm)", "± from the highlights (mm)", "Residual (mm)",
                                               "Pass", "Moved since the profile in force (mm)", "Pseudo light vector"])
         self.message = QLabel()
         self.message.setWordWrap(True)
