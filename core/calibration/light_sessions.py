@@ -241,8 +241,8 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
     else:
         shading = None
         problems.append("the specular sphere shows no diffuse shading to refine on (a mirror finish, or too dark): "
-                        "the lights are triangulated only, their distances to about 15 mm; a matte sphere session "
-                        "places them better")
+                        "the lights are triangulated only, each 10-20 mm off along its highlight rays in the clinic "
+                        "world (docs/benchmarks.md, Light calibration); a matte sphere session places them better")
     if shading is not None:
         positions, intensity = shading.positions_mm, shading.intensity
         axis, mu = shading.axis, shading.mu

@@ -96,7 +96,7 @@ class LiveOpticalChecks:
 
     @property
     def checked(self) -> bool:
-        """Whether the last WINDOW_S gave anything to judge by."""
+        """Whether the last WINDOW_S (REFERENCE_WINDOW_S for the references) gave anything to judge by."""
         with self._lock:
             return any(self._offsets.values()) or bool(self._tilts) or np.isfinite(self._reference_slope())
 
