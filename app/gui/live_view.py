@@ -267,6 +267,9 @@ class LiveView(QWidget):
             self.replay_bar.setVisible(replay)
         if replay:
             self.replay_bar.show_position(s.replay_position_s, s.replay_length_s, s.replay_paused)
+        # with two heads each one's distance comes from both trunk widths: an arm in one view spoils both
+        # (docs/volume.md, "An arm against the trunk moves the two heads' distances")
+        arms = [h for h, view in s.heads.items() if view.arm_against_trunk] if len(s.heads) == 2 else []
         for h, view in s.heads.items():
             if h in self.maps:
                 self.maps[h].show_map(view.height_mm)
@@ -280,11 +283,15 @@ class LiveView(QWidget):
             arm = view.arm_against_trunk
             if arm:
                 text += "; an arm against the trunk hides its side: arms away from the body"
-            self.status.set(f"{h}_distance", text, warn=not ok or arm)
+            elif arms and np.isfinite(view.distance_mm):
+                text = (f"{view.distance_mm:.0f} mm, not to be trusted: the arm against the trunk in the "
+                        f"{arms[0]} view spoils both heads' distances")
+            self.status.set(f"{h}_distance", text, warn=not ok or bool(arms) or arm)
         if s.optical_refused is not None:
             self.status.set("optical", f"not valid now: {s.optical_refused}", warn=True)
         else:
-            self.status.set("optical", "the skin's shading and the maps' sides pass the checks" if s.optical_checked
+            self.status.set("optical", "the skin's shading, the maps' sides and the volume's two references pass the "
+                            "checks" if s.optical_checked
                             else "not checked yet: both heads must see the trunk" if len(self.heads) == 2
                             else "not checked: the checks take two heads")
         if s.recording is not None:

@@ -532,3 +532,25 @@ def test_an_earlier_profile_is_put_back_in_force_from_the_profiles_window(qtbot,
     assert window.restored == folder / RIG_PROFILE
     assert json.loads((folder / RIG_PROFILE).read_text())["created"].startswith("2026-10-01")
     assert len(history("simulated", RIG_PROFILE)) == 2  # the one it replaced is kept
+
+
+def test_an_arm_in_one_view_marks_both_heads_distances(qtbot):
+    """With two heads each distance comes from both trunk widths: an arm against the trunk in the front
+    view (67 % of its rows, as population subject 2's) put the back 447 mm too far, and the back's
+    line says its distance is not to be trusted, in red."""
+    from app.gui.live_view import LiveView
+    from app.live import HeadView, Snapshot
+
+    view = LiveView(["front", "back"])
+    qtbot.addWidget(view)
+    snapshot = Snapshot.empty(["front", "back"])
+    snapshot.heads = {"front": HeadView(distance_mm=1842.0, occluded_side_share=0.67),
+                      "back": HeadView(distance_mm=2586.0, occluded_side_share=0.0)}
+    view.show(snapshot, "simulated", "simulated")
+    front, back = (view.status.labels[f"{h}_distance"] for h in ("front", "back"))
+    assert "arms away from the body" in front.text() and "b00020" in front.styleSheet()
+    assert "not to be trusted" in back.text() and "front view" in back.text() and "b00020" in back.styleSheet()
+    snapshot.heads["front"] = HeadView(distance_mm=2195.0, occluded_side_share=0.0)
+    snapshot.heads["back"] = HeadView(distance_mm=2139.0, occluded_side_share=0.0)
+    view.show(snapshot, "simulated", "simulated")
+    assert back.text().startswith("2139 mm") and back.styleSheet() == ""
