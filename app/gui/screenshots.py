@@ -128,6 +128,13 @@ def main(out: Path) -> int:
     _wait(app, 0.5)
     _grab(sphere, out / "sphere-2-captures.png")
     sphere.next()
+    matte = sphere.currentPage()
+    for k in range(7):
+        matte.capture()
+        _wait(app, 60, lambda: len(matte.captures) == k + 1)
+    _wait(app, 0.5)
+    _grab(sphere, out / "sphere-2-matte.png")
+    sphere.next()
     result = sphere.currentPage()
     _wait(app, 120, lambda: result.table.rowCount() > 0)
     _wait(app, 0.5)

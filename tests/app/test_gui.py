@@ -355,18 +355,28 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
     folder.mkdir(parents=True)
     RigCalibration("2026-10-01T08:00:00+00:00", [], drawing).save(folder / "rig-calibration.json")
     _press(qtbot, wizard)
+    matte = wizard.currentPage()
+    assert matte is wizard.matte_page and matte.isComplete()  # optional: Next without captures skips it
+    from app.gui.wizards.sphere import MIN_MATTE_CAPTURES
+
+    for k in range(MIN_MATTE_CAPTURES):
+        matte.capture()
+        qtbot.waitUntil(lambda: len(matte.captures) == k + 1, timeout=60000)
+        assert "sphere found" in matte.list.item(k).text()
+        assert matte.isComplete() == (k == MIN_MATTE_CAPTURES - 1)  # none, or enough to place the lights
+    _press(qtbot, wizard)
     result = wizard.currentPage()
-    assert "Calibrating the lights from 3 placements" in result.message.text()  # the window is not held meanwhile
+    assert "Calibrating the lights from 10 placements" in result.message.text()  # the window is not held meanwhile
     qtbot.waitUntil(result.isComplete, timeout=120000)
     assert result.table.rowCount() == 8 and all(result.table.item(r, 5).text() == "pass" for r in range(8))
     assert result.table.item(0, 5).background().color().name() == "#1b7f3b"
     moved = [float(result.table.item(r, 6).text()) for r in range(8)]
     assert 1.0 < max(moved) < 25.0  # each LED moved from the drawing (8 mm off it per axis, fitted at 350 px)
     assert "profile in force of 2026-10-01" in result.message.text()
-    assert "Front: refined on the specular sphere's diffuse shading." in result.message.text()
+    assert "Front: refined on the matte sphere." in result.message.text()
     assert all(path.exists() for path in captures.captures)
     wizard.accept()
-    assert not captures.folder.exists()  # the sphere sessions do not pile up in the temporary folder
+    assert not captures.folder.exists() and not matte.folder.exists()  # the sessions do not pile up
     profile = load_profile(folder / "rig-calibration.json")
     assert set(profile.heads) == {"front", "back"}
     assert len(history("simulated", "rig-calibration.json")) == 1

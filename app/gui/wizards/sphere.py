@@ -28,14 +28,20 @@ from app.gui.errors import show_error
 from core.io.outputs import next_free_path
 
 MIN_CAPTURES = 3
+# The matte sphere's shading places the lights only when each placement's distance can be told from
+# theirs: measured on the simulated rig at 350 px (isotropic LEDs 8 mm off the drawing, the
+# placements this wizard's simulated sphere takes), 3 places left them 5-14 mm off, 5 places 2-6 mm,
+# 7 places 1.2-2.2 mm (the specular sphere alone 0.6-12 mm with 3, 3-6 mm with 7)
+MIN_MATTE_CAPTURES = 7
 
 
-def capture_simulated(folder: Path, index: int, scale: float, heads: tuple[str, ...], radius_mm: float) -> Path:
-    """One placement of the simulated specular sphere (index 0: the centre of the view)."""
+def capture_simulated(folder: Path, index: int, scale: float, heads: tuple[str, ...], radius_mm: float,
+                      finish: str = "specular") -> Path:
+    """One placement of the simulated specular or matte sphere (index 0: the centre of the view)."""
     from core.sim.simulate import SimConfig, simulate
 
-    path = next_free_path(folder / f"sphere-{index + 1:02d}.h5")
-    simulate(path, SimConfig(scene="specular-sphere", scale=scale, heads=heads, seed=1, placement_only=index,
+    path = next_free_path(folder / f"{finish}-{index + 1:02d}.h5")
+    simulate(path, SimConfig(scene=f"{finish}-sphere", scale=scale, heads=heads, seed=1, placement_only=index,
                              sphere_radius_mm=radius_mm, led_offset_mm=8.0, led_intensity_spread=0.1))
     return path
 
@@ -46,13 +52,13 @@ def capture_from_rig(window):
 
     from core.calibration.light_sessions import CAPTURE_SECONDS
 
-    def capture(folder: Path, index: int) -> Path:
+    def capture(folder: Path, index: int, finish: str = "specular") -> Path:
         wizard = window.findChild(SphereCalibrationWizard)
         radius = wizard.intro.radius.value() if wizard is not None else 75.0
-        path = next_free_path(folder / f"sphere-{index + 1:02d}.h5")
+        path = next_free_path(folder / f"{finish}-{index + 1:02d}.h5")
         engine = window.engine
         engine.start_recording(path, None, kind="sphere-calibration",
-                               root_attrs={"sphere_radius_mm": float(radius), "sphere_finish": "specular"})
+                               root_attrs={"sphere_radius_mm": float(radius), "sphere_finish": finish})
         engine.mark("placement")
         time.sleep(CAPTURE_SECONDS)
         summary = engine.stop_recording()
@@ -64,12 +70,18 @@ def capture_from_rig(window):
 
 
 def detect_capture(path: Path, head_name: str):
-    """(summed image, sphere fit, {light: highlight}, problems) of one capture's head."""
-    from core.calibration.light_sessions import specular_placements
+    """(summed image, sphere fit, {light: highlight}, problems) of one capture's head; a matte sphere has
+    no highlights."""
+    from core.calibration.light_sessions import placement_images, specular_placements
+    from core.calibration.sphere_geometry import detect_sphere
     from core.io.session import SessionFile
 
     with SessionFile(path) as session:
-        result = specular_placements(session, head_name, float(session.attrs["sphere_radius_mm"]))[0]
+        radius = float(session.attrs["sphere_radius_mm"])
+        if session.attrs.get("sphere_finish") == "matte":
+            image = placement_images(session, head_name)[0].signal.sum(0)
+            return image, detect_sphere(image, session.rig.heads[head_name], radius), {}, []
+        result = specular_placements(session, head_name, radius)[0]
     return result.image, result.sphere, result.highlights, result.problems
 
 
@@ -95,10 +107,20 @@ class IntroPage(QWizardPage):
 
 
 class CapturePage(QWizardPage):
-    def __init__(self) -> None:
+    """The captures of one sphere: the specular one (its highlights give the lights' directions; required)
+    or the matte one (its shading places them along those directions; optional, recommended)."""
+
+    def __init__(self, finish: str = "specular") -> None:
         super().__init__()
-        self.setTitle("Captures")
-        self.setSubTitle("Capture at the centre first, then at two or more other places.")
+        self.finish = finish
+        if finish == "matte":
+            self.setTitle("Captures of the matte sphere (optional, recommended)")
+            self.setSubTitle(f"The matte sphere at {MIN_MATTE_CAPTURES} or more places spread through the working "
+                             "volume, the centre first: its shading places each light along its highlights' "
+                             "direction. Next without captures skips it.")
+        else:
+            self.setTitle("Captures")
+            self.setSubTitle("Capture at the centre first, then at two or more other places.")
         self.capture_button = QPushButton("Capture at the centre")
         self.capture_button.clicked.connect(self.capture)
         self.head = QComboBox()
@@ -151,7 +173,7 @@ class CapturePage(QWizardPage):
         layout.addWidget(self.plot, 3)
         self.captures: list[Path] = []
         self.detections: list[dict] = []
-        self.folder = Path(tempfile.mkdtemp(prefix="photopft-sphere-"))
+        self.folder = Path(tempfile.mkdtemp(prefix=f"photopft-{finish}-sphere-"))
 
     def initializePage(self) -> None:  # noqa: N802
         if not self.head.count():
@@ -183,11 +205,12 @@ class CapturePage(QWizardPage):
         index = len(self.captures)
         self.capture_button.setEnabled(False)
         self.capture_button.setText("Capturing …")
-        wizard.start_job(lambda: self._capture(index), f"Capture {index + 1}", self._captured)
+        wizard.start_job(lambda: self._capture(index), f"Capture {index + 1}", self._captured,
+                         failed=self.capture_failed)
 
     def _capture(self, index: int):
         wizard = self.wizard()
-        path = wizard.capture(self.folder, index)
+        path = wizard.capture(self.folder, index, self.finish)
         return path, {h: detect_capture(path, h) for h in wizard.heads}
 
     def _captured(self, result) -> None:
@@ -196,8 +219,11 @@ class CapturePage(QWizardPage):
         self.detections.append(detections)
         found = min(len(d[2]) for d in detections.values())
         where = "centre" if len(self.captures) == 1 else f"place {len(self.captures)}"
-        self.list.addItem(f"{len(self.captures)}: {where}, highlights found {found}/4"
-                          + ("" if found == 4 else " (check the sphere and the lighting)"))
+        if self.finish == "matte":
+            self.list.addItem(f"{len(self.captures)}: {where}, sphere found")
+        else:
+            self.list.addItem(f"{len(self.captures)}: {where}, highlights found {found}/4"
+                              + ("" if found == 4 else " (check the sphere and the lighting)"))
         self.list.setCurrentRow(self.list.count() - 1)
         self.capture_button.setText("Capture at another place")
         self.capture_button.setEnabled(True)
@@ -242,6 +268,8 @@ class CapturePage(QWizardPage):
                                    pg.mkBrush(30, 120, 200, 160) for k in range(len(centres))])
 
     def isComplete(self) -> bool:  # noqa: N802
+        if self.finish == "matte":  # none, or enough to tell each placement's distance from the lights'
+            return len(self.captures) == 0 or len(self.captures) >= MIN_MATTE_CAPTURES
         if len(self.captures) < MIN_CAPTURES:
             return False
         return all(len(d[2]) == 4 for d in self.detections[0].values())  # the centre capture gives pseudo vectors
@@ -267,7 +295,7 @@ class ResultPage(QWizardPage):
         self.setTitle("Result")
         self.setSubTitle("Light positions in each head's camera frame; every residual must pass.")
         self.table = QTableWidget(0, 8)
-        self.table.setHorizontalHeaderLabels(["Head", "Light", "Position (mm)", "± from the highlights (mm)", "Residual (mm)",
+        self.table.setHorizontalHeaderLabels(["Head", "Light", "Position (mm)", "± highlights (mm)", "Residual (mm)",
                                               "Pass", "Moved since the profile in force (mm)", "Pseudo light vector"])
         self.message = QLabel()
         self.message.setWordWrap(True)
@@ -282,13 +310,13 @@ class ResultPage(QWizardPage):
         from core.calibration.sphere_geometry import CalibrationError
 
         wizard = self.wizard()
-        captures = list(wizard.capture_page.captures)
+        captures = list(wizard.capture_page.captures) + list(wizard.matte_page.captures)
         self.calibration = None
         self.table.setRowCount(0)
         self._runs += 1
         run = self._runs
         self.message.setText(f"Calibrating the lights from {len(captures)} placements (a few seconds a head: the "
-                             "highlights, then the sphere's shading) …")
+                             "highlights, then the spheres' shading) …")
 
         def work():
             try:
@@ -375,15 +403,16 @@ class SphereCalibrationWizard(QWizard):
         self.saved_to: Path | None = None
         self.intro = IntroPage()
         self.capture_page = CapturePage()
+        self.matte_page = CapturePage("matte")
         self.result_page = ResultPage()
-        for page in (self.intro, self.capture_page, self.result_page):
+        for page in (self.intro, self.capture_page, self.matte_page, self.result_page):
             self.addPage(page)
         self.setMinimumSize(900, 600)
 
-    def capture(self, folder: Path, index: int) -> Path:
+    def capture(self, folder: Path, index: int, finish: str = "specular") -> Path:
         if self._capture is not None:
-            return self._capture(folder, index)
-        return capture_simulated(folder, index, self.scale, tuple(self.heads), self.intro.radius.value())
+            return self._capture(folder, index, finish)
+        return capture_simulated(folder, index, self.scale, tuple(self.heads), self.intro.radius.value(), finish)
 
     def start_job(self, work, what: str, done, failed=None) -> None:
         """`work` on the main window's thread pool (here, without one), then `done` with its result on the
@@ -396,8 +425,9 @@ class SphereCalibrationWizard(QWizard):
 
     def done(self, result: int) -> None:
         """Finish or Cancel: the captures' folder goes (the profile keeps each light's fit and residual)."""
-        self.capture_page.preview_timer.stop()
-        shutil.rmtree(self.capture_page.folder, ignore_errors=True)
+        for page in (self.capture_page, self.matte_page):
+            page.preview_timer.stop()
+            shutil.rmtree(page.folder, ignore_errors=True)
         super().done(result)
 
     def accept(self) -> None:
