@@ -436,6 +436,12 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     assert "head front: the trunk runs out of the image at the side in 25 % of the maps" in occlusion_refusal(
         {"front": clear, "back": clear}, {"front": swinging, "back": clear})
     assert "front: no subject distance" in distance_refusal({"front": float("nan"), "back": 2000.0})
+    # an arm against the trunk moves the two heads' distances: it is named first, not the distance it spoilt
+    from core.reconstruction.process import session_refusal
+
+    arm = session_refusal({"front": 1842.0, "back": 2658.0}, {"front": np.full(40, 0.3), "back": np.full(40, 0.3)},
+                          {"front": np.full(40, 0.67), "back": np.zeros(40)}, {}, {}, np.zeros(0))
+    assert arm.startswith("head front: an arm lies against the trunk")
     session, results = tmp_path / "far.h5", tmp_path / "far-r.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=0.5, scale=0.1, distance_mm=3300.0,
                                 distance_back_mm=3300.0))
