@@ -16,6 +16,9 @@ from app.report_pdf import fmt
 from core.sim.breathing import ForcedBlow
 from core.sim.simulate import SimConfig, simulate
 
+# the module's sessions (small_sessions) are made once: its tests on one xdist worker, not on both
+pytestmark = pytest.mark.xdist_group("report-sessions")
+
 
 def _text(pdf) -> list[str]:
     """Each page's text with its table rows on one line and runs of spaces as one."""
