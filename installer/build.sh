@@ -18,6 +18,7 @@ cp -a dist/photopft "$stage/photopft"
 cp installer/install.sh installer/uninstall.sh installer/photopft.desktop "$stage/"
 cp resources/icons/photopft.svg "$stage/photopft.svg"
 tarball="dist/photopft-$version-linux-$arch.tar.gz"
-tar -C dist/stage -czf "$tarball" "photopft-$version"
+# gzip -1: 14 s against 34 s at the default level for the 967 MB bundle, the tarball 381 MB against 344 MB
+tar -C dist/stage -I "gzip -1" -cf "$tarball" "photopft-$version"
 rm -rf dist/stage
 echo "built $tarball ($(du -sh dist/photopft | cut -f1) unpacked, $(du -h "$tarball" | cut -f1) packed) in $(( $(date +%s) - started )) s"
