@@ -120,20 +120,14 @@ def main(out: Path) -> int:
     sphere.show()
     _wait(app, 0.3)
     _grab(sphere, out / "sphere-1-intro.png")
-    sphere.next()
-    captures = sphere.currentPage()
-    for k in range(4):
-        captures.capture()
-        _wait(app, 60, lambda: len(captures.captures) == k + 1)
-    _wait(app, 0.5)
-    _grab(sphere, out / "sphere-2-captures.png")
-    sphere.next()
-    matte = sphere.currentPage()
-    for k in range(7):
-        matte.capture()
-        _wait(app, 60, lambda: len(matte.captures) == k + 1)
-    _wait(app, 0.5)
-    _grab(sphere, out / "sphere-2-matte.png")
+    for count, name in ((4, "sphere-2-captures.png"), (7, "sphere-2-matte.png")):  # specular, then matte
+        sphere.next()
+        page = sphere.currentPage()
+        for k in range(count):
+            page.capture()
+            _wait(app, 60, lambda: len(page.captures) == k + 1)
+        _wait(app, 0.5)
+        _grab(sphere, out / name)
     sphere.next()
     result = sphere.currentPage()
     _wait(app, 120, lambda: result.table.rowCount() > 0)
