@@ -93,8 +93,10 @@ class PlacementResult:
     diffuse: MattePlacement | None = None  # the sphere's shading away from its highlights, if it has any
 
 
-def specular_placements(session: SessionFile, head_name: str, radius_mm: float) -> list[PlacementResult]:
-    """The sphere and each light's highlight in every placement of a specular-sphere session."""
+def specular_placements(session: SessionFile, head_name: str, radius_mm: float,
+                        shading: bool = False) -> list[PlacementResult]:
+    """The sphere and each light's highlight in every placement of a specular-sphere session; with
+    `shading`, also its diffuse shading away from the highlights (PlacementResult.diffuse)."""
     head = session.rig.heads[head_name]
     results = []
     for placement in placement_images(session, head_name):
@@ -107,7 +109,8 @@ def specular_placements(session: SessionFile, head_name: str, radius_mm: float) 
                                                             placement.saturated[light])
             except CalibrationError as exc:
                 result.problems.append(f"placement {placement.index + 1}, light {light}: {exc}")
-        result.diffuse = _diffuse_shading(head, placement, result, radius_mm)
+        if shading:
+            result.diffuse = _diffuse_shading(head, placement, result, radius_mm)
         results.append(result)
     return results
 
@@ -184,8 +187,8 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
                    prior_sigma_mm: float = DEFAULT_PRIOR_SIGMA_MM,
                    max_residual_mm: float = DEFAULT_MAX_RESIDUAL_MM) -> tuple[HeadCalibration, HeadReport]:
     results: list[PlacementResult] = []
-    for session, radius in specular:
-        results += specular_placements(session, head.name, radius)
+    for session, radius in specular:  # the glossy sphere's shading is wanted where no matte sphere is given
+        results += specular_placements(session, head.name, radius, shading=not matte)
     problems = [p for r in results for p in r.problems]
     if not results:
         raise CalibrationError(f"head {head.name}: no specular-sphere placements to triangulate the lights from")
