@@ -362,17 +362,17 @@ class ResultPage(QWizardPage):
                     item.setBackground(QColor("#1b7f3b" if residual <= threshold else "#b00020"))
                 self.table.setItem(r, c, item)
         self.comparison = previous_note
-        previous_note = " ".join(_refinement_notes(reports)) + " " + previous_note
+        notes = " ".join(_refinement_notes(reports)) + " " + previous_note
         self.table.resizeColumnsToContents()
         failed = [f"{name} L{k}" for name, k, head in rows if head.residual_mm[k] > threshold]
         if failed:
             self.message.setText(f"<b>{', '.join(failed)} fail</b> the {threshold:g} mm threshold: go back and "
                                  "capture at more places (spread wider), or check the sphere's radius. "
-                                 + previous_note)
+                                 + notes)
             self.completeChanged.emit()
             return
         self.calibration = calibration
-        self.message.setText(f"All {len(rows)} lights pass (threshold {threshold:g} mm). {previous_note} "
+        self.message.setText(f"All {len(rows)} lights pass (threshold {threshold:g} mm). {notes} "
                              "Finish saves the profile and puts it in force.")
         self.completeChanged.emit()
 
