@@ -178,7 +178,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     """One subject end to end; what each stage gave or why it refused. The lights are calibrated
     from sphere sessions at calibration_scale (default: scale, but no less than CALIBRATION_SCALE)."""
     from core.reconstruction.process import process_session
-    from core.io.results import optical_refusal, optical_volume
+    from core.io.results import ResultsFile, optical_refusal, optical_volume
     from core.rig import thesis_rig
     from core.io.session import SessionFile
     from core.analysis.session_analysis import analyse_session
@@ -233,7 +233,9 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     out["optical"] = _numbers(report.optical.parameters()) if report.optical is not None else {}
     out["optical_problems"] = list(report.optical.problems) if report.optical is not None else []
     out["optical_refused"] = optical_refusal(results)
-    out["distance_errors_mm"] = _distance_errors(session, results, after_cycles=10)
+    with ResultsFile(results) as r:
+        out["distance_refused"] = r.distance_refused
+    out["distance_errors_mm"] = [] if out["distance_refused"] else _distance_errors(session, results, after_cycles=10)
     stages["analyse"] = time.perf_counter() - started - sum(stages.values())
     out["seconds"] = time.perf_counter() - started
     for path in (session, results):
@@ -467,7 +469,8 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
                  else f"no value given | | (±{tolerance})")
         lines.append(f"| {label}{f' ({unit})' if unit else ''} | {'optical' if source == 'optical' else 'flow sensor'} | "
                      f"{n} | {missing} | {given} |")
-    lines += ["", "Distance: the worst median depth error on the subject over the truth's maps after 10 cycles, per subject.",
+    lines += ["", "Distance: the worst median depth error on the subject over the truth's maps after 10 cycles, per subject; "
+              "refused where `process` gives no distance (`/@distance_refused`).",
               "", "| # | body | sex, age, height, BMI | arms | distance (mm) | skin | sheen | blow | LED error (mm, worst) | "
               "optical TV / truth (L) | optical FVC / truth (L) | distance error (mm) |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -486,7 +489,8 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
                      f"{_or_dash(led, '.1f')} | "
                      f"{' | '.join(cells)} | {_or_dash(max(errors, key=abs) if errors else float('nan'), '+.1f')} |"
                      + (f" refused: {row['refused']}" if "refused" in row else "")
-                     + (f" optical refused: {row['optical_refused']}" if row.get("optical_refused") else ""))
+                     + (f" optical refused: {row['optical_refused']}" if row.get("optical_refused") else "")
+                     + (f" distance refused: {row['distance_refused']}" if row.get("distance_refused") else ""))
     subject_seconds = [r["seconds"] for r in rows if "seconds" in r]
     lines += ["", f"{len(refused)} of {len(rows)} subjects refused before analysis. Run time {elapsed:.0f} s with "
               f"{workers} subject(s) at once on {os.cpu_count()} cores"

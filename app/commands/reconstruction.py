@@ -195,8 +195,13 @@ def run_process(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     for name, n in summary.maps.items():
         offset = summary.photometric_offset_mm.get(name)
+        if summary.distance_refused:
+            print(f"{name}: {n} maps")
+            continue
         print(f"{name}: {n} maps, mean subject distance {summary.mean_distance_mm[name]:.1f} mm"
               + (f" (the two heads' geometry; the photometric fit {offset:+.0f} mm from it)" if offset is not None else ""))
+    if summary.distance_refused:
+        print(f"no subject distance: {summary.distance_refused}")
     if summary.optical_refused:
         print(f"no optical volume: {summary.optical_refused}")
     print(f"wrote {summary.path} in {summary.elapsed_s:.1f} s")

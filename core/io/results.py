@@ -176,6 +176,12 @@ class ResultsFile:
         reason = self._f.attrs.get("optical_refused")
         return None if reason is None else str(reason)
 
+    @property
+    def distance_refused(self) -> str | None:
+        """Why the subject distance is not given (its maps are scaled to one all the same), or None."""
+        reason = self._f.attrs.get("distance_refused")
+        return None if reason is None else str(reason)
+
     def parameters(self) -> dict:
         """The stored pulmonary function values (/parameters), with their `source`."""
         return dict(self._f["parameters"].attrs) if "parameters" in self._f else {}

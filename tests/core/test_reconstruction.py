@@ -363,6 +363,32 @@ def test_a_simulated_body_s_arms_held_away_are_left_out_and_arms_held_close_are_
     assert max(m.extra["occluded_side_share"] for m in close.values()) > MAX_OCCLUDED_SIDE_SHARE
 
 
+def test_process_gives_no_subject_distance_where_an_arm_hides_the_trunk_s_sides(tmp_path, capsys):
+    """The two heads' distances are measured between the trunk's sides: with the arms held close
+    `process` says why it gives none (on the console and in /@distance_refused), and refuses the
+    optical volume for the arm; the rule itself is on per-map shares like the volume's."""
+    from app.cli import main
+    from core.io.results import ResultsFile
+    from core.reconstruction.process import geometric_distance_refusal
+    from core.sim.bodies import body_named
+
+    clear, swinging = np.zeros(40), np.zeros(40)
+    swinging[::4] = 0.6
+    assert geometric_distance_refusal({"front": clear + 0.1, "back": clear}) is None
+    assert geometric_distance_refusal({"front": clear, "back": swinging}).startswith(
+        "an arm lies against the trunk in head back's view in 25 % of the maps")
+    session, results = tmp_path / "arms.h5", tmp_path / "arms-r.h5"
+    simulate(session, SimConfig(protocol="static", seconds=0.4, scale=0.15, body=body_named("arms-close", 3),
+                                clothing="skin", flow_sensor=None))
+    assert main(["process", str(session), "-o", str(results), "--workers", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "front: " in out and "\nno subject distance: an arm lies against the trunk" in out
+    assert "mean subject distance" not in out
+    with ResultsFile(results) as r:
+        assert r.distance_refused.startswith("an arm lies against the trunk")
+        assert "an arm lies against the trunk" in r.optical_refused
+
+
 def test_the_light_field_solves_a_shadowed_or_saturated_pixel_from_three_lights(sphere_session):
     """Light 2 blocked over a band and light 0 at full scale over another: the camera-rate kernel
     solves those pixels from the three lights left, as the per-pixel solve does, and leaves no
