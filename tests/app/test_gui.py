@@ -399,6 +399,53 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
             assert recorded.rig.heads[head].calibrated == profile.created
 
 
+def test_cancelling_the_sphere_wizard_during_a_capture_leaves_no_error_and_no_files(qtbot, tmp_path):
+    """Cancel while a capture still runs on the thread pool: the capture's folder stays until the
+    capture has ended, its end shows nothing (no error dialog for what the user cancelled), and then
+    the folder goes."""
+    import threading
+
+    from PySide6.QtCore import QThreadPool
+
+    from app.gui.main_window import Job
+    from app.gui.wizards.sphere import SphereCalibrationWizard
+
+    release, started = threading.Event(), threading.Event()
+    errors, jobs = [], []
+
+    def capture(folder, index, finish):  # a camera that takes its time; the file goes where the wizard says
+        started.set()
+        release.wait(30)
+        path = folder / f"{finish}-{index}.h5"
+        path.write_bytes(b"")
+        return path
+
+    def start_job(work, what, done):  # as the main window runs them, its error dialog a list here
+        job = Job(work, what)
+        job.signals.done.connect(done)
+        job.signals.failed.connect(lambda message, detail: errors.append(message))
+        jobs.append(job)
+        QThreadPool.globalInstance().start(job)
+        return job
+
+    wizard = SphereCalibrationWizard(None, ("front", "back"), 0.25, capture=capture, profile_dir=tmp_path,
+                                     start_job=start_job)
+    qtbot.addWidget(wizard)
+    wizard.show()
+    _press(qtbot, wizard)
+    page = wizard.currentPage()
+    folder = page.folder
+    page.capture()
+    assert started.wait(10)
+    wizard.reject()
+    assert folder.is_dir()  # the capture still writes there
+    release.set()
+    qtbot.waitUntil(lambda: not folder.exists(), timeout=10000)
+    QThreadPool.globalInstance().waitForDone(10000)
+    qtbot.wait(50)
+    assert errors == [] and page.captures == []
+
+
 def test_the_sphere_wizard_previews_the_live_camera(qtbot, tmp_path):
     """On a rig with cameras the capture page shows the head's newest cycle, to place the sphere."""
     from app.gui.wizards.sphere import SphereCalibrationWizard

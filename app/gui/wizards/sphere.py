@@ -389,6 +389,9 @@ def _refinement_notes(reports) -> list[str]:
     return notes
 
 
+_CLOSED = object()  # what a job gives when it failed after its wizard was closed
+
+
 class SphereCalibrationWizard(QWizard):
     def __init__(self, parent, heads: tuple[str, ...] = ("front", "back"), scale: float = 0.25,
                  capture=None, start_job=None, profile_dir: Path | None = None, preview=None) -> None:
@@ -401,6 +404,8 @@ class SphereCalibrationWizard(QWizard):
         self._start_job = start_job or getattr(parent, "start_job", None)
         self.profile_dir = profile_dir or calibration_dir()
         self.saved_to: Path | None = None
+        self._jobs_running = 0  # captures and calibrations on the thread pool, which read the captures' folders
+        self._closed = False
         self.intro = IntroPage()
         self.capture_page = CapturePage()
         self.matte_page = CapturePage("matte")
@@ -416,18 +421,53 @@ class SphereCalibrationWizard(QWizard):
 
     def start_job(self, work, what: str, done, failed=None) -> None:
         """`work` on the main window's thread pool (here, without one), then `done` with its result on the
-        GUI thread; `failed` (default: the capture page's) after the window has shown the failure."""
+        GUI thread; `failed` (default: the capture page's) after the window has shown the failure. A job
+        still running when the wizard is closed ends unseen: its result is dropped, its failure (the
+        captures' folder it reads going with the wizard) is no error of the user's, and the folder
+        goes when the last job has ended."""
         if self._start_job is None:
             done(work())
             return
-        job = self._start_job(work, what, done)
-        job.signals.failed.connect(lambda *_: (failed or self.capture_page.capture_failed)())
+
+        def guarded():
+            try:
+                return work()
+            except Exception:
+                if self._closed:
+                    return _CLOSED
+                raise
+
+        def finished(result) -> None:
+            self._job_ended()
+            if result is not _CLOSED and not self._closed:
+                done(result)
+
+        def went_wrong(*_) -> None:
+            self._job_ended()
+            if not self._closed:
+                (failed or self.capture_page.capture_failed)()
+
+        self._jobs_running += 1
+        job = self._start_job(guarded, what, finished)
+        job.signals.failed.connect(went_wrong)
+
+    def _job_ended(self) -> None:
+        self._jobs_running -= 1
+        if self._closed and self._jobs_running == 0:
+            self._remove_captures()
+
+    def _remove_captures(self) -> None:
+        for page in (self.capture_page, self.matte_page):
+            shutil.rmtree(page.folder, ignore_errors=True)
 
     def done(self, result: int) -> None:
-        """Finish or Cancel: the captures' folder goes (the profile keeps each light's fit and residual)."""
+        """Finish or Cancel: the captures' folder goes (the profile keeps each light's fit and residual),
+        once no capture or calibration reads it any more."""
+        self._closed = True
         for page in (self.capture_page, self.matte_page):
             page.preview_timer.stop()
-            shutil.rmtree(page.folder, ignore_errors=True)
+        if self._jobs_running == 0:
+            self._remove_captures()
         super().done(result)
 
     def accept(self) -> None:
