@@ -3,7 +3,9 @@ one can be put back (nothing is deleted), and a broken profile is refused with i
 
 from __future__ import annotations
 
+import io
 import json
+from contextlib import redirect_stderr
 
 import numpy as np
 import pytest
@@ -63,9 +65,14 @@ def test_record_opens_the_rig_with_the_profiles_in_force(config, tmp_path, capsy
         assert s.flow.gain_lps == pytest.approx(0.0076) and s.flow.offset_lps == pytest.approx(-15.5)
 
 
-def test_a_broken_profile_in_force_is_one_line_naming_it(config, tmp_path, capsys):
+def test_a_broken_profile_in_force_is_one_line_naming_it(config, tmp_path):
     (config / RIG_PROFILE).write_text("{not json")
-    assert main(["record", "-o", str(tmp_path / "s.h5"), "--seconds", "0.5"]) != 0
-    err = capsys.readouterr().err.strip().splitlines()
+    # stderr handed to the command here, not read through capsys: once in a full run (2026-11-27) the
+    # line reached pytest's own capture and capsys read nothing, the cause not found (the same symptom
+    # as pytest-dev/pytest#5997)
+    stderr = io.StringIO()
+    with redirect_stderr(stderr):
+        assert main(["record", "-o", str(tmp_path / "s.h5"), "--seconds", "0.5"]) != 0
+    err = stderr.getvalue().strip().splitlines()
     assert len(err) == 1 and RIG_PROFILE in err[0] and "Traceback" not in err[0]
     assert not (tmp_path / "s.h5").exists()
