@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import h5py
@@ -368,6 +369,7 @@ def test_process_gives_no_subject_distance_where_an_arm_hides_the_trunk_s_sides(
     `process` says why it gives none (on the console and in /@distance_refused), and refuses the
     optical volume for the arm; the rule itself is on per-map shares like the volume's."""
     from app.cli import main
+    from app.commands.demo import volume_summary
     from core.io.results import ResultsFile
     from core.reconstruction.process import geometric_distance_refusal
     from core.sim.bodies import body_named
@@ -387,6 +389,8 @@ def test_process_gives_no_subject_distance_where_an_arm_hides_the_trunk_s_sides(
     with ResultsFile(results) as r:
         assert r.distance_refused.startswith("an arm lies against the trunk")
         assert "an arm lies against the trunk" in r.optical_refused
+    summary = volume_summary(session, results)  # what `photopft demo` prints after processing
+    assert "no subject distance: an arm lies" in summary and not re.search(r"subject distance \d", summary)
 
 
 def test_the_light_field_solves_a_shadowed_or_saturated_pixel_from_three_lights(sphere_session):
