@@ -16,6 +16,13 @@ from core.reconstruction.process import WORKING_RANGE_MM
 HEIGHT_RANGE_MM = 40.0  # the maps' fixed scale: +-40 mm about the subject's mean surface
 
 
+# The installed application compiles its reconstruction the first time a user starts it (numba's
+# cache is the user's): the smoke test of a fresh install drew its first maps after 50 s on 2 cores,
+# a started checkout with its cache after about 1 s (installer/smoke-test.sh, `photopft gui --smoke-test`)
+FIRST_MAP_WAIT = ("waiting for the first map …\n(up to a minute on the first start after installing:\n"
+                  "the reconstruction is being prepared)")
+
+
 class HeadMapView(pg.GraphicsLayoutWidget):
     """One head's height map with its colour bar (mm)."""
 
@@ -32,8 +39,10 @@ class HeadMapView(pg.GraphicsLayoutWidget):
         plot.setMenuEnabled(False)
         self.image = pg.ImageItem()
         plot.addItem(self.image)
-        self.placeholder = pg.TextItem("waiting for the first map …", color="k", anchor=(0.5, 0.5))
+        self.placeholder = pg.TextItem(FIRST_MAP_WAIT, color="k", anchor=(0.5, 0.5))
         plot.addItem(self.placeholder)
+        self.placeholder.setPos(0.5, 0.5)  # the middle of the empty view, until the first map sets the range
+        plot.setRange(xRange=(0.0, 1.0), yRange=(0.0, 1.0), padding=0.0)
         colours = pg.colormap.get("viridis")
         self.bar = pg.ColorBarItem(values=(-HEIGHT_RANGE_MM, HEIGHT_RANGE_MM), colorMap=colours, label="height (mm)",
                                    interactive=False, width=14)
@@ -49,6 +58,7 @@ class HeadMapView(pg.GraphicsLayoutWidget):
         if self.placeholder is not None:
             self.plot.removeItem(self.placeholder)
             self.placeholder = None
+            self.plot.enableAutoRange()
         self.image.setImage(height_mm, autoLevels=False, levels=(-HEIGHT_RANGE_MM, HEIGHT_RANGE_MM))
 
 

@@ -62,6 +62,27 @@ def test_live_view_draws_both_heads_and_the_curves(window, qtbot):
     qtbot.waitUntil(lambda: "pass the checks" in window.view.status.labels["optical"].text(), timeout=30000)
 
 
+def test_a_head_view_says_it_waits_in_its_middle_and_fits_the_first_map(qtbot):
+    """Before the first map (up to a minute on an installed copy's first start) the wait is said in
+    the middle of the empty view, not cut off at its corner; the first map then fills the view."""
+    from app.gui.live_view import FIRST_MAP_WAIT, HeadMapView
+
+    view = HeadMapView("front")
+    qtbot.addWidget(view)
+    view.resize(500, 400)
+    view.show()
+    qtbot.wait(50)
+    (x0, x1), (y0, y1) = view.plot.viewRange()
+    position = view.placeholder.pos()
+    assert view.placeholder.toPlainText() == FIRST_MAP_WAIT and "first start after installing" in FIRST_MAP_WAIT
+    assert x0 < position.x() < x1 and y0 < position.y() < y1
+    assert abs(position.x() - (x0 + x1) / 2) < 0.1 * (x1 - x0)
+    view.show_map(np.zeros((256, 350)))
+    qtbot.wait(50)
+    (x0, x1), (y0, y1) = view.plot.viewRange()
+    assert view.placeholder is None and x1 - x0 >= 349 and y1 - y0 >= 255
+
+
 def test_replay_of_a_recorded_session(small_session, qtbot):
     w = MainWindow(partial(replay_source, small_session, speed=2.0))
     qtbot.addWidget(w)
