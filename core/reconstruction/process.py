@@ -77,14 +77,17 @@ def reflectance_refusal(offsets_mm: dict[str, float]) -> str | None:
     MAX_PHOTOMETRIC_OFFSET_MM from where the two heads' geometry does (the photometric fit's median
     offset, _geometric_pass), or None. The shading's distance cue is a few parts in a thousand; a
     sheen on the skin, which the Lambertian model leaves out, moves it by tens to hundreds of mm and
-    bends the normals by degrees (docs/reconstruction.md, "Glossy skin")."""
+    bends the normals by degrees (docs/reconstruction.md, "Glossy skin"). So does an LED whose output
+    drifted: on a matte population body in the clinic world the back head's fit read -72 mm with the
+    LEDs' 2 % drift, -3 mm without (docs/reconstruction.md, "The side no head sees")."""
     for name, offset in offsets_mm.items():
         if np.isfinite(offset) and abs(offset) > MAX_PHOTOMETRIC_OFFSET_MM:
             where = "nearer" if offset < 0 else "farther"
             return (f"head {name}: its shading puts the subject {abs(offset):.0f} mm {where} than the two heads' "
                     f"geometry does (at most {MAX_PHOTOMETRIC_OFFSET_MM:.0f} mm): the shading does not follow the light "
                     "model (a sheen on the skin, which cross-polarised lighting removes; lights not where the "
-                    "calibration puts them; too little of their light against the room's), and the maps' shape, and "
+                    "calibration puts them, or brighter or dimmer than it says: LEDs that drifted since; too little "
+                    "of their light against the room's), and the maps' shape, and "
                     "so the volume, would not be the body's")
     return None
 
