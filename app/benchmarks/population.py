@@ -441,6 +441,34 @@ def source_commit() -> str:
         return "unknown"
 
 
+# What `process` refuses the optical values for (core/reconstruction/process.py, core/volume/metric.py),
+# by words its reasons hold; the first match names a reason
+REFUSAL_KINDS = (("an arm lies against the trunk", "an arm against the trunk"),
+                 ("runs out of the image", "the trunk out of the image"),
+                 ("outside the rig's working range", "a distance outside the working range"),
+                 ("no subject distance", "no distance"),
+                 ("cm^2 of the subject", "too little of the trunk"),
+                 ("its shading puts the subject", "the shading against the heads' geometry"),
+                 ("the maps are bent", "bent maps"),
+                 ("jumps away and back", "jumps"),
+                 ("noise from map to map", "a noisy curve"),
+                 ("referred to the top of the view", "the two references"),
+                 ("and its depth in this head's maps", "a head's scale"))
+
+
+def refusal_kind(reason: str) -> str:
+    """A short name for why the optical values were refused (REFUSAL_KINDS), or "other"."""
+    return next((kind for words, kind in REFUSAL_KINDS if words in reason), "other")
+
+
+def refusal_tally(rows: list[dict]) -> str:
+    """How many subjects' optical values were refused, for what, most first: "4 for an arm ..., 2 for ..."."""
+    from collections import Counter
+
+    counts = Counter(refusal_kind(r["optical_refused"]) for r in rows if r.get("optical_refused"))
+    return ", ".join(f"{n} for {kind}" for kind, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
 def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[Path], elapsed: float,
            workers: int, pngs: list[Path], world: dict, max_sheen: float = MAX_SHEEN,
            calibration_scale: float | None = None, resumed: int = 0) -> str:
@@ -492,7 +520,9 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
                      + (f" optical refused: {row['optical_refused']}" if row.get("optical_refused") else "")
                      + (f" distance refused: {row['distance_refused']}" if row.get("distance_refused") else ""))
     subject_seconds = [r["seconds"] for r in rows if "seconds" in r]
-    lines += ["", f"{len(refused)} of {len(rows)} subjects refused before analysis. Run time {elapsed:.0f} s with "
+    tally = refusal_tally(rows)
+    lines += ["", f"{len(refused)} of {len(rows)} subjects refused before analysis"
+              + (f"; optical values refused {tally}" if tally else "") + f". Run time {elapsed:.0f} s with "
               f"{workers} subject(s) at once on {os.cpu_count()} cores"
               + (f" ({resumed} subjects kept from an earlier run of the same bench)" if resumed else "")
               + (f"; subjects run at commit(s) {', '.join(sorted({r.get('commit', 'unknown') for r in rows}))}")

@@ -51,3 +51,44 @@ def test_wrong_arguments_get_one_line_before_any_subject_runs(tmp_path, capsys):
     assert err == f"photopft bench: error: {not_a_folder}: --keep must be a folder (the finished subjects are kept in it), this is a file"
     assert main(["bench", "population", "--subjects", "0", "--no-write"]) == 2
     assert capsys.readouterr().err.strip() == "photopft bench: error: --subjects must be 1 or more"
+
+
+def test_the_table_tallies_why_the_optical_values_were_refused():
+    """Each refusal `process` can give is named by its kind (the words taken from the refusals
+    themselves, so a reworded reason is caught here), and the table counts them, most first."""
+    import numpy as np
+
+    from app.benchmarks.population import refusal_kind, refusal_tally
+    from core.reconstruction.process import (coverage_refusal, distance_refusal, occlusion_refusal,
+                                             reflectance_refusal)
+    from core.volume.metric import MetricVolume, reference_refusal
+    from core.volume.sides import bend_refusal
+
+    arm = occlusion_refusal({"front": np.full(10, 0.6)})
+    reasons = {arm: "an arm against the trunk",
+               occlusion_refusal({}, {"back": np.full(10, 0.6)}): "the trunk out of the image",
+               distance_refusal({"front": 2700.0}): "a distance outside the working range",
+               distance_refusal({"front": float("nan")}): "no distance",
+               coverage_refusal({"front": np.full(5, 0.01)}): "too little of the trunk",
+               reflectance_refusal({"front": -163.0}): "the shading against the heads' geometry",
+               bend_refusal(np.full(5, 0.75)): "bent maps",
+               reference_refusal(2.0): "the two references"}
+    t = np.arange(200) * 50_000_000  # 20 maps a second for 10 s
+
+    def metric(volume_l, mismatch=0.0):
+        return MetricVolume(t, volume_l, {}, {}, {}, "", {"front": mismatch}).refusal()
+
+    breath = 0.5 * np.sin(2 * np.pi * t / 4e9)
+    jumps = breath.copy()
+    jumps[::25] += 0.4
+    reasons[metric(breath + np.random.default_rng(0).normal(0, 0.2, len(t)))] = "a noisy curve"
+    reasons[metric(jumps)] = "jumps"
+    reasons[metric(breath, mismatch=0.2)] = "a head's scale"
+    for reason, kind in reasons.items():
+        assert refusal_kind(reason) == kind, reason
+    assert refusal_kind("something new") == "other"
+    shading = reflectance_refusal({"front": -362.0})
+    rows = [{"optical_refused": arm}, {"optical_refused": shading}, {"optical_refused": arm}, {"optical_refused": None},
+            {"refused": "process: truncated"}]
+    assert refusal_tally(rows) == "2 for an arm against the trunk, 1 for the shading against the heads' geometry"
+    assert refusal_tally([{}]) == ""
