@@ -291,11 +291,11 @@ class LiveView(QWidget):
             text = (f"{view.distance_mm:.0f} mm (working range {low:.0f}–{high:.0f} mm)" if np.isfinite(view.distance_mm)
                     else "no subject seen")
             arm = view.arm_against_trunk
-            if arm:
+            if arms and np.isfinite(view.distance_mm):  # as `process`, which gives no distance then
+                text = (f"not measured: an arm against the trunk ({arms[0]} view) hides the sides it is measured "
+                        "from: arms away from the body")
+            elif arm:
                 text += "; an arm against the trunk hides its side: arms away from the body"
-            elif arms and np.isfinite(view.distance_mm):
-                text = (f"{view.distance_mm:.0f} mm, not to be trusted: the arm against the trunk in the "
-                        f"{arms[0]} view spoils both heads' distances")
             self.status.set(f"{h}_distance", text, warn=not ok or bool(arms) or arm)
         if s.optical_refused is not None:
             self.status.set("optical", f"not valid now: {s.optical_refused}", warn=True)
