@@ -68,9 +68,10 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
             distance_refused = r.distance_refused
         if distance_refused:
             lines.append(f"  no subject distance: {distance_refused}")
-        for head, (_, distance, _) in series.items() if not distance_refused else ():
-            lines.append(f"  {head}: subject distance {np.nanmedian(distance):.0f} mm (from "
-                         f"{np.nanpercentile(distance, 2):.0f} to {np.nanpercentile(distance, 98):.0f} mm)")
+        else:
+            for head, (_, distance, _) in series.items():
+                lines.append(f"  {head}: subject distance {np.nanmedian(distance):.0f} mm (from "
+                             f"{np.nanpercentile(distance, 2):.0f} to {np.nanpercentile(distance, 98):.0f} mm)")
     with SessionFile(path) as s:
         if s.has_truth:
             truth = s.truth()

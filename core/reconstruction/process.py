@@ -173,10 +173,15 @@ def session_refusal(distances_mm: dict[str, float], areas_m2: dict[str, np.ndarr
             or coverage_refusal(areas_m2) or reflectance_refusal(offsets_mm) or bend_refusal(tilts))
 
 
-def _hidden_share(shares: np.ndarray, limit: float) -> float:
-    """The share of a head's maps whose per-map share (of trunk rows) exceeds limit."""
-    shares = np.asarray(shares, dtype=float)
-    return float(np.mean(shares > limit)) if len(shares) else 0.0
+def _first_hidden(shares_by_head: dict[str, np.ndarray]) -> tuple[str, float] | None:
+    """(head, share of its maps) of the first head whose maps show more than MAX_OCCLUDED_SIDE_SHARE of
+    the trunk's rows hidden in more than MAX_HIDDEN_MAPS of them, or None."""
+    for name, shares in shares_by_head.items():
+        shares = np.asarray(shares, dtype=float)
+        hidden = float(np.mean(shares > MAX_OCCLUDED_SIDE_SHARE)) if len(shares) else 0.0
+        if hidden > MAX_HIDDEN_MAPS:
+            return name, hidden
+    return None
 
 
 def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: dict[str, np.ndarray] | None = None,
@@ -185,17 +190,15 @@ def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: 
     image cuts off in more than MAX_HIDDEN_MAPS of their maps, or None. The shares are per map
     (core/reconstruction/pipeline.py): an arm that swings against the trunk now and then changes the trunk's
     outline from map to map, and the volume with it."""
-    for kind, shares in (("arm", occluded_share), ("edge", out_of_view_share or {})):
-        for name, share in shares.items():
-            hidden = _hidden_share(share, MAX_OCCLUDED_SIDE_SHARE)
-            if hidden <= MAX_HIDDEN_MAPS:
-                continue
-            if kind == "arm":
-                return (f"head {name}: an arm lies against the trunk (along more than "
-                        f"{100 * MAX_OCCLUDED_SIDE_SHARE:.0f} % of its height) in {100 * hidden:.0f} % of the maps and "
-                        "hides the sides the volume is referred to (the patient should hold the arms away from the body)")
-            return (f"head {name}: the trunk runs out of the image at the side in {100 * hidden:.0f} % of the maps (the "
-                    "patient off centre or too near): the sides the volume is referred to are not seen")
+    if (arm := _first_hidden(occluded_share)) is not None:
+        name, hidden = arm
+        return (f"head {name}: an arm lies against the trunk (along more than "
+                f"{100 * MAX_OCCLUDED_SIDE_SHARE:.0f} % of its height) in {100 * hidden:.0f} % of the maps and "
+                "hides the sides the volume is referred to (the patient should hold the arms away from the body)")
+    if (edge := _first_hidden(out_of_view_share or {})) is not None:
+        name, hidden = edge
+        return (f"head {name}: the trunk runs out of the image at the side in {100 * hidden:.0f} % of the maps (the "
+                "patient off centre or too near): the sides the volume is referred to are not seen")
     return None
 
 
@@ -205,12 +208,11 @@ def geometric_distance_refusal(occluded_share: dict[str, np.ndarray]) -> str | N
     The front head of population subject 2 (seed 1) kept the arms in its trunk and the back head cut
     them off at the crease beside them: 1845 and 2586 mm for a true 2195 and 2139 (docs/volume.md,
     "An arm against the trunk moves the two heads' distances")."""
-    for name, share in occluded_share.items():
-        hidden = _hidden_share(share, MAX_OCCLUDED_SIDE_SHARE)
-        if hidden > MAX_HIDDEN_MAPS:
-            return (f"an arm lies against the trunk in head {name}'s view in {100 * hidden:.0f} % of the maps: the two "
-                    "heads' distances are measured between the trunk's sides, which it hides")
-    return None
+    if (arm := _first_hidden(occluded_share)) is None:
+        return None
+    name, hidden = arm
+    return (f"an arm lies against the trunk in head {name}'s view in {100 * hidden:.0f} % of the maps: the two "
+            "heads' distances are measured between the trunk's sides, which it hides")
 
 
 class DarkFeed:

@@ -149,11 +149,13 @@ class HeightFieldScene(Scene):
         amps = self.amplitudes(t_s).astype(np.float64)
         # the modes summed once a frame on the grid, not per ray and Newton step: the same surface,
         # cheaper where the grid has fewer than GRID_CELLS_PER_RAY cells a ray (docs/simulator.md)
-        on_grid = np.any(amps) and head.width * head.height * GRID_CELLS_PER_RAY >= surface.fields.shape[0] * surface.fields.shape[1]
+        cells = surface.fields.shape[0] * surface.fields.shape[1]
+        on_grid = np.any(amps) and head.width * head.height * GRID_CELLS_PER_RAY >= cells
         fields = breathing_surface(surface.fields, amps) if on_grid else surface.fields
         render_height_field(out, self._z_state[head.name], u, v, vignette, fields, g.x0, g.y0, g.step,
-                            np.zeros(0) if on_grid else amps, sign_x, sx, sy, z0, surface.front_mm(amps), surface.specular,
-                            surface.shininess, lights[max(light, 0)], light >= 0, *digitiser.args(), key,
+                            np.zeros(0) if on_grid else amps, sign_x, sx, sy, z0, surface.front_mm(amps),
+                            surface.specular, surface.shininess, lights[max(light, 0)], light >= 0,
+                            *digitiser.args(), key,
                             want_maps, depth, normals)
         return out, (RenderedMaps(depth, normals) if want_maps else None)
 

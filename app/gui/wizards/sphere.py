@@ -389,9 +389,6 @@ def _refinement_notes(reports) -> list[str]:
     return notes
 
 
-_CLOSED = object()  # what a job gives when it failed after its wizard was closed
-
-
 class SphereCalibrationWizard(QWizard):
     def __init__(self, parent, heads: tuple[str, ...] = ("front", "back"), scale: float = 0.25,
                  capture=None, start_job=None, profile_dir: Path | None = None, preview=None) -> None:
@@ -434,12 +431,12 @@ class SphereCalibrationWizard(QWizard):
                 return work()
             except Exception:
                 if self._closed:
-                    return _CLOSED
+                    return None  # dropped below, like any result after closing
                 raise
 
         def finished(result) -> None:
             self._job_ended()
-            if result is not _CLOSED and not self._closed:
+            if not self._closed:
                 done(result)
 
         def went_wrong(*_) -> None:
