@@ -493,7 +493,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             rows["valid_pixels"].append(int(result.mask.sum()))
             for key in ("occluded_side_share", "side_out_of_view_share"):
                 rows[key].append(result.extra.get(key, np.nan))
-            sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette))
+            sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette, known))
             if job.profile_every and number % job.profile_every == 0:
                 profile_times.append(stamps[window.newest])
                 profiles.append(side_profile_mm(result.depth_mm, result.mask, result.silhouette, head))

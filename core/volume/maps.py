@@ -416,32 +416,70 @@ def side_columns(depth_mm: np.ndarray, valid: np.ndarray, head: Head, rows: np.n
 
 @dataclass(frozen=True)
 class RimModel:
-    """The band of pixels inside the trunk's silhouette on a reference map, with the breathing model's
-    displacement profile over it: along the axis, in proportion to (half width)^2 - x^2 across the
-    row, zero at both sides (the ribs hinge there), seen along the ray, which a flank near grazing
-    stretches by 1 / (1 - slope * ray slope)."""
+    """The band of pixels inside the trunk's silhouette on a reference map, with the two ways
+    breathing moves it, each seen along the ray (a flank near grazing stretches a displacement
+    along the axis by 1 / (1 - slope * ray slope)):
+    - forward: along the axis, in proportion to (half width)^2 - x^2 across the row, zero at both
+      sides (the ribs hinge there);
+    - sideways: the rib cage widening, a stretch x -> x (1 + e) about the row's middle, which moves
+      the band's depth by -e x dz/dx (steepest on the flank, where the forward motion is least).
+    Each edge (one side of one trunk row) has its own amount of each."""
 
     rows: np.ndarray  # (E,) row of each edge (two per trunk row)
     cols: np.ndarray  # (E, W) columns from the silhouette inwards, -1 where the row is too short
     regressor: np.ndarray  # (E, W) the hinge model's displacement profile over the stretch (mm); 0 unused
+    lateral: np.ndarray  # (E, W) the sideways stretch's displacement profile (mm per unit stretch)
     side_depth_mm: float = float("nan")  # median depth of the sides on the reference map
+    sideways: bool = False  # whether the band tells the stretch from a shift (sideways_told_apart)
 
     def level(self, depth_mm: np.ndarray, valid: np.ndarray) -> float:
         """The depth the trunk would have at its side if it only breathed as modelled: the intercept,
-        common to all edges, of depth against the regressor with a slope per edge. Linear in the
-        depths, so the level of a difference is the difference of the levels."""
+        common to all edges, of depth against the two profiles with amounts per edge (least squares:
+        each edge's depths and ones projected off its own profiles). Linear in the depths, so the
+        level of a difference is the difference of the levels."""
         cols = np.maximum(self.cols, 0)
         y = depth_mm[self.rows[:, None], cols]
         w = (self.cols >= 0) & (self.regressor > 0) & valid[self.rows[:, None], cols] & np.isfinite(y)
-        x = np.where(w, self.regressor, 0.0)
-        y = np.where(w, y, 0.0)
-        xx = np.sum(x * x, axis=1, keepdims=True)
-        keep = xx[:, 0] > 0
-        x, y, w, xx = x[keep], y[keep], w[keep], xx[keep]
-        ones = w - x * np.sum(x, axis=1, keepdims=True) / xx
-        resid = y - x * np.sum(x * y, axis=1, keepdims=True) / xx
-        denominator = float(np.sum(ones * ones))
-        return float(np.sum(ones * resid)) / denominator if denominator > 0 else float("nan")
+        profiles = [self.regressor, self.lateral] if self.sideways else [self.regressor]
+        numerator, denominator = _intercept_sums(np.where(w, y, 0.0), w, profiles)
+        return numerator / denominator if denominator > 0 else float("nan")
+
+
+# The sideways stretch enters the rim's level where, on the median edge, it and the hinge leave this
+# share of a shift's information (on the simulated bodies 0.05-0.08; a parabolic dome 0).
+SIDEWAYS_MIN_SHARE = 0.01
+
+
+def sideways_told_apart(hinge: np.ndarray, sideways: np.ndarray, used: np.ndarray) -> bool:
+    """Whether a band tells the sideways stretch from a shift of the whole: on the median edge the
+    hinge and the stretch leave at least SIDEWAYS_MIN_SHARE of what the hinge alone leaves of a
+    shift. Where the profile across the row is a parabola (no steep flank) the three are one and the
+    same, and the stretch is left out."""
+    ones = used.astype(float)
+    both, alone = (np.clip(_projections(ones, used, profiles)[1], 0.0, None)
+                   for profiles in ([hinge, sideways], [hinge]))
+    usable = (alone > 0) & (used.sum(axis=1) > 3)
+    return bool(usable.any() and np.median(both[usable] / alone[usable]) >= SIDEWAYS_MIN_SHARE)
+
+
+def _projections(y: np.ndarray, w: np.ndarray, profiles: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Per edge, the sum of y and the count of pixels, less their parts along the edge's profiles
+    (least squares on the pixels w): what is left of y and of a constant once each edge's own
+    amounts are fitted."""
+    design = np.stack([np.where(w, p, 0.0) for p in profiles], axis=-1)
+    ones = w.astype(float)
+    gram = np.linalg.pinv(np.einsum("ewi,ewj->eij", design, design))
+    on_ones, on_y = np.einsum("ewi,ew->ei", design, ones), np.einsum("ewi,ew->ei", design, y)
+    left_y = y.sum(axis=1) - np.einsum("ei,eij,ej->e", on_ones, gram, on_y)
+    left_ones = ones.sum(axis=1) - np.einsum("ei,eij,ej->e", on_ones, gram, on_ones)
+    return left_y, left_ones
+
+
+def _intercept_sums(y: np.ndarray, w: np.ndarray, profiles: list[np.ndarray]) -> tuple[float, float]:
+    """The common intercept's least-squares sums over the edges with more pixels than profiles + 1."""
+    keep = w.sum(axis=1) > len(profiles) + 1
+    left_y, left_ones = _projections(y[keep], w[keep], [p[keep] for p in profiles])
+    return float(np.sum(left_y)), float(np.sum(left_ones))
 
 
 def rim_model(depth_mm: np.ndarray, mask: np.ndarray, head: Head, band_px: int,
@@ -451,7 +489,7 @@ def rim_model(depth_mm: np.ndarray, mask: np.ndarray, head: Head, band_px: int,
     width = skip_px + band_px
     edges = list(_row_edges(mask, width))
     if not edges:
-        return RimModel(np.zeros(0, int), np.zeros((0, width), int), np.zeros((0, width)))
+        return RimModel(np.zeros(0, int), np.zeros((0, width), int), np.zeros((0, width)), np.zeros((0, width)))
     rows = np.array([r for r, _ in edges])
     cols = np.full((len(edges), width), -1)
     for e, (_, c) in enumerate(edges):
@@ -480,7 +518,10 @@ def rim_model(depth_mm: np.ndarray, mask: np.ndarray, head: Head, band_px: int,
     hinge = from_side * (1.0 - from_side / (2.0 * half_width))  # in proportion to half_width^2 - x^2 across the row
     regressor = np.where(used & np.isfinite(stretch), hinge / stretch, 0.0)
     regressor[:, :skip_px] = 0.0
-    return RimModel(rows, cols, np.clip(regressor, 0.0, None), float(np.nanmedian(z[:, 0] + deeper)))
+    regressor = np.clip(regressor, 0.0, None)
+    sideways = np.where(used & np.isfinite(stretch) & np.isfinite(slope), (half_width - from_side) * slope / stretch, 0.0)
+    return RimModel(rows, cols, regressor, sideways, float(np.nanmedian(z[:, 0] + deeper)),
+                    sideways_told_apart(regressor, sideways, used & (regressor > 0) & np.isfinite(z)))
 
 
 # The contour model is fitted to the pixels with a depth within CONTOUR_FIT_MM (across, at the
@@ -620,9 +661,14 @@ class DisplacementTracker:
         held = self._silhouette.frame(valid, row_widths, median, refine_scale=False)
         return held, self._reference_width * median
 
-    def add(self, depth_mm: np.ndarray, mask: np.ndarray, silhouette: np.ndarray | None = None) -> DisplacementSums:
+    def add(self, depth_mm: np.ndarray, mask: np.ndarray, silhouette: np.ndarray | None = None,
+            distance_mm: float | None = None) -> DisplacementSums:
         """silhouette: the trunk's mask with the pixels that have no depth (HeadMap.silhouette); with
-        it the reference's sides are placed at its occluding contour (contour_depth_mm)."""
+        it the reference's sides are placed at its occluding contour (contour_depth_mm).
+        distance_mm: the subject's distance when known from elsewhere (the two heads' geometry); the
+        body frame's scale is then the reference's distance over it, not the ratio of the trunk's
+        widths, which breathing moves on bodies whose flanks move (docs/volume.md)."""
+        known = distance_mm is not None and np.isfinite(distance_mm)
         valid = mask & np.isfinite(depth_mm)
         row_widths = row_widths_px(depth_mm, valid, self.head)
         width = trunk_width_px(depth_mm, valid, self.head, row_widths)
@@ -633,6 +679,7 @@ class DisplacementTracker:
             footprint = (depth_mm / self.head.fx) * (depth_mm / self.head.fy)
             self._reference = (np.where(valid, depth_mm, np.nan), valid, footprint, regions)
             self._reference_width = width
+            self._reference_distance = float(distance_mm) if known else float("nan")
             self._silhouette = BodySilhouette(valid, row_widths, self.head)
             self._band_px = rim_band_px(depth_mm, valid, self.head, self.rim_band_mm)
             self._rim = rim_model(depth_mm, valid, self.head, self._band_px)
@@ -643,8 +690,11 @@ class DisplacementTracker:
             self._side_per_rim = side / rim_of_reference
             self._top = top_band(depth_mm, valid, self.head)
         ref_depth, ref_mask, footprint, regions = self._reference
-        frame, width = self._gated(self._silhouette.frame(valid, row_widths, width / self._reference_width),
-                                   valid, row_widths, width)
+        if known and np.isfinite(self._reference_distance):
+            frame = self._silhouette.frame(valid, row_widths, self._reference_distance / distance_mm, refine_scale=False)
+        else:
+            frame, width = self._gated(self._silhouette.frame(valid, row_widths, width / self._reference_width),
+                                       valid, row_widths, width)
         z = frame.resampled(depth_mm, valid, ref_mask.shape, self.head)
         both = ref_mask & np.isfinite(z)
         _, rim = rim_depths(ref_depth, z, both, self._band_px)

@@ -89,6 +89,52 @@ def test_the_rim_level_of_a_breathing_band_is_its_common_intercept():
     assert model.level(moved, mask) - model.level(depth, mask) == pytest.approx(1.7, abs=1e-9)
 
 
+def _hemi_ellipsoid(head, semi_axes_px=(120.0, 100.0), depth_mm=100.0):
+    """A trunk-like relief with flanks that turn to grazing at its silhouette: Z = 2000 - d sqrt(1 - r^2)."""
+    rows, cols = np.mgrid[0:head.height, 0:head.width]
+    r2 = ((cols - head.cx) / semi_axes_px[0]) ** 2 + ((rows - head.cy) / semi_axes_px[1]) ** 2
+    mask = r2 < 1.0
+    return np.where(mask, 2000.0 - depth_mm * np.sqrt(np.clip(1.0 - r2, 0, None)), np.nan), mask
+
+
+def test_the_rim_level_sees_through_the_ribs_widening_on_steep_flanks():
+    """Depths that move, edge by edge, as the hinge and the sideways stretch have them, plus one common
+    shift: the level follows the shift alone. The hinge alone takes the flanks' widening for a shift."""
+    from dataclasses import replace
+    from core.rig import thesis_head
+    from core.volume.maps import rim_model
+
+    head = thesis_head("front", scale=0.25)
+    depth, mask = _hemi_ellipsoid(head)
+    model = rim_model(depth, mask, head, band_px=12)
+    assert model.sideways
+    rng = np.random.default_rng(3)
+    moved = depth.copy()
+    for e, row in enumerate(model.rows):
+        used = model.cols[e] >= 0
+        moved[row, model.cols[e][used]] += (-rng.uniform(0.02, 0.08) * model.regressor[e][used]
+                                            - rng.uniform(0.005, 0.02) * model.lateral[e][used])
+    moved += 1.7
+    assert model.level(moved, mask) - model.level(depth, mask) == pytest.approx(1.7, abs=1e-6)
+    hinge_only = replace(model, sideways=False)
+    assert abs(hinge_only.level(moved, mask) - hinge_only.level(depth, mask) - 1.7) > 0.5
+
+
+def test_a_parabolic_relief_cannot_tell_widening_from_a_shift():
+    """On a paraboloid the hinge's profile, the stretch's and a constant are one and the same across
+    each row: the stretch is left out of the level rather than leave it undetermined."""
+    from core.rig import thesis_head
+    from core.volume.maps import rim_model
+
+    head = thesis_head("front", scale=0.25)
+    rows, cols = np.mgrid[0:head.height, 0:head.width]
+    r2 = ((cols - head.cx) / 120.0) ** 2 + ((rows - head.cy) / 100.0) ** 2
+    mask = r2 < 1.0
+    depth = np.where(mask, 2000.0 - 80.0 * (1.0 - r2), np.nan)
+    assert not rim_model(depth, mask, head, band_px=12).sideways
+    assert rim_model(*_hemi_ellipsoid(head), head, band_px=12).sideways
+
+
 def test_the_trunk_width_stays_when_the_flanks_lose_their_outermost_pixels():
     """A trunk of circular cross-section (150 mm radius, axis vertical at 2000 mm, centred on the
     view): the circle through each row's outermost pixels places its sides, so losing one or two
