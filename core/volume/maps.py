@@ -6,11 +6,11 @@ reference's trunk silhouette onto the map's, sub-pixel), both referred to the le
 trunk would have at its sides (RimModel), so a rigid shift of the whole torso (sway, along the axis
 or sideways) is not breathing; every pixel's displacement is weighted by its footprint
 (Z / fx)(Z / fy). The level comes from a model: breathing moves the trunk along the axis in
-proportion to the lateral distance from its side (the ribs hinge there), fitted to the band of
-pixels inside the silhouette and extrapolated to the side, which lies a few mm beyond the
-silhouette on a rounded trunk (rim_side_mm). What moves the sides themselves is not seen:
-lateral expansion of the ribs widens the silhouette, and sides that move along the axis are taken
-for sway.
+proportion to the lateral distance from its side (the ribs hinge there) and stretches it sideways
+(the ribs widen), fitted to the band of pixels inside the silhouette and extrapolated to the side,
+which lies a few mm beyond the silhouette on a rounded trunk (rim_side_mm). Sides that move along
+the axis are taken for sway, and the strip beyond the outermost pixels, which neither head sees,
+is not counted.
 
 The result scales with the depth map's absolute scale times the relief above the rim (about
 10 L per head for an adult), so every map's scale is set afterwards from a distance that
