@@ -258,3 +258,26 @@ def test_a_volume_whose_sides_lose_the_breath_that_the_top_of_the_view_keeps_is_
     assert _breathing_volume(-0.3).refusal() is not None
     assert np.isnan(_breathing_volume(1.8, swing_l=0.1).top_referred_slope)
     assert _breathing_volume(1.8, swing_l=0.1).refusal() is None
+
+
+def test_a_known_distance_keeps_the_flanks_lost_pixels_out_of_the_body_frame():
+    """The bulged map loses the outermost pixel of every row (a flank steepening past the
+    integrator's grazing limit): the trunk's widths then take the map for one farther away and
+    shrink it. With the subject's distance given (from the two heads' geometry) the frame keeps its
+    scale and the volume is the bulge's (measured 0.796 L for 0.785; from the widths 0.650)."""
+    from scipy import ndimage
+
+    head = thesis_head("front", scale=0.25)
+    depth, mask = _trunk_map(head, BULGE_MM)
+    thinned = mask & ndimage.binary_erosion(mask, structure=np.array([[1, 1, 1]]))
+    volumes = {}
+    for known in (None, RIM_MM):
+        tracker = DisplacementTracker(head)
+        first = tracker.add(*_trunk_map(head, 0.0), distance_mm=known)
+        second = tracker.add(np.where(thinned, depth, np.nan), thinned, distance_mm=known)
+        volumes[known] = float(np.diff(metric_head_volume_l(np.array([first.reference["all"], second.reference["all"]]),
+                                                            np.array([first.current["all"], second.current["all"]]),
+                                                            np.array([first.side_mm, second.side_mm]),
+                                                            np.array([RIM_MM, RIM_MM])))[0])
+    assert volumes[RIM_MM] == pytest.approx(BULGE_VOLUME_L, rel=0.03)
+    assert abs(volumes[None] / BULGE_VOLUME_L - 1.0) > 0.05
