@@ -519,7 +519,9 @@ def rim_model(depth_mm: np.ndarray, mask: np.ndarray, head: Head, band_px: int,
     regressor = np.where(used & np.isfinite(stretch), hinge / stretch, 0.0)
     regressor[:, :skip_px] = 0.0
     regressor = np.clip(regressor, 0.0, None)
-    sideways = np.where(used & np.isfinite(stretch) & np.isfinite(slope), (half_width - from_side) * slope / stretch, 0.0)
+    # the stretch's displacement: (distance from the row's middle) * dz/dx, seen along the ray
+    sideways = np.where(used & np.isfinite(stretch) & np.isfinite(slope),
+                        (half_width - from_side) * slope / stretch, 0.0)
     return RimModel(rows, cols, regressor, sideways, float(np.nanmedian(z[:, 0] + deeper)),
                     sideways_told_apart(regressor, sideways, used & (regressor > 0) & np.isfinite(z)))
 
@@ -691,7 +693,8 @@ class DisplacementTracker:
             self._top = top_band(depth_mm, valid, self.head)
         ref_depth, ref_mask, footprint, regions = self._reference
         if known and np.isfinite(self._reference_distance):
-            frame = self._silhouette.frame(valid, row_widths, self._reference_distance / distance_mm, refine_scale=False)
+            frame = self._silhouette.frame(valid, row_widths, self._reference_distance / distance_mm,
+                                           refine_scale=False)
         else:
             frame, width = self._gated(self._silhouette.frame(valid, row_widths, width / self._reference_width),
                                        valid, row_widths, width)
