@@ -670,7 +670,7 @@ class DisplacementTracker:
         distance_mm: the subject's distance when known from elsewhere (the two heads' geometry); the
         body frame's scale is then the reference's distance over it, not the ratio of the trunk's
         widths, which breathing moves on bodies whose flanks move (docs/volume.md)."""
-        known = distance_mm is not None and np.isfinite(distance_mm)
+        known = distance_mm is not None and bool(np.isfinite(distance_mm)) and distance_mm > 0
         valid = mask & np.isfinite(depth_mm)
         row_widths = row_widths_px(depth_mm, valid, self.head)
         width = trunk_width_px(depth_mm, valid, self.head, row_widths)
