@@ -30,7 +30,7 @@ from core.analysis.values import tidal_stretches, tidal_values, tidal_windows
 from core.volume.compartments import compartment_shares, phase_angle_deg
 from core.rig import Head
 from core.volume.maps import (REGIONS, TOP_REFERRED, DisplacementSums, DisplacementTracker, head_volume_l,
-                              metric_head_volume_l, smooth_in_time, two_head_distances)
+                              metric_head_volume_l, smooth_in_time, trunk_width_px, two_head_distances)
 
 WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of trunk width is 4 mm of distance
 SIDE_SMOOTHING_S = 3.0
@@ -239,8 +239,9 @@ def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
 
 class LiveMetricVolume:
     """The metric volume map by map, for the live view: causal, so each map's scale comes from the
-    trunk widths seen so far (two heads) or the rim depth (one head), smoothed by an
-    exponential average with the time constants above. Each head's maps come from one thread;
+    trunk widths seen so far (two heads; the body frame's scale too, as `process` takes it from the
+    heads' geometry) or the rim depth (one head), smoothed by an exponential average with the time
+    constants above. Each head's maps come from one thread;
     `add` may be called from a thread per head."""
 
     def __init__(self, heads: dict[str, Head], baseline_mm: float | None) -> None:
@@ -277,21 +278,28 @@ class LiveMetricVolume:
         """Feed one head's map (and its median depth, for geometric_distance_mm; its silhouette, as
         DisplacementTracker.add takes it); the volume (L) both heads have seen since their first
         maps, or NaN while a head has no trunk in view yet."""
-        sums = self._trackers[name].add(depth_mm, mask, silhouette)
-        with self._lock:
-            if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
-                return float("nan")
-            self._width[name] = sums.width_px
-            reference_side = self._reference_side.setdefault(name, sums.side_mm)  # the first is the reference
-            if self._two_heads and len(self._width) == 2:
+        tracker = self._trackers[name]
+        target = None
+        if self._two_heads:
+            # the body frame's scale from the two heads' geometry, as `process` has it: a head's maps
+            # enter its tracker once the other head has a trunk width
+            width = trunk_width_px(depth_mm, mask & np.isfinite(depth_mm), tracker.head)
+            with self._lock:
+                if np.isfinite(width):
+                    self._width[name] = width
+                if len(self._width) < 2 or name not in self._width:
+                    return float("nan")
                 front, back = self._names
                 d_front, _ = two_head_distances(np.array([self._width[front]]), np.array([self._width[back]]),
                                                 self._baseline)
                 own = float(d_front[0]) if name == front else self._baseline - float(d_front[0])
                 target = self._smoothed(name, t_s, own, WIDTH_SMOOTHING_S)
-            elif self._two_heads:
+        sums = tracker.add(depth_mm, mask, silhouette, target)
+        with self._lock:
+            if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
                 return float("nan")
-            else:
+            reference_side = self._reference_side.setdefault(name, sums.side_mm)  # the first is the reference
+            if target is None:
                 target = self._smoothed(name, t_s, sums.side_mm, SIDE_SMOOTHING_S)
             k = target / sums.side_mm
             if self._two_heads and distance_mm is not None and np.isfinite(distance_mm * k):
