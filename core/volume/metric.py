@@ -294,7 +294,7 @@ class LiveMetricVolume:
                                                 self._baseline)
                 own = float(d_front[0]) if name == front else self._baseline - float(d_front[0])
                 target = self._smoothed(name, t_s, own, WIDTH_SMOOTHING_S)
-        sums = tracker.add(depth_mm, mask, silhouette, target)
+        sums = tracker.add(depth_mm, mask, silhouette, own if self._two_heads else None)
         with self._lock:
             if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
                 return float("nan")
