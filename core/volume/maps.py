@@ -664,15 +664,17 @@ class DisplacementTracker:
         return held, self._reference_width * median
 
     def add(self, depth_mm: np.ndarray, mask: np.ndarray, silhouette: np.ndarray | None = None,
-            distance_mm: float | None = None) -> DisplacementSums:
+            distance_mm: float | None = None, row_widths: np.ndarray | None = None) -> DisplacementSums:
         """silhouette: the trunk's mask with the pixels that have no depth (HeadMap.silhouette); with
         it the reference's sides are placed at its occluding contour (contour_depth_mm).
         distance_mm: the subject's distance when known from elsewhere (the two heads' geometry); the
         body frame's scale is then the reference's distance over it, not the ratio of the trunk's
-        widths, which breathing moves on bodies whose flanks move (docs/volume.md)."""
+        widths, which breathing moves on bodies whose flanks move (docs/volume.md).
+        row_widths: the map's row_widths_px, if the caller already measured them."""
         known = distance_mm is not None and bool(np.isfinite(distance_mm)) and distance_mm > 0
         valid = mask & np.isfinite(depth_mm)
-        row_widths = row_widths_px(depth_mm, valid, self.head)
+        if row_widths is None:
+            row_widths = row_widths_px(depth_mm, valid, self.head)
         width = trunk_width_px(depth_mm, valid, self.head, row_widths)
         if self._reference is None:
             regions = trunk_regions(valid, self.head.name)

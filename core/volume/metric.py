@@ -30,7 +30,8 @@ from core.analysis.values import tidal_stretches, tidal_values, tidal_windows
 from core.volume.compartments import compartment_shares, phase_angle_deg
 from core.rig import Head
 from core.volume.maps import (REGIONS, TOP_REFERRED, DisplacementSums, DisplacementTracker, head_volume_l,
-                              metric_head_volume_l, smooth_in_time, trunk_width_px, two_head_distances)
+                              metric_head_volume_l, row_widths_px, smooth_in_time, trunk_width_px,
+                              two_head_distances)
 
 WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of trunk width is 4 mm of distance
 SIDE_SMOOTHING_S = 3.0
@@ -279,11 +280,13 @@ class LiveMetricVolume:
         DisplacementTracker.add takes it); the volume (L) both heads have seen since their first
         maps, or NaN while a head has no trunk in view yet."""
         tracker = self._trackers[name]
-        target = None
+        target = frame_distance = row_widths = None
         if self._two_heads:
             # the body frame's scale from the two heads' geometry, as `process` has it: a head's maps
             # enter its tracker once the other head has a trunk width
-            width = trunk_width_px(depth_mm, mask & np.isfinite(depth_mm), tracker.head)
+            valid = mask & np.isfinite(depth_mm)
+            row_widths = row_widths_px(depth_mm, valid, tracker.head)
+            width = trunk_width_px(depth_mm, valid, tracker.head, row_widths)
             with self._lock:
                 if np.isfinite(width):
                     self._width[name] = width
@@ -292,9 +295,9 @@ class LiveMetricVolume:
                 front, back = self._names
                 d_front, _ = two_head_distances(np.array([self._width[front]]), np.array([self._width[back]]),
                                                 self._baseline)
-                own = float(d_front[0]) if name == front else self._baseline - float(d_front[0])
-                target = self._smoothed(name, t_s, own, WIDTH_SMOOTHING_S)
-        sums = tracker.add(depth_mm, mask, silhouette, own if self._two_heads else None)
+                frame_distance = float(d_front[0]) if name == front else self._baseline - float(d_front[0])
+                target = self._smoothed(name, t_s, frame_distance, WIDTH_SMOOTHING_S)
+        sums = tracker.add(depth_mm, mask, silhouette, frame_distance, row_widths)
         with self._lock:
             if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
                 return float("nan")
