@@ -404,6 +404,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                       else None)
             if metric is not None and np.isfinite(metric.top_referred_slope):
                 results.attr("top_referred_slope", metric.top_referred_slope)
+            for name, level in (metric.levels.items() if metric is not None else ()):
+                results.attr(f"level_{name}", level)  # the session's or each map's own (core/volume/metric.py)
             if metric is not None and (refused := metric.refusal()) is not None:
                 metric = None
                 results.refuse_optical(refused)

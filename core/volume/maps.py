@@ -10,7 +10,8 @@ proportion to the lateral distance from its side (the ribs hinge there) and stre
 (the ribs widen), fitted to the band of pixels inside the silhouette and extrapolated to the side,
 which lies a few mm beyond the silhouette on a rounded trunk (rim_side_mm). Sides that move along
 the axis are taken for sway, and the strip beyond the outermost pixels, which neither head sees,
-is not counted.
+is not counted. Each map's own level is the live view's; `process` fits the level over the whole
+session from the sums each map keeps of its band (core/volume/metric.py, session_shifts).
 
 The result scales with the depth map's absolute scale times the relief above the rim (about
 10 L per head for an adult), so every map's scale is set afterwards from a distance that
@@ -22,7 +23,7 @@ D_f / D_b = W_b / W_f, and D_f + D_b is the baseline between the heads.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit, prange
@@ -30,8 +31,13 @@ from scipy import ndimage
 
 from core.rig import Head
 
-# The silhouette's outermost pixels, dim and noisy, left out of the rim fits (docs/benchmarks.md, constants).
+# The silhouette's outermost pixels, dim and noisy, left out of the rim fits (docs/benchmarks.md, constants):
+# RIM_SKIP_PX by default, RIM_SKIP_MM on a map (rim_skip_px). Near grazing the flank's pixels are the
+# noisiest and an arm beside the trunk moves them (its shadow, the crease): a population body in the
+# clinic world with its arms swinging 10 mm read 0.81 of the truth with 2 px (5 mm) left out and 1.03
+# with 14 mm; 0.95 and 1.01 with the arms still (docs/volume.md, "One level for the session").
 RIM_SKIP_PX = 2
+RIM_SKIP_MM = 14.0
 # The rim's band inside the silhouette: wider steadies it against sway (docs/benchmarks.md, constants).
 RIM_BAND_MM = 70.0
 
@@ -229,7 +235,7 @@ def body_aligned_displacement(depth_a: np.ndarray, mask_a: np.ndarray, depth_b: 
     frame = BodySilhouette(valid_b, widths_b, head).frame(valid_a, widths_a, image_size)
     z_a = frame.resampled(depth_a, valid_a, mask_b.shape, head)
     inside = valid_b & np.isfinite(z_a)
-    rim = rim_model(depth_b, valid_b, head, rim_band_px(depth_b, valid_b, head))
+    rim = rim_model(depth_b, valid_b, head, rim_band_px(depth_b, valid_b, head), rim_skip_px(depth_b, valid_b, head))
     out[inside] = (depth_b - rim.level(depth_b, inside))[inside] - (z_a - rim.level(z_a, inside))[inside]
     return out
 
@@ -271,6 +277,13 @@ class DisplacementSums:
     width_px: float
     reference: dict[str, float]
     current: dict[str, float]
+    # for a level fitted over the session (core/volume/metric.py, session_shifts): each part's footprint
+    # (mm^2) and sum of fp (z - Z_ref) (mm^3) over the pixels both show, the two maps' levels
+    # (reference's, this map's) and the band's RimModel.edge_statistics of z - Z_ref
+    areas: dict[str, float] = field(default_factory=dict)
+    displaced: dict[str, float] = field(default_factory=dict)
+    levels_mm: tuple[float, float] = (float("nan"), float("nan"))
+    band: np.ndarray | None = None
 
 
 def _row_edges(mask: np.ndarray, width: int):
@@ -444,6 +457,22 @@ class RimModel:
         numerator, denominator = _intercept_sums(np.where(w, y, 0.0), w, profiles)
         return numerator / denominator if denominator > 0 else float("nan")
 
+    def edge_statistics(self, displacement_mm: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """(edges, len(EDGE_STATISTICS)): per edge, the sums over its band pixels in `valid` that a least-
+        squares fit of the displacement on the two profiles needs (core/volume/metric.py, session_shifts)."""
+        cols = np.maximum(self.cols, 0)
+        y = displacement_mm[self.rows[:, None], cols]
+        w = (self.cols >= 0) & (self.regressor > 0) & valid[self.rows[:, None], cols] & np.isfinite(y)
+        y, h, lat = (np.where(w, a, 0.0) for a in (y, self.regressor, self.lateral))
+        return np.stack([w.sum(axis=1), y.sum(axis=1), h.sum(axis=1), lat.sum(axis=1), (y * h).sum(axis=1),
+                         (y * lat).sum(axis=1), (h * h).sum(axis=1), (h * lat).sum(axis=1), (lat * lat).sum(axis=1)],
+                        axis=1).astype(float)
+
+
+# RimModel.edge_statistics' columns: pixels, sum y, sum h, sum l, sum yh, sum yl, sum hh, sum hl, sum ll
+# (y the displacement, h and l the hinge's and the stretch's profiles)
+EDGE_STATISTICS = ("n", "y", "h", "l", "yh", "yl", "hh", "hl", "ll")
+
 
 # The sideways stretch enters the rim's level where, on the median edge, it and the hinge leave this
 # share of a shift's information (on the simulated bodies 0.05-0.08; a parabolic dome 0).
@@ -608,6 +637,12 @@ def rim_band_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head, rim_band_mm
     return max(4, int(round(rim_band_mm * head.fx / np.median(depth_mm[valid]))))
 
 
+def rim_skip_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> int:
+    """The silhouette's outermost pixels the rim's fits leave out on a map: RIM_SKIP_MM at its median
+    depth, RIM_SKIP_PX at least."""
+    return max(RIM_SKIP_PX, int(round(RIM_SKIP_MM * head.fx / np.median(depth_mm[valid]))))
+
+
 def trunk_width_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head, widths_px: np.ndarray | None = None) -> float:
     """The trunk's width in the image: the mean distance between its sides (side_columns) over its
     rows; the silhouette's mean width where fewer than MIN_SIDE_ROWS rows give both sides.
@@ -647,6 +682,7 @@ class DisplacementTracker:
         self.head = head
         self.rim_band_mm = rim_band_mm
         self._band_px = 0
+        self._skip_px = RIM_SKIP_PX
         self._reference: tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]] | None = None
         self._rim: RimModel | None = None
         self._scales: deque[float] = deque(maxlen=SCALE_WINDOW_MAPS)  # the scales the last maps measured
@@ -686,8 +722,9 @@ class DisplacementTracker:
             self._reference_distance = float(distance_mm) if known else float("nan")
             self._silhouette = BodySilhouette(valid, row_widths, self.head)
             self._band_px = rim_band_px(depth_mm, valid, self.head, self.rim_band_mm)
-            self._rim = rim_model(depth_mm, valid, self.head, self._band_px)
-            rim_of_reference, _ = rim_depths(depth_mm, depth_mm, valid, self._band_px)
+            self._skip_px = rim_skip_px(depth_mm, valid, self.head)
+            self._rim = rim_model(depth_mm, valid, self.head, self._band_px, self._skip_px)
+            rim_of_reference, _ = rim_depths(depth_mm, depth_mm, valid, self._band_px, self._skip_px)
             # the trunk widths place the sides (its occluding contour), which lie deeper than its rim
             contour = contour_depth_mm(depth_mm, valid, silhouette, self.head) if silhouette is not None else float("nan")
             side = contour if np.isfinite(contour) else self._rim.side_depth_mm
@@ -702,13 +739,18 @@ class DisplacementTracker:
                                        valid, row_widths, width)
         z = frame.resampled(depth_mm, valid, ref_mask.shape, self.head)
         both = ref_mask & np.isfinite(z)
-        _, rim = rim_depths(ref_depth, z, both, self._band_px)
+        _, rim = rim_depths(ref_depth, z, both, self._band_px, self._skip_px)
         level_ref, level = self._rim.level(ref_depth, both), self._rim.level(z, both)
         reference = np.where(both, footprint * (ref_depth - level_ref), 0.0)
         current = np.where(both, footprint * (z - level), 0.0)
         parts = dict(regions, all=ref_mask)
+        area = np.where(both, footprint, 0.0)
+        displaced = np.where(both, footprint * (z - ref_depth), 0.0)
         sums = DisplacementSums(rim * self._side_per_rim, width, {k: float(reference[m].sum()) for k, m in parts.items()},
-                                {k: float(current[m].sum()) for k, m in parts.items()})
+                                {k: float(current[m].sum()) for k, m in parts.items()},
+                                {k: float(area[m].sum()) for k, m in parts.items()},
+                                {k: float(displaced[m].sum()) for k, m in parts.items()},
+                                (level_ref, level), self._rim.edge_statistics(z - ref_depth, both))
         top = self._top & both
         if top.any():  # sum fp (z - top) = sum fp (z - level) + (level - top) sum fp
             area = float(footprint[both].sum())

@@ -14,6 +14,8 @@ scale of every map is therefore set from a distance that does not follow breathi
 - two heads: the trunk's widths between its sides and the baseline (D_f / D_b = W_b / W_f,
   D_f + D_b = baseline; lateral expansion widens both alike), smoothed over WIDTH_SMOOTHING_S;
 - one head: the depth of the sides in the maps themselves, smoothed over SIDE_SMOOTHING_S.
+The level each map is referred to is fitted over the whole session where it agrees with each map's
+own (session_shifts, level_agreement): each map's own carries the band's noise many times over.
 Measured limits on simulated subjects: docs/volume.md.
 """
 
@@ -95,6 +97,22 @@ class HeadDisplacements:
     def series(self, key: str, region: str) -> np.ndarray:
         return np.array([getattr(s, key).get(region, np.nan) for s in self.sums], dtype=float)
 
+    @cached_property
+    def session_shifts_mm(self) -> np.ndarray | None:
+        """Each map's shift from the reference fitted over the session (session_shifts), or None."""
+        return session_shifts(self.timestamp_ns, self.sums)
+
+    def current(self, region: str, session_level: bool) -> np.ndarray:
+        """The current maps' sums of a region, each referred to the reference's level plus its shift over the
+        session (session_shifts_mm) with session_level and where there is one, else to its own level
+        (RimModel.level)."""
+        current = self.series("current", region)
+        if not session_level or self.session_shifts_mm is None:
+            return current
+        levels = np.array([s.levels_mm for s in self.sums], dtype=float).reshape(-1, 2)
+        moved = levels[:, 1] - levels[:, 0] - self.session_shifts_mm
+        return current + moved * self.series("areas", region)
+
     @property
     def side_mm(self) -> np.ndarray:
         return np.array([s.side_mm for s in self.sums], dtype=float)
@@ -116,6 +134,10 @@ class MetricVolume:
     # both heads' volume with each map referred to the top of its view instead of the trunk's sides
     # (maps.TOP_REFERRED), on timestamp_ns: the cross-check in `refusal` (MAX_REFERENCE_DISAGREEMENT)
     top_referred_l: np.ndarray | None = None
+    # each head's level: "the session's" (session_shifts) or "each map's own" (RimModel.level), and the
+    # gain and lag (s) of the one on the other where both were measured (level_agreement)
+    levels: dict[str, str] = field(default_factory=dict)
+    level_agreement: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     def refusal(self) -> str | None:
         """Why this volume cannot be reported, or None: a head whose maps had to be rescaled by more
@@ -190,12 +212,116 @@ def _bridged(x: np.ndarray) -> np.ndarray:
     return np.interp(i, i[good], x[good])
 
 
+# The parts whose breathing the band's follows (session_shifts): the chest wall's two compartments,
+# the rib cage and the abdomen (Konno and Mead), as the trunk's upper and lower halves
+COMPARTMENTS = (("upper left", "upper right"), ("lower left", "lower right"))
+MIN_SESSION_MAPS = 20  # fewer maps with a band leave each map's own level
+
+
+def session_shifts(timestamp_ns: np.ndarray, sums: list[DisplacementSums]) -> np.ndarray | None:
+    """Each map's shift along the axis from the reference (mm; NaN for a map without a band), fitted
+    over the whole session; None with fewer than MIN_SESSION_MAPS maps that have a band.
+
+    Each map's own level (RimModel.level) fits a hinge and a stretch amount for every edge of the band
+    and one shift: unbiased, but the shift is what the amounts leave, a few per cent of the band's
+    information, and it carries the band's noise many times over (a population body in the clinic
+    world: 0.8 mm from map to map, about 50 mL on one head, and jumps; docs/volume.md). But an edge's
+    breathing keeps its shape over a session: the band moves as the trunk beside it breathes, and the
+    chest wall breathes with two compartments, rib cage and abdomen (Konno and Mead). So here each
+    edge's hinge and stretch amounts are constant over the session, times the breathing of the two
+    halves of the trunk (COMPARTMENTS: the footprint-weighted mean displacement of each half less the
+    band's mean, which no shift moves), and each map keeps one unknown, its shift:
+        y_ep(t) = s(t) + sum_k D_k(t) (a_ek h_ep + b_ek l_ep).
+    The least squares over all maps and edges is solved exactly (session_fit). The halves' breathing
+    is smoothed over BREATHING_SMOOTHING_S: the band's share of it needs its course, not its noise."""
+    usable = [i for i, x in enumerate(sums) if x.band is not None and len(x.band) and np.isfinite(x.levels_mm).all()
+              and all(np.isfinite(x.displaced.get(r, np.nan)) for part in COMPARTMENTS for r in part)]
+    if len(usable) < MIN_SESSION_MAPS:
+        return None
+    stats = np.stack([sums[i].band for i in usable])  # T, edges, EDGE_STATISTICS
+    with np.errstate(invalid="ignore", divide="ignore"):
+        band_mean = stats[..., 1].sum(axis=1) / stats[..., 0].sum(axis=1)
+        breathing = np.stack([sum(sums[i].displaced[r] for r in part) / sum(sums[i].areas[r] for r in part)
+                              for i in usable for part in COMPARTMENTS]).reshape(len(usable), len(COMPARTMENTS))
+    breathing -= band_mean[:, None]
+    if not (np.isfinite(breathing).all() and np.isfinite(band_mean).all()):
+        return None
+    seconds = np.asarray(timestamp_ns, dtype=float)[usable] / 1e9
+    breathing = np.stack([smooth_in_time(seconds, b, BREATHING_SMOOTHING_S) for b in breathing.T], axis=1)
+    shifts = session_fit(stats, breathing)
+    if shifts is None:
+        return None
+    out = np.full(len(sums), np.nan)
+    out[usable] = shifts
+    return out
+
+
+# The compartments' breathing that the band's follows, smoothed over this (session_shifts): 0.1 s, two maps
+# at the demo's 22 cycles a second, a tenth of a forced expiration's first second. Unsmoothed its noise
+# made jumps on a population body in the clinic world (3 % of its maps), smoothed none.
+BREATHING_SMOOTHING_S = 0.1
+
+
+def session_fit(stats: np.ndarray, breathing: np.ndarray) -> np.ndarray | None:
+    """The least squares of session_shifts on (maps, edges, EDGE_STATISTICS) sums and (maps,
+    compartments) breathing: each map's shift, or None where it has no solution. Each edge's 2 K
+    amounts are eliminated (their normal equations G a = r - B s), which leaves a maps x maps system
+    for the shifts."""
+    n, sy, sh, sl, syh, syl, shh, shl, sll = np.moveaxis(stats, 2, 0)
+    maps, compartments = breathing.shape
+    profile_sums, profile_y = (sh, sl), (syh, syl)
+    profile_products = ((shh, shl), (shl, sll))
+    pairs = [(k, a) for k in range(compartments) for a in range(2)]
+    b = np.stack([breathing[:, k, None] * profile_sums[a] for k, a in pairs], axis=1).T  # edges, 2K, maps
+    g = np.stack([np.stack([np.einsum("t,t,te->e", breathing[:, k], breathing[:, m], profile_products[a][c])
+                            for m, c in pairs], axis=-1) for k, a in pairs], axis=1)  # edges, 2K, 2K
+    r = np.stack([np.einsum("t,te->e", breathing[:, k], profile_y[a]) for k, a in pairs], axis=1)  # edges, 2K
+    g_inverse = np.linalg.pinv(g)
+    c = np.einsum("eij,ejt->eit", g_inverse, b)
+    system = np.diag(n.sum(axis=1)) - b.reshape(-1, maps).T @ c.reshape(-1, maps)
+    right = sy.sum(axis=1) - np.einsum("eit,ei->t", b, np.einsum("eij,ej->ei", g_inverse, r))
+    try:
+        return np.linalg.solve(system, right)
+    except np.linalg.LinAlgError:
+        return None
+
+
+# The session's level is taken where the volume with each map's own level, regressed on it and its rate,
+# gives a gain within MAX_LEVEL_GAIN of 1 and a lag within MAX_LEVEL_LAG_S (level_agreement): the two
+# measure the same breathing, one with the noise of each map's extrapolation, and a session whose band
+# breathes in a way the compartments' courses do not span (our own torso's quiet breathing: its band's
+# course 0.3 s behind theirs) would read late and low.
+MAX_LEVEL_GAIN = 0.05
+MAX_LEVEL_LAG_S = 0.1
+GAIN_HUBER = 1.5  # residuals beyond this many robust sigmas weigh less (Huber)
+
+
+def level_agreement(timestamp_ns: np.ndarray, session_l: np.ndarray, each_map_l: np.ndarray) -> tuple[float, float]:
+    """(gain, lag in s) of a head's volume with each map's own level on the same volume with the
+    session's level and its rate (robust least squares: each_map = gain (session - lag d/dt session) +
+    offset); NaN where fewer than 10 maps have both."""
+    t = np.asarray(timestamp_ns, dtype=float) / 1e9
+    good = np.isfinite(session_l) & np.isfinite(each_map_l)
+    if good.sum() < 10:
+        return float("nan"), float("nan")
+    t, x, y = t[good], np.asarray(session_l, float)[good], np.asarray(each_map_l, float)[good]
+    design = np.column_stack([x, np.gradient(x, t), np.ones_like(x)])
+    weight = np.ones_like(y)
+    for _ in range(20):
+        coefficients = np.linalg.lstsq(design * weight[:, None], y * weight, rcond=None)[0]
+        residual = y - design @ coefficients
+        sigma = 1.4826 * float(np.median(np.abs(residual))) + 1e-12
+        weight = np.sqrt(np.minimum(1.0, GAIN_HUBER * sigma / np.maximum(np.abs(residual), 1e-12)))
+    gain = float(coefficients[0])
+    return gain, float(-coefficients[1] / gain) if gain else float("nan")
+
+
 def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None) -> MetricVolume:
     """Both heads' volumes on the first head's times, their sum and the regions' sums."""
     targets, scale_from = side_targets(heads, baseline_mm)
     t = next(iter(heads.values())).timestamp_ns
     per_head, regions, top_referred = {}, {r: np.zeros(len(t)) for r in REGIONS}, {}
-    mismatch = {}
+    mismatch, levels, agreement = {}, {}, {}
     for name, h in heads.items():
         side, target = h.side_mm, targets[name]
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -205,10 +331,18 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
         def on_t(values: np.ndarray) -> np.ndarray:
             return np.interp(t.astype(float), h.timestamp_ns.astype(float), _bridged(values))
 
-        per_head[name] = on_t(metric_head_volume_l(h.series("reference", "all"), h.series("current", "all"),
-                                                   side, target))
+        def volume(region: str, session_level: bool) -> np.ndarray:
+            return metric_head_volume_l(h.series("reference", region), h.current(region, session_level), side, target)
+
+        session = h.session_shifts_mm is not None
+        if session:
+            agreement[name] = level_agreement(h.timestamp_ns, volume("all", True), volume("all", False))
+            gain, lag = agreement[name]
+            session = abs(gain - 1.0) <= MAX_LEVEL_GAIN and abs(lag) <= MAX_LEVEL_LAG_S
+        levels[name] = "the session's" if session else "each map's own"
+        per_head[name] = on_t(volume("all", session))
         for r in REGIONS:
-            regions[r] += on_t(metric_head_volume_l(h.series("reference", r), h.series("current", r), side, target))
+            regions[r] += on_t(volume(r, session))
         top_referred[name] = on_t(metric_head_volume_l(h.series("reference", TOP_REFERRED),
                                                        h.series("current", TOP_REFERRED), side, target))
     seconds = t.astype(float) / 1e9
@@ -218,7 +352,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
 
     per_head = {name: smooth(v) for name, v in per_head.items()}
     return MetricVolume(t, sum(per_head.values()), per_head, {r: smooth(v) for r, v in regions.items()},
-                        targets, scale_from, mismatch, smooth(sum(top_referred.values())))
+                        targets, scale_from, mismatch, smooth(sum(top_referred.values())), levels, agreement)
 
 
 def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
