@@ -753,9 +753,9 @@ class DisplacementTracker:
                                 (level_ref, level), self._rim.edge_statistics(z - ref_depth, both))
         top = self._top & both
         if top.any():  # sum fp (z - top) = sum fp (z - level) + (level - top) sum fp
-            area = float(footprint[both].sum())
-            sums.reference[TOP_REFERRED] = sums.reference["all"] + (level_ref - float(ref_depth[top].mean())) * area
-            sums.current[TOP_REFERRED] = sums.current["all"] + (level - float(z[top].mean())) * area
+            whole = sums.areas["all"]
+            sums.reference[TOP_REFERRED] = sums.reference["all"] + (level_ref - float(ref_depth[top].mean())) * whole
+            sums.current[TOP_REFERRED] = sums.current["all"] + (level - float(z[top].mean())) * whole
         return sums
 
 

@@ -102,6 +102,12 @@ class HeadDisplacements:
         """Each map's shift from the reference fitted over the session (session_shifts), or None."""
         return session_shifts(self.timestamp_ns, self.sums)
 
+    @cached_property
+    def _own_level_over_session_mm(self) -> np.ndarray:
+        """Per map, how far its own level lies from the reference's plus the session's shift."""
+        levels = np.array([s.levels_mm for s in self.sums], dtype=float).reshape(-1, 2)
+        return levels[:, 1] - levels[:, 0] - self.session_shifts_mm
+
     def current(self, region: str, session_level: bool) -> np.ndarray:
         """The current maps' sums of a region, each referred to the reference's level plus its shift over the
         session (session_shifts_mm) with session_level and where there is one, else to its own level
@@ -109,9 +115,7 @@ class HeadDisplacements:
         current = self.series("current", region)
         if not session_level or self.session_shifts_mm is None:
             return current
-        levels = np.array([s.levels_mm for s in self.sums], dtype=float).reshape(-1, 2)
-        moved = levels[:, 1] - levels[:, 0] - self.session_shifts_mm
-        return current + moved * self.series("areas", region)
+        return current + self._own_level_over_session_mm * self.series("areas", region)
 
     @property
     def side_mm(self) -> np.ndarray:
@@ -336,19 +340,21 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
         def volume(region: str, session_level: bool) -> np.ndarray:
             return metric_head_volume_l(h.series("reference", region), h.current(region, session_level), side, target)
 
-        each_map = volume("all", False)
+        whole = volume("all", False)
         session = h.session_shifts_mm is not None and (
-            jump_share(h.timestamp_ns, each_map)[0] > MAX_JUMP_SHARE or map_noise_l(each_map) > MAX_MAP_NOISE_L)
+            jump_share(h.timestamp_ns, whole)[0] > MAX_JUMP_SHARE or map_noise_l(whole) > MAX_MAP_NOISE_L)
         if session:
-            agreement[name] = level_agreement(h.timestamp_ns, volume("all", True), each_map)
+            session_whole = volume("all", True)
+            agreement[name] = level_agreement(h.timestamp_ns, session_whole, whole)
             gain, lag = agreement[name]
             session = abs(gain - 1.0) <= MAX_LEVEL_GAIN and abs(lag) <= MAX_LEVEL_LAG_S
+            if session:
+                whole = session_whole
         levels[name] = "the session's" if session else "each map's own"
-        per_head[name] = on_t(volume("all", session))
+        per_head[name] = on_t(whole)
         for r in REGIONS:
             regions[r] += on_t(volume(r, session))
-        top_referred[name] = on_t(metric_head_volume_l(h.series("reference", TOP_REFERRED),
-                                                       h.series("current", TOP_REFERRED), side, target))
+        top_referred[name] = on_t(volume(TOP_REFERRED, False))
     seconds = t.astype(float) / 1e9
 
     def smooth(values: np.ndarray) -> np.ndarray:
