@@ -238,7 +238,8 @@ def session_shifts(timestamp_ns: np.ndarray, sums: list[DisplacementSums]) -> np
         y_ep(t) = s(t) + sum_k D_k(t) (a_ek h_ep + b_ek l_ep).
     The least squares over all maps and edges is solved exactly (session_fit). The halves' breathing
     is smoothed over BREATHING_SMOOTHING_S: the band's share of it needs its course, not its noise."""
-    usable = [i for i, x in enumerate(sums) if x.band is not None and len(x.band) and np.isfinite(x.levels_mm).all()
+    usable = [i for i, x in enumerate(sums) if x.band is not None and len(x.band) and np.isfinite(x.band).all()
+              and np.isfinite(x.levels_mm).all()
               and all(np.isfinite(x.displaced.get(r, np.nan)) for part in COMPARTMENTS for r in part)]
     if len(usable) < MIN_SESSION_MAPS:
         return None

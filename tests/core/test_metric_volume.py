@@ -342,6 +342,22 @@ def test_the_session_level_needs_enough_maps_with_a_band():
     assert session_shifts(t[:MIN_SESSION_MAPS], sums[:MIN_SESSION_MAPS]) is not None
 
 
+def test_a_map_with_nan_sums_is_left_out_of_the_session_level_not_the_session():
+    from dataclasses import replace
+
+    from core.volume.metric import session_shifts
+
+    t, sums, shifts, _ = _band_sessions(noise_mm=0.3)
+    band = sums[9].band.copy()
+    band[:, 1] = np.nan
+    sums[9] = replace(sums[9], band=band)
+    sums[5] = replace(sums[5], levels_mm=(np.nan, np.nan))
+    found = session_shifts(t, sums)
+    assert np.isnan(found[[5, 9]]).all()
+    others = np.delete(np.arange(len(sums)), [5, 9])
+    assert np.sqrt(np.mean((found[others] - shifts[others]) ** 2)) < 0.05
+
+
 def test_the_rims_outermost_pixels_are_left_out_in_millimetres():
     from core.volume.maps import RIM_SKIP_MM, RIM_SKIP_PX, rim_skip_px
 
