@@ -688,8 +688,6 @@ class LiveRig:
         # the DCTs of two heads running at once on all of them oversubscribed the cores
         use_threads((os.cpu_count() or 1) // len(self._live_heads))
         reconstructor = HeadReconstructor(self._live_heads[head], None, self.settings)
-        # every LOOK_INTERVAL_S a cycle again at the photometric fit's own distance, as `process`'s survey
-        surveyor = HeadReconstructor(self._live_heads[head], None, self.settings)
         done_id = -1
         condition = self._new_frame[head]
         max_value = self.rig.heads[head].max_value
@@ -740,7 +738,7 @@ class LiveRig:
                                          result.silhouette) if t_s is not None
                       else float("nan"))
             if geometric is not None and t_s is not None and result.mask.any() and self._checks.due(head, t_s):
-                self._look(head, t_s, result, geometric, surveyor, (signal, saturated, dark))
+                self._look(head, t_s, result, reconstructor, (signal, saturated))
             view = self._views[head]
             with self._lock:
                 view.height_mm = height
@@ -755,19 +753,18 @@ class LiveRig:
                         self._metric_curve.append((t_s, litres))
                         self._checks.add_volumes(t_s, litres, self._metric.top_referred_l())
 
-    def _look(self, head: str, t_s: float, result: HeadMap, geometric_mm: float, surveyor: HeadReconstructor,
-              cycle: tuple) -> None:
-        """What `process` checks on a map made at the geometric distance: its sides along the height,
-        and where the photometric fit alone would put the subject."""
+    def _look(self, head: str, t_s: float, result: HeadMap, reconstructor: HeadReconstructor, cycle: tuple) -> None:
+        """What `process` checks on a map made at the geometric distance: its sides along the height
+        and its sheen."""
         try:
             profile = side_profile_mm(result.depth_mm, result.mask, result.silhouette, self._live_heads[head])
-            photometric = surveyor.reconstruct(*cycle).distance_mm
+            sheen = reconstructor.sheen(*cycle, result)
         except Exception as exc:  # said once; the checks go without this look, the live view goes on
             self._problem(f"{head}: the optical volume's checks failed: {exc}")
             return
         self._checks.add_profile(head, t_s, profile)
-        if np.isfinite(photometric):
-            self._checks.add_offset(head, t_s, photometric - geometric_mm)
+        if np.isfinite(sheen):
+            self._checks.add_sheen(head, t_s, sheen)
 
     def _problem(self, message: str) -> None:
         log.warning(message)

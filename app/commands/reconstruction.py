@@ -198,8 +198,10 @@ def run_process(args: argparse.Namespace) -> int:
         if summary.distance_refused:
             print(f"{name}: {n} maps")
             continue
+        sheen = summary.sheen.get(name, float("nan"))
         print(f"{name}: {n} maps, mean subject distance {summary.mean_distance_mm[name]:.1f} mm"
-              + (f" (the two heads' geometry; the photometric fit {offset:+.0f} mm from it)" if offset is not None else ""))
+              + (f" (the two heads' geometry; the photometric fit {offset:+.0f} mm from it)" if offset is not None else "")
+              + (f", sheen {sheen:.3f} of the albedo" if np.isfinite(sheen) else ""))
     if summary.distance_refused:
         print(f"no subject distance: {summary.distance_refused}")
     if summary.optical_refused:

@@ -1,6 +1,6 @@
 """The checks `photopft process` makes before it gives an optical volume, made as the maps come in,
 for the live view: the operator learns during the session, not from the report, that the skin or
-the lights do not follow the light model (reflectance_refusal), that the two heads' maps are bent
+the lights do not follow the light model (a sheen, reflectance_refusal), that the two heads' maps are bent
 against each other (core/volume/sides.py, bend_refusal), or that the trunk's sides move with the
 breathing (core/volume/metric.py, reference_refusal), and can act (polarising filters, a towel on
 oily skin, the rig's calibration, the arms held away).
@@ -21,9 +21,9 @@ from core.reconstruction.process import reflectance_refusal
 from core.volume.metric import reference_refusal, reference_slope
 from core.volume.sides import bend_refusal, sides_tilt
 
-# A look costs a map at the photometric fit's own distance and a side profile: at scale 1 the live view
-# made 6.0 maps/s a head without looks, 5.1 with a look a second, 5.3-5.5 with one every 2 s
-# (`photopft bench gui --scale 1 --seconds 20 --no-record --loop 11`)
+# A look costs a side profile (until 2026-11-27 also a map at the photometric fit's own distance: at
+# scale 1 the live view made 6.0 maps/s a head without looks, 5.1 with a look a second, 5.3-5.5 with one
+# every 2 s, `photopft bench gui --scale 1 --seconds 20 --no-record --loop 11`)
 LOOK_INTERVAL_S = 2.0
 WINDOW_S = 10.0  # five looks a head: one map's verdict is not the subject's
 # The two references' slope wants the volume to swing (metric.MIN_REFERENCE_SWING_L): several breaths,
@@ -32,8 +32,8 @@ REFERENCE_WINDOW_S = 30.0
 
 
 class LiveOpticalChecks:
-    """Each head's thread tells it, every LOOK_INTERVAL_S (`due`), the photometric fit's distance
-    less the geometric one (`add_offset`) and its map's side profile (`add_profile`,
+    """Each head's thread tells it, every LOOK_INTERVAL_S (`due`), its map's sheen
+    (`add_sheen`, core/reconstruction/reflectance.py) and side profile (`add_profile`,
     core/volume/sides.py side_profile_mm); `refusal` says why the optical volume would be refused
     now, or None."""
 
@@ -41,7 +41,7 @@ class LiveOpticalChecks:
         self._heads = list(heads)
         self._lock = threading.Lock()
         self._last_look: dict[str, float] = {}
-        self._offsets: dict[str, collections.deque] = {h: collections.deque() for h in heads}
+        self._sheen: dict[str, collections.deque] = {h: collections.deque() for h in heads}
         self._newest_profile: dict[str, tuple[float, tuple[np.ndarray, np.ndarray]]] = {}
         self._tilts: collections.deque = collections.deque()
         self._volumes: collections.deque = collections.deque()  # (t, referred to the sides, to the top)
@@ -55,9 +55,9 @@ class LiveOpticalChecks:
             self._last_look[head] = t_s
             return True
 
-    def add_offset(self, head: str, t_s: float, offset_mm: float) -> None:
+    def add_sheen(self, head: str, t_s: float, sheen: float) -> None:
         with self._lock:
-            self._offsets[head].append((t_s, float(offset_mm)))
+            self._sheen[head].append((t_s, float(sheen)))
             self._forget(t_s)
 
     def add_profile(self, head: str, t_s: float, profile: tuple[np.ndarray, np.ndarray]) -> None:
@@ -80,7 +80,7 @@ class LiveOpticalChecks:
             self._forget(t_s)
 
     def _forget(self, now_s: float) -> None:
-        for series in (*self._offsets.values(), self._tilts):
+        for series in (*self._sheen.values(), self._tilts):
             while series and series[0][0] < now_s - WINDOW_S:
                 series.popleft()
         while self._volumes and self._volumes[0][0] < now_s - REFERENCE_WINDOW_S:
@@ -91,14 +91,14 @@ class LiveOpticalChecks:
         with self._lock:
             self._last_look.clear()
             self._newest_profile.clear()
-            for series in (*self._offsets.values(), self._tilts, self._volumes):
+            for series in (*self._sheen.values(), self._tilts, self._volumes):
                 series.clear()
 
     @property
     def checked(self) -> bool:
         """Whether the last WINDOW_S (REFERENCE_WINDOW_S for the references) gave anything to judge by."""
         with self._lock:
-            return any(self._offsets.values()) or bool(self._tilts) or np.isfinite(self._reference_slope())
+            return any(self._sheen.values()) or bool(self._tilts) or np.isfinite(self._reference_slope())
 
     def reference_slope(self) -> float:
         """The slope of the top-referred volume on the side-referred one over the last
@@ -112,7 +112,7 @@ class LiveOpticalChecks:
 
     def refusal(self) -> str | None:
         with self._lock:
-            offsets = {h: float(np.median([o for _, o in s])) for h, s in self._offsets.items() if s}
+            sheen = {h: float(np.median([o for _, o in s])) for h, s in self._sheen.items() if s}
             tilts = np.array([t for _, t in self._tilts], dtype=float)
             slope = self._reference_slope()
-        return reflectance_refusal(offsets) or bend_refusal(tilts) or reference_refusal(slope)
+        return reflectance_refusal(sheen) or bend_refusal(tilts) or reference_refusal(slope)

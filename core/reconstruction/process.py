@@ -50,6 +50,8 @@ class ProcessSummary:
     # per head, the photometric fit's median distance less the two heads' geometric one, where that was used
     photometric_offset_mm: dict[str, float] = field(default_factory=dict)
     distance_refused: str | None = None  # why the subject distance is not given, when it is not
+    # per head, the median of its maps' sheen over the albedo (core/reconstruction/reflectance.py)
+    sheen: dict[str, float] = field(default_factory=dict)
 
 
 def distance_refusal(distances_mm: dict[str, float]) -> str | None:
@@ -65,30 +67,26 @@ def distance_refusal(distances_mm: dict[str, float]) -> str | None:
     return None
 
 
-# The most the photometric fit's median distance may lie from the two heads' geometric one before the
-# skin counts as not matte (docs/volume.md, "Skin the light model does not describe, and bent maps"):
-# matte skin with sphere-calibrated lights 8-35 mm on every head of 11 simulated sessions; any sheen
-# tried (0.05-0.29) 72-702 mm on at least one head, and those maps' volumes read 0.01-0.79 of the truth.
-MAX_PHOTOMETRIC_OFFSET_MM = 60.0
+# The most sheen a head's maps may show (core/reconstruction/reflectance.py: the lobe's weight over the
+# albedo, the median of the session's maps) before the volume is refused (docs/volume.md, "A sheen,
+# measured"): on random body 1004's slow VC in the clinic world (true lights) matte skin read 0.001-0.003
+# and nine matte bodies -0.004-+0.003; a sheen of 0.01 read 0.05 / 0.08 (front / back) and its volume
+# 2.6 % low, 0.02 read 0.11 / 0.16 and 4.8 % low, 0.05 0.24 / 0.32 and 11 % low
+MAX_SHEEN = 0.04
 
 
-def reflectance_refusal(offsets_mm: dict[str, float]) -> str | None:
-    """Why the optical volume cannot be reported from heads whose shading puts the subject more than
-    MAX_PHOTOMETRIC_OFFSET_MM from where the two heads' geometry does (the photometric fit's median
-    offset, _geometric_pass), or None. The shading's distance cue is a few parts in a thousand; a
-    sheen on the skin, which the Lambertian model leaves out, moves it by tens to hundreds of mm and
-    bends the normals by degrees (docs/reconstruction.md, "Glossy skin"). So does an LED whose output
-    drifted: on a matte population body in the clinic world the back head's fit read -72 mm with the
-    LEDs' 2 % drift, -3 mm without (docs/reconstruction.md, "The side no head sees")."""
-    for name, offset in offsets_mm.items():
-        if np.isfinite(offset) and abs(offset) > MAX_PHOTOMETRIC_OFFSET_MM:
-            where = "nearer" if offset < 0 else "farther"
-            return (f"head {name}: its shading puts the subject {abs(offset):.0f} mm {where} than the two heads' "
-                    f"geometry does (at most {MAX_PHOTOMETRIC_OFFSET_MM:.0f} mm): the shading does not follow the light "
-                    "model (a sheen on the skin, which cross-polarised lighting removes; lights not where the "
-                    "calibration puts them, or brighter or dimmer than it says: LEDs that drifted since; too little "
-                    "of their light against the room's), and the maps' shape, and "
-                    "so the volume, would not be the body's")
+def reflectance_refusal(sheen_by_head: dict[str, float]) -> str | None:
+    """Why the optical volume cannot be reported from heads whose maps show more sheen than
+    MAX_SHEEN (the median of their maps' sheen_relative_to_albedo), or None. The sheen, which the
+    Lambertian model leaves out, bends the normals towards the lights and flattens the maps: the
+    volume reads low by about 2.5 % for every 0.01 of sheen; lights far from where the calibration
+    puts them (the drawing's, without their axes and falloff) read as a sheen too."""
+    for name, sheen in sheen_by_head.items():
+        if np.isfinite(sheen) and sheen > MAX_SHEEN:
+            return (f"head {name}: the shading does not follow the light model: a sheen on the skin {sheen:.2f} of "
+                    f"its albedo (at most {MAX_SHEEN:.2f}) flattens the maps, so the volume would read low (oily or "
+                    "sweaty skin: crossed polarisers on the LEDs and the lens remove it, or a towel; or lights not "
+                    "where the calibration puts them)")
     return None
 
 
@@ -164,13 +162,13 @@ def coverage_refusal(areas_m2: dict[str, np.ndarray]) -> str | None:
 
 def session_refusal(distances_mm: dict[str, float], areas_m2: dict[str, np.ndarray],
                     occluded_share: dict[str, np.ndarray], out_of_view_share: dict[str, np.ndarray],
-                    offsets_mm: dict[str, float], tilts: np.ndarray) -> str | None:
+                    sheen_by_head: dict[str, float], tilts: np.ndarray) -> str | None:
     """The first reason the session's optical volume cannot be reported, or None. An arm against the
     trunk comes first: with two heads it also moves both distances, by hundreds of mm (population
     subject 2 of seed 1 was refused as 2658 mm away, out of the working range, at 2255 mm with its
     arms close; docs/volume.md), and the trunk's area with them."""
     return (occlusion_refusal(occluded_share, out_of_view_share) or distance_refusal(distances_mm)
-            or coverage_refusal(areas_m2) or reflectance_refusal(offsets_mm) or bend_refusal(tilts))
+            or coverage_refusal(areas_m2) or reflectance_refusal(sheen_by_head) or bend_refusal(tilts))
 
 
 def _first_hidden(shares_by_head: dict[str, np.ndarray]) -> tuple[str, float] | None:
@@ -309,7 +307,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
         factors = {name: binning or working_binning(rig.heads[name]) for name in names}
         stream_heads = {name: binned_head(rig.heads[name], factors[name]) for name in names}
         maps_at = sorted(set(maps_at or []))
-        counts, distances, displacements, occluded, out_of_view, areas = {}, {}, {}, {}, {}, {}
+        counts, distances, displacements, occluded, out_of_view, areas, sheen = {}, {}, {}, {}, {}, {}, {}
         with atomic_output(output) as partial, h5py.File(partial, "w") as out:
             results = ResultsWriter(out, session_path, f"photopft {__version__}", method=settings.method,
                                     integrator=settings.integrator,
@@ -379,7 +377,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                                         "distance_mm": result.distance_mm, "gradient_volume": result.gradient_volume,
                                         "valid_pixels": result.valid_pixels,
                                         "occluded_side_share": result.occluded_side_share,
-                                        "side_out_of_view_share": result.side_out_of_view_share},
+                                        "side_out_of_view_share": result.side_out_of_view_share,
+                                        "sheen": result.sheen},
                                  # binning: the stream's; valid_pixels count its bins
                                  {"ambient_flicker": result.ambient_flicker, "binning": np.int64(factors[name])},
                                  result.saved_index, result.saved_normals, result.saved_depth,
@@ -390,6 +389,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                                        else float("nan"))
                     occluded[name] = result.occluded_side_share
                     out_of_view[name] = result.side_out_of_view_share
+                    sheen[name] = float(np.nanmedian(result.sheen)) if np.isfinite(result.sheen).any() else float("nan")
                     areas[name] = trunk_area_m2(result.valid_pixels, result.distance_mm, stream_heads[name])
             tilts = paired_tilts(*profiles.values()) if len(profiles) == 2 and geometric else np.zeros(0)
             if np.isfinite(tilts).any():
@@ -397,7 +397,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             distance_refused = geometric_distance_refusal(occluded) if geometric else None
             if distance_refused is not None:
                 results.attr("distance_refused", distance_refused)
-            refused = session_refusal(distances, areas, occluded, out_of_view, offsets, tilts)
+            refused = session_refusal(distances, areas, occluded, out_of_view, sheen, tilts)
             if refused is not None:
                 results.refuse_optical(refused)
             metric = (metric_volume(displacements, rig.baseline_mm) if all(counts.values()) and refused is None
@@ -419,7 +419,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 results.volume(metric.timestamp_ns, metric.volume_l, METRIC_METHOD + metric.scale_from)
             _write_parameters(session_path, results)
     return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances, refused, offsets,
-                          distance_refused)
+                          distance_refused, sheen)
 
 
 @dataclass(frozen=True)
@@ -448,6 +448,7 @@ class _HeadResult:
     valid_pixels: np.ndarray
     occluded_side_share: np.ndarray
     side_out_of_view_share: np.ndarray
+    sheen: np.ndarray
     saved_index: list[int]
     saved_normals: list[np.ndarray]
     saved_depth: list[np.ndarray]
@@ -467,7 +468,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
     full_reconstructor = None  # the maps asked for at full resolution, when the stream is binned
     tracker = DisplacementTracker(head)
     rows: dict[str, list] = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": [],
-                             "valid_pixels": [], "occluded_side_share": [], "side_out_of_view_share": []}
+                             "valid_pixels": [], "occluded_side_share": [], "side_out_of_view_share": [], "sheen": []}
     saved_index, saved_normals, saved_depth, sums = [], [], [], []
     profile_times, profiles = [], []
     with SessionFile(job.session_path) as session:
@@ -495,8 +496,11 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             rows["valid_pixels"].append(int(result.mask.sum()))
             for key in ("occluded_side_share", "side_out_of_view_share"):
                 rows[key].append(result.extra.get(key, np.nan))
+            looked_at = job.profile_every and number % job.profile_every == 0
+            rows["sheen"].append(reconstructor.sheen(signal, saturated, result) if looked_at and job.settings.method == "near"
+                                 else np.nan)
             sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette, known))
-            if job.profile_every and number % job.profile_every == 0:
+            if looked_at:
                 profile_times.append(stamps[window.newest])
                 profiles.append(side_profile_mm(result.depth_mm, result.mask, result.silhouette, head))
             if window.newest in job.maps_at:
@@ -518,7 +522,8 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                        np.asarray(rows["gradient_volume"], dtype=np.float64),
                        np.asarray(rows["valid_pixels"], dtype=np.int64),
                        np.asarray(rows["occluded_side_share"], dtype=np.float64),
-                       np.asarray(rows["side_out_of_view_share"], dtype=np.float64), saved_index, saved_normals,
+                       np.asarray(rows["side_out_of_view_share"], dtype=np.float64),
+                       np.asarray(rows["sheen"], dtype=np.float64), saved_index, saved_normals,
                        saved_depth, sums, darks.flicker_share, (np.asarray(profile_times, dtype=np.int64), profiles))
 
 

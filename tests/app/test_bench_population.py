@@ -70,7 +70,7 @@ def test_the_table_tallies_why_the_optical_values_were_refused():
                distance_refusal({"front": 2700.0}): "a distance outside the working range",
                distance_refusal({"front": float("nan")}): "no distance",
                coverage_refusal({"front": np.full(5, 0.01)}): "too little of the trunk",
-               reflectance_refusal({"front": -163.0}): "the shading against the heads' geometry",
+               reflectance_refusal({"front": 0.3}): "a sheen on the skin",
                bend_refusal(np.full(5, 0.75)): "bent maps",
                reference_refusal(2.0): "the two references"}
     t = np.arange(200) * 50_000_000  # 20 maps a second for 10 s
@@ -87,8 +87,8 @@ def test_the_table_tallies_why_the_optical_values_were_refused():
     for reason, kind in reasons.items():
         assert refusal_kind(reason) == kind, reason
     assert refusal_kind("something new") == "other"
-    shading = reflectance_refusal({"front": -362.0})
+    shading = reflectance_refusal({"front": 0.5})
     rows = [{"optical_refused": arm}, {"optical_refused": shading}, {"optical_refused": arm}, {"optical_refused": None},
             {"refused": "process: truncated"}]
-    assert refusal_tally(rows) == "2 for an arm against the trunk, 1 for the shading against the heads' geometry"
+    assert refusal_tally(rows) == "2 for an arm against the trunk, 1 for a sheen on the skin"
     assert refusal_tally([{}]) == ""

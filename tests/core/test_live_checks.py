@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.reconstruction.live_checks import LOOK_INTERVAL_S, REFERENCE_WINDOW_S, WINDOW_S, LiveOpticalChecks
-from core.reconstruction.process import MAX_PHOTOMETRIC_OFFSET_MM
+from core.reconstruction.process import MAX_SHEEN
 from core.volume.metric import MAX_REFERENCE_DISAGREEMENT, MIN_REFERENCE_SWING_L
 from core.volume.sides import MAX_SIDES_TILT
 
@@ -27,10 +27,10 @@ def test_a_look_is_due_once_a_look_interval_and_again_after_a_replay_moved_back(
 def test_the_checks_judge_by_the_last_window_only():
     checks = LiveOpticalChecks(["front", "back"])
     assert not checks.checked and checks.refusal() is None
-    checks.add_offset("front", 0.0, -3 * MAX_PHOTOMETRIC_OFFSET_MM)
+    checks.add_sheen("front", 0.0, 3 * MAX_SHEEN)
     assert checks.checked and "head front" in checks.refusal()
     for t in np.arange(1.0, WINDOW_S + 2.0):
-        checks.add_offset("front", float(t), -0.5 * MAX_PHOTOMETRIC_OFFSET_MM)
+        checks.add_sheen("front", float(t), 0.2 * MAX_SHEEN)
     assert checks.refusal() is None  # the glossy look has left the window and the median is matte
     checks.clear()
     assert not checks.checked
