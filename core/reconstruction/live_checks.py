@@ -21,9 +21,9 @@ from core.reconstruction.process import reflectance_refusal
 from core.volume.metric import reference_refusal, reference_slope
 from core.volume.sides import bend_refusal, sides_tilt
 
-# A look costs a side profile (until 2026-11-27 also a map at the photometric fit's own distance: at
-# scale 1 the live view made 6.0 maps/s a head without looks, 5.1 with a look a second, 5.3-5.5 with one
-# every 2 s, `photopft bench gui --scale 1 --seconds 20 --no-record --loop 11`)
+# A look costs a side profile and the sheen's fit, a few ms. Until 2026-11-27 it cost a map at the
+# photometric fit's own distance: at scale 1 the live view made 6.0 maps/s a head without looks, 5.1 with
+# a look a second, 5.3-5.5 with one every 2 s (`photopft bench gui --scale 1 --seconds 20 --no-record --loop 11`)
 LOOK_INTERVAL_S = 2.0
 WINDOW_S = 10.0  # five looks a head: one map's verdict is not the subject's
 # The two references' slope wants the volume to swing (metric.MIN_REFERENCE_SWING_L): several breaths,
