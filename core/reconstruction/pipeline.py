@@ -342,11 +342,7 @@ class HeadReconstructor:
         subject's median depth when it is known from elsewhere (the two heads' geometry,
         core/reconstruction/process.py): the maps are scaled to it and no distance is searched or averaged."""
         h, s = self.head, self.settings
-        signal = np.ascontiguousarray(signal, dtype=np.float64)
-        if saturated is None:
-            saturated = np.zeros(signal.shape, dtype=np.bool_)
-        if self._lens is not None:
-            signal, saturated, dark = self._lens.correct(signal, saturated, dark)
+        signal, saturated, dark = self._as_pinhole(signal, saturated, dark)
         mask = subject_mask(signal, s.mask_fraction, s.mask_edge_fraction)
         if mask.sum() < MIN_SUBJECT_PIXELS:  # nobody in front of the head (dark, stepped away)
             return self._no_subject()
@@ -364,7 +360,7 @@ class HeadReconstructor:
         guess = self.last_distance_mm if tracked else (dmr.distance_mm if np.isfinite(dmr.distance_mm)
                                                        else NOMINAL_DISTANCE_MM)
         photometric = s.distance == "photometric" and s.method == "near" and distance_mm is None
-        intensity = h.light_intensity * (self.intensity_factors if self.intensity_factors is not None else 1.0)
+        intensity = self._intensity()
         problem = (PhotometricDistance(signal, mask, h.light_positions_mm, intensity, dark,
                                        max_pixels=s.distance_pixels, binning=self._distance_binning,
                                        light_axis=self._axis, light_mu=self._mu)
@@ -432,13 +428,22 @@ class HeadReconstructor:
         `result` was reconstructed from, seen as `reconstruct` saw it (lens, prefilter, shadows).
         About 5 ms a map, so `process` and the live view look at a map every so often, not at each."""
         h, s = self.head, self.settings
+        signal, saturated, _ = self._as_pinhole(signal, saturated, None)
+        solved, solved_saturated = prefiltered(signal, saturated, self._prefilter_px)
+        return sheen_relative_to_albedo(solved, self._rays * result.depth_mm[..., None], result.mask,
+                                        h.light_positions_mm, self._intensity(), self._axis, self._mu,
+                                        shadow_threshold(signal, result.mask, s.shadow_fraction), solved_saturated)
+
+    def _as_pinhole(self, signal: np.ndarray, saturated: np.ndarray | None, dark: np.ndarray | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """A cycle's signal (float64), saturated flags and dark frame as the pinhole camera would have them."""
         signal = np.ascontiguousarray(signal, dtype=np.float64)
         if saturated is None:
             saturated = np.zeros(signal.shape, dtype=np.bool_)
         if self._lens is not None:
-            signal, saturated, _ = self._lens.correct(signal, saturated, None)
-        solved, solved_saturated = prefiltered(signal, saturated, self._prefilter_px)
-        intensity = h.light_intensity * (self.intensity_factors if self.intensity_factors is not None else 1.0)
-        return sheen_relative_to_albedo(solved, self._rays * result.depth_mm[..., None], result.mask,
-                                        h.light_positions_mm, intensity, self._axis, self._mu,
-                                        shadow_threshold(signal, result.mask, s.shadow_fraction), solved_saturated)
+            signal, saturated, dark = self._lens.correct(signal, saturated, dark)
+        return signal, saturated, dark
+
+    def _intensity(self) -> np.ndarray:
+        """The lights' intensities, times those fitted on a stream's first cycle where asked."""
+        return self.head.light_intensity * (self.intensity_factors if self.intensity_factors is not None else 1.0)
