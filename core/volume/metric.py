@@ -240,7 +240,8 @@ def session_shifts(timestamp_ns: np.ndarray, sums: list[DisplacementSums]) -> np
     is smoothed over BREATHING_SMOOTHING_S: the band's share of it needs its course, not its noise."""
     usable = [i for i, x in enumerate(sums) if x.band is not None and len(x.band) and np.isfinite(x.band).all()
               and np.isfinite(x.levels_mm).all()
-              and all(np.isfinite(x.displaced.get(r, np.nan)) for part in COMPARTMENTS for r in part)]
+              and all(np.isfinite(x.displaced.get(r, np.nan)) for part in COMPARTMENTS for r in part)
+              and all(sum(x.areas.get(r, 0.0) for r in part) > 0 for part in COMPARTMENTS)]
     if len(usable) < MIN_SESSION_MAPS:
         return None
     stats = np.stack([sums[i].band for i in usable])  # T, edges, EDGE_STATISTICS

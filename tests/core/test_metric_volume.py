@@ -345,16 +345,19 @@ def test_the_session_level_needs_enough_maps_with_a_band():
 def test_a_map_with_nan_sums_is_left_out_of_the_session_level_not_the_session():
     from dataclasses import replace
 
-    from core.volume.metric import session_shifts
+    from core.volume.metric import COMPARTMENTS, session_shifts
 
     t, sums, shifts, _ = _band_sessions(noise_mm=0.3)
     band = sums[9].band.copy()
     band[:, 1] = np.nan
     sums[9] = replace(sums[9], band=band)
     sums[5] = replace(sums[5], levels_mm=(np.nan, np.nan))
+    # a map whose lower half holds no trunk (an arm over it, the subject half out of view)
+    sums[7] = replace(sums[7], areas={r: (0.0 if r in COMPARTMENTS[1] else a) for r, a in sums[7].areas.items()},
+                      displaced={r: (0.0 if r in COMPARTMENTS[1] else d) for r, d in sums[7].displaced.items()})
     found = session_shifts(t, sums)
-    assert np.isnan(found[[5, 9]]).all()
-    others = np.delete(np.arange(len(sums)), [5, 9])
+    assert np.isnan(found[[5, 7, 9]]).all()
+    others = np.delete(np.arange(len(sums)), [5, 7, 9])
     assert np.sqrt(np.mean((found[others] - shifts[others]) ** 2)) < 0.05
 
 
