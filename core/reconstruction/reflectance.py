@@ -12,20 +12,21 @@ the pixel's four light directions (w . L = 0), Lambertian skin gives w . b = 0 u
   adds delta_k b_k, whose projection is sum_k delta_k w_k (n . l_k): three more columns, since the
   four sum to zero.
 
-Fitted together over the trunk's frontal pixels, what is left to the lobe is the sheen's weight
-relative to the albedo (spec / rho), the quantity that bends the normals (docs/reconstruction.md,
-"Glossy skin"; docs/volume.md, "A sheen, measured"). Its exponent is not known; SHEEN_EXPONENT is a broad lobe,
-and the estimate is measured against sheens rendered with other exponents (same section).
+Fitted together over the trunk's frontal pixels, what is left to the lobe measures the sheen's
+weight relative to the albedo (spec / rho), the quantity that bends the normals
+(docs/reconstruction.md, "Glossy skin"; docs/volume.md, "A sheen, measured"). It is spec / rho
+itself only where the skin's lobe has SHEEN_EXPONENT and the normals are unbent; the skin's exponent
+is not known, so the estimate was measured against sheens rendered with exponents 5-60 (same section).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-# the Blinn-Phong exponent of the lobe fitted: broader than oily skin's (measured skin lobes are
-# Torrance-Sparrow roughnesses 0.3-0.5, Blinn-Phong exponents of about 6-20); docs/volume.md
+# the Blinn-Phong exponent of the lobe fitted, broader than the simulator's skin (30): skin rendered with
+# 5, 10, 30 and 60 all read far above matte (docs/volume.md, "A sheen, measured")
 SHEEN_EXPONENT = 10.0
-# the pixels a map's estimate takes: a regular subsample of its frontal ones (the fit has 4 unknowns)
+# the pixels a map's estimate takes: a regular subsample of those lit by all four lights (the fit has 4 unknowns)
 SHEEN_PIXELS = 4000
 # frontal: the normal within this of the view ray (the lobe is negligible beyond; the rim is noisy)
 FRONTAL_DEG = 45.0
