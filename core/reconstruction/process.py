@@ -472,6 +472,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                              "valid_pixels": [], "occluded_side_share": [], "side_out_of_view_share": [], "sheen": []}
     saved_index, saved_normals, saved_depth, sums = [], [], [], []
     profile_times, profiles = [], []
+    near = job.settings.method == "near"  # the sheen's fit needs the near lights' per-pixel irradiance
     with SessionFile(job.session_path) as session:
         frames = session.frames(name)
         stamps = session.timestamp_ns(name)
@@ -498,7 +499,6 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             for key in ("occluded_side_share", "side_out_of_view_share"):
                 rows[key].append(result.extra.get(key, np.nan))
             looked_at = job.profile_every and number % job.profile_every == 0
-            near = job.settings.method == "near"
             rows["sheen"].append(reconstructor.sheen(signal, saturated, result) if looked_at and near else np.nan)
             sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette, known))
             if looked_at:

@@ -138,10 +138,8 @@ class MetricVolume:
     # both heads' volume with each map referred to the top of its view instead of the trunk's sides
     # (maps.TOP_REFERRED), on timestamp_ns: the cross-check in `refusal` (MAX_REFERENCE_DISAGREEMENT)
     top_referred_l: np.ndarray | None = None
-    # each head's level: "the session's" (session_shifts) or "each map's own" (RimModel.level), and the
-    # gain and lag (s) of the one on the other where both were measured (level_agreement)
+    # each head's level: "the session's" (session_shifts) or "each map's own" (RimModel.level)
     levels: dict[str, str] = field(default_factory=dict)
-    level_agreement: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     def refusal(self) -> str | None:
         """Why this volume cannot be reported, or None: a head whose maps had to be rescaled by more
@@ -329,7 +327,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
     targets, scale_from = side_targets(heads, baseline_mm)
     t = next(iter(heads.values())).timestamp_ns
     per_head, regions, top_referred = {}, {r: np.zeros(len(t)) for r in REGIONS}, {}
-    mismatch, levels, agreement = {}, {}, {}
+    mismatch, levels = {}, {}
     for name, h in heads.items():
         side, target = h.side_mm, targets[name]
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -347,8 +345,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
             jump_share(h.timestamp_ns, whole)[0] > MAX_JUMP_SHARE or map_noise_l(whole) > MAX_MAP_NOISE_L)
         if session:
             session_whole = volume("all", True)
-            agreement[name] = level_agreement(h.timestamp_ns, session_whole, whole)
-            gain, lag = agreement[name]
+            gain, lag = level_agreement(h.timestamp_ns, session_whole, whole)
             session = abs(gain - 1.0) <= MAX_LEVEL_GAIN and abs(lag) <= MAX_LEVEL_LAG_S
             if session:
                 whole = session_whole
@@ -364,7 +361,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
 
     per_head = {name: smooth(v) for name, v in per_head.items()}
     return MetricVolume(t, sum(per_head.values()), per_head, {r: smooth(v) for r, v in regions.items()},
-                        targets, scale_from, mismatch, smooth(sum(top_referred.values())), levels, agreement)
+                        targets, scale_from, mismatch, smooth(sum(top_referred.values())), levels)
 
 
 def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
