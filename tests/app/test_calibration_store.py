@@ -3,9 +3,10 @@ one can be put back (nothing is deleted), and a broken profile is refused with i
 
 from __future__ import annotations
 
-import io
 import json
-from contextlib import redirect_stderr
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -67,12 +68,12 @@ def test_record_opens_the_rig_with_the_profiles_in_force(config, tmp_path, capsy
 
 def test_a_broken_profile_in_force_is_one_line_naming_it(config, tmp_path):
     (config / RIG_PROFILE).write_text("{not json")
-    # stderr handed to the command here, not read through capsys: once in a full run (2026-11-27) the
-    # line reached pytest's own capture and capsys read nothing, the cause not found (the same symptom
-    # as pytest-dev/pytest#5997)
-    stderr = io.StringIO()
-    with redirect_stderr(stderr):
-        assert main(["record", "-o", str(tmp_path / "s.h5"), "--seconds", "0.5"]) != 0
-    err = stderr.getvalue().strip().splitlines()
+    # the command in its own process, as a user runs it: in a full run its line twice reached pytest's own
+    # capture instead of the stderr handed to it in this process (2026-11-27, with capsys and then with
+    # redirect_stderr; the same symptom as pytest-dev/pytest#5997)
+    done = subprocess.run([sys.executable, "-m", "app.cli", "record", "-o", str(tmp_path / "s.h5"), "--seconds", "0.5"],
+                          capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2], timeout=120)
+    assert done.returncode != 0
+    err = done.stderr.strip().splitlines()
     assert len(err) == 1 and RIG_PROFILE in err[0] and "Traceback" not in err[0]
     assert not (tmp_path / "s.h5").exists()
