@@ -234,8 +234,8 @@ def session_shifts(timestamp_ns: np.ndarray, sums: list[DisplacementSums]) -> np
     halves of the trunk (COMPARTMENTS: the footprint-weighted mean displacement of each half less the
     band's mean, which no shift moves), and each map keeps one unknown, its shift:
         y_ep(t) = s(t) + sum_k D_k(t) (a_ek h_ep + b_ek l_ep).
-    The least squares over all maps and edges is solved exactly (session_fit). The halves' breathing
-    is smoothed over BREATHING_SMOOTHING_S: the band's share of it needs its course, not its noise."""
+    The least squares over all maps and edges is solved exactly (session_fit), on the halves' breathing
+    as steady_breathing gives it."""
     usable = [i for i, x in enumerate(sums) if x.band is not None and len(x.band) and np.isfinite(x.band).all()
               and np.isfinite(x.levels_mm).all()
               and all(np.isfinite(x.displaced.get(r, np.nan)) for part in COMPARTMENTS for r in part)
@@ -251,8 +251,7 @@ def session_shifts(timestamp_ns: np.ndarray, sums: list[DisplacementSums]) -> np
     if not (np.isfinite(breathing).all() and np.isfinite(band_mean).all()):
         return None
     seconds = np.asarray(timestamp_ns, dtype=float)[usable] / 1e9
-    breathing = np.stack([smooth_in_time(seconds, b, BREATHING_SMOOTHING_S) for b in breathing.T], axis=1)
-    shifts = session_fit(stats, breathing)
+    shifts = session_fit(stats, steady_breathing(seconds, breathing))
     if shifts is None:
         return None
     out = np.full(len(sums), np.nan)
@@ -260,10 +259,41 @@ def session_shifts(timestamp_ns: np.ndarray, sums: list[DisplacementSums]) -> np
     return out
 
 
-# The compartments' breathing that the band's follows, smoothed over this (session_shifts): 0.1 s, two maps
-# at the demo's 22 cycles a second, a tenth of a forced expiration's first second. Unsmoothed its noise
-# made jumps on a population body in the clinic world (3 % of its maps), smoothed none.
+# The two halves' breathing as session_fit takes it (steady_breathing). Their mean is despiked, not
+# smoothed: a single map whose band or half stands off its neighbours (more than DESPIKE_MADS robust
+# deviations from the median of the maps within DESPIKE_WINDOW_S) takes that median, and every other map
+# keeps its own value, so a forced expiration's fall is not spread. Smoothed over 0.1 s (as until the
+# fifteenth session) the session's level took what the smoothing removed for a shift, which spread the
+# blow over +-0.3 s: population subject 4's peak flow read 3.23 L/s for 4.18 (docs/volume.md, "Peak flow
+# and the session's level"). Their difference (the halves' asynchrony, and the map's tilt, which
+# alternates from map to map with the room light's flicker: +-2 mm on the average man) is smoothed over
+# BREATHING_SMOOTHING_S: unsmoothed it made jumps on bodies in the clinic world (1.6-3 % of the maps).
+DESPIKE_WINDOW_S = 0.2
+DESPIKE_MADS = 3.0
 BREATHING_SMOOTHING_S = 0.1
+
+
+def steady_breathing(seconds: np.ndarray, halves: np.ndarray) -> np.ndarray:
+    """(maps, 2): the mean of the two halves' breathing (maps, 2) despiked (despiked), and their
+    difference smoothed over BREATHING_SMOOTHING_S; the same span as the halves themselves."""
+    mean = despiked(seconds, halves.mean(axis=1), DESPIKE_WINDOW_S, DESPIKE_MADS)
+    difference = smooth_in_time(seconds, halves[:, 0] - halves[:, 1], BREATHING_SMOOTHING_S)
+    return np.stack([mean, difference], axis=1)
+
+
+def despiked(seconds: np.ndarray, values: np.ndarray, window_s: float, mads: float) -> np.ndarray:
+    """A series with every value that lies more than `mads` robust deviations (1.4826 MAD over the
+    series) from the median of the values within `window_s` replaced by that median (a Hampel filter);
+    the others unchanged."""
+    values = np.asarray(values, dtype=float)
+    if len(values) < 3:
+        return values.copy()
+    step = float(np.median(np.diff(seconds)))
+    width = max(3, int(round(window_s / step)) | 1) if step > 0 else 3
+    median = ndimage.median_filter(values, width, mode="nearest")
+    deviation = np.abs(values - median)
+    scale = 1.4826 * float(np.median(deviation))
+    return np.where(deviation > mads * scale, median, values)
 
 
 def session_fit(stats: np.ndarray, breathing: np.ndarray) -> np.ndarray | None:

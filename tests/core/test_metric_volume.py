@@ -283,10 +283,11 @@ def test_a_known_distance_keeps_the_flanks_lost_pixels_out_of_the_body_frame():
     assert abs(volumes[None] / BULGE_VOLUME_L - 1.0) > 0.05
 
 
-def _band_sessions(noise_mm: float, seed: int = 3):
+def _band_sessions(noise_mm: float, seed: int = 3, blow_at_s: float | None = None):
     """A rim band of 60 edges of 20 pixels (hinge and stretch profiles as rim_model makes them), 240 maps
     at 22 a second: each map shifted (sway, and jumps of 3 mm), each edge breathing with amounts of its
-    own times the rib cage's or the abdomen's course (a quarter period apart), plus pixel noise."""
+    own times the rib cage's or the abdomen's course (a quarter period apart), plus pixel noise. With
+    blow_at_s both courses also fall at once there, as in a forced expiration (0.1 in 0.2 s)."""
     from core.volume.maps import DisplacementSums
 
     rng = np.random.default_rng(seed)
@@ -296,6 +297,8 @@ def _band_sessions(noise_mm: float, seed: int = 3):
     hinge = from_side * (1.0 - from_side / 300.0)
     stretch = (150.0 - from_side) * np.exp(-from_side / 15.0)
     courses = np.stack([np.sin(2 * np.pi * t / 6.0), np.sin(2 * np.pi * t / 6.0 - np.pi / 2)], axis=1) * 0.03
+    if blow_at_s is not None:
+        courses -= 0.1 * np.clip((t[:, None] - blow_at_s) / 0.2, 0.0, 1.0)
     compartment = np.arange(edges) * 2 // edges  # upper edges follow the rib cage, lower the abdomen
     amounts = rng.uniform(0.5, 1.5, (edges, 2))
     shifts = 6.0 * np.sin(2 * np.pi * t / 23.0) + 3.0 * (rng.random(maps) < 0.05)
@@ -332,6 +335,31 @@ def test_the_session_level_finds_each_maps_shift_with_the_noise_of_a_mean():
         own.append(numerator / denominator - shifts[i])
     assert session_error < 0.05
     assert np.sqrt(np.mean(np.square(own))) > 4 * session_error
+
+
+def test_the_session_level_follows_a_forced_expiration_without_spreading_it():
+    """The halves' mean breathing is despiked, not smoothed: where the whole trunk falls at once (a
+    blow), the session's level stays on each map's shift. Smoothed over 0.1 s (as before the fifteenth
+    session) the fall was spread over +-0.3 s and the level took the difference for a shift."""
+    from core.volume.metric import session_shifts
+
+    t, sums, shifts, _ = _band_sessions(noise_mm=0.3, blow_at_s=5.0)
+    found = session_shifts(t, sums)
+    seconds = t / 1e9
+    around = (seconds > 4.6) & (seconds < 5.6)
+    assert np.max(np.abs(found - shifts)[around]) < 0.1
+
+
+def test_a_single_map_off_its_neighbours_is_despiked_and_a_steep_fall_kept():
+    from core.volume.metric import despiked
+
+    seconds = np.arange(100) / 22.0
+    fall = -np.clip((seconds - 2.0) / 0.2, 0.0, 1.0) * 3.0 + np.random.default_rng(1).normal(0, 0.01, 100)
+    spiked = fall.copy()
+    spiked[30] += 1.0
+    cleaned = despiked(seconds, spiked, 0.2, 3.0)
+    assert np.max(np.abs(np.delete(cleaned - fall, 30))) < 0.05  # the fall as it was, to the noise
+    assert abs(cleaned[30] - fall[30]) < 0.05
 
 
 def test_the_session_level_needs_enough_maps_with_a_band():
