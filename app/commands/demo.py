@@ -47,9 +47,11 @@ def add_demo(sub: argparse._SubParsersAction, run_simulate, describe_session) ->
         print(f"{session}: valid photopft session (format version 1)")
         print(describe_session(session))
         results = args.output_dir / "results.h5"
-        print(f"reconstructing every 11th light cycle window (10 maps/s per head) into {results} ...")
-        summary = process_session(session, results, every=11, workers=None,
-                                  settings=ReconstructionSettings(track=True))
+        with SessionFile(session) as s:
+            maps_per_s = s.rig.frame_rate_hz / s.rig.cycle_length
+        # every light cycle, as `process` does: the peak flow needs a map at least every 50 ms
+        print(f"reconstructing every light cycle ({maps_per_s:.0f} maps/s per head) into {results} ...")
+        summary = process_session(session, results, workers=None, settings=ReconstructionSettings(track=True))
         print(f"reconstructed {sum(summary.maps.values())} maps in {summary.elapsed_s:.0f} s")
         print(volume_summary(session, results))
         return 0
@@ -115,4 +117,6 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
             lines.append(f"  forced expirations: grade {values['grade']}, {values['acceptable_FVC']} of "
                          f"{values['manoeuvres']} acceptable")
         lines += [f"  note: {problem}" for problem in report.flow_sensor.problems]
+        if optical_values:
+            lines += [f"  note (optical): {problem}" for problem in report.optical.problems]
     return "\n".join(lines)

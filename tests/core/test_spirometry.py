@@ -192,3 +192,19 @@ def test_peak_flow_from_one_optical_map_a_light_cycle(shared_data):
             pef = forced_values(resample(t_maps, np.interp(t_maps, t, mapped))[1], ANALYSIS_RATE_HZ).pef_lps
             within.append(abs(pef / true_pef - 1.0) <= 0.10)
     assert np.mean(within) >= 0.9, np.mean(within)
+
+
+def test_a_peak_flow_is_not_given_from_samples_too_far_apart():
+    """FVC and FEV1 from a volume sampled every 91 ms (every other light cycle), but no PEF: the reason
+    instead. Every 45 ms (each cycle) the PEF is there."""
+    from core.analysis.values import analyse_volume
+
+    events = [(1.0, "forced-start"), (9.0, "maneuver-end")]
+    for step, given in ((1.0 / 11.0, False), (1.0 / 22.0, True)):
+        t = np.arange(0.0, 10.0, step)
+        volume = -4.0 * (1.0 - np.exp(-np.clip(t - 2.0, 0.0, None) / 0.5))
+        values = analyse_volume(t, volume, events)
+        parameters = values.parameters()
+        assert parameters["FVC_l"] == pytest.approx(4.0, abs=0.05)
+        assert ("PEF_lps" in parameters) == given
+        assert any("PEF not given" in p for p in values.problems) != given
