@@ -100,10 +100,12 @@ class SessionValues:
                 out["VC_repeatability_l"] = spread
         if self.forced is not None:
             f = self.forced
-            out.update(FVC_l=f.fvc_l, FEV1_l=f.fev1_l, FEV1_FVC=f.fev1_fvc,
-                       **({} if self.pef_refused else {"PEF_lps": f.pef_lps}), FEF2575_lps=f.fef2575_lps, grade=f.grade, grade_FEV1=f.fev1_grade, grade_FVC=f.fvc_grade,
+            out.update(FVC_l=f.fvc_l, FEV1_l=f.fev1_l, FEV1_FVC=f.fev1_fvc, FEF2575_lps=f.fef2575_lps,
+                       grade=f.grade, grade_FEV1=f.fev1_grade, grade_FVC=f.fvc_grade,
                        acceptable_FEV1=f.acceptable_fev1, acceptable_FVC=f.acceptable_fvc,
                        manoeuvres=len(f.manoeuvres))
+            if not self.pef_refused:
+                out["PEF_lps"] = f.pef_lps
             usable = [m for m in f.manoeuvres if m.fev1_usable] or f.manoeuvres
             fev6 = [m.fev6_l for m in usable]
             out.update(FEV6_l=max(fev6), FEV075_l=max(m.fev075_l for m in usable),

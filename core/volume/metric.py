@@ -264,8 +264,8 @@ def session_shifts(timestamp_ns: np.ndarray, sums: list[DisplacementSums]) -> np
 # deviations from the median of the maps within DESPIKE_WINDOW_S) takes that median, and every other map
 # keeps its own value, so a forced expiration's fall is not spread. Smoothed over 0.1 s (as until the
 # fifteenth session) the session's level took what the smoothing removed for a shift, which spread the
-# blow over +-0.3 s: population subject 4's peak flow read 3.23 L/s for 4.18 (docs/volume.md, "Peak flow
-# and the session's level"). Their difference (the halves' asynchrony, and the map's tilt, which
+# blow over +-0.3 s: population subject 4's peak flow read 3.23 L/s for 4.18 (docs/volume.md, "Peak
+# flow"). Their difference (the halves' asynchrony, and the map's tilt, which
 # alternates from map to map with the room light's flicker: +-2 mm on the average man) is smoothed over
 # BREATHING_SMOOTHING_S: unsmoothed it made jumps on bodies in the clinic world (1.6-3 % of the maps).
 DESPIKE_WINDOW_S = 0.2
