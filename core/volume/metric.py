@@ -73,6 +73,13 @@ def map_noise_l(volume_l: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0))
 
 
+def maps_within(seconds: np.ndarray, window_s: float) -> int:
+    """How many maps of a series (times in s, nearly even) a running median over window_s takes: an odd
+    number, 3 at least."""
+    step = float(np.median(np.diff(seconds)))
+    return max(3, int(round(window_s / step)) | 1) if step > 0 else 3
+
+
 def jump_share(timestamp_ns: np.ndarray, volume_l: np.ndarray) -> tuple[float, float]:
     """(share of maps, largest jump in L) whose volume lies more than JUMP_L from the median of
     the maps within JUMP_WINDOW_S: a breath, even a forced one, moves the volume steadily one way
@@ -83,9 +90,7 @@ def jump_share(timestamp_ns: np.ndarray, volume_l: np.ndarray) -> tuple[float, f
     t, v = t[good], v[good]
     if len(v) < 5:
         return float("nan"), float("nan")
-    step = float(np.median(np.diff(t)))
-    width = max(3, int(round(JUMP_WINDOW_S / step)) | 1) if step > 0 else 3
-    off = np.abs(v - ndimage.median_filter(v, width, mode="nearest"))
+    off = np.abs(v - ndimage.median_filter(v, maps_within(t, JUMP_WINDOW_S), mode="nearest"))
     return float(np.mean(off > JUMP_L)), float(off.max())
 
 
@@ -288,9 +293,7 @@ def despiked(seconds: np.ndarray, values: np.ndarray, window_s: float, mads: flo
     values = np.asarray(values, dtype=float)
     if len(values) < 3:
         return values.copy()
-    step = float(np.median(np.diff(seconds)))
-    width = max(3, int(round(window_s / step)) | 1) if step > 0 else 3
-    median = ndimage.median_filter(values, width, mode="nearest")
+    median = ndimage.median_filter(values, maps_within(seconds, window_s), mode="nearest")
     deviation = np.abs(values - median)
     scale = 1.4826 * float(np.median(deviation))
     return np.where(deviation > mads * scale, median, values)
