@@ -85,18 +85,16 @@ def _built_once(tmp_path_factory, name: str, build) -> Path:
 @pytest.fixture(scope="session")
 def processed_full_session(tmp_path_factory) -> tuple[Path, Path]:
     """(session, results with an optical /volume): the full protocol at scale 0.1 with the flow
-    sensor, processed every 22nd cycle window (5 maps/s), with a volume regression fitted on its
-    own results. One xdist worker runs every test that uses it (pytest_collection_modifyitems)."""
+    sensor, processed every 22nd cycle window (5 maps/s); the optical volume is the metric one (a
+    volume regression's path is tested on its own, test_report). One xdist worker runs every test
+    that uses it (pytest_collection_modifyitems)."""
     from app.cli import main
 
     def build(folder: Path) -> None:
         from core.sim.simulate import SimConfig, simulate
 
         simulate(folder / "full.h5", SimConfig(protocol="full", scale=0.1, seed=5))
-        assert main(["process", str(folder / "full.h5"), "-o", str(folder / "plain.h5"), "--every", "22"]) == 0
-        assert main(["calibrate", "volume", str(folder / "plain.h5"), "-o", str(folder / "volume.json")]) == 0
-        assert main(["process", str(folder / "full.h5"), "-o", str(folder / "results.h5"), "--every", "22",
-                     "--volume-calibration", str(folder / "volume.json")]) == 0
+        assert main(["process", str(folder / "full.h5"), "-o", str(folder / "results.h5"), "--every", "22"]) == 0
 
     folder = _built_once(tmp_path_factory, "processed-full", build)
     return folder / "full.h5", folder / "results.h5"

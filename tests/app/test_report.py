@@ -78,6 +78,25 @@ def test_report_numbers_equal_the_results_file(processed_full_session, tmp_path)
     assert all("/FontFile2" in f["/FontDescriptor"] for f in fonts)  # embedded, every one
 
 
+def test_a_volume_calibration_gives_the_thesis_regression_and_the_report_names_it(processed_full_session,
+                                                                                   small_session, tmp_path):
+    """`calibrate volume` fits the regression (eqs 5.1-5.3) on one session's results; `process
+    --volume-calibration` gives the next session's volume from it, and its report says which profile."""
+    profile = tmp_path / "volume.json"
+    assert main(["calibrate", "volume", str(processed_full_session[1]), "-o", str(profile)]) == 0
+    results = tmp_path / "calibrated.h5"
+    assert main(["process", str(small_session), "-o", str(results), "--every", "5",
+                 "--volume-calibration", str(profile)]) == 0
+    with h5py.File(results, "r") as r:
+        volume = dict(r["volume"].attrs)
+        assert len(r["volume/volume_l"]) > 5
+    assert str(volume["method"]).startswith("thesis regression")
+    pdf = tmp_path / "report.pdf"
+    assert main(["report", str(results), "-o", str(pdf)]) == 0
+    words = " ".join(" ".join(_text(pdf)).split())  # the line may wrap anywhere
+    assert f"volume calibration of {volume['calibration_created']}" in words
+
+
 def test_letter_and_a4(processed_full_session, tmp_path):
     session, _ = processed_full_session
     sizes = {}
