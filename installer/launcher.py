@@ -6,9 +6,11 @@ import sys
 from pathlib import Path
 
 if getattr(sys, "frozen", False):
-    # numba keeps its compiled functions in the user's cache folder (the bundle is read-only)
+    # numba keeps its compiled functions in the user's cache folder (the bundle is read-only), keyed
+    # on each module's place in the bundle whatever the working folder (app/bundle_cache.py)
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "photopft" / "numba"
     os.environ.setdefault("NUMBA_CACHE_DIR", str(cache))
+    os.environ.setdefault("NUMBA_CACHE_LOCATOR_CLASSES", "app.bundle_cache.BundleCacheLocator,UserWideCacheLocator")
     # Aravis' typelib and libraries travel in the bundle
     bundle = Path(sys._MEIPASS)
     os.environ["GI_TYPELIB_PATH"] = os.pathsep.join(
