@@ -16,6 +16,34 @@ from core.analysis.spirometry import ForcedValues, SessionGrade, forced_values, 
 
 ANALYSIS_RATE_HZ = 200.0
 
+# The least tidal volume a breath may have: a floor under a small child's quiet breaths (a child of 7
+# in the population bench breathed 0.06-0.13 L; with 0.08 L, two of its four breaths went and its
+# truth read 5.8 breaths/min for 12), raised where the curve's own noise (curve_noise_l) would make
+# breaths of that size (docs/benchmarks.md, constants).
+MIN_TIDAL_FLOOR_L = 0.02
+BREATH_OVER_NOISE = 4.0
+
+
+def curve_noise_l(volume_l: np.ndarray) -> float:
+    """A volume curve's noise from sample to sample (L): the robust rms (1.4826 MAD) of its second
+    differences over sqrt(6), which breathing's own curvature from one optical map to the next hardly
+    reaches. NaN with fewer than four samples."""
+    v = np.asarray(volume_l, dtype=float)
+    v = v[np.isfinite(v)]
+    if len(v) < 4:
+        return float("nan")
+    second = np.diff(v, 2)
+    return float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0))
+
+
+def least_tidal_l(stretches: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """The least tidal volume a breath of these stretches may have: MIN_TIDAL_FLOOR_L, or
+    BREATH_OVER_NOISE times the stretches' noise (curve_noise_l, their samples as recorded) where
+    that is more."""
+    noise = [curve_noise_l(v) for _, v in stretches]
+    noise = [n for n in noise if np.isfinite(n)]
+    return max(MIN_TIDAL_FLOOR_L, BREATH_OVER_NOISE * float(np.median(noise))) if noise else MIN_TIDAL_FLOOR_L
+
 
 @dataclass
 class TidalValues:
@@ -201,9 +229,12 @@ def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: 
 
 
 def tidal_breaths(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: float = 1.2,
-                  min_tidal_l: float = 0.08) -> list[tuple[float, float, float, float, float, float, float, float]]:
+                  min_tidal_l: float | None = None) -> list[tuple[float, float, float, float, float, float, float, float]]:
     """Every breath of the stretches: (VT, Ti, Te, tPTEF/tE, IE50, end-expiratory level,
-    end-inspiration time, end-expiration time)."""
+    end-inspiration time, end-expiration time). min_tidal_l: the least tidal volume of a breath
+    (default: least_tidal_l of the stretches)."""
+    if min_tidal_l is None:
+        min_tidal_l = least_tidal_l(stretches)
     breaths = []
     for t_s, volume_l in stretches:
         t, smooth, flow, pairs = _breaths(t_s, volume_l, min_breath_s, min_tidal_l)
@@ -228,7 +259,7 @@ SIGH_OF_MEDIAN = 2.0
 
 
 def tidal_values(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: float = 1.2,
-                 min_tidal_l: float = 0.08) -> TidalValues | None:
+                 min_tidal_l: float | None = None) -> TidalValues | None:
     """Breaths between consecutive end-expiratory minima, pooled over stretches of quiet breathing,
     sighs left out; None with fewer than two breaths."""
     breaths = tidal_breaths(stretches, min_breath_s, min_tidal_l)

@@ -28,7 +28,7 @@ from functools import cached_property
 import numpy as np
 from scipy import ndimage
 
-from core.analysis.values import tidal_stretches, tidal_values, tidal_windows
+from core.analysis.values import curve_noise_l, tidal_stretches, tidal_values, tidal_windows
 from core.volume.compartments import compartment_shares, phase_angle_deg
 from core.rig import Head
 from core.volume.maps import (REGIONS, TOP_REFERRED, DisplacementSums, DisplacementTracker, head_volume_l,
@@ -63,14 +63,8 @@ MIN_REFERENCE_SWING_L = 0.2  # a session whose volume swings less tells too litt
 
 
 def map_noise_l(volume_l: np.ndarray) -> float:
-    """The volume curve's noise from map to map (L): the robust rms (1.4826 MAD) of its second
-    differences over sqrt(6), which breathing's own curvature from map to map hardly reaches."""
-    v = np.asarray(volume_l, dtype=float)
-    v = v[np.isfinite(v)]
-    if len(v) < 4:
-        return float("nan")
-    second = np.diff(v, 2)
-    return float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0))
+    """The volume curve's noise from map to map (L): curve_noise_l of its maps."""
+    return curve_noise_l(volume_l)
 
 
 def maps_within(seconds: np.ndarray, window_s: float) -> int:
