@@ -96,6 +96,7 @@ class _FileCamera:
         self._clock = clock
         self._next = 0
         self._generation = 0
+        self._drained = False  # asked for a frame after the last one: every frame was handed on
         self.stats = CameraStats()
         self.name = f"replay-{head}"
 
@@ -106,7 +107,9 @@ class _FileCamera:
         if self._generation != self._clock.generation:  # the operator moved the position
             self._generation = self._clock.generation
             self._next = int(np.searchsorted(self._stamps, self._clock.now_ns()))
+            self._drained = False
         if self._next >= len(self._ids):
+            self._drained = True
             time.sleep(timeout_s)
             return None
         wait = self._clock.wait_s(int(self._stamps[self._next]))
@@ -123,7 +126,10 @@ class _FileCamera:
 
     @property
     def finished(self) -> bool:
-        return self._next >= len(self._ids)
+        """Every frame handed on: the capture loop came back for one after the last (a frame is
+        counted by the engine between one grab and the next, and a replay that said it was over on
+        taking its last frame left the count one short for a moment)."""
+        return self._drained
 
     def stop(self) -> None:
         pass
