@@ -22,5 +22,6 @@ compiled=$(find "$cache" -name '*.nbc' 2>/dev/null | wc -l)
 mkdir -p "$scratch/elsewhere"
 (cd "$scratch/elsewhere" && "$app" gui --smoke-test "${SMOKE_AGAIN_SECONDS:-5}")
 again=$(find "$HOME/.cache" -name '*.nbc' | wc -l)
-[ "$again" -eq "$compiled" ] || { echo "started from another folder, it compiled again ($compiled kernels, then $again)"; exit 1; }
+[ "$again" -eq "$compiled" ] || {
+    echo "started from another folder, it compiled again ($compiled kernels, then $again)"; exit 1; }
 echo "second start from another folder: the $compiled compiled kernels found again"

@@ -228,8 +228,11 @@ def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: 
     return vt, ti, te, tptef, ie50, smooth[a], t[peak], t[b]
 
 
+Breath = tuple[float, float, float, float, float, float, float, float]
+
+
 def tidal_breaths(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: float = 1.2,
-                  min_tidal_l: float | None = None) -> list[tuple[float, float, float, float, float, float, float, float]]:
+                  min_tidal_l: float | None = None) -> list[Breath]:
     """Every breath of the stretches: (VT, Ti, Te, tPTEF/tE, IE50, end-expiratory level,
     end-inspiration time, end-expiration time). min_tidal_l: the least tidal volume of a breath
     (default: least_tidal_l of the stretches)."""

@@ -62,11 +62,6 @@ MAX_REFERENCE_DISAGREEMENT = 0.15
 MIN_REFERENCE_SWING_L = 0.2  # a session whose volume swings less tells too little to compare them
 
 
-def map_noise_l(volume_l: np.ndarray) -> float:
-    """The volume curve's noise from map to map (L): curve_noise_l of its maps."""
-    return curve_noise_l(volume_l)
-
-
 def maps_within(seconds: np.ndarray, window_s: float) -> int:
     """How many maps of a series (times in s, nearly even) a running median over window_s takes: an odd
     number, 3 at least."""
@@ -145,7 +140,7 @@ class MetricVolume:
         than MAX_SCALE_MISMATCH to put their sides where the two heads' trunk widths put them, a
         curve noisier from map to map than MAX_MAP_NOISE_L, or one that jumps away and back in more
         than MAX_JUMP_SHARE of its maps (jump_share)."""
-        noise = map_noise_l(self.volume_l)
+        noise = curve_noise_l(self.volume_l)
         if noise > MAX_MAP_NOISE_L:
             return (f"the optical volume's noise from map to map is {1000 * noise:.0f} mL (at most "
                     f"{1000 * MAX_MAP_NOISE_L:.0f} mL for values within tolerance): its values would be the noise's")
@@ -369,7 +364,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
 
         whole = volume("all", False)
         session = h.session_shifts_mm is not None and (
-            jump_share(h.timestamp_ns, whole)[0] > MAX_JUMP_SHARE or map_noise_l(whole) > MAX_MAP_NOISE_L)
+            jump_share(h.timestamp_ns, whole)[0] > MAX_JUMP_SHARE or curve_noise_l(whole) > MAX_MAP_NOISE_L)
         if session:
             session_whole = volume("all", True)
             gain, lag = level_agreement(h.timestamp_ns, session_whole, whole)

@@ -151,13 +151,14 @@ def test_the_live_volume_gives_each_head_the_distance_of_the_two_heads_geometry(
 def test_a_volume_curve_noisier_from_map_to_map_than_its_values_allow_is_refused():
     """Quiet breathing (0.5 L at 15/min) sampled at 22 maps/s: the noise estimate sees the noise
     added, not the breathing; above 50 mL the volume is refused with the figure."""
-    from core.volume.metric import MAX_MAP_NOISE_L, MetricVolume, map_noise_l
+    from core.analysis.values import curve_noise_l
+    from core.volume.metric import MAX_MAP_NOISE_L, MetricVolume
 
     t = np.arange(0, 30, 1 / 22)
     breathing = 0.25 * np.sin(2 * np.pi * t / 4.0)
     noise = np.random.default_rng(1).normal(0.0, 1.0, len(t))
-    assert map_noise_l(breathing) < 0.002
-    assert map_noise_l(breathing + 0.02 * noise) == pytest.approx(0.02, rel=0.15)
+    assert curve_noise_l(breathing) < 0.002
+    assert curve_noise_l(breathing + 0.02 * noise) == pytest.approx(0.02, rel=0.15)
 
     def volume(values: np.ndarray) -> MetricVolume:
         return MetricVolume((t * 1e9).astype(np.int64), values, {}, {}, {}, "test", {"front": 0.0})
@@ -173,7 +174,8 @@ def test_a_volume_curve_that_jumps_away_and_back_is_refused():
     5 mL of noise: the running median follows the blow and nothing counts as a jump. The same curve with
     a jump of 0.6 L for two maps every two seconds (as a population subject's showed, where the
     trunk's sides glitched) is refused; its robust map-to-map noise stays under the noise limit."""
-    from core.volume.metric import MAX_MAP_NOISE_L, MetricVolume, jump_share, map_noise_l
+    from core.analysis.values import curve_noise_l
+    from core.volume.metric import MAX_MAP_NOISE_L, MetricVolume, jump_share
 
     t = np.arange(0, 40, 1 / 22)
     curve = 0.25 * np.sin(2 * np.pi * t / 4.0)
@@ -189,7 +191,7 @@ def test_a_volume_curve_that_jumps_away_and_back_is_refused():
         jumped[start:start + 2] += 0.6
     share, largest = jump_share(stamps, jumped)
     assert share > 0.03 and largest == pytest.approx(0.6, abs=0.05)
-    assert map_noise_l(jumped) < MAX_MAP_NOISE_L
+    assert curve_noise_l(jumped) < MAX_MAP_NOISE_L
 
     def volume(values: np.ndarray) -> MetricVolume:
         return MetricVolume(stamps, values, {}, {}, {}, "test", {"front": 0.0})
