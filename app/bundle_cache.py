@@ -5,8 +5,8 @@ numba keys its cache folder on each module's file name. In the bundle those name
 started from another folder, the application compiled every kernel again (75 s before the first
 height maps, measured 2026-11-27) and left one more copy in the user's cache. This locator keys
 them on the module's place inside the bundle instead, under the user's cache folder
-(NUMBA_CACHE_DIR). installer/launcher.py names it to numba (NUMBA_CACHE_LOCATOR_CLASSES), with
-numba's user-wide locator after it for a cache folder that cannot be written. numba's own stamp
+(NUMBA_CACHE_DIR), or the temporary folder where that cannot be written. installer/launcher.py names
+it to numba (NUMBA_CACHE_LOCATOR_CLASSES), with numba's user-wide locator after it. numba's own stamp
 stays: in a bundle it is the executable's hash, so a new build compiles afresh.
 """
 
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import sys
+import tempfile
 from pathlib import PurePosixPath
 
 from numba.core import config
@@ -39,22 +40,26 @@ def bundle_relative_dir(py_file: str, bundle: str | None) -> str:
 class BundleCacheLocator(_SourceFileBackedLocatorMixin, _CacheLocator):
     """numba's cache of one function at NUMBA_CACHE_DIR / (its module's folder inside the bundle)."""
 
-    def __init__(self, py_func, py_file):
+    def __init__(self, py_func, py_file, root: str):
         self._py_file = py_file
         self._lineno = py_func.__code__.co_firstlineno
         relative = bundle_relative_dir(py_file, getattr(sys, "_MEIPASS", None))
-        self._cache_path = os.path.join(config.CACHE_DIR, *relative.split("/"))
+        self._cache_path = os.path.join(root, *relative.split("/"))
 
     def get_cache_path(self):
         return self._cache_path
 
     @classmethod
     def from_function(cls, py_func, py_file):
-        if not config.CACHE_DIR:
-            return None
-        locator = cls(py_func, py_file)
-        try:
-            locator.ensure_cache_path()
-        except OSError:  # the user's cache folder cannot be written: numba's next locator
-            return None
-        return locator
+        """In the user's cache folder; where that cannot be written (a read-only or full home), in the
+        temporary folder, compiled again at each start but running; None where neither can be."""
+        roots = [config.CACHE_DIR] if config.CACHE_DIR else []
+        roots.append(os.path.join(tempfile.gettempdir(), f"photopft-numba-{os.getuid()}"))
+        for root in roots:
+            locator = cls(py_func, py_file, root)
+            try:
+                locator.ensure_cache_path()
+            except OSError:
+                continue
+            return locator
+        return None
