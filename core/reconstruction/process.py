@@ -23,6 +23,7 @@ from core.io.outputs import atomic_output, stop_if_requested
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
+from core.limits import past_limit
 from core.io.results import ResultsFile, ResultsWriter
 from core.volume.maps import DisplacementTracker, smooth_in_time
 from core.volume.sides import bend_refusal, paired_tilts, side_profile_mm
@@ -61,7 +62,7 @@ def distance_refusal(distances_mm: dict[str, float]) -> str | None:
         if not np.isfinite(distance):
             return f"head {name}: no subject distance was measured"
         if not lo <= distance <= hi:
-            return (f"head {name}: the subject measured at {distance:.0f} mm, outside the rig's working range "
+            return (f"head {name}: the subject measured at {past_limit(distance, lo if distance < lo else hi)} mm, outside the rig's working range "
                     f"{lo:.0f}-{hi:.0f} mm (a subject out of place, or skin or lights the calibration does not "
                     "describe)")
     return None
@@ -84,7 +85,7 @@ def reflectance_refusal(sheen_by_head: dict[str, float]) -> str | None:
     sheen too."""
     for name, sheen in sheen_by_head.items():
         if np.isfinite(sheen) and sheen > MAX_SHEEN:
-            return (f"head {name}: the shading does not follow the light model: a sheen on the skin {sheen:.2f} "
+            return (f"head {name}: the shading does not follow the light model: a sheen on the skin {past_limit(sheen, MAX_SHEEN, 2)} "
                     f"of its albedo (at most {MAX_SHEEN:.2f}) bends the maps, so the volume would be off by "
                     "percents (oily or sweaty skin: crossed polarisers on the LEDs and the lens remove it, or a "
                     "towel; or lights not where the calibration puts them)")
@@ -156,7 +157,7 @@ def coverage_refusal(areas_m2: dict[str, np.ndarray]) -> str | None:
         area = np.asarray(area, dtype=float)
         typical = float(np.nanmedian(area)) if np.isfinite(area).any() else 0.0
         if typical < MIN_TRUNK_AREA_M2:
-            return (f"head {name}: its maps hold {1e4 * typical:.0f} cm^2 of the subject, fewer valid pixels than a trunk "
+            return (f"head {name}: its maps hold {past_limit(1e4 * typical, 1e4 * MIN_TRUNK_AREA_M2)} cm^2 of the subject, fewer valid pixels than a trunk "
                     f"({1e4 * MIN_TRUNK_AREA_M2:.0f} cm^2 at least): the subject out of view, covered or unlit")
     return None
 
@@ -192,11 +193,11 @@ def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: 
     if (arm := _first_hidden(occluded_share)) is not None:
         name, hidden = arm
         return (f"head {name}: an arm lies against the trunk (along more than "
-                f"{100 * MAX_OCCLUDED_SIDE_SHARE:.0f} % of its height) in {100 * hidden:.0f} % of the maps and "
+                f"{100 * MAX_OCCLUDED_SIDE_SHARE:.0f} % of its height) in {past_limit(100 * hidden, 100 * MAX_HIDDEN_MAPS)} % of the maps and "
                 "hides the sides the volume is referred to (the patient should hold the arms away from the body)")
     if (edge := _first_hidden(out_of_view_share or {})) is not None:
         name, hidden = edge
-        return (f"head {name}: the trunk runs out of the image at the side in {100 * hidden:.0f} % of the maps (the "
+        return (f"head {name}: the trunk runs out of the image at the side in {past_limit(100 * hidden, 100 * MAX_HIDDEN_MAPS)} % of the maps (the "
                 "patient off centre or too near): the sides the volume is referred to are not seen")
     return None
 
@@ -210,7 +211,7 @@ def geometric_distance_refusal(occluded_share: dict[str, np.ndarray]) -> str | N
     if (arm := _first_hidden(occluded_share)) is None:
         return None
     name, hidden = arm
-    return (f"an arm lies against the trunk in head {name}'s view in {100 * hidden:.0f} % of the maps: the two "
+    return (f"an arm lies against the trunk in head {name}'s view in {past_limit(100 * hidden, 100 * MAX_HIDDEN_MAPS)} % of the maps: the two "
             "heads' distances are measured between the trunk's sides, which it hides")
 
 

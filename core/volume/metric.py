@@ -29,6 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 from core.analysis.values import curve_noise_l, tidal_stretches, tidal_values, tidal_windows
+from core.limits import past_limit
 from core.volume.compartments import compartment_shares, phase_angle_deg
 from core.rig import Head
 from core.volume.maps import (REGIONS, TOP_REFERRED, DisplacementSums, DisplacementTracker, head_volume_l,
@@ -142,11 +143,11 @@ class MetricVolume:
         than MAX_JUMP_SHARE of its maps (jump_share)."""
         noise = curve_noise_l(self.volume_l)
         if noise > MAX_MAP_NOISE_L:
-            return (f"the optical volume's noise from map to map is {1000 * noise:.0f} mL (at most "
+            return (f"the optical volume's noise from map to map is {past_limit(1000 * noise, 1000 * MAX_MAP_NOISE_L)} mL (at most "
                     f"{1000 * MAX_MAP_NOISE_L:.0f} mL for values within tolerance): its values would be the noise's")
         share, largest = jump_share(self.timestamp_ns, self.volume_l)
         if share > MAX_JUMP_SHARE:
-            return (f"the optical volume jumps away and back (up to {1000 * largest:.0f} mL) in {100 * share:.1f} % "
+            return (f"the optical volume jumps away and back (up to {1000 * largest:.0f} mL) in {past_limit(100 * share, 100 * MAX_JUMP_SHARE, 1)} % "
                     f"of its maps (at most {100 * MAX_JUMP_SHARE:.0f} %): its tidal volume, rate and peak flow "
                     "would be the jumps'")
         for name, mismatch in self.scale_mismatch.items():
@@ -178,7 +179,7 @@ def reference_slope(side_referred_l: np.ndarray, top_referred_l: np.ndarray) -> 
 def reference_refusal(slope: float) -> str | None:
     """Why a volume whose two references disagree this much (reference_slope) cannot be reported, or None."""
     if np.isfinite(slope) and (slope > 1.0 + MAX_REFERENCE_DISAGREEMENT or slope < 0.0):
-        return (f"referred to the top of the view the optical volume reads {100 * slope:.0f} % of what it reads "
+        return (f"referred to the top of the view the optical volume reads {past_limit(100 * slope, 100 * (1 + MAX_REFERENCE_DISAGREEMENT) if slope > 0 else 0.0)} % of what it reads "
                 f"referred to the trunk's sides (at most {100 * (1 + MAX_REFERENCE_DISAGREEMENT):.0f} %): the "
                 "trunk's sides move with the breathing on this body, and the volume referred to them would miss "
                 "what they move")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.rig import Head
+from core.limits import past_limit
 from core.volume.maps import contour_rows_mm
 
 # Measured (docs/volume.md, "... and bent maps"), as mm of the sum per 100 mm of height: the true
@@ -75,6 +76,6 @@ def bend_refusal(tilts: np.ndarray) -> str | None:
     tilt = float(np.median(tilts))
     if abs(tilt) <= MAX_SIDES_TILT:
         return None
-    return (f"the front and back maps disagree on the depth of the trunk's sides by {100 * abs(tilt):.0f} mm more "
+    return (f"the front and back maps disagree on the depth of the trunk's sides by {past_limit(100 * abs(tilt), 100 * MAX_SIDES_TILT)} mm more "
             f"for every 100 mm of its height (at most {100 * MAX_SIDES_TILT:.0f} mm): the maps are bent (a sheen on "
             "the skin, lights the calibration does not describe), and their volume would not be the breathing's")
