@@ -93,7 +93,8 @@ def reflectance_refusal(sheen_by_head: dict[str, float]) -> str | None:
 
 
 # The first pass of a two-head `process` (geometric_distances) reconstructs a light cycle this often:
-# sway is slower than 0.25 Hz and the distances are smoothed over WIDTH_SMOOTHING_S (1 s)
+# sway is slower than 0.25 Hz and the distances are smoothed over WIDTH_SMOOTHING_S (0.3 s; 2 survey maps a
+# second sample it well: 0.5 s and 0.2 s gave the same volume, docs/volume.md "Axial sway read as breath")
 SURVEY_INTERVAL_S = 0.5
 
 

@@ -36,7 +36,16 @@ from core.volume.maps import (REGIONS, TOP_REFERRED, DisplacementSums, Displacem
                               metric_head_volume_l, row_widths_px, smooth_in_time, trunk_width_px,
                               two_head_distances)
 
-WIDTH_SMOOTHING_S = 1.0  # sway is slower than 0.25 Hz; one pixel of trunk width is 4 mm of distance
+# The two heads' distances are smoothed over this (a Gaussian's sigma, s). Sway runs at 0.03-0.25 Hz, and a
+# sigma of 1 s (until 2026-11-28) kept 29 % of it at 0.25 Hz, 82 % at 0.1 Hz: the maps were reconstructed
+# and scaled at distances that lagged the subject, and the near-light maps, bent by lights placed from a
+# wrong distance, read the sway as breath. A child's quiet breathing with 50 mm of axial sway (ideal
+# world) read 1.42 times the truth, -1.1 mL per mm of sway; with 0.3 s 0.93 and -0.06 mL/mm (0.5 s:
+# 1.05 and -0.27; 0.2 s: 0.90 and +0.04); docs/volume.md, "Axial sway read as breath"
+WIDTH_SMOOTHING_S = 0.3
+# The live view's distances follow the two heads' widths with an exponential time constant of this (s):
+# causal, and on one map at a time, so smoothed longer
+LIVE_WIDTH_TIME_CONSTANT_S = 1.0
 SIDE_SMOOTHING_S = 3.0
 VOLUME_SMOOTHING_S = 0.03  # the maps' own noise; a forced expiration's volume curve has little above 5 Hz
 # A head's map scale this far from 1: the two views' trunk sides are not the same (docs/volume.md).
@@ -462,7 +471,7 @@ class LiveMetricVolume:
                 d_front, _ = two_head_distances(np.array([self._width[front]]), np.array([self._width[back]]),
                                                 self._baseline)
                 frame_distance = float(d_front[0]) if name == front else self._baseline - float(d_front[0])
-                target = self._smoothed(name, t_s, frame_distance, WIDTH_SMOOTHING_S)
+                target = self._smoothed(name, t_s, frame_distance, LIVE_WIDTH_TIME_CONSTANT_S)
         sums = tracker.add(depth_mm, mask, silhouette, frame_distance, row_widths)
         with self._lock:
             if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
