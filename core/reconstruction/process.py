@@ -62,7 +62,8 @@ def distance_refusal(distances_mm: dict[str, float]) -> str | None:
         if not np.isfinite(distance):
             return f"head {name}: no subject distance was measured"
         if not lo <= distance <= hi:
-            return (f"head {name}: the subject measured at {past_limit(distance, lo if distance < lo else hi)} mm, outside the rig's working range "
+            measured = past_limit(distance, lo if distance < lo else hi)
+            return (f"head {name}: the subject measured at {measured} mm, outside the rig's working range "
                     f"{lo:.0f}-{hi:.0f} mm (a subject out of place, or skin or lights the calibration does not "
                     "describe)")
     return None
@@ -85,10 +86,10 @@ def reflectance_refusal(sheen_by_head: dict[str, float]) -> str | None:
     sheen too."""
     for name, sheen in sheen_by_head.items():
         if np.isfinite(sheen) and sheen > MAX_SHEEN:
-            return (f"head {name}: the shading does not follow the light model: a sheen on the skin {past_limit(sheen, MAX_SHEEN, 2)} "
-                    f"of its albedo (at most {MAX_SHEEN:.2f}) bends the maps, so the volume would be off by "
-                    "percents (oily or sweaty skin: crossed polarisers on the LEDs and the lens remove it, or a "
-                    "towel; or lights not where the calibration puts them)")
+            return (f"head {name}: the shading does not follow the light model: a sheen on the skin "
+                    f"{past_limit(sheen, MAX_SHEEN, 2)} of its albedo (at most {MAX_SHEEN:.2f}) bends the maps, so the "
+                    "volume would be off by percents (oily or sweaty skin: crossed polarisers on the LEDs and the lens "
+                    "remove it, or a towel; or lights not where the calibration puts them)")
     return None
 
 
@@ -158,7 +159,8 @@ def coverage_refusal(areas_m2: dict[str, np.ndarray]) -> str | None:
         area = np.asarray(area, dtype=float)
         typical = float(np.nanmedian(area)) if np.isfinite(area).any() else 0.0
         if typical < MIN_TRUNK_AREA_M2:
-            return (f"head {name}: its maps hold {past_limit(1e4 * typical, 1e4 * MIN_TRUNK_AREA_M2)} cm^2 of the subject, fewer valid pixels than a trunk "
+            held = past_limit(1e4 * typical, 1e4 * MIN_TRUNK_AREA_M2)
+            return (f"head {name}: its maps hold {held} cm^2 of the subject, fewer valid pixels than a trunk "
                     f"({1e4 * MIN_TRUNK_AREA_M2:.0f} cm^2 at least): the subject out of view, covered or unlit")
     return None
 
@@ -185,6 +187,11 @@ def _first_hidden(shares_by_head: dict[str, np.ndarray]) -> tuple[str, float] | 
     return None
 
 
+def _share_of_maps(hidden: float) -> str:
+    """A share of maps past MAX_HIDDEN_MAPS, in percent, as a refusal writes it."""
+    return past_limit(100 * hidden, 100 * MAX_HIDDEN_MAPS)
+
+
 def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: dict[str, np.ndarray] | None = None,
                       ) -> str | None:
     """Why the optical volume cannot be reported from heads whose trunk's sides an arm hides or the
@@ -194,12 +201,12 @@ def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: 
     if (arm := _first_hidden(occluded_share)) is not None:
         name, hidden = arm
         return (f"head {name}: an arm lies against the trunk (along more than "
-                f"{100 * MAX_OCCLUDED_SIDE_SHARE:.0f} % of its height) in {past_limit(100 * hidden, 100 * MAX_HIDDEN_MAPS)} % of the maps and "
+                f"{100 * MAX_OCCLUDED_SIDE_SHARE:.0f} % of its height) in {_share_of_maps(hidden)} % of the maps and "
                 "hides the sides the volume is referred to (the patient should hold the arms away from the body)")
     if (edge := _first_hidden(out_of_view_share or {})) is not None:
         name, hidden = edge
-        return (f"head {name}: the trunk runs out of the image at the side in {past_limit(100 * hidden, 100 * MAX_HIDDEN_MAPS)} % of the maps (the "
-                "patient off centre or too near): the sides the volume is referred to are not seen")
+        return (f"head {name}: the trunk runs out of the image at the side in {_share_of_maps(hidden)} % of the "
+                "maps (the patient off centre or too near): the sides the volume is referred to are not seen")
     return None
 
 
@@ -212,7 +219,7 @@ def geometric_distance_refusal(occluded_share: dict[str, np.ndarray]) -> str | N
     if (arm := _first_hidden(occluded_share)) is None:
         return None
     name, hidden = arm
-    return (f"an arm lies against the trunk in head {name}'s view in {past_limit(100 * hidden, 100 * MAX_HIDDEN_MAPS)} % of the maps: the two "
+    return (f"an arm lies against the trunk in head {name}'s view in {_share_of_maps(hidden)} % of the maps: the two "
             "heads' distances are measured between the trunk's sides, which it hides")
 
 

@@ -152,11 +152,13 @@ class MetricVolume:
         than MAX_JUMP_SHARE of its maps (jump_share)."""
         noise = curve_noise_l(self.volume_l)
         if noise > MAX_MAP_NOISE_L:
-            return (f"the optical volume's noise from map to map is {past_limit(1000 * noise, 1000 * MAX_MAP_NOISE_L)} mL (at most "
+            noisy = past_limit(1000 * noise, 1000 * MAX_MAP_NOISE_L)
+            return (f"the optical volume's noise from map to map is {noisy} mL (at most "
                     f"{1000 * MAX_MAP_NOISE_L:.0f} mL for values within tolerance): its values would be the noise's")
         share, largest = jump_share(self.timestamp_ns, self.volume_l)
         if share > MAX_JUMP_SHARE:
-            return (f"the optical volume jumps away and back (up to {1000 * largest:.0f} mL) in {past_limit(100 * share, 100 * MAX_JUMP_SHARE, 1)} % "
+            return (f"the optical volume jumps away and back (up to {1000 * largest:.0f} mL) in "
+                    f"{past_limit(100 * share, 100 * MAX_JUMP_SHARE, 1)} % "
                     f"of its maps (at most {100 * MAX_JUMP_SHARE:.0f} %): its tidal volume, rate and peak flow "
                     "would be the jumps'")
         for name, mismatch in self.scale_mismatch.items():
@@ -188,8 +190,10 @@ def reference_slope(side_referred_l: np.ndarray, top_referred_l: np.ndarray) -> 
 def reference_refusal(slope: float) -> str | None:
     """Why a volume whose two references disagree this much (reference_slope) cannot be reported, or None."""
     if np.isfinite(slope) and (slope > 1.0 + MAX_REFERENCE_DISAGREEMENT or slope < 0.0):
-        return (f"referred to the top of the view the optical volume reads {past_limit(100 * slope, 100 * (1 + MAX_REFERENCE_DISAGREEMENT) if slope > 0 else 0.0)} % of what it reads "
-                f"referred to the trunk's sides (at most {100 * (1 + MAX_REFERENCE_DISAGREEMENT):.0f} %): the "
+        limit = 100 * (1 + MAX_REFERENCE_DISAGREEMENT)
+        reads = past_limit(100 * slope, limit if slope > 0 else 0.0)
+        return (f"referred to the top of the view the optical volume reads {reads} % of what it reads "
+                f"referred to the trunk's sides (at most {limit:.0f} %): the "
                 "trunk's sides move with the breathing on this body, and the volume referred to them would miss "
                 "what they move")
     return None

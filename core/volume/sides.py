@@ -76,6 +76,7 @@ def bend_refusal(tilts: np.ndarray) -> str | None:
     tilt = float(np.median(tilts))
     if abs(tilt) <= MAX_SIDES_TILT:
         return None
-    return (f"the front and back maps disagree on the depth of the trunk's sides by {past_limit(100 * abs(tilt), 100 * MAX_SIDES_TILT)} mm more "
+    apart = past_limit(100 * abs(tilt), 100 * MAX_SIDES_TILT)
+    return (f"the front and back maps disagree on the depth of the trunk's sides by {apart} mm more "
             f"for every 100 mm of its height (at most {100 * MAX_SIDES_TILT:.0f} mm): the maps are bent (a sheen on "
             "the skin, lights the calibration does not describe), and their volume would not be the breathing's")
