@@ -23,8 +23,8 @@ from core.io.outputs import atomic_output, stop_if_requested
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
-from core.limits import past_limit
 from core.io.results import ResultsFile, ResultsWriter
+from core.limits import past_limit
 from core.volume.maps import DisplacementTracker, smooth_in_time
 from core.volume.sides import bend_refusal, paired_tilts, side_profile_mm
 

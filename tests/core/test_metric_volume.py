@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.volume.metric import HeadDisplacements, MetricVolume, metric_volume
+from core.volume.metric import HeadDisplacements, MetricVolume, metric_volume, side_targets
 from core.rig import thesis_head
-from core.volume.maps import DisplacementTracker, metric_head_volume_l
+from core.volume.maps import DisplacementSums, DisplacementTracker, metric_head_volume_l
 
 RIM_MM = 2000.0
 SEMI_AXES_MM = (200.0, 250.0)
@@ -290,8 +290,6 @@ def _band_sessions(noise_mm: float, seed: int = 3, blow_at_s: float | None = Non
     at 22 a second: each map shifted (sway, and jumps of 3 mm), each edge breathing with amounts of its
     own times the rib cage's or the abdomen's course (a quarter period apart), plus pixel noise. With
     blow_at_s both courses also fall at once there, as in a forced expiration (0.1 in 0.2 s)."""
-    from core.volume.maps import DisplacementSums
-
     rng = np.random.default_rng(seed)
     edges, width, maps = 60, 20, 240
     t = np.arange(maps) / 22.0
@@ -421,9 +419,6 @@ def test_the_two_heads_distances_follow_sway_as_fast_as_quiet_breathing():
     """Sway at 0.2 Hz, a quiet breath's rate: the distances each map is scaled to (and, in `process`, reconstructed
     at) follow at least 90 % of it. Smoothed over 1 s they followed 45 %, and a child's quiet breathing with
     50 mm of axial sway read 1.42 times the truth (docs/volume.md, "Axial sway read as breath")."""
-    from core.volume.maps import DisplacementSums
-    from core.volume.metric import side_targets
-
     baseline_mm, width_px, sway_mm = 4000.0, 150.0, 25.0
     t = np.arange(0.0, 20.0, 1.0 / 22.0)
     front_mm = 2000.0 + sway_mm * np.sin(2.0 * np.pi * 0.2 * t)
