@@ -123,6 +123,9 @@ FRAME_TRIM_ROWS = 8
 MIN_TRUNK_ROWS = 4  # fewer trunk rows than this: the map shows no trunk
 
 
+SCALE_REFINEMENTS = 3  # BodySilhouette.frame's rounds of scale (rows' widths) and shift (outline)
+
+
 class BodySilhouette:
     """A reference map's trunk silhouette, to find the body frame of other maps against it.
 
@@ -170,22 +173,30 @@ class BodySilhouette:
         frame = self._shifted(frame, blurred, gradient, iterations=3)
         if not refine_scale:
             return frame
-        frame = BodyFrame(self._width_ratio(widths_px, frame), frame.shift_u_px, frame.shift_v_px)
-        return self._shifted(frame, blurred, gradient, iterations=2)
+        for _ in range(SCALE_REFINEMENTS):  # a first guess far off carries the widths from the wrong rows
+            ratio = self.width_ratio(widths_px, frame)
+            if not np.isfinite(ratio):
+                break
+            frame = self._shifted(BodyFrame(ratio, frame.shift_u_px, frame.shift_v_px), blurred, gradient, iterations=2)
+        return frame
 
-    def _width_ratio(self, widths_px: np.ndarray, frame: BodyFrame) -> float:
-        """The other map's widths on the reference's rows, carried through the frame, over the reference's."""
+    def width_ratio(self, widths_px: np.ndarray, frame: BodyFrame) -> float:
+        """The other map's trunk widths on the reference's rows, carried through the frame, over the
+        reference's: the median of the rows' ratios (NaN with fewer than MIN_SIDE_ROWS rows in both).
+        An arm that joins the trunk's silhouette on some rows widens those rows by a quarter, and
+        their sum with them (a population subject's trunk read 141 px against 133 in a quarter of
+        its maps, docs/volume.md); the median leaves such rows out, in either map."""
         rows = self.head.cy + (self._rows - self.head.cy) * frame.scale + frame.shift_v_px
         if len(rows) == 0 or len(widths_px) < 2:
-            return frame.scale
+            return float("nan")
         below = np.clip(np.floor(rows).astype(int), 0, len(widths_px) - 2)
         after = rows - below
         carried = (1.0 - after) * widths_px[below] + after * widths_px[below + 1]
         carried[(after < 0) | (after > 1)] = np.nan  # rows outside the image
         both = np.isfinite(carried) & np.isfinite(self._widths)
         if both.sum() < MIN_SIDE_ROWS:
-            return frame.scale
-        return float(np.sum(carried[both]) / np.sum(self._widths[both]))
+            return float("nan")
+        return float(np.median(carried[both] / self._widths[both]))
 
     def _shifted(self, frame: BodyFrame, blurred: np.ndarray, gradient: list[np.ndarray], iterations: int) -> BodyFrame:
         """The shift that brings the other map's blurred silhouette onto the reference's, scale held
@@ -284,6 +295,9 @@ class DisplacementSums:
     displaced: dict[str, float] = field(default_factory=dict)
     levels_mm: tuple[float, float] = (float("nan"), float("nan"))
     band: np.ndarray | None = None
+    # the trunk's widths over the reference's on the same body rows (BodySilhouette.width_ratio; 1 on
+    # the reference): what the width follows where an arm joins the trunk on some rows
+    width_ratio: float = float("nan")
 
 
 def _row_edges(mask: np.ndarray, width: int):
@@ -737,6 +751,7 @@ class DisplacementTracker:
         else:
             frame, width = self._gated(self._silhouette.frame(valid, row_widths, width / self._reference_width),
                                        valid, row_widths, width)
+        width_ratio = self._silhouette.width_ratio(row_widths, frame)
         z = frame.resampled(depth_mm, valid, ref_mask.shape, self.head)
         both = ref_mask & np.isfinite(z)
         _, rim = rim_depths(ref_depth, z, both, self._band_px, self._skip_px)
@@ -750,7 +765,7 @@ class DisplacementTracker:
                                 {k: float(current[m].sum()) for k, m in parts.items()},
                                 {k: float(area[m].sum()) for k, m in parts.items()},
                                 {k: float(displaced[m].sum()) for k, m in parts.items()},
-                                (level_ref, level), self._rim.edge_statistics(z - ref_depth, both))
+                                (level_ref, level), self._rim.edge_statistics(z - ref_depth, both), width_ratio)
         top = self._top & both
         if top.any():  # sum fp (z - top) = sum fp (z - level) + (level - top) sum fp
             whole = sums.areas["all"]

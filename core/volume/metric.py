@@ -127,7 +127,18 @@ class HeadDisplacements:
 
     @property
     def width_px(self) -> np.ndarray:
-        return np.array([s.width_px for s in self.sums], dtype=float)
+        """Each map's trunk width (px) as the reference's width times the map's width_ratio: the median
+        of its rows' ratios, which an arm joining the trunk on some rows does not move. The
+        reference's width is the median over the maps of their mean width over their ratio, so an
+        arm on the reference map itself moves none of them either. A map without a ratio keeps
+        its mean width."""
+        mean = np.array([s.width_px for s in self.sums], dtype=float)
+        ratio = np.array([s.width_ratio for s in self.sums], dtype=float)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            per_map = mean / ratio
+        if not np.isfinite(per_map).any():
+            return mean
+        return np.where(np.isfinite(ratio), ratio * np.nanmedian(per_map), mean)
 
 
 @dataclass
