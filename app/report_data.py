@@ -422,8 +422,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             curves[OPTICAL] = optical
             sources[OPTICAL] = analyse_volume(*optical, events, subject.age_years if subject else None)
         elif results_path is not None and (refused := optical_refusal(results_path)):
-            # the only place a session without a flow sensor says why (the comparison needs one)
-            notes.append(f"Optical volume in litres: refused when the session was processed: {refused}.")
+            if analysed.flow_sensor is None:  # with one, the comparison with it says why (_compare), once
+                notes.append(f"Optical volume in litres: refused when the session was processed: {refused}.")
         else:
             notes.append("Optical volume in litres: not available for this session (no volume calibration "
                          "profile was applied when it was processed)." if results_path is not None else
