@@ -22,6 +22,7 @@ Measured limits on simulated subjects: docs/volume.md.
 from __future__ import annotations
 
 import threading
+from collections import deque
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -46,6 +47,7 @@ WIDTH_SMOOTHING_S = 0.3
 # The live view's distances follow the two heads' widths with an exponential time constant of this (s):
 # causal, and on one map at a time, so smoothed longer
 LIVE_WIDTH_TIME_CONSTANT_S = 1.0
+LIVE_REFERENCE_MAPS = 200  # the maps whose median gives the live view the reference's trunk width
 SIDE_SMOOTHING_S = 3.0
 VOLUME_SMOOTHING_S = 0.03  # the maps' own noise; a forced expiration's volume curve has little above 5 Hz
 # A head's map scale this far from 1: the two views' trunk sides are not the same (docs/volume.md).
@@ -442,6 +444,10 @@ class LiveMetricVolume:
         self._baseline = baseline_mm
         self._lock = threading.Lock()
         self._width: dict[str, float] = {}
+        # per head, each map's mean trunk width over its width_ratio: the reference's width as the maps
+        # so far agree on it (HeadDisplacements.width_px, causally), the last LIVE_REFERENCE_MAPS of them
+        self._reference_widths: dict[str, deque[float]] = {name: deque(maxlen=LIVE_REFERENCE_MAPS) for name in heads}
+        self._robust_width: dict[str, float] = {}
         self._target: dict[str, tuple[float, float]] = {}  # head -> (time s, smoothed distance)
         self._k_reference: dict[str, float] = {}
         self._reference_side: dict[str, float] = {}
@@ -478,6 +484,9 @@ class LiveMetricVolume:
             row_widths = row_widths_px(depth_mm, valid, tracker.head)
             width = trunk_width_px(depth_mm, valid, tracker.head, row_widths)
             with self._lock:
+                # the width the rows' median ratio gave the head's last map: an arm joining the trunk on
+                # some rows does not move it (one map late, well inside LIVE_WIDTH_TIME_CONSTANT_S)
+                width = self._robust_width.get(name, width)
                 if np.isfinite(width):
                     self._width[name] = width
                 if len(self._width) < 2 or name not in self._width:
@@ -489,6 +498,9 @@ class LiveMetricVolume:
                 target = self._smoothed(name, t_s, frame_distance, LIVE_WIDTH_TIME_CONSTANT_S)
         sums = tracker.add(depth_mm, mask, silhouette, frame_distance, row_widths)
         with self._lock:
+            if np.isfinite(sums.width_ratio) and np.isfinite(sums.width_px) and sums.width_ratio > 0:
+                self._reference_widths[name].append(sums.width_px / sums.width_ratio)
+                self._robust_width[name] = sums.width_ratio * float(np.median(self._reference_widths[name]))
             if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
                 return float("nan")
             reference_side = self._reference_side.setdefault(name, sums.side_mm)  # the first is the reference

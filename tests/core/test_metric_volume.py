@@ -148,6 +148,26 @@ def test_the_live_volume_gives_each_head_the_distance_of_the_two_heads_geometry(
     assert live.geometric_distance_mm("front") == pytest.approx(median, rel=0.002)
 
 
+def test_the_live_distances_do_not_follow_an_arm_joining_the_trunk():
+    """The live view's two-head distances, like `process`'s, take the trunk's width from its rows'
+    median ratio (one map late): an arm joining the front's trunk on some rows moves them by under
+    a millimetre, where its mean width would have moved them by tens."""
+    from core.volume.metric import LiveMetricVolume
+
+    front, back = thesis_head("front", scale=0.25), thesis_head("back", scale=0.25)
+    live = LiveMetricVolume({"front": front, "back": back}, 2 * RIM_MM)
+    clean_front, clean_back = _trunk_map(front, 0.0), _trunk_map(back, 0.0)
+    median = float(np.median(clean_front[0][clean_front[1]]))
+    joined = _arm_joined(clean_front, int(round(0.25 * clean_front[1].any(axis=0).sum())))
+    distances = []
+    for k in range(12):
+        t = 0.05 * k
+        live.add("back", t, *clean_back, median)
+        live.add("front", t, *(joined if k % 3 == 2 else clean_front), median)
+        distances.append(live.geometric_distance_mm("front"))
+    assert np.ptp(distances[2:]) < 1.0
+
+
 def test_a_volume_curve_noisier_from_map_to_map_than_its_values_allow_is_refused():
     """Quiet breathing (0.5 L at 15/min) sampled at 22 maps/s: the noise estimate sees the noise
     added, not the breathing; above 50 mL the volume is refused with the figure."""
