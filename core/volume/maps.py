@@ -662,8 +662,9 @@ def trunk_width_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head, widths_p
     rows; the silhouette's mean width where fewer than MIN_SIDE_ROWS rows give both sides.
     widths_px: the map's row_widths_px, if already known.
 
-    It sets the two heads' distances and the first guess of the image scale between maps (the sway
-    along the axis; BodySilhouette refines it on the same body rows).
+    It gives the first guess of the image scale between maps (the sway along the axis;
+    BodySilhouette refines it on the same body rows), and over the map's width_ratio the reference's
+    width that the two heads' distances start from (core/volume/metric.py, HeadDisplacements.width_px).
     The silhouette's width did that before, but breathing moves it: the steeper a flank gets, the
     more of its outermost pixels turn past the integrator's grazing limit. On a simulated 30 s slow
     VC the silhouette narrowed by 0.06 px (of 206) per litre, and resampling the maps by that lost
