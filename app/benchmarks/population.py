@@ -333,17 +333,17 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
         if not plotted:
             plt.close(fig)
             continue
-        if refused_note:
-            ax.text(0.02, 0.03, "\n".join(refused_note), transform=ax.transAxes, fontsize=7, color="dimgrey")
         ax.axhline(absolute, color="grey", linestyle=":", linewidth=0.8)
         ax.axhline(-absolute, color="grey", linestyle=":", linewidth=0.8)
         suffix = f" ({unit})" if unit else ""
         ax.set_xlabel(("the subject's true distance" if key == "distance_mm" else f"mean of measured and true {label}")
                       + suffix)
         ax.set_ylabel(f"measured − true{suffix}")
-        ax.set_title(f"{label}: Bland-Altman, {len(rows)} subjects")
+        ax.set_title(f"{label}: Bland-Altman, {len(rows)} subjects", fontsize=10)
+        if refused_note:  # under the axes, where no point can lie
+            fig.text(0.01, 0.01, "; ".join(refused_note), fontsize=7, color="dimgrey")
         ax.legend(fontsize=8)
-        fig.tight_layout()
+        fig.tight_layout(rect=(0.0, 0.04 if refused_note else 0.0, 1.0, 1.0))
         path = folder / f"{stem}-{label.replace('/', '_')}.png"
         fig.savefig(path)
         plt.close(fig)
