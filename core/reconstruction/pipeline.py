@@ -162,6 +162,8 @@ GRAZING_NZ = 0.35
 # What lies beside the trunk is an arm when it spans at least this share of the trunk's rows (an
 # arm hangs from the shoulder to below the waist)
 ARM_SHARE_OF_TRUNK_ROWS = 0.25
+# An arm held away may stay joined to the trunk on up to this share of its rows from its top (the armpit)
+ARM_JOINED_SHARE = 0.25
 
 
 def trunk_mask(mask: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -176,9 +178,10 @@ def trunk_mask(mask: np.ndarray, normals: np.ndarray) -> np.ndarray:
     2. within those, the largest part that no near-grazing pixel (GRAZING_NZ, from `normals`)
        divides, with the grazing pixels nearer to it than to any part it was divided from (an
        occluding contour between arm and trunk);
-    3. above where each side's arm leaves the trunk, nothing beyond the trunk's side there (the
-       arm's top and the shoulder's tip over it, which one head may see joined to the trunk and
-       the other not).
+    3. above where each side's arm leaves the trunk (its first row with background between them,
+       within ARM_JOINED_SHARE of its rows; else its top row), nothing beyond the trunk's side there
+       (the arm's top and the shoulder's tip over it, which one head may see joined to the trunk and
+       the other not, and one map of a head but not the next).
     An arm held close, lying on the trunk's side with nothing between, stays."""
     if not mask.any():
         return mask
@@ -197,18 +200,34 @@ def trunk_mask(mask: np.ndarray, normals: np.ndarray) -> np.ndarray:
         arms, found = ndimage.label(mask[:, side] & ~trunk[:, side])
         if not found:
             continue
-        arm_rows = np.nonzero((arms == _largest_label(arms)).any(axis=1))[0]
+        label = _largest_label(arms)
+        arm_rows = np.nonzero((arms == label).any(axis=1))[0]
         if len(arm_rows) < ARM_SHARE_OF_TRUNK_ROWS * (trunk_rows[-1] - trunk_rows[0] + 1):
             continue  # no arm: a speck the mask left beside the trunk
-        top = int(arm_rows[0])
+        # where the arm leaves the trunk: its first row with background between the two (an arm held away
+        # may still be joined to the trunk on its top rows, at the armpit); an arm held close, divided
+        # from the trunk by an occluding contour only, leaves it at its top row
+        left = side.start == 0
+        upper = arm_rows[:int(np.ceil(ARM_JOINED_SHARE * len(arm_rows)))]
+        top = next((int(r) for r in upper if _apart(mask[r, side], trunk[r, side], arms[r] == label, left)),
+                   int(arm_rows[0]))
         on_row = np.nonzero(trunk[top, side])[0]
         if len(on_row) == 0:
             continue
-        if side.start == 0:
+        if left:
             trunk[:top, :on_row[0]] = False
         else:
             trunk[:top, middle + on_row[-1] + 1:] = False
     return _largest_part(trunk)
+
+
+def _apart(subject: np.ndarray, trunk: np.ndarray, arm: np.ndarray, left: bool) -> bool:
+    """Whether on a row (one side's columns) background lies between the trunk and the arm."""
+    trunk_cols, arm_cols = np.nonzero(trunk)[0], np.nonzero(arm)[0]
+    if len(trunk_cols) == 0 or len(arm_cols) == 0:
+        return False
+    inner, outer = (arm_cols[-1], trunk_cols[0]) if left else (trunk_cols[-1], arm_cols[0])
+    return bool(outer - inner > 1 and not subject[inner + 1:outer].all())
 
 
 def _largest_label(labels: np.ndarray) -> int:

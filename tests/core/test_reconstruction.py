@@ -296,6 +296,22 @@ def test_the_trunk_mask_leaves_out_arms_held_away_and_keeps_arms_held_close():
     np.testing.assert_array_equal(trunk_mask(two, _facing(two.shape)), first)
 
 
+def test_an_arm_held_away_but_joined_to_the_trunk_at_the_armpit_goes_with_its_joined_rows():
+    """A population subject's front map kept the upper arms (50 of 256 rows, 3300 pixels) joined to
+    the trunk at the armpits where its neighbours did not, and its volume jumped 1.5 L: the arm's own
+    top rows, an outer strip of it divided from the rest by grazing normals, lay beside rows where the
+    trunk still held the arm's inner part. The arm leaves the trunk where background first lies
+    between them."""
+    trunk = np.zeros((120, 120), bool)
+    trunk[20:100, 40:81] = True
+    mask = trunk.copy()
+    mask[20:100, 25:36] = mask[20:100, 85:96] = True  # the arms
+    mask[20:36, 36:40] = mask[20:36, 81:85] = True  # joined to the trunk down to the armpits
+    normals = _facing(mask.shape)
+    normals[20:36, 27] = normals[20:36, 93] = [1.0, 0.0, -0.1]  # an outer strip of each arm's top
+    np.testing.assert_array_equal(trunk_mask(mask, normals), trunk)
+
+
 def test_an_occluding_contour_divides_an_arm_from_the_trunk():
     """An arm that meets the trunk over its whole length, with a line of grazing normals between
     them (a back head's view of an arm against the trunk's side): it goes, the contour's pixels
