@@ -420,7 +420,7 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
         optical = _optical_curve(results_path, start) if results_path is not None else None
         if optical is not None:
             curves[OPTICAL] = optical
-            sources[OPTICAL] = analyse_volume(*optical, events, subject.age_years if subject else None)
+            sources[OPTICAL] = analyse_volume(*optical, events, subject.age_years if subject else None, fitted=True)
         elif results_path is not None and (refused := optical_refusal(results_path)):
             if analysed.flow_sensor is None:  # with one, the comparison with it says why (_compare), once
                 notes.append(f"Optical volume in litres: refused when the session was processed: {refused}.")

@@ -67,7 +67,7 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
         if optical_volume is not None:
             t = (np.asarray(optical_volume[0], dtype=np.int64) - start) / 1e9
             volume = np.asarray(optical_volume[1], dtype=float)
-            optical_values = analyse_volume(t, volume, events, age)
+            optical_values = analyse_volume(t, volume, events, age, fitted=True)
             optical_curve = (t, volume)
         references: dict[str, Reference] = {}
         problem = None

@@ -39,6 +39,9 @@ class ForcedValues:
     plateau_l: float  # volume exhaled in the last second
     cough_in_first_second: bool
     eofe: bool = False  # end of forced expiration reached (set with the other manoeuvres in mind)
+    # the curve's flow noise over one sample step (sqrt(2) sigma / step) over its PEF; 0 for a curve
+    # whose noise is not weighed (a flow sensor's)
+    pef_noise_ratio: float = 0.0
     problems: list[str] = field(default_factory=list)
 
     @property
@@ -159,6 +162,7 @@ class SessionGrade:
     fvc_repeatability_l: float
     acceptable_fev1: int
     acceptable_fvc: int
+    pef_noise_ratio: float = 0.0  # that of the blow PEF is taken from
 
     @property
     def grade(self) -> str:
@@ -221,7 +225,7 @@ def grade_session(manoeuvres: list[ForcedValues], age_years: float | None = None
     fvc = max(m.fvc_l for m in fvc_from)
     best = max(fvc_ok or fev1_ok or manoeuvres, key=lambda m: m.fev1_l + m.fvc_l)
     return SessionGrade(manoeuvres, fev1_grade, fvc_grade, fev1, fvc, fev1 / fvc, best.fef2575_lps, best.pef_lps,
-                        fev1_spread, fvc_spread, len(fev1_ok), len(fvc_ok))
+                        fev1_spread, fvc_spread, len(fev1_ok), len(fvc_ok), best.pef_noise_ratio)
 
 
 @dataclass
