@@ -484,6 +484,35 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                                                         f"--scale {args.scale:g} --seed {args.seed}`)", text)
 
     li.set_defaults(run=run_lights)
+    bl = what.add_parser("blows", help="the standard waveforms read as optical maps with noise: FEV1, FVC, "
+                                       "acceptability and PEF, read straight and fitted")
+    bl.add_argument("--noise-ml", default="0,5,10,15,20,25,35", help="noise of a map, mL (comma-separated)")
+    bl.add_argument("--phases", type=int, default=4, help="phases of the light cycle each waveform is sampled at")
+    bl.add_argument("--draws", type=int, default=2, help="noise draws per phase and noise")
+    bl.add_argument("--seed", type=int, default=0)
+    bl.add_argument("--waveforms", type=Path, default=SHARED / "data" / "spirometry-waveforms",
+                    help="the standard test waveforms (default ../shared/data/spirometry-waveforms)")
+    bl.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_blows(args: argparse.Namespace) -> int:
+        from app.benchmarks.blows import run_blows_bench
+        from app.errors import UserError
+
+        try:
+            noise = [finite(n) for n in args.noise_ml.split(",")]
+        except argparse.ArgumentTypeError as exc:
+            raise UserError(f"--noise-ml: {exc}") from exc
+        if any(n < 0 for n in noise) or args.phases < 1 or args.draws < 1:
+            raise UserError("--noise-ml takes noises of 0 mL or more; --phases and --draws 1 or more")
+        try:
+            text = run_blows_bench(args.waveforms, noise, args.phases, args.draws, args.seed)
+        except (FileNotFoundError, ValueError) as exc:
+            raise UserError(str(exc)) from exc
+        return _publish(args, "blows", f"Forced expirations read through the maps' noise (`photopft bench blows "
+                                       f"--noise-ml {args.noise_ml} --phases {args.phases} --draws {args.draws} "
+                                       f"--seed {args.seed}`)", text)
+
+    bl.set_defaults(run=run_blows)
     co = what.add_parser("compression", help="lossless HDF5 filters on the rig's frames: ratio, MB/s, GB a minute")
     co.add_argument("--scale", type=positive, default=1.0)
     co.add_argument("--frames", type=int, default=110)

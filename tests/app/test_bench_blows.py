@@ -1,0 +1,37 @@
+"""`photopft bench blows`: the standard waveforms read as optical maps, straight and fitted."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.benchmarks.blows import _within, maps_of, readings
+from app.cli import main
+
+
+def test_a_map_is_the_mean_volume_over_its_light_cycle():
+    rate = 1000.0
+    t = np.arange(0, 2, 1 / rate)
+    times, volumes = maps_of(2.0 * t, rate, 0.0)  # a straight ramp: the mean is the cycle's middle
+    assert np.allclose(volumes, 2.0 * (times - 0.5 / 22.0), atol=2e-3)
+
+
+def test_fitted_blows_keep_fev1_where_the_noise_moves_it_read_straight(shared_data):
+    rows = readings(shared_data / "spirometry-waveforms", [0.025], phases=1, draws=1, seed=0)
+    assert len(rows) == 37
+    noisy = [r for r in rows if r.noise_ratio >= 0.2]
+    assert len(noisy) >= 5
+
+    def share(kind: str) -> float:
+        return float(np.mean([_within(getattr(r, kind).fev1_l, r.truth.fev1_l, 0.03, 0.05) for r in noisy]))
+
+    assert share("fitted") >= 0.95 and share("straight") < share("fitted")
+
+
+def test_the_bench_prints_its_bands_and_names_missing_waveforms(shared_data, tmp_path, capsys):
+    assert main(["bench", "blows", "--noise-ml", "5", "--phases", "1", "--draws", "1",
+                 "--waveforms", str(shared_data / "spirometry-waveforms"), "--no-write"]) == 0
+    out = capsys.readouterr().out
+    assert "| 0-3 % |" in out and "PEF is given where the ratio is at most 5 %" in out
+    assert main(["bench", "blows", "--waveforms", str(tmp_path), "--no-write"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no standard waveforms" in err[0] and str(tmp_path) in err[0]
