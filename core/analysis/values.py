@@ -426,7 +426,7 @@ def _peak_flow_read_straight(m: ForcedValues, t_s: np.ndarray, volume_l: np.ndar
     """Give a fitted blow the PEF of its samples read straight, and the noise ratio it is judged by.
 
     The fit rounds a sharp peak: on the standard waveforms sampled one map a cycle, the peak flow read
-    straight was within 10 % more often in every band of noise (docs/volume.md). The ratio is taken on
+    straight was within 10 % more often in every band of noise under 15 % (docs/volume.md). The ratio is taken on
     the fitted PEF, which the noise does not raise."""
     straight = resample(t_s, volume_l)[1]
     exhaled = straight[0] - straight
