@@ -407,7 +407,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
                                   "optical map every light cycle)")
             result.problems.append(result.pef_refused)
         elif result.forced.pef_noise_ratio > MAX_PEF_NOISE_RATIO:
-            result.pef_refused = (f"PEF not given: the volume's noise from sample to sample is "
+            result.pef_refused = (f"PEF not given: the optical volume's noise from map to map is "
                                   f"{100 * result.forced.pef_noise_ratio:.0f} % of the peak flow (a PEF within "
                                   f"10 % needs at most {100 * MAX_PEF_NOISE_RATIO:.0f} %)")
             result.problems.append(result.pef_refused)

@@ -232,7 +232,7 @@ def test_an_optical_curve_s_noise_moves_neither_fev1_nor_the_grade_and_refuses_p
         assert read[key] == pytest.approx(truth[key], rel=0.03), key
     assert read["grade"] in "ABCDE"
     assert "PEF_lps" not in read
-    assert values.pef_refused.startswith("PEF not given: the volume's noise from sample to sample is")
+    assert values.pef_refused.startswith("PEF not given: the optical volume's noise from map to map is")
 
 
 def test_a_quiet_optical_curve_gives_its_peak_flow(shared_data):
