@@ -356,6 +356,10 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         inside = (t >= a) & (t <= b + 0.5)
         if inside.sum() < 10:
             continue
+        if not np.all(np.isfinite(v[inside])):
+            result.problems.append(f"slow VC at {a:.1f} s: the curve holds non-finite samples (NaN or infinity): "
+                                   "left out")
+            continue
         ti, vi = smoothed_on_grid(t[inside], v[inside], ANALYSIS_RATE_HZ) if fitted else (t[inside], v[inside])
         i_low = int(np.argmin(vi))
         top, bottom = float(vi.max()), float(vi[i_low])
@@ -375,6 +379,10 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         # operator's mark (marked at the blow) to the manoeuvre's end (marked at the inspiration).
         before = (t >= a - 2.0) & (t <= b)
         if before.sum() < 10:
+            continue
+        if not np.all(np.isfinite(v[(t >= a - 2.0) & (t <= b + 0.5)])):
+            result.problems.append(f"forced expiration at {a:.1f} s: the curve holds non-finite samples (NaN or "
+                                   "infinity): left out")
             continue
         i_top = int(np.nonzero(before)[0][np.argmax(v[before])])
         stop = min(b + 0.5, end_s)

@@ -241,3 +241,14 @@ def test_a_quiet_optical_curve_gives_its_peak_flow(shared_data):
     read = analyse_volume(t, v, events, fitted=True).parameters()
     assert read["PEF_lps"] == pytest.approx(truth["PEF_lps"], rel=0.10)
     assert read["FEV1_l"] == pytest.approx(truth["FEV1_l"], rel=0.03)
+
+
+def test_an_optical_curve_with_a_missing_map_says_so_rather_than_bridging_it(shared_data):
+    truth, t, v, events = _optical_maps(shared_data / "spirometry-waveforms" / "ATS24/2415.wf", 0.008, 0)
+    for label in ("forced-start", "vc-start"):
+        start = next(when for when, name in events if name == label)
+        v[np.searchsorted(t, start + 0.5)] = np.nan
+    values = analyse_volume(t, v, events, fitted=True)
+    assert sum("non-finite samples" in p for p in values.problems) == 2
+    assert len(values.forced.manoeuvres) == 1  # the other blow is read
+    assert values.vital_capacity is None
