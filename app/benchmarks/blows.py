@@ -18,7 +18,8 @@ import numpy as np
 
 from core.analysis.fitted_curve import smoothed_on_grid
 from core.analysis.spirometry import ForcedValues, forced_values, read_waveform
-from core.analysis.values import ANALYSIS_RATE_HZ, MAX_PEF_NOISE_RATIO, curve_noise_l, resample
+from app.benchmarks.population import within
+from core.analysis.values import ANALYSIS_RATE_HZ, MAX_PEF_NOISE_RATIO, pef_noise_ratio, resample
 
 CYCLE_S = 1.0 / 22.0  # one light cycle: four lit frames and a dark one at 110 frames/s
 LEAD_S = 0.6  # the flat curve before the blow and after its end
@@ -50,8 +51,7 @@ def maps_of(volume_l: np.ndarray, rate_hz: float, phase_s: float) -> tuple[np.nd
 def read_sampling(truth: ForcedValues, t_s: np.ndarray, volume_l: np.ndarray) -> Reading:
     straight = forced_values(resample(t_s, volume_l)[1], ANALYSIS_RATE_HZ)
     fitted = forced_values(smoothed_on_grid(t_s, volume_l, ANALYSIS_RATE_HZ)[1], ANALYSIS_RATE_HZ)
-    ratio = np.sqrt(2.0) * curve_noise_l(volume_l) / CYCLE_S / fitted.pef_lps
-    return Reading(float(ratio), truth, straight, fitted)
+    return Reading(pef_noise_ratio(t_s, volume_l, fitted.pef_lps), truth, straight, fitted)
 
 
 def readings(folder: Path, noise_l: list[float], phases: int, draws: int, seed: int) -> list[Reading]:
@@ -74,10 +74,6 @@ def readings(folder: Path, noise_l: list[float], phases: int, draws: int, seed: 
     return out
 
 
-def _within(value: float, truth: float, share: float, absolute: float) -> bool:
-    return abs(value - truth) <= max(share * abs(truth), absolute)
-
-
 def table(rows: list[Reading]) -> str:
     lines = ["| flow noise over PEF | samplings | FEV1 straight / fitted | FVC straight / fitted "
              "| acceptability as the waveform's, straight / fitted | PEF within 10 % or 0.30 L/s, straight |",
@@ -89,20 +85,20 @@ def table(rows: list[Reading]) -> str:
 
     for lo, hi in zip(BANDS[:-1], BANDS[1:]):
         band = [r for r, x in zip(rows, ratios) if lo <= x < hi]
-        fev1 = [share(band, lambda r, k=k: _within(getattr(r, k).fev1_l, r.truth.fev1_l, 0.03, 0.05))
+        fev1 = [share(band, lambda r, k=k: within(getattr(r, k).fev1_l, r.truth.fev1_l, 0.05, 0.03))
                 for k in ("straight", "fitted")]
-        fvc = [share(band, lambda r, k=k: _within(getattr(r, k).fvc_l, r.truth.fvc_l, 0.03, 0.05))
+        fvc = [share(band, lambda r, k=k: within(getattr(r, k).fvc_l, r.truth.fvc_l, 0.05, 0.03))
                for k in ("straight", "fitted")]
         accept = [share(band, lambda r, k=k: getattr(r, k).fvc_acceptable == r.truth.fvc_acceptable
                         and getattr(r, k).fev1_acceptable == r.truth.fev1_acceptable) for k in ("straight", "fitted")]
-        pef = share(band, lambda r: _within(r.straight.pef_lps, r.truth.pef_lps, 0.10, 0.30))
+        pef = share(band, lambda r: within(r.straight.pef_lps, r.truth.pef_lps, 0.30, 0.10))
         label = f"{100 * lo:.0f}-{100 * hi:.0f} %" if np.isfinite(hi) else f"{100 * lo:.0f} % and more"
         cells = [label, str(len(band)), " / ".join(fev1), " / ".join(fvc), " / ".join(accept), pef]
         lines.append("| " + " | ".join(cells) + " |")
     given = [r for r, x in zip(rows, ratios) if x <= MAX_PEF_NOISE_RATIO]
     lines += ["", f"PEF is given where the ratio is at most {100 * MAX_PEF_NOISE_RATIO:.0f} % "
                   f"(MAX_PEF_NOISE_RATIO): {len(given)} of {len(rows)} samplings, "
-                  f"{share(given, lambda r: _within(r.straight.pef_lps, r.truth.pef_lps, 0.10, 0.30))} of them "
+                  f"{share(given, lambda r: within(r.straight.pef_lps, r.truth.pef_lps, 0.30, 0.10))} of them "
                   "within 10 % or 0.30 L/s."]
     return "\n".join(lines)
 

@@ -18,14 +18,13 @@ MIN_SAMPLES = 5  # fewer samples than this are not fitted: the curve is taken st
 
 def smoothed_on_grid(t_s: np.ndarray, volume_l: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """The smoothing spline through (t_s, volume_l), evaluated on an even grid at rate_hz from the
-    first sample to the last. Samples at the same time are merged (their mean). A curve with a
-    non-finite sample (a map missing from a results file another program wrote) is not fitted but
-    taken straight, so that its reader says what is wrong with it rather than the fit bridging it."""
+    first sample to the last. Samples at the same time are merged (their mean). The samples must be
+    finite (core.analysis.values leaves out a manoeuvre with a missing one, and says so)."""
     t = np.asarray(t_s, dtype=float)
     v = np.asarray(volume_l, dtype=float)
     t, inverse = np.unique(t, return_inverse=True)
     v = np.bincount(inverse, weights=v) / np.bincount(inverse)
     grid = np.arange(t[0], t[-1], 1.0 / rate_hz)
-    if len(t) < MIN_SAMPLES or not np.all(np.isfinite(v)):
+    if len(t) < MIN_SAMPLES:
         return grid, np.interp(grid, t, v)
     return grid, make_smoothing_spline(t, v)(grid)

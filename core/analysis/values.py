@@ -438,8 +438,14 @@ def _peak_flow_read_straight(m: ForcedValues, t_s: np.ndarray, volume_l: np.ndar
     the fitted PEF, which the noise does not raise."""
     straight = resample(t_s, volume_l)[1]
     exhaled = straight[0] - straight
-    flow = np.gradient(exhaled[: int(np.argmax(exhaled)) + 1], 1.0 / ANALYSIS_RATE_HZ)
-    step = float(np.median(np.diff(t_s)))
-    noise_lps = np.sqrt(2.0) * curve_noise_l(volume_l) / step
-    m.pef_noise_ratio = float(noise_lps / m.pef_lps) if m.pef_lps > 0 else float("inf")
-    m.pef_lps = float(flow.max()) if len(flow) else m.pef_lps
+    peak = int(np.argmax(exhaled))
+    m.pef_noise_ratio = pef_noise_ratio(t_s, volume_l, m.pef_lps)
+    if peak >= 1:
+        m.pef_lps = float(np.gradient(exhaled[: peak + 1], 1.0 / ANALYSIS_RATE_HZ).max())
+
+
+def pef_noise_ratio(t_s: np.ndarray, volume_l: np.ndarray, pef_lps: float) -> float:
+    """The flow noise of one sample step (sqrt(2) times the curve's noise, curve_noise_l, over the
+    median step) over a peak flow; infinite for a peak flow of 0 or less."""
+    noise_lps = np.sqrt(2.0) * curve_noise_l(volume_l) / float(np.median(np.diff(t_s)))
+    return float(noise_lps / pef_lps) if pef_lps > 0 else float("inf")
