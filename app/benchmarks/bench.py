@@ -513,6 +513,32 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                                        f"--seed {args.seed}`)", text)
 
     bl.set_defaults(run=run_blows)
+    ti = what.add_parser("tidal", help="the population's quiet breathing read as optical maps with noise: TV and RR")
+    ti.add_argument("--subjects", type=int, default=30)
+    ti.add_argument("--seed", type=int, default=1, help="the population's seed (bench population's)")
+    ti.add_argument("--noise-ml", default="0,5,10,15,20,25,35", help="noise of a map, mL (comma-separated)")
+    ti.add_argument("--draws", type=int, default=4, help="noise draws per subject and noise")
+    ti.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_tidal(args: argparse.Namespace) -> int:
+        from app.benchmarks.tidal import run_tidal_bench
+        from app.errors import UserError
+
+        try:
+            noise = [finite(n) for n in args.noise_ml.split(",")]
+        except argparse.ArgumentTypeError as exc:
+            raise UserError(f"--noise-ml: {exc}") from exc
+        if any(n < 0 for n in noise) or args.subjects < 1 or args.draws < 1:
+            raise UserError("--noise-ml takes noises of 0 mL or more; --subjects and --draws 1 or more")
+        try:
+            text = run_tidal_bench(args.subjects, args.seed, noise, args.draws)
+        except ValueError as exc:
+            raise UserError(str(exc)) from exc
+        return _publish(args, "tidal", f"Quiet breathing read through the maps' noise (`photopft bench tidal "
+                                       f"--subjects {args.subjects} --seed {args.seed} --noise-ml {args.noise_ml} "
+                                       f"--draws {args.draws}`)", text)
+
+    ti.set_defaults(run=run_tidal)
     co = what.add_parser("compression", help="lossless HDF5 filters on the rig's frames: ratio, MB/s, GB a minute")
     co.add_argument("--scale", type=positive, default=1.0)
     co.add_argument("--frames", type=int, default=110)

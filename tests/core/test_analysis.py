@@ -63,13 +63,37 @@ def _breaths_of(volumes_l, periods_s, rate_hz):
     return np.concatenate(t), np.concatenate(v)
 
 
+def test_the_rate_of_an_optical_curve_is_not_shortened_by_its_noise():
+    """Quiet breathing as the simulator breathes it (passive expiration into a flat pause, the period
+    spread 15 %), sampled one map a light cycle (each its cycle's mean) with 15 mL of noise a map, as an
+    optical volume is: the rate read from the noisy samples keeps the noise-free curve's. Read between
+    end-expiratory minima, which the noise moves about the flat pauses (at the stretch's ends only
+    inwards), it read +0.19/min on average over these 12 draws."""
+    from core.sim.breathing import RATE_HZ, Subject, tidal
+
+    subject = Subject(rate_variability=0.15)
+    cycle_s = 5 / 110.0
+    errors = []
+    for seed in range(12):
+        v = tidal(subject, 20.0, np.random.default_rng(seed))
+        t = np.arange(len(v)) / RATE_HZ
+        truth = tidal_values([(t, v)]).respiratory_rate_bpm
+        n = int(round(cycle_s * RATE_HZ))
+        maps = v[: len(v) // n * n].reshape(-1, n).mean(axis=1)
+        noisy = maps + np.random.default_rng(100 + seed).normal(0.0, 0.015, len(maps))
+        optical = tidal_values([((np.arange(len(maps)) + 1) * n / RATE_HZ, noisy)])
+        errors.append(optical.respiratory_rate_bpm - truth)
+    assert abs(np.mean(errors)) < 0.05 and np.max(np.abs(errors)) < 0.25
+
+
 def test_a_small_child_s_quiet_breaths_are_all_counted():
     """A child of 7 in the population bench breathed 0.06-0.13 L, irregularly; an absolute least
     tidal volume of 0.08 L dropped two of its four breaths and read 5.8 breaths/min for 12. Every
     breath counts, on the flow sensor's curve and on an optical one with its noise, and the noise of a
     poor optical curve makes no breaths of its own."""
     volumes, periods = [0.113, 0.079, 0.132, 0.062], [4.4, 5.0, 6.1, 4.6]
-    true_rr = 60.0 / np.mean(periods)
+    mid_inspirations = np.cumsum([0.0] + periods[:-1]) + 0.2 * np.array(periods)  # Ti 40 % of each
+    true_rr = 60.0 / np.mean(np.diff(mid_inspirations))
     t, v = _breaths_of(volumes, periods, 1000.0)
     values = tidal_values([(t, v)])
     assert values.breaths == 4 and values.respiratory_rate_bpm == pytest.approx(true_rr, abs=0.1)
