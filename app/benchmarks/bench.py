@@ -317,6 +317,19 @@ def _world_words(world: str) -> str:
     return world_words(settings)
 
 
+def _noises_ml(text: str) -> list[float]:
+    """--noise-ml: comma-separated noises of a map, 0 mL or more."""
+    from app.errors import UserError
+
+    try:
+        noise = [finite(n) for n in text.split(",")]
+    except argparse.ArgumentTypeError as exc:
+        raise UserError(f"--noise-ml: {exc}") from exc
+    if any(n < 0 for n in noise):
+        raise UserError(f"--noise-ml takes noises of 0 mL or more, not {text}")
+    return noise
+
+
 def _publish(args: argparse.Namespace, section: str, heading: str, text: str) -> int:
     """Print a bench's table and, unless --no-write, put it in its section of docs/benchmarks.md."""
     print(text)
@@ -498,12 +511,9 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         from app.benchmarks.blows import run_blows_bench
         from app.errors import UserError
 
-        try:
-            noise = [finite(n) for n in args.noise_ml.split(",")]
-        except argparse.ArgumentTypeError as exc:
-            raise UserError(f"--noise-ml: {exc}") from exc
-        if any(n < 0 for n in noise) or args.phases < 1 or args.draws < 1:
-            raise UserError("--noise-ml takes noises of 0 mL or more; --phases and --draws 1 or more")
+        noise = _noises_ml(args.noise_ml)
+        if args.phases < 1 or args.draws < 1:
+            raise UserError("--phases and --draws take 1 or more")
         try:
             text = run_blows_bench(args.waveforms, noise, args.phases, args.draws, args.seed)
         except (FileNotFoundError, ValueError) as exc:
@@ -524,12 +534,9 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         from app.benchmarks.tidal import run_tidal_bench
         from app.errors import UserError
 
-        try:
-            noise = [finite(n) for n in args.noise_ml.split(",")]
-        except argparse.ArgumentTypeError as exc:
-            raise UserError(f"--noise-ml: {exc}") from exc
-        if any(n < 0 for n in noise) or args.subjects < 1 or args.draws < 1:
-            raise UserError("--noise-ml takes noises of 0 mL or more; --subjects and --draws 1 or more")
+        noise = _noises_ml(args.noise_ml)
+        if args.subjects < 1 or args.draws < 1:
+            raise UserError("--subjects and --draws take 1 or more")
         try:
             text = run_tidal_bench(args.subjects, args.seed, noise, args.draws)
         except ValueError as exc:
