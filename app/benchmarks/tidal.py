@@ -4,7 +4,7 @@ Each subject of `bench population` (the same seed draws the same bodies) breathe
 breathing that opens its protocol (core.sim.breathing.tidal, the bench's irregular rate and sighs). The
 curve is sampled one map a light cycle, each map the mean volume over its cycle (app.benchmarks.blows),
 with white noise of a given size a map, and its tidal values read as the session analysis reads them
-(core.analysis.values.tidal_values). The table gives, per noise, the tidal volume's and the rate's
+(core.analysis.values.tidal_values_of). The table gives, per noise, the tidal volume's and the rate's
 bias and 95 % limits of agreement against the same reading of the noise-free curve, and the share
 within issue 27's tolerances (50 mL, 0.5/min); beside the rate as read now (breath_period_s, from
 mid-inspiration to mid-inspiration), the rate read between end-expiratory minima, as it was before.
@@ -18,7 +18,7 @@ import numpy as np
 
 from app.benchmarks.blows import maps_of
 from app.benchmarks.population import WORLD, _config, draw_subjects
-from core.analysis.values import Breath, tidal_breaths, tidal_values
+from core.analysis.values import Breath, quiet_breaths, tidal_breaths, tidal_values_of
 from core.sim.breathing import RATE_HZ, TIDAL_SECONDS, tidal
 from core.sim.simulate import breathing_subject
 
@@ -41,11 +41,12 @@ def _rate_between_minima(breaths: list[Breath]) -> float:
 
 
 def _read(t_s: np.ndarray, volume_l: np.ndarray) -> tuple[tuple[float, float, int], float] | None:
-    values = tidal_values([(t_s, volume_l)])
+    breaths = tidal_breaths([(t_s, volume_l)])
+    values = tidal_values_of(breaths)
     if values is None:
         return None
-    quiet = [b for b in tidal_breaths([(t_s, volume_l)]) if b[0] < 2.0 * values.tidal_volume_l]
-    return (values.tidal_volume_l, values.respiratory_rate_bpm, values.breaths), _rate_between_minima(quiet)
+    return ((values.tidal_volume_l, values.respiratory_rate_bpm, values.breaths),
+            _rate_between_minima(quiet_breaths(breaths)))
 
 
 def readings(subjects: int, seed: int, noise_l: list[float], draws: int) -> list[Reading]:

@@ -298,22 +298,28 @@ def tidal_values(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: f
     """Breaths between consecutive end-expiratory minima, pooled over stretches of quiet breathing,
     sighs left out; None with fewer than two breaths. The rate is the breaths' mean period
     (breath_period_s)."""
-    breaths = tidal_breaths(stretches, min_breath_s, min_tidal_l)
-    sighs = 0
-    if len(breaths) >= 3:
-        median = float(np.median([b[0] for b in breaths]))
-        quiet = [b for b in breaths if b[0] < SIGH_OF_MEDIAN * median]
-        sighs = len(breaths) - len(quiet)
-        breaths = quiet
-    if len(breaths) < 2:
+    return tidal_values_of(tidal_breaths(stretches, min_breath_s, min_tidal_l))
+
+
+def quiet_breaths(breaths: list[Breath]) -> list[Breath]:
+    """The breaths without the sighs (three breaths or more: a sigh needs a median to stand out from)."""
+    if len(breaths) < 3:
+        return breaths
+    median = float(np.median([b[0] for b in breaths]))
+    return [b for b in breaths if b[0] < SIGH_OF_MEDIAN * median]
+
+
+def tidal_values_of(breaths: list[Breath]) -> TidalValues | None:
+    """tidal_values of breaths already found (tidal_breaths)."""
+    quiet = quiet_breaths(breaths)
+    if len(quiet) < 2:
         return None
-    vt, ti, te, tptef, ie50, levels = (np.array(column) for column in list(zip(*breaths))[:6])
-    period = breath_period_s(breaths)
+    vt, ti, te, tptef, ie50, levels = (np.array(column) for column in list(zip(*quiet))[:6])
     tv = float(np.mean(vt))
-    rr = 60.0 / period
-    return TidalValues(len(breaths), tv, rr, tv * rr, float(np.mean(ti)), float(np.mean(te)),
+    rr = 60.0 / breath_period_s(quiet)
+    return TidalValues(len(quiet), tv, rr, tv * rr, float(np.mean(ti)), float(np.mean(te)),
                        float(np.mean(ti) / np.mean(te)), float(np.mean(tptef)), float(np.nanmean(ie50)),
-                       float(np.mean(levels)), sighs)
+                       float(np.mean(levels)), len(breaths) - len(quiet))
 
 
 def _windows(events: list[tuple[float, str]], start_label: str,
