@@ -174,9 +174,13 @@ def light_errors(calibration, lights: dict) -> dict[str, dict[str, list[float]]]
 
 
 def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: str, seconds: float | None,
-                calibration_scale: float | None = None, world: str = WORLD) -> dict:
+                calibration_scale: float | None = None, world: str = WORLD, resume: bool = False,
+                process_workers: int = 1) -> dict:
     """One subject end to end; what each stage gave or why it refused. The lights are calibrated
-    from sphere sessions at calibration_scale (default: scale, but no less than CALIBRATION_SCALE)."""
+    from sphere sessions at calibration_scale (default: scale, but no less than CALIBRATION_SCALE).
+    With `resume`, `folder` is the subject's own and keeps each finished stage's output (the lights'
+    profile, the session, the results) so that a run stopped midway goes on from the last one:
+    a subject at the camera's full resolution takes longer than a working session."""
     from core.reconstruction.process import process_session
     from core.io.results import ResultsFile, optical_refusal, optical_volume
     from core.rig import thesis_rig
@@ -185,20 +189,32 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     from core.sim.breathing import ForcedBlow, standard_curve
     from core.sim.simulate import simulate
     from core.analysis.spirometry import read_waveform
+    from core.calibration.rig_profile import load_profile
 
     started = time.perf_counter()
     work = Path(folder)
-    out: dict = {"subject": asdict(subject), "stage_seconds": {}}
+    stages_done = SubjectStages(work, {"subject": asdict(subject), "scale": scale, "world": world,
+                                       "commit": source_commit()}) if resume else None
+    out: dict = {"subject": asdict(subject), "stage_seconds": dict(stages_done.seconds) if stages_done else {}}
     stages = out["stage_seconds"]
-    try:
-        calibration, lights = calibrate_rig(subject, calibration_scale or max(scale, CALIBRATION_SCALE), work, world)
-    except Exception as exc:  # the bench reports a refusal, as a user would see it
-        out["refused"] = f"light calibration: {exc}"
-        return out
+    profile = work / f"{subject.index}-lights.json"
+    if stages_done and stages_done.has("calibrate lights"):
+        calibration, lights = load_profile(profile), stages_done.lights()
+    else:
+        try:
+            calibration, lights = calibrate_rig(subject, calibration_scale or max(scale, CALIBRATION_SCALE), work,
+                                                world)
+        except Exception as exc:  # the bench reports a refusal, as a user would see it
+            out["refused"] = f"light calibration: {exc}"
+            return out
+        stages["calibrate lights"] = time.perf_counter() - started
+        if stages_done:
+            calibration.save(profile)
+            stages_done.finish("calibrate lights", stages, lights)
     out["led_error_mm"] = {h: e["position_mm"] for h, e in light_errors(calibration, lights).items()}
     for name, head in thesis_rig(scale).heads.items():  # lights in mm: the profile serves the subject's pixels too
         calibration.heads[name].extra.update(width=head.width, height=head.height)
-    stages["calibrate lights"] = time.perf_counter() - started
+    started = time.perf_counter() - sum(stages.values())
     blows = None
     if subject.standard is not None:
         standard = read_waveform(subject.standard)
@@ -210,8 +226,11 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     config = _config(subject, scale, world, protocol=protocol, seconds=seconds, distance_mm=subject.distance_mm,
                      distance_back_mm=subject.distance_mm, blows=blows, compression=RECORDING_COMPRESSION)
     config = replace(config, subject=replace(config.subject, rate_variability=0.15, sigh_every=12))
-    simulate(session, config)
-    stages["simulate subject"] = time.perf_counter() - started - sum(stages.values())
+    if not (stages_done and stages_done.has("simulate subject")):
+        simulate(session, config)
+        stages["simulate subject"] = time.perf_counter() - started - sum(stages.values())
+        if stages_done:
+            stages_done.finish("simulate subject", stages)
     with SessionFile(session) as s:
         cycle = s.rig.cycle_length
         ids = s.frame_id("front")
@@ -222,8 +241,11 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
         map_frames = sorted(p for f, p in positions.items()
                             if p >= cycle - 1 and p < len(ids) and ids[p] == f and ids[p] - ids[p - cycle + 1] == cycle - 1)
     try:
-        process_session(session, results, calibration=calibration, maps_at=map_frames, workers=1)
-        stages["process"] = time.perf_counter() - started - sum(stages.values())
+        if not (stages_done and stages_done.has("process")):
+            process_session(session, results, calibration=calibration, maps_at=map_frames, workers=process_workers)
+            stages["process"] = time.perf_counter() - started - sum(stages.values())
+            if stages_done:
+                stages_done.finish("process", stages)
         report = analyse_session(session, optical_volume=optical_volume(results))
     except Exception as exc:
         out["refused"] = f"process: {exc}"
@@ -237,10 +259,59 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
         out["distance_refused"] = r.distance_refused
     out["distance_errors_mm"] = [] if out["distance_refused"] else _distance_errors(session, results, after_cycles=10)
     stages["analyse"] = time.perf_counter() - started - sum(stages.values())
-    out["seconds"] = time.perf_counter() - started
+    out["seconds"] = sum(stages.values())
     for path in (session, results):
         path.unlink(missing_ok=True)
+    if stages_done:
+        stages_done.clear()
+        work.rmdir()
     return out
+
+
+class SubjectStages:
+    """Which stages of one subject's run are done, in its own folder (`stages.json`), with the
+    seconds each took and the truth of its lights. A folder left by another subject, scale, world
+    or commit, or by a stage stopped midway, is cleared: only a whole stage of this very run is taken."""
+
+    def __init__(self, folder: Path, stamp: dict):
+        self.folder, self.stamp = folder, stamp
+        folder.mkdir(parents=True, exist_ok=True)
+        self.path = folder / "stages.json"
+        try:
+            state = json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            state = {}
+        if state.get("stamp") != stamp:
+            self.clear()
+            state = {}
+        self.state = {"stamp": stamp, "seconds": state.get("seconds", {}), "lights": state.get("lights", {})}
+        for stale in folder.glob(".*.partial*"):  # a stage stopped midway (atomic_output's temporary files)
+            stale.unlink()
+        for name in ("session", "results"):  # written whole but not yet marked done
+            stage = {"session": "simulate subject", "results": "process"}[name]
+            if not self.has(stage):
+                for path in folder.glob(f"*-{name}.h5"):
+                    path.unlink()
+
+    @property
+    def seconds(self) -> dict[str, float]:
+        return self.state["seconds"]
+
+    def has(self, stage: str) -> bool:
+        return stage in self.state["seconds"]
+
+    def lights(self) -> dict[str, dict[str, np.ndarray]]:
+        return {h: {k: np.asarray(v) for k, v in truth.items()} for h, truth in self.state["lights"].items()}
+
+    def finish(self, stage: str, seconds: dict[str, float], lights: dict | None = None) -> None:
+        self.state["seconds"] = {**seconds}
+        if lights is not None:
+            self.state["lights"] = {h: {k: np.asarray(v).tolist() for k, v in t.items()} for h, t in lights.items()}
+        _keep(self.path, self.state)
+
+    def clear(self) -> None:
+        for path in self.folder.iterdir():
+            path.unlink()
 
 
 def _numbers(values: dict) -> dict[str, float]:
@@ -355,6 +426,11 @@ def _kept(folder: Path | None, subject: VirtualSubject, scale: float, world: str
     return None if folder is None else folder / f"subject-{subject.seed}-{scale:g}{_world_suffix(world)}.json"
 
 
+def _stages_folder(folder: Path | None, subject: VirtualSubject, scale: float, world: str = WORLD) -> Path | None:
+    kept = _kept(folder, subject, scale, world)
+    return None if kept is None else kept.with_suffix(".stages")
+
+
 def _world_suffix(world: str) -> str:
     return "" if world == WORLD else f"-{world}"
 
@@ -393,16 +469,19 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
             if row.get("subject") == asdict(s):
                 done[s.index] = row
     with tempfile.TemporaryDirectory() as tmp, Progress("bench population") as progress:
-        jobs = [((s, scale, protocol, tmp, seconds, calibration_scale, world), _kept(keep, s, scale, world))
+        # with `keep`, each subject's finished stages are kept beside its row until the row is written;
+        # one subject at a time processes its two heads at once (a Pool's workers cannot start their own)
+        count = max(1, min(workers, len(population) - len(done)))
+        jobs = [((s, scale, protocol, _stages_folder(keep, s, scale, world) or tmp, seconds, calibration_scale, world,
+                  keep is not None, 2 if count == 1 else 1), _kept(keep, s, scale, world))
                 for s in population if s.index not in done]
         progress(len(done) / len(population), f"{len(done)} of {len(population)} subjects")
-        if workers > 1 and len(jobs) > 1:
+        if count > 1:
             # a Pool, not an executor: leaving the block (done, or Ctrl-C / SIGTERM) terminates the workers
             # instead of waiting for the subjects they are on
             # each worker's numba kernels on its share of the cores: two workers of two threads each on two
             # cores took 15.8 s to simulate and 14.6 s to process a 2 s subject at scale 0.5, one thread each
             # 14.8 and 12.8 s (2026-11-27)
-            count = min(workers, len(jobs))
             with get_context("spawn").Pool(count, use_threads, (max(1, (os.cpu_count() or 1) // count),)) as pool:
                 for row in pool.imap_unordered(_run_job, jobs):
                     done[row["subject"]["index"]] = row

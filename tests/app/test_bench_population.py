@@ -92,3 +92,45 @@ def test_the_table_tallies_why_the_optical_values_were_refused():
             {"refused": "process: truncated"}]
     assert refusal_tally(rows) == "2 for an arm against the trunk, 1 for a sheen on the skin"
     assert refusal_tally([{}]) == ""
+
+
+@pytest.mark.slow
+def test_a_subject_stopped_midway_goes_on_from_its_last_finished_stage(tmp_path, shared_data, monkeypatch):
+    """At the camera's full resolution a subject takes longer than a working session: with `keep`
+    its lights' profile and session are kept as each stage ends, and the next run takes them
+    instead of calibrating and recording again; what a stage stopped midway left is cleared."""
+    import json
+
+    import core.reconstruction.process as process
+    from app.benchmarks.population import SubjectStages, draw_subjects, run_subject, standard_blows
+
+    subject = draw_subjects(1, 1, standard_blows(SHARED / "data" / "spirometry-waveforms"), quick=True)[0]
+    folder = tmp_path / "subject.stages"
+    real_process = process.process_session
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(process, "process_session", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        run_subject(subject, 0.1, "short", str(folder), 8.0, 0.1, resume=True)
+    state = json.loads((folder / "stages.json").read_text())
+    assert set(state["seconds"]) == {"calibrate lights", "simulate subject"}
+    session = folder / f"{subject.index}-session.h5"
+    assert session.is_file() and (folder / f"{subject.index}-lights.json").is_file()
+    (folder / f".{subject.index}-results.123.partial.h5").write_bytes(b"half a file")
+
+    monkeypatch.setattr(process, "process_session", real_process)
+    row = run_subject(subject, 0.1, "short", str(folder), 8.0, 0.1, resume=True)
+    # the kept stages' seconds stand: they were not run again
+    assert "truth" in row and row["stage_seconds"]["simulate subject"] == state["seconds"]["simulate subject"]
+    assert row["stage_seconds"]["calibrate lights"] == state["seconds"]["calibrate lights"]
+    assert set(row["stage_seconds"]) == {"calibrate lights", "simulate subject", "process", "analyse"}
+    assert not folder.exists()  # the row holds what the stages gave
+
+    # stages kept by another commit (or subject, scale, world) are not taken
+    folder.mkdir()
+    (folder / "stages.json").write_text(json.dumps({"stamp": {"commit": "other"}, "seconds": {"process": 1.0}}))
+    session.write_bytes(b"")
+    stages = SubjectStages(folder, {"commit": "this"})
+    assert not stages.has("process") and list(folder.iterdir()) == []
