@@ -206,7 +206,9 @@ def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tupl
     t_opt, v_opt = curves[OPTICAL]
     lo, hi = max(t_opt[0], t_flow[0]), min(t_opt[-1], t_flow[-1])
     grid = np.arange(lo, hi, 0.05)
-    r = float(np.corrcoef(np.interp(grid, t_opt, v_opt), np.interp(grid, t_flow, v_flow))[0, 1])
+    on_grid = np.interp(grid, t_opt, v_opt)
+    measured = np.isfinite(on_grid)  # not in a gap of maps left out (an arm against the trunk)
+    r = float(np.corrcoef(on_grid[measured], np.interp(grid[measured], t_flow, v_flow))[0, 1])
     optical = tidal_breaths(tidal_stretches(t_opt, v_opt, events))
     flow = tidal_breaths(tidal_stretches(t_flow, v_flow, events))
     pairs = []

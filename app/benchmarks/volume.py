@@ -56,7 +56,8 @@ def _metric_against_truth(session: Path, results: Path) -> dict[str, float]:
     with ResultsFile(results) as r, SessionFile(session) as s:
         t, volume = r.metric_volume()
         truth = np.interp(t, s.truth()["timestamp_ns"][:], s.truth()["volume_l"][:])
-    truth = truth - truth[0]
+    measured = np.isfinite(volume)  # not a map left out for an arm against the trunk
+    truth, volume = truth[measured] - truth[measured][0], volume[measured] - volume[measured][0]
     slope = float(np.polyfit(truth, volume, 1)[0])
     return {"r": float(np.corrcoef(volume, truth)[0, 1]), "slope": slope,
             "rms_l": float(np.sqrt(np.mean((volume - truth) ** 2)))}

@@ -87,10 +87,11 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
                 lines.append(f"  gradient volume (thesis eqs 3.26-3.27, {' and '.join(heads)} combined) against the "
                              f"true volume: r = {r_gv:.3f} (thesis Table 5.2: 0.98)")
                 if optical is not None:
-                    true_at = np.interp(optical[0], t_truth, volume)
-                    slope = np.polyfit(true_at - true_at[0], optical[1], 1)[0]
+                    measured = np.isfinite(optical[1])  # not a map left out for an arm against the trunk
+                    true_at = np.interp(optical[0], t_truth, volume)[measured]
+                    slope = np.polyfit(true_at - true_at[0], optical[1][measured], 1)[0]
                     lines.append(f"  metric optical volume (litres, no calibration) against the true volume: "
-                                 f"r = {np.corrcoef(optical[1], true_at)[0, 1]:.4f}, slope {slope:.3f}")
+                                 f"r = {np.corrcoef(optical[1][measured], true_at)[0, 1]:.4f}, slope {slope:.3f}")
     report = analyse_session(path, optical_volume=optical)
     if report.flow_volume is not None:
         t_flow, v_flow = report.flow_volume

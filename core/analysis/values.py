@@ -268,12 +268,17 @@ def tidal_breaths(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: 
 
 def tidal_stretches(t_s: np.ndarray, volume_l: np.ndarray,
                     events: list[tuple[float, str]]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The curve's stretches of quiet breathing (see tidal_windows)."""
+    """The curve's stretches of quiet breathing (see tidal_windows), each cut where the curve has no
+    value (an optical map left out: core/reconstruction/process.py, MAX_HIDDEN_MAPS): a breath is read
+    only where it was measured, and one missing map no longer loses the whole stretch."""
     out = []
+    finite = np.isfinite(volume_l)
     for a, b in tidal_windows(sorted(events), float(t_s[-1])):
-        inside = (t_s >= a) & (t_s <= b)
-        if inside.sum() > 10:
-            out.append((t_s[inside], volume_l[inside]))
+        inside = (t_s >= a) & (t_s <= b) & finite
+        edges = np.flatnonzero(np.diff(np.concatenate(([0], inside.astype(np.int8), [0]))))
+        for start, stop in zip(edges[::2], edges[1::2]):
+            if stop - start > 10:
+                out.append((t_s[start:stop], volume_l[start:stop]))
     return out
 
 
@@ -395,8 +400,8 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         if inside.sum() < 10:
             continue
         if not np.all(np.isfinite(v[inside])):
-            result.problems.append(f"slow VC at {a:.1f} s: the curve holds non-finite samples (NaN or infinity): "
-                                   "left out")
+            result.problems.append(f"slow VC at {a:.1f} s: the curve holds non-finite samples (NaN or infinity: "
+                                   "e.g. optical maps left out where an arm hid the trunk's sides): left out")
             continue
         ti, vi = smoothed_on_grid(t[inside], v[inside], ANALYSIS_RATE_HZ) if fitted else (t[inside], v[inside])
         i_low = int(np.argmin(vi))
@@ -420,7 +425,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
             continue
         if not np.all(np.isfinite(v[(t >= a - 2.0) & (t <= b + 0.5)])):
             result.problems.append(f"forced expiration at {a:.1f} s: the curve holds non-finite samples (NaN or "
-                                   "infinity): left out")
+                                   "infinity: e.g. optical maps left out where an arm hid the trunk's sides): left out")
             continue
         i_top = int(np.nonzero(before)[0][np.argmax(v[before])])
         stop = min(b + 0.5, end_s)

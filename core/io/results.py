@@ -222,6 +222,13 @@ def session_of_results(results: str | os.PathLike) -> Path:
     raise SessionError(f"{results}: its session file {named} is not there (nor beside the results file)")
 
 
+def from_first(volume_l: np.ndarray) -> np.ndarray:
+    """A volume from its first sample with a value (NaN where a map was left out stays NaN)."""
+    volume_l = np.asarray(volume_l, dtype=np.float64)
+    finite = np.flatnonzero(np.isfinite(volume_l))
+    return volume_l - volume_l[finite[0]] if len(finite) else volume_l
+
+
 class ResultsWriter:
     """Writes a results file's parts into an open HDF5 file (the caller makes it atomic): plain
     arrays and values in, the layout of shared/spec/session-format.md and docs/format-extensions.md out."""
@@ -272,7 +279,7 @@ class ResultsWriter:
         """/volume: the optical volume in litres, from its first sample, and how it was made."""
         g = self.out.create_group("volume")
         g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
-        g.create_dataset("volume_l", data=np.asarray(volume_l, dtype=np.float64) - volume_l[0])
+        g.create_dataset("volume_l", data=from_first(volume_l))
         g.attrs["method"] = method
         for key, value in attrs.items():
             g.attrs[key] = value
@@ -298,12 +305,12 @@ class ResultsWriter:
         for key, value in attrs.items():
             g.attrs[key] = value
         g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
-        g.create_dataset("volume_l", data=volume_l - volume_l[0])
+        g.create_dataset("volume_l", data=from_first(volume_l))
         for name, values in heads.items():
-            g.create_dataset(f"heads/{name}/volume_l", data=values - values[0])
+            g.create_dataset(f"heads/{name}/volume_l", data=from_first(values))
             g.create_dataset(f"heads/{name}/side_distance_mm", data=side_distance_mm[name])
         for name, values in regions.items():
-            g.create_dataset(f"regions/{name}/volume_l", data=values - values[0])
+            g.create_dataset(f"regions/{name}/volume_l", data=from_first(values))
 
     def parameters(self, source: str, values: dict, flow_curve: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """/parameters: the pulmonary function values and their `source`; with the flow sensor's

@@ -25,7 +25,7 @@ from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
 from core.io.results import ResultsFile, ResultsWriter
 from core.limits import past_limit
-from core.volume.maps import DisplacementTracker, smooth_in_time
+from core.volume.maps import DisplacementSums, DisplacementTracker, smooth_in_time
 from core.volume.sides import bend_refusal, paired_tilts, side_profile_mm
 
 # Work (maps times pixels) from which worker processes repay their start (docs/benchmarks.md, constants).
@@ -35,7 +35,13 @@ WORKING_RANGE_MM = (1500.0, 2600.0)
 # The share of the trunk's rows an occluding contour may cross (core/reconstruction/pipeline.py,
 # occluded_side_share) in a head's typical map before its sides count as hidden by an arm
 MAX_OCCLUDED_SIDE_SHARE = 0.2
-MAX_HIDDEN_MAPS = 0.05  # the share of a head's maps that may show its sides so hidden
+# A map whose sides an arm hides is left out of the distance and the volume (the volume is NaN there,
+# and the analysis leaves out what it would have needed: core/analysis/values.py); past this share of a
+# head's maps the arms are held against the trunk and the session is refused. It was 5 % of the maps
+# with the whole session refused past it: population subjects 12, 14 and 20 of seed 1, arms held away
+# and swung against the trunk now and then (6-9 % of their maps), gave no optical value at all.
+MAX_HIDDEN_MAPS = 0.25
+MAX_OUT_OF_VIEW_MAPS = 0.05  # the share of a head's maps that may show the trunk running out of the image
 # The least trunk area (m^2) a head's typical map must hold for a volume: a 6-year-old's trunk from
 # shoulders to hips is about 0.06 m^2 seen from one side
 MIN_TRUNK_AREA_M2 = 0.03
@@ -123,10 +129,11 @@ def geometric_distances(surveyed: dict, baseline_mm: float) -> dict[str, tuple[n
     for name, r in surveyed.items():
         with np.errstate(invalid="ignore", divide="ignore"):
             distance = r.distance_mm * targets[name] / heads[name].side_mm
-        if not np.isfinite(distance).any():
+        shown = np.isfinite(distance)  # not a map whose sides an arm hides (_process_head)
+        if not shown.any():
             continue
-        t = r.timestamp_ns.astype(float)
-        out[name] = (t, smooth_in_time(t / 1e9, distance, WIDTH_SMOOTHING_S))
+        t = r.timestamp_ns.astype(float)[shown]
+        out[name] = (t, smooth_in_time(t / 1e9, distance[shown], WIDTH_SMOOTHING_S))
     return out
 
 
@@ -139,7 +146,9 @@ def _geometric_pass(results: ResultsWriter, jobs: list[_HeadJob], baseline_mm: f
     geometric = geometric_distances({r.name: r for r in surveyed}, baseline_mm)
     offsets = {}
     for r in surveyed:
-        along = geometric.get(r.name, (None, np.full(len(r.timestamp_ns), np.nan)))[1]
+        along = np.full(len(r.timestamp_ns), np.nan)  # NaN on the maps left out for an arm
+        if r.name in geometric:
+            along[np.isin(r.timestamp_ns.astype(float), geometric[r.name][0])] = geometric[r.name][1]
         if np.isfinite(r.distance_mm - along).any():
             offsets[r.name] = float(np.nanmedian(r.distance_mm - along))
         results.photometric_survey(r.name, r.timestamp_ns, r.distance_mm, along, offsets.get(r.name))
@@ -176,36 +185,45 @@ def session_refusal(distances_mm: dict[str, float], areas_m2: dict[str, np.ndarr
             or coverage_refusal(areas_m2) or reflectance_refusal(sheen_by_head) or bend_refusal(tilts))
 
 
-def _first_hidden(shares_by_head: dict[str, np.ndarray]) -> tuple[str, float] | None:
+def _first_hidden(shares_by_head: dict[str, np.ndarray], limit: float) -> tuple[str, float] | None:
     """(head, share of its maps) of the first head whose maps show more than MAX_OCCLUDED_SIDE_SHARE of
-    the trunk's rows hidden in more than MAX_HIDDEN_MAPS of them, or None."""
+    the trunk's rows hidden in more than `limit` of them, or None."""
     for name, shares in shares_by_head.items():
         shares = np.asarray(shares, dtype=float)
-        hidden = float(np.mean(shares > MAX_OCCLUDED_SIDE_SHARE)) if len(shares) else 0.0
-        if hidden > MAX_HIDDEN_MAPS:
+        hidden = float(np.mean(~arm_free(shares))) if len(shares) else 0.0
+        if hidden > limit:
             return name, hidden
     return None
 
 
-def _share_of_maps(hidden: float) -> str:
-    """A share of maps past MAX_HIDDEN_MAPS, in percent, as a refusal writes it."""
-    return past_limit(100 * hidden, 100 * MAX_HIDDEN_MAPS)
+def arm_free(occluded_share: np.ndarray) -> np.ndarray:
+    """Per map, whether no arm hides the trunk's sides (MAX_OCCLUDED_SIDE_SHARE; a map without the
+    share measured counts as free)."""
+    shares = np.asarray(occluded_share, dtype=float)
+    return ~(shares > MAX_OCCLUDED_SIDE_SHARE)
+
+
+def _share_of_maps(hidden: float, limit: float) -> str:
+    """A share of maps past `limit`, in percent, as a refusal writes it."""
+    return past_limit(100 * hidden, 100 * limit)
 
 
 def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: dict[str, np.ndarray] | None = None,
                       ) -> str | None:
     """Why the optical volume cannot be reported from heads whose trunk's sides an arm hides or the
-    image cuts off in more than MAX_HIDDEN_MAPS of their maps, or None. The shares are per map
+    image cuts off in more than MAX_HIDDEN_MAPS (MAX_OUT_OF_VIEW_MAPS) of their maps, or None. The shares are per map
     (core/reconstruction/pipeline.py): an arm that swings against the trunk now and then changes the trunk's
     outline from map to map, and the volume with it."""
-    if (arm := _first_hidden(occluded_share)) is not None:
+    if (arm := _first_hidden(occluded_share, MAX_HIDDEN_MAPS)) is not None:
         name, hidden = arm
         return (f"head {name}: an arm lies against the trunk (along more than "
-                f"{100 * MAX_OCCLUDED_SIDE_SHARE:.0f} % of its height) in {_share_of_maps(hidden)} % of the maps and "
+                f"{100 * MAX_OCCLUDED_SIDE_SHARE:.0f} % of its height) in {_share_of_maps(hidden, MAX_HIDDEN_MAPS)} "
+                "% of the maps and "
                 "hides the sides the volume is referred to (the patient should hold the arms away from the body)")
-    if (edge := _first_hidden(out_of_view_share or {})) is not None:
+    if (edge := _first_hidden(out_of_view_share or {}, MAX_OUT_OF_VIEW_MAPS)) is not None:
         name, hidden = edge
-        return (f"head {name}: the trunk runs out of the image at the side in {_share_of_maps(hidden)} % of the "
+        return (f"head {name}: the trunk runs out of the image at the side in "
+                f"{_share_of_maps(hidden, MAX_OUT_OF_VIEW_MAPS)} % of the "
                 "maps (the patient off centre or too near): the sides the volume is referred to are not seen")
     return None
 
@@ -216,10 +234,11 @@ def geometric_distance_refusal(occluded_share: dict[str, np.ndarray]) -> str | N
     The front head of population subject 2 (seed 1) kept the arms in its trunk and the back head cut
     them off at the crease beside them: 1845 and 2586 mm for a true 2195 and 2139 (docs/volume.md,
     "An arm against the trunk moves the two heads' distances")."""
-    if (arm := _first_hidden(occluded_share)) is None:
+    if (arm := _first_hidden(occluded_share, MAX_HIDDEN_MAPS)) is None:
         return None
     name, hidden = arm
-    return (f"an arm lies against the trunk in head {name}'s view in {_share_of_maps(hidden)} % of the maps: the two "
+    return (f"an arm lies against the trunk in head {name}'s view in {_share_of_maps(hidden, MAX_HIDDEN_MAPS)} % of "
+            "the maps: the two "
             "heads' distances are measured between the trunk's sides, which it hides")
 
 
@@ -404,14 +423,15 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             tilts = paired_tilts(*profiles.values()) if len(profiles) == 2 and geometric else np.zeros(0)
             if np.isfinite(tilts).any():
                 results.attr("sides_tilt", float(np.nanmedian(tilts)))
-            distance_refused = geometric_distance_refusal(occluded) if geometric else None
+            distance_refused = geometric_distance_refusal(occluded) if geometry else None
             if distance_refused is not None:
                 results.attr("distance_refused", distance_refused)
             refused = session_refusal(distances, areas, occluded, out_of_view, sheen, tilts)
             if refused is not None:
                 results.refuse_optical(refused)
-            metric = (metric_volume(displacements, rig.baseline_mm) if all(counts.values()) and refused is None
-                      else None)
+            shown = {name: arm_free(occluded[name]) for name in displacements}
+            metric = (metric_volume({n: d.of_maps(shown[n]) for n, d in displacements.items()}, rig.baseline_mm)
+                      if all(counts.values()) and refused is None and all(m.any() for m in shown.values()) else None)
             if metric is not None and np.isfinite(metric.top_referred_slope):
                 results.attr("top_referred_slope", metric.top_referred_slope)
             for name, level in (metric.levels.items() if metric is not None else ()):
@@ -421,8 +441,16 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 results.refuse_optical(refused)
             in_view = metric is not None and np.isfinite(metric.volume_l).all()  # a trunk in every head's view
             if in_view:
+                compartments = tidal_compartments(session, metric)
+                first = next(iter(displacements))
+                metric = metric.with_gaps(displacements[first].timestamp_ns,
+                                          {n: (d.timestamp_ns, shown[n]) for n, d in displacements.items()})
+                if any(not m.all() for m in shown.values()):
+                    results.attr("maps_left_out", "an arm against the trunk hid its sides: "
+                                 + ", ".join(f"head {n} {100 * float(np.mean(~m)):.1f} % of its maps"
+                                             for n, m in shown.items()))
                 results.metric_volume(metric.timestamp_ns, metric.volume_l, metric.scale_from, metric.heads,
-                                      metric.side_distance_mm, metric.regions, tidal_compartments(session, metric))
+                                      metric.side_distance_mm, metric.regions, compartments)
             if volume_calibration is not None:
                 _write_regression_volume(results, out, names, volume_calibration)
             elif in_view:
@@ -509,7 +537,10 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                 rows[key].append(result.extra.get(key, np.nan))
             looked_at = job.profile_every and number % job.profile_every == 0
             rows["sheen"].append(reconstructor.sheen(signal, saturated, result) if looked_at and near else np.nan)
-            sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette, known))
+            if arm_free(rows["occluded_side_share"][-1:])[0]:
+                sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette, known))
+            else:  # an arm hides the sides the map is referred to: left out (MAX_HIDDEN_MAPS), nor the reference
+                sums.append(DisplacementSums(float("nan"), float("nan"), {}, {}))
             if looked_at:
                 profile_times.append(stamps[window.newest])
                 profiles.append(side_profile_mm(result.depth_mm, result.mask, result.silhouette, head))

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -103,6 +103,10 @@ class HeadDisplacements:
     def series(self, key: str, region: str) -> np.ndarray:
         return np.array([getattr(s, key).get(region, np.nan) for s in self.sums], dtype=float)
 
+    def of_maps(self, kept: np.ndarray) -> "HeadDisplacements":
+        """These displacements on the maps `kept` (a mask over them) only."""
+        return HeadDisplacements(self.timestamp_ns[kept], [s for s, k in zip(self.sums, kept) if k])
+
     @cached_property
     def session_shifts_mm(self) -> np.ndarray | None:
         """Each map's shift from the reference fitted over the session (session_shifts), or None."""
@@ -181,6 +185,32 @@ class MetricVolume:
                         "wholly in view)")
         return reference_refusal(self.top_referred_slope)
 
+    def with_gaps(self, timestamp_ns: np.ndarray, maps_shown: dict[str, tuple[np.ndarray, np.ndarray]],
+                  ) -> "MetricVolume":
+        """This volume, made from some of the first head's maps, on all of them (`timestamp_ns`): NaN
+        at a map left out, and at one whose nearest map in any head's (times, shown) was left out.
+        What no map shows is not bridged: a curve straight across an arm's swing would hand the
+        analysis a blow or a breath that was not measured."""
+        t = np.asarray(timestamp_ns, dtype=np.int64)
+        gap = ~np.isin(t, self.timestamp_ns)
+        for times, shown in maps_shown.values():
+            times = np.asarray(times, dtype=np.int64)
+            after = np.clip(np.searchsorted(times, t), 1, len(times) - 1) if len(times) > 1 else np.zeros(len(t), int)
+            nearest = after - (np.abs(t - times[after - 1]) < np.abs(times[after] - t)) if len(times) > 1 else after
+            gap |= ~np.asarray(shown, dtype=bool)[nearest]
+        at = np.searchsorted(self.timestamp_ns, t[~gap])
+
+        def spread(values: np.ndarray) -> np.ndarray:
+            out = np.full(len(t), np.nan)
+            out[~gap] = np.asarray(values, dtype=float)[at]
+            return out
+
+        return replace(self, timestamp_ns=t, volume_l=spread(self.volume_l),
+                       heads={n: spread(v) for n, v in self.heads.items()},
+                       regions={r: spread(v) for r, v in self.regions.items()},
+                       side_distance_mm={n: _on_shown(v, maps_shown[n][1]) for n, v in self.side_distance_mm.items()},
+                       top_referred_l=None if self.top_referred_l is None else spread(self.top_referred_l))
+
     @cached_property
     def top_referred_slope(self) -> float:
         """The slope of the volume referred to the top of the view on the volume referred to the trunk's
@@ -188,6 +218,13 @@ class MetricVolume:
         if self.top_referred_l is None:
             return float("nan")
         return reference_slope(self.volume_l, self.top_referred_l)
+
+
+def _on_shown(values: np.ndarray, shown: np.ndarray) -> np.ndarray:
+    """Values of the maps shown, on all the maps (NaN on the others)."""
+    out = np.full(len(shown), np.nan)
+    out[np.asarray(shown, dtype=bool)] = values
+    return out
 
 
 def reference_slope(side_referred_l: np.ndarray, top_referred_l: np.ndarray) -> float:

@@ -6,7 +6,7 @@ import h5py
 import numpy as np
 import pytest
 
-from core.analysis.values import analyse_volume, tidal_values, tidal_windows
+from core.analysis.values import analyse_volume, tidal_stretches, tidal_values, tidal_windows
 from core.volume.flow_sensor import btps_factor, flow_sensor_volume
 from core.reconstruction.process import process_session
 from core.analysis.session_analysis import analyse_session
@@ -163,6 +163,24 @@ def test_session_without_tidal_breathing_says_so():
     t = np.arange(0, 10, 0.01)
     values = analyse_volume(t, np.zeros_like(t), [])
     assert values.tidal is None and "no stretch of tidal breathing" in values.problems[0]
+
+
+def test_a_tidal_stretch_with_maps_left_out_is_read_on_either_side_of_the_gap():
+    """Eight breaths of 0.5 L at 15/min, sampled a map a light cycle, with 2 s of maps left out in the
+    middle (an arm swung against the trunk: core/reconstruction/process.py): the breaths on either
+    side are read, the one the gap cuts is not, and no breath is read across it. Until 2026-11-28 one
+    missing map gave no tidal values at all."""
+    t = np.arange(0, 32, 1 / 22.0)
+    v = 0.25 * (1 - np.cos(2 * np.pi * t / 4.0))
+    events = [(0.0, "tidal-start")]
+    whole = analyse_volume(t, v, events).tidal
+    gap = (t > 13.0) & (t < 15.0)
+    values = analyse_volume(t, np.where(gap, np.nan, v), events).tidal
+    assert values is not None and values.breaths == whole.breaths - 1
+    assert values.tidal_volume_l == pytest.approx(whole.tidal_volume_l, abs=0.005)
+    assert values.respiratory_rate_bpm == pytest.approx(15.0, abs=0.2)
+    stretches = tidal_stretches(t, np.where(gap, np.nan, v), events)
+    assert len(stretches) == 2 and all(np.isfinite(v).all() for _, v in stretches)
 
 
 def test_an_unfinished_manoeuvre_is_left_out_and_named():

@@ -487,3 +487,28 @@ def test_the_two_heads_distances_follow_sway_as_fast_as_quiet_breathing():
     middle = (t > 5.0) & (t < 15.0)
     followed = np.polyfit(front_mm[middle], targets["front"][middle], 1)[0]
     assert followed > 0.9
+
+
+def test_maps_left_out_for_an_arm_leave_gaps_in_the_volume_not_a_bridge():
+    """A volume made from the maps no arm hid (core/reconstruction/process.py) goes back onto all the
+    first head's maps with NaN where a map of either head was left out: the front's own, and the
+    front's maps whose nearest back map was; the maps shown keep their values, each head's side
+    distances go onto its own maps."""
+    t_front = np.arange(10) * 100_000_000
+    t_back = t_front + 40_000_000  # the back head's maps 40 ms later
+    front_shown = np.ones(10, bool)
+    front_shown[2] = False
+    back_shown = np.ones(10, bool)
+    back_shown[6:8] = False
+    kept = t_front[front_shown]
+    volume = np.linspace(0.0, 0.8, len(kept))
+    made = MetricVolume(kept, volume, {"front": volume / 2, "back": volume / 2}, {"upper left": volume},
+                        {"front": np.full(9, 2000.0), "back": np.full(8, 1900.0)}, "trunk widths and the baseline")
+    full = made.with_gaps(t_front, {"front": (t_front, front_shown), "back": (t_back, back_shown)})
+    gaps = np.isnan(full.volume_l)
+    assert np.flatnonzero(gaps).tolist() == [2, 6, 7]
+    assert np.array_equal(full.timestamp_ns, t_front)
+    assert np.array_equal(full.volume_l[~gaps], volume[np.isin(kept, t_front[~gaps])])
+    assert np.isnan(full.regions["upper left"][[2, 6, 7]]).all() and np.isnan(full.heads["back"][2])
+    assert np.isnan(full.side_distance_mm["back"][[6, 7]]).all() and full.side_distance_mm["back"][5] == 1900.0
+    assert np.flatnonzero(np.isnan(full.side_distance_mm["front"])).tolist() == [2]
