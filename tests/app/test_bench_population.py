@@ -113,7 +113,7 @@ def test_a_subject_stopped_midway_goes_on_from_its_last_finished_stage(tmp_path,
 
     monkeypatch.setattr(process, "process_session", stopped)
     with pytest.raises(KeyboardInterrupt):
-        run_subject(subject, 0.1, "short", str(folder), 8.0, 0.1, resume=True)
+        run_subject(subject, 0.1, "short", str(folder), 4.0, 0.1, resume=True)
     state = json.loads((folder / "stages.json").read_text())
     assert set(state["seconds"]) == {"calibrate lights", "simulate subject"}
     session = folder / f"{subject.index}-session.h5"
@@ -121,7 +121,7 @@ def test_a_subject_stopped_midway_goes_on_from_its_last_finished_stage(tmp_path,
     (folder / f".{subject.index}-results.123.partial.h5").write_bytes(b"half a file")
 
     monkeypatch.setattr(process, "process_session", real_process)
-    row = run_subject(subject, 0.1, "short", str(folder), 8.0, 0.1, resume=True)
+    row = run_subject(subject, 0.1, "short", str(folder), 4.0, 0.1, resume=True)
     # the kept stages' seconds stand: they were not run again
     assert "truth" in row and row["stage_seconds"]["simulate subject"] == state["seconds"]["simulate subject"]
     assert row["stage_seconds"]["calibrate lights"] == state["seconds"]["calibrate lights"]
