@@ -189,7 +189,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     from core.sim.breathing import ForcedBlow, standard_curve
     from core.sim.simulate import simulate
     from core.analysis.spirometry import read_waveform
-    from core.calibration.rig_profile import load_profile
+    from core.calibration.rig_profile import ProfileError, load_profile
 
     started = time.perf_counter()
     work = Path(folder)
@@ -198,9 +198,15 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     out: dict = {"subject": asdict(subject), "stage_seconds": dict(stages_done.seconds) if stages_done else {}}
     stages = out["stage_seconds"]
     profile = work / f"{subject.index}-lights.json"
+    calibration = None
     if stages_done and stages_done.has("calibrate lights"):
-        calibration, lights = load_profile(profile), stages_done.lights()
-    else:
+        try:
+            calibration, lights = load_profile(profile), stages_done.lights()
+        except ProfileError:  # a kept profile damaged since: every stage again
+            stages_done.clear()
+            stages_done = SubjectStages(work, stages_done.stamp)
+            stages = out["stage_seconds"] = {}
+    if calibration is None:
         try:
             calibration, lights = calibrate_rig(subject, calibration_scale or max(scale, CALIBRATION_SCALE), work,
                                                 world)
