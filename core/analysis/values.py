@@ -242,10 +242,10 @@ def _one_breath(t: np.ndarray, smooth: np.ndarray, flow: np.ndarray, a: int, b: 
     if abs(smooth[a] - smooth[b]) > MAX_LEVEL_CHANGE_OF_TIDAL * vt:
         return None
     half_width = max(2, int(EXTREME_FIT_SHARE_OF_TI * ti * ANALYSIS_RATE_HZ))
-    level = _fitted_extreme(smooth, a, half_width, -1)
-    vt = _fitted_extreme(smooth, peak, half_width, +1) - 0.5 * (level + _fitted_extreme(smooth, b, half_width, -1))
+    level, top = _fitted_extreme(smooth, a, half_width, -1), _fitted_extreme(smooth, peak, half_width, +1)
+    vt = top - 0.5 * (level + _fitted_extreme(smooth, b, half_width, -1))
     tptef = int(np.argmin(flow[peak:b])) / ANALYSIS_RATE_HZ / te
-    half = smooth[a] + 0.5 * vt
+    half = 0.5 * (level + top)  # the inspiration's middle, on the levels fitted (not the noisiest sample)
     i_half = a + int(np.argmin(np.abs(smooth[a:peak] - half)))
     e_half = peak + int(np.argmin(np.abs(smooth[peak:b] - half)))
     ie50 = flow[i_half] / -flow[e_half] if flow[e_half] < 0 else float("nan")
