@@ -204,8 +204,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
             calibration, lights = load_profile(profile), stages_done.lights()
         except ProfileError:  # a kept profile damaged since: every stage again
             stages_done.clear()
-            stages_done = SubjectStages(work, stages_done.stamp)
-            stages = out["stage_seconds"] = {}
+            stages.clear()
     if calibration is None:
         try:
             calibration, lights = calibrate_rig(subject, calibration_scale or max(scale, CALIBRATION_SCALE), work,
@@ -287,14 +286,13 @@ class SubjectStages:
             state = json.loads(self.path.read_text())
         except (OSError, ValueError):
             state = {}
-        if state.get("stamp") != stamp:
+        if state.get("stamp") == stamp:
+            self.state = {"stamp": stamp, "seconds": state.get("seconds", {}), "lights": state.get("lights", {})}
+        else:
             self.clear()
-            state = {}
-        self.state = {"stamp": stamp, "seconds": state.get("seconds", {}), "lights": state.get("lights", {})}
         for stale in folder.glob(".*.partial*"):  # a stage stopped midway (atomic_output's temporary files)
             stale.unlink()
-        for name in ("session", "results"):  # written whole but not yet marked done
-            stage = {"session": "simulate subject", "results": "process"}[name]
+        for name, stage in (("session", "simulate subject"), ("results", "process")):  # whole, not marked done
             if not self.has(stage):
                 for path in folder.glob(f"*-{name}.h5"):
                     path.unlink()
@@ -316,6 +314,8 @@ class SubjectStages:
         _keep(self.path, self.state)
 
     def clear(self) -> None:
+        """No stage done: the folder emptied."""
+        self.state = {"stamp": self.stamp, "seconds": {}, "lights": {}}
         for path in self.folder.iterdir():
             path.unlink()
 

@@ -15,7 +15,7 @@ from core import __version__
 from core.reconstruction.ambient import FlickerCorrection
 from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
-from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, metric_volume, side_targets,
+from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, metric_volume, on_maps_shown, side_targets,
                                  tidal_compartments)
 from core.reconstruction.photometric import CycleWindow, complete_cycles
 from core.rig import DARK
@@ -146,9 +146,8 @@ def _geometric_pass(results: ResultsWriter, jobs: list[_HeadJob], baseline_mm: f
     geometric = geometric_distances({r.name: r for r in surveyed}, baseline_mm)
     offsets = {}
     for r in surveyed:
-        along = np.full(len(r.timestamp_ns), np.nan)  # NaN on the maps left out for an arm
-        if r.name in geometric:
-            along[np.isin(r.timestamp_ns.astype(float), geometric[r.name][0])] = geometric[r.name][1]
+        t, d = geometric.get(r.name, (np.zeros(0), np.zeros(0)))
+        along = on_maps_shown(d, np.isin(r.timestamp_ns.astype(float), t))  # NaN on the maps left out for an arm
         if np.isfinite(r.distance_mm - along).any():
             offsets[r.name] = float(np.nanmedian(r.distance_mm - along))
         results.photometric_survey(r.name, r.timestamp_ns, r.distance_mm, along, offsets.get(r.name))
@@ -190,17 +189,17 @@ def _first_hidden(shares_by_head: dict[str, np.ndarray], limit: float) -> tuple[
     the trunk's rows hidden in more than `limit` of them, or None."""
     for name, shares in shares_by_head.items():
         shares = np.asarray(shares, dtype=float)
-        hidden = float(np.mean(~arm_free(shares))) if len(shares) else 0.0
+        hidden = float(np.mean(~sides_shown(shares))) if len(shares) else 0.0
         if hidden > limit:
             return name, hidden
     return None
 
 
-def arm_free(occluded_share: np.ndarray) -> np.ndarray:
-    """Per map, whether no arm hides the trunk's sides (MAX_OCCLUDED_SIDE_SHARE; a map without the
-    share measured counts as free)."""
-    shares = np.asarray(occluded_share, dtype=float)
-    return ~(shares > MAX_OCCLUDED_SIDE_SHARE)
+def sides_shown(hidden_share: np.ndarray) -> np.ndarray:
+    """Per map (or for one), whether the trunk's sides are seen: at most MAX_OCCLUDED_SIDE_SHARE of its
+    rows hidden (by an arm, `occluded_side_share`; or cut off by the image, `side_out_of_view_share`).
+    A map without the share measured counts as shown."""
+    return ~(np.asarray(hidden_share, dtype=float) > MAX_OCCLUDED_SIDE_SHARE)
 
 
 def _share_of_maps(hidden: float, limit: float) -> str:
@@ -429,7 +428,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             refused = session_refusal(distances, areas, occluded, out_of_view, sheen, tilts)
             if refused is not None:
                 results.refuse_optical(refused)
-            shown = {name: arm_free(occluded[name]) for name in displacements}
+            shown = {name: sides_shown(occluded[name]) for name in displacements}
             metric = (metric_volume({n: d.of_maps(shown[n]) for n, d in displacements.items()}, rig.baseline_mm)
                       if all(counts.values()) and refused is None and all(m.any() for m in shown.values()) else None)
             if metric is not None and np.isfinite(metric.top_referred_slope):
@@ -537,7 +536,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                 rows[key].append(result.extra.get(key, np.nan))
             looked_at = job.profile_every and number % job.profile_every == 0
             rows["sheen"].append(reconstructor.sheen(signal, saturated, result) if looked_at and near else np.nan)
-            if arm_free(rows["occluded_side_share"][-1:])[0]:
+            if sides_shown(rows["occluded_side_share"][-1]):
                 sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette, known))
             else:  # an arm hides the sides the map is referred to: left out (MAX_HIDDEN_MAPS), nor the reference
                 sums.append(DisplacementSums(float("nan"), float("nan"), {}, {}))

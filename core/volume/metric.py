@@ -208,7 +208,8 @@ class MetricVolume:
         return replace(self, timestamp_ns=t, volume_l=spread(self.volume_l),
                        heads={n: spread(v) for n, v in self.heads.items()},
                        regions={r: spread(v) for r, v in self.regions.items()},
-                       side_distance_mm={n: _on_shown(v, maps_shown[n][1]) for n, v in self.side_distance_mm.items()},
+                       side_distance_mm={n: on_maps_shown(v, maps_shown[n][1])
+                                         for n, v in self.side_distance_mm.items()},
                        top_referred_l=None if self.top_referred_l is None else spread(self.top_referred_l))
 
     @cached_property
@@ -220,7 +221,7 @@ class MetricVolume:
         return reference_slope(self.volume_l, self.top_referred_l)
 
 
-def _on_shown(values: np.ndarray, shown: np.ndarray) -> np.ndarray:
+def on_maps_shown(values: np.ndarray, shown: np.ndarray) -> np.ndarray:
     """Values of the maps shown, on all the maps (NaN on the others)."""
     out = np.full(len(shown), np.nan)
     out[np.asarray(shown, dtype=bool)] = values
