@@ -44,13 +44,20 @@ def run_gui(args: argparse.Namespace) -> int:
         window = MainWindow(opener, rig, engine_log=log_file(ENGINE_LOG))
     except Exception as exc:  # the rig or file cannot be opened: one clear line, and no window
         raise UserError(f"cannot start: {exc}") from exc
-    install_excepthook(lambda: window)
+    failed: list[bool] = []
+
+    def give_up() -> None:  # the smoke test: an unexpected error ends it, with the traceback on stderr
+        failed.append(True)
+        window.close()
+        app.exit(1)
+
+    install_excepthook(lambda: window, give_up if args.smoke_test is not None else None)
     window.show()
     if args.smoke_test is None:
         return app.exec()
     if window.engine is None:
         raise UserError(f"cannot start: {window.diagnostics.problem.text()}")
-    return _smoke_test(app, window, args.smoke_test)
+    return _smoke_test(app, window, args.smoke_test, failed)
 
 
 def settings_rig() -> Path | None:
@@ -61,14 +68,18 @@ def settings_rig() -> Path | None:
     return Path(chosen) if chosen else None
 
 
-def _smoke_test(app, window, seconds: float) -> int:
-    """Record on the simulated rig in the real window, then process and report the recording."""
+def _smoke_test(app, window, seconds: float, failed: list[bool]) -> int:
+    """Record on the simulated rig in the real window, then process and report the recording.
+    `failed` holds an entry once an unexpected error has ended the window's event loop."""
     from app.gui.measure import measure_live_view
     from core.io.session import SubjectRecord, validate_session
 
     folder = Path(tempfile.mkdtemp(prefix="photopft-smoke-"))
     session = folder / "smoke.h5"
     f = measure_live_view(app, window, seconds, session, SubjectRecord("SMOKE-0001", "male", 30.0, 175.0, 75.0))
+    if failed:
+        print("smoke test: an unexpected error ended it (its traceback above, and in the log)")
+        return 1
     summary = f.recording
     print(f"smoke test: first maps after {f.first_maps_s:.1f} s; {f.elapsed_s:.1f} s recorded in the window: "
           + ", ".join(f"{h} {n} frames" for h, n in summary.frames.items())

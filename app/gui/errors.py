@@ -7,6 +7,7 @@ import logging
 import sys
 import traceback
 from pathlib import Path
+from typing import Callable
 
 from PySide6.QtWidgets import QMessageBox, QWidget
 
@@ -46,11 +47,19 @@ def file_problem(path: Path, error: BaseException) -> tuple[str, str]:
             "damaged recording still holds.")
 
 
-def install_excepthook(parent_of: callable) -> None:
-    """An unexpected error becomes a dialog (and a log entry with the traceback)."""
+def install_excepthook(parent_of: callable, unattended: Callable[[], None] | None = None) -> None:
+    """An unexpected error becomes a dialog (and a log entry with the traceback).
+
+    `unattended`: nobody is there to close a dialog (`photopft gui --smoke-test`): the traceback goes
+    to the log (which the GUI's logging prints on stderr too), and `unattended` is called (to close the window and leave the event
+    loop) instead. A modal dialog there waited until the installer test's 15-minute timeout."""
 
     def hook(kind, value, tb) -> None:
         detail = "".join(traceback.format_exception(kind, value, tb))
+        if unattended is not None:
+            log.error("Something went wrong: %s\n%s", value, detail)
+            unattended()
+            return
         show_error(parent_of(), f"Something went wrong: {value}",
                    "The session so far is kept. Save your work, then restart photopft; if it happens again, "
                    "send the log file to support.", detail)

@@ -161,6 +161,25 @@ def test_a_broken_file_is_a_dialog_not_a_traceback(window, qtbot, tmp_path, smal
     assert "cut short" in seen[1] and "photopft recover cut.h5" in seen[1]
 
 
+def test_an_unexpected_error_with_nobody_to_close_a_dialog_ends_the_smoke_test_with_its_traceback(caplog,
+                                                                                                  monkeypatch):
+    """`photopft gui --smoke-test` has no operator: a modal dialog there hung until the installer
+    test's timeout. The traceback goes to the log and the run is ended instead."""
+    import sys
+
+    from app.gui.errors import install_excepthook
+
+    ended = []
+    monkeypatch.setattr(sys, "excepthook", sys.excepthook)
+    install_excepthook(lambda: None, lambda: ended.append(True))
+    try:
+        raise ValueError("min() arg is an empty sequence")
+    except ValueError as exc:
+        sys.excepthook(type(exc), exc, exc.__traceback__)
+    assert ended == [True]
+    assert "ValueError: min() arg is an empty sequence" in caplog.text
+
+
 def test_a_rig_that_cannot_start_opens_on_the_diagnostics_page(qtbot, tmp_path):
     """A camera that is not there: the window opens anyway, on a page that names each device, its
     state and what to do; the operator can switch to the simulated rig from there."""
