@@ -51,8 +51,9 @@ def install_excepthook(parent_of: callable, unattended: Callable[[], None] | Non
     """An unexpected error becomes a dialog (and a log entry with the traceback).
 
     `unattended`: nobody is there to close a dialog (`photopft gui --smoke-test`): the traceback goes
-    to the log (which the GUI's logging prints on stderr too), and `unattended` is called (to close the window and leave the event
-    loop) instead. A modal dialog there waited until the installer test's 15-minute timeout."""
+    to the log (which the GUI's logging prints on stderr too), and `unattended` is called (to close
+    the window and leave the event loop) instead. A modal dialog there waited until the installer
+    test's 15-minute timeout."""
 
     def hook(kind, value, tb) -> None:
         detail = "".join(traceback.format_exception(kind, value, tb))
