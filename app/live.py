@@ -30,7 +30,7 @@ from core.volume.sides import side_profile_mm
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.reconstruction.process import MAX_OCCLUDED_SIDE_SHARE, use_threads
 from core.rig import DARK, Rig
-from core.io.session import SessionFile, SubjectRecord
+from core.io.session import SessionError, SessionFile, SubjectRecord
 from drivers.camera import CameraError, CameraStats, Frame, capture_frames
 from drivers.flowsensor import FlowBlock
 from drivers.light_phase import LightPhase, LightPhaseError, RecordedLights
@@ -224,8 +224,12 @@ class _FileFlow:
 def replay_source(path: str | Path, speed: float = 1.0) -> Source:
     """A recorded session played through the live view at real speed (or `speed` times it)."""
     session = SessionFile(path)
-    first = int(min(session.timestamp_ns(h)[0] for h in session.heads if session.n_frames(h)))
-    last = int(max(session.timestamp_ns(h)[-1] for h in session.heads if session.n_frames(h)))
+    recorded = [h for h in session.heads if session.n_frames(h)]
+    if not recorded:
+        session.close()
+        raise SessionError(f"{path} holds no camera frame to replay")
+    first = int(min(session.timestamp_ns(h)[0] for h in recorded))
+    last = int(max(session.timestamp_ns(h)[-1] for h in recorded))
     clock = _ReplayClock(first, speed, last)
     cameras = {h: _FileCamera(session, h, clock) for h in session.heads}
     lights = {h: dict(zip(session.frame_id(h).tolist(), session.light_index(h).tolist())) for h in session.heads}

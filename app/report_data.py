@@ -414,7 +414,7 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
     analysed = analyse_session(session_path, equations)
     notes: list[str] = []
     with SessionFile(session_path) as s:
-        start = int(min(s.timestamp_ns(h)[0] for h in s.heads if s.n_frames(h)))
+        start = s.start_ns()
         events = sorted(((t - start) / 1e9, label) for t, label in s.events())
         subject = s.subject
         sources: dict[str, SessionValues] = {}

@@ -33,7 +33,7 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
                     optical_volume: tuple[np.ndarray, np.ndarray] | None = None) -> SessionReport:
     """optical_volume: (timestamp_ns, litres) on the session's clock, e.g. a results file's /volume."""
     with SessionFile(path) as s:
-        start = int(min(s.timestamp_ns(h)[0] for h in s.heads if s.n_frames(h)))
+        start = s.start_ns()
         events = _events(s, start)
         age = s.subject.age_years if s.subject is not None else None
         flow_values = None

@@ -428,6 +428,16 @@ class SessionFile(_OwnsFile):
     def n_frames(self, head: str) -> int:
         return int(self._head(head)["frames"].shape[0])
 
+    def start_ns(self) -> int:
+        """The session's time origin: its first camera frame, or its first flow sample where no head
+        recorded a frame. A session with neither (a recording stopped before anything arrived) has none."""
+        firsts = [int(self._head(h)["timestamp_ns"][0]) for h in self.heads if self.n_frames(h)]
+        if not firsts and "flow" in self._file and self._file["flow"]["timestamp_ns"].shape[0]:
+            firsts = [int(self._file["flow"]["timestamp_ns"][0])]
+        if not firsts:
+            raise SessionError(f"{self.path} holds no camera frame and no flow sample: nothing was recorded")
+        return min(firsts)
+
     def lost_frames(self, head: str) -> int:
         ids = self.frame_id(head).astype(np.int64)
         return int(np.sum(np.diff(ids) - 1)) if len(ids) > 1 else 0

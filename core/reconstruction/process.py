@@ -330,6 +330,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
         for name in names:
             if name not in rig.heads:
                 raise SessionError(f"{session_path} has no head {name!r} (heads: {', '.join(session.heads)})")
+        if not any(session.n_frames(name) for name in names):
+            raise SessionError(f"{session_path} holds no camera frame: nothing to reconstruct")
         if binning is not None and binning < 1:
             raise ValueError("binning must be 1 or more")
         factors = {name: binning or working_binning(rig.heads[name]) for name in names}

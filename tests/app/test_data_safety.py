@@ -246,6 +246,28 @@ def test_impossible_session_values_are_refused_by_name(session, capsys, change, 
     assert not session.with_name("r.h5").exists()
 
 
+def test_a_recording_stopped_before_any_frame_is_one_line_for_every_verb(tmp_path, capsys):
+    """A valid session file that holds no frame and no flow sample (a recording stopped at once): each
+    verb names the file and says nothing was recorded, writes nothing, and the replay refuses it."""
+    from app.live import replay_source
+    from core.io.session import SessionError, SessionWriter, SubjectRecord
+    from core.rig import thesis_rig
+
+    empty = tmp_path / "empty.h5"
+    with SessionWriter(empty, kind="patient", rig=thesis_rig(0.1),
+                       subject=SubjectRecord("E-1", "female", 40.0, 165.0, 60.0)):
+        pass
+    assert validate_session(empty) == []
+    for verb, said in ((["analyze"], "no camera frame and no flow sample"),
+                       (["report", "-o", str(tmp_path / "r.pdf")], "no camera frame and no flow sample"),
+                       (["process", "-o", str(tmp_path / "r.h5")], "no camera frame: nothing to reconstruct")):
+        code, err = run([verb[0], str(empty)] + verb[1:], capsys)
+        assert code == 2 and str(empty) in err and said in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "r.pdf").exists() and not (tmp_path / "r.h5").exists()
+    with pytest.raises(SessionError, match="no camera frame to replay"):
+        replay_source(empty)
+
+
 def test_a_profile_with_coincident_lights_is_refused(tmp_path, session, capsys):
     from core.calibration.rig_profile import PROFILE_FORMAT
 
