@@ -91,7 +91,7 @@ def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ..
             truth = report.truth.parameters()
             flow = report.flow_sensor.parameters() if report.flow_sensor is not None else {}
             rows.append((scenario, truth, flow, report.optical.parameters(), _gradient_correlations(session, results),
-                         _metric_against_truth(session, results)))
+                         _metric_against_truth(session, results), report.optical.problems))
     lines = [f"Simulated subjects (full protocol, {seconds:g} s, scale {scale:g}, 12-bit camera with shot and read "
              "noise, axial sway as given plus 15 mm lateral and 3 mm vertical), both heads at the distance given; "
              f"`photopft process` every {every}{'nd' if every == 2 else 'th'} cycle window (maps at "
@@ -99,19 +99,24 @@ def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ..
              "calibration of any kind.", "",
              "| distance (mm) | sway (mm) | value | truth (L) | flow sensor (L) | within | metric optical (L) | within |",
              "|---|---|---|---|---|---|---|---|"]
-    for scenario, truth, flow, optical, _, _ in rows:
+    for scenario, truth, flow, optical, _, _, _ in rows:
         for label, key in VALUES:
             if key not in truth:
                 continue
             cells = " | ".join(" | ".join(_cell(values.get(key), truth[key])) for values in (flow, optical))
             lines.append(f"| {scenario.distance_mm:.0f} | ±{scenario.axial_sway_mm:.0f} | {label} | {truth[key]:.3f} | "
                          f"{cells} |")
+    missing = [(scenario, [label for label, key in VALUES if key in truth and key not in optical], problems)
+               for scenario, truth, _, optical, _, _, problems in rows]
+    lines += [f"- {scenario.distance_mm:.0f} mm: optical {', '.join(labels)} not given: "
+              + ("; ".join(problems) if problems else "the analysis found none") for scenario, labels, problems in missing
+              if labels]
     lines += ["", "Optical volume against the true volume (r; target >= 0.995; thesis Table 5.2: front 0.94, "
               "back -0.64, combined 0.98): the normalised gradient volume (eqs 3.26-3.27) per head and combined, "
               "and the metric volume in litres (both heads) with the slope and rms of its difference from the truth.",
               "", "| distance (mm) | gradient front | gradient back | gradient combined | metric r | metric slope | "
               "metric rms (L) |", "|---|---|---|---|---|---|---|"]
-    for scenario, _, _, _, r, m in rows:
+    for scenario, _, _, _, r, m, _ in rows:
         lines.append(f"| {scenario.distance_mm:.0f} | {r.get('front', float('nan')):.3f} | "
                      f"{r.get('back', float('nan')):.3f} | {r['combined']:.3f} | {m['r']:.4f} | {m['slope']:.3f} | "
                      f"{m['rms_l']:.3f} |")
