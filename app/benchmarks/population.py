@@ -609,7 +609,9 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
                      f"{' | '.join(cells)} | {_or_dash(max(errors, key=abs) if errors else float('nan'), '+.1f')} |"
                      + (f" refused: {row['refused']}" if "refused" in row else "")
                      + (f" optical refused: {row['optical_refused']}" if row.get("optical_refused") else "")
-                     + (f" distance refused: {row['distance_refused']}" if row.get("distance_refused") else ""))
+                     + (f" distance refused: {row['distance_refused']}" if row.get("distance_refused") else "")
+                     + (f" optical: {'; '.join(row['optical_problems'])}" if row.get("optical_problems")
+                        and not row.get("optical_refused") else ""))
     subject_seconds = [r["seconds"] for r in rows if "seconds" in r]
     tally = refusal_tally(rows)
     lines += ["", f"{len(refused)} of {len(rows)} subjects refused before analysis"
