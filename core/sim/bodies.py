@@ -30,6 +30,8 @@ from core.sim.textures import body_albedo
 ARMS = ("away", "close")
 SEXES = ("male", "female")
 MAX_LATERAL_SLOPE = 4.0  # the sides' lateral expansion, in mm of height per mm of sideways motion, at most
+# How far each side of the trunk moves out at unit amplitude of a mode (1 mm forward at the front's middle)
+LATERAL_SIDE_MM = {"rib_cage": 0.5, "abdomen": 0.15}
 
 
 # The ranges a body's fields must lie in (Body refuses others; random_body draws within them).
@@ -261,10 +263,15 @@ def _smooth_union(a: np.ndarray, b: np.ndarray, k_mm: float) -> tuple[np.ndarray
 
 def body_surfaces(body: Body, grid_step_mm: float = 1.0, clothing: str = "skin", seed: int = 0,
                   skin_albedo: float = 0.45, specular: float = 0.0, shininess: float = 30.0,
-                  arm_motion: bool = False) -> dict[str, HeightField]:
+                  arm_motion: bool = False, widening: bool = False) -> dict[str, HeightField]:
     """Front and back height fields of a body's trunk and arms, with breathing modes
     (chest_left, chest_right, abdomen; 1 mm peak forward motion of the front at unit amplitude)
-    and, with `arm_motion`, a mode "arms": both arms 1 mm outwards (no volume: not breathing)."""
+    and, with `arm_motion`, a mode "arms": both arms 1 mm outwards (no volume: not breathing).
+
+    The sides' lateral expansion is, with `widening`, the trunk itself stretched sideways (its
+    silhouette widens, the arms move out with its sides: `HeightField.stretch_modes`); without, each
+    mode's height change -e x dh/dx, cut at MAX_LATERAL_SLOPE near the sides, where a height field
+    cannot move sideways (the silhouette stays put)."""
     s = body.stature_scale
     lm = _Landmarks.of(s)
     half_span = max(body.shoulder_width_mm, body.hip_width_mm) / 2 + 2.6 * body.arm_radius_mm + 40.0
@@ -327,7 +334,8 @@ def body_surfaces(body: Body, grid_step_mm: float = 1.0, clothing: str = "skin",
     front_h, front_w = _smooth_union(trunk_front, arm_front, 3.0)
     back_h, back_w = _smooth_union(trunk_back, arm_back, 3.0)
 
-    modes_front, modes_back = _breathing_modes(x, y, lm, half_width, trunk_front, trunk_back, on_trunk, grid.step)
+    modes_front, modes_back, stretch = _breathing_modes(x, y, lm, half_width, trunk_front, trunk_back, on_trunk,
+                                                        grid.step, widening)
     swept = tuple(float(np.sum(modes_front[n] + modes_back[n], dtype=np.float64)) * grid.cell_area_mm2
                   for n in modes_front)
     seen_front = {n: m * front_w for n, m in modes_front.items()}
@@ -349,8 +357,26 @@ def body_surfaces(body: Body, grid_step_mm: float = 1.0, clothing: str = "skin",
     front_swept = tuple(float(np.sum(m, dtype=np.float64)) * grid.cell_area_mm2 for m in modes_front.values())
     front_swept = front_swept + (0.0,) * (len(swept) - len(front_swept))
     back_swept = tuple(v - f for v, f in zip(swept, front_swept))
-    return {"front": replace(front, swept_mode_volumes_mm3=front_swept),
-            "back": replace(back, swept_mode_volumes_mm3=back_swept)}
+    out = {"front": replace(front, swept_mode_volumes_mm3=front_swept),
+           "back": replace(back, swept_mode_volumes_mm3=back_swept)}
+    if stretch is not None:
+        still = np.zeros((grid.ny, 2))  # the arms' mode stretches nothing
+        stretch_modes = np.stack([stretch.get(n, still) for n in front.mode_names])
+        for name, trunk, modes in (("front", trunk_front, modes_front), ("back", trunk_back, modes_back)):
+            out[name] = replace(out[name], stretch_modes=stretch_modes, trunk_half_width_mm=half_width[:, 0].copy(),
+                                section_area_mm2=_row_side_areas(np.where(on_trunk, np.nan_to_num(trunk), 0.0), x,
+                                                                 grid.step),
+                                mode_section_area_mm2=np.stack([
+                                    _row_side_areas(modes[n], x, grid.step) if n in modes
+                                    else np.zeros((grid.ny, 2)) for n in front.mode_names]))
+    return out
+
+
+def _row_side_areas(height_mm: np.ndarray, x: np.ndarray, step: float) -> np.ndarray:
+    """(rows, 2): the area under a height on each grid row's side x > 0 and x < 0 (mm^2), the middle
+    column shared half and half."""
+    weight = np.where(x > 0, 1.0, np.where(x < 0, 0.0, 0.5))
+    return np.stack([np.sum(height_mm * weight, axis=1), np.sum(height_mm * (1.0 - weight), axis=1)], axis=1) * step
 
 
 def _arms(body: Body, x: np.ndarray, y: np.ndarray, lm: _Landmarks, half_width: np.ndarray,
@@ -378,10 +404,14 @@ def _arms(body: Body, x: np.ndarray, y: np.ndarray, lm: _Landmarks, half_width: 
 
 
 def _breathing_modes(x: np.ndarray, y: np.ndarray, lm: _Landmarks, half_width: np.ndarray,
-                     trunk_front: np.ndarray, trunk_back: np.ndarray, on_trunk: np.ndarray, step: float
-                     ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+                     trunk_front: np.ndarray, trunk_back: np.ndarray, on_trunk: np.ndarray, step: float,
+                     widening: bool = False
+                     ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray] | None]:
     """Rib cage (left, right) and abdomen: forward motion tapering to the sides, plus the sides'
-    lateral expansion (a sideways stretch x -> x (1 + e) changes a height field by -e x dh/dx)."""
+    lateral expansion, a sideways stretch x -> x (1 + e) by LATERAL_SIDE_MM / half width at unit
+    amplitude. Without `widening` the stretch is each mode's height change -e x dh/dx (cut at
+    MAX_LATERAL_SLOPE) and the third value is None; with it the modes move along the axis only and
+    the third gives each mode's stretch of every grid row's two sides (x > 0, x < 0), (rows, 2)."""
     s = lm.s
     rib_cage = _smoothstep(lm.acromion, lm.axilla, y) * (1.0 - _smoothstep(lm.costal_margin - 40 * s,
                                                                           lm.waist, y))
@@ -394,12 +424,20 @@ def _breathing_modes(x: np.ndarray, y: np.ndarray, lm: _Landmarks, half_width: n
         stretch = np.clip(-(x / half_width) * hx, 0.0, MAX_LATERAL_SLOPE)
         return np.where(on_trunk & np.isfinite(h), stretch, 0.0)
 
-    lat_front, lat_back = lateral(trunk_front), lateral(trunk_back)
+    lat_front, lat_back = (0.0, 0.0) if widening else (lateral(trunk_front), lateral(trunk_back))
     left = 1.0 / (1.0 + np.exp(-x / 25.0))  # the subject's left is the front image's right
-    rc_front = rib_cage * (forward + 0.5 * lat_front)
-    rc_back = rib_cage * (0.25 * forward + 0.5 * lat_back)
-    ab_front = abdomen * (forward + 0.15 * lat_front)
-    ab_back = abdomen * (0.05 * forward + 0.15 * lat_back)
+    side = LATERAL_SIDE_MM
+    rc_front = rib_cage * (forward + side["rib_cage"] * lat_front)
+    rc_back = rib_cage * (0.25 * forward + side["rib_cage"] * lat_back)
+    ab_front = abdomen * (forward + side["abdomen"] * lat_front)
+    ab_back = abdomen * (0.05 * forward + side["abdomen"] * lat_back)
     front = {"chest_left": rc_front * left, "chest_right": rc_front * (1 - left), "abdomen": ab_front}
     back = {"chest_left": rc_back * left, "chest_right": rc_back * (1 - left), "abdomen": ab_back}
-    return front, back
+    if not widening:
+        return front, back, None
+    per_row = 1.0 / half_width[:, 0]
+    rc, ab = side["rib_cage"] * rib_cage[:, 0] * per_row, side["abdomen"] * abdomen[:, 0] * per_row
+    zero = np.zeros_like(rc)
+    stretch = {"chest_left": np.stack([rc, zero], axis=1), "chest_right": np.stack([zero, rc], axis=1),
+               "abdomen": np.stack([ab, ab], axis=1)}
+    return front, back, stretch

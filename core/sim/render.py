@@ -139,10 +139,38 @@ def _digitise(signal_e, read_e, dn_per_e, max_dn, key):
     return dn
 
 
+# The trunk's sideways stretch, one row per grid row (HeightFieldScene.stretch_table): the stretch e
+# of the side x > 0 and of the side x < 0, the trunk's half width, and the row derivatives (per mm) of
+# e and of e * half width on each side. An empty table: no stretch.
+ST_E_POS, ST_E_NEG, ST_HALF_WIDTH, ST_DE_POS, ST_DE_NEG, ST_DEW_POS, ST_DEW_NEG = range(7)
+STRETCH_COLUMNS = 7
+
+
 @njit(inline="always", fastmath=_FAST)
-def _surface_at(fields, amps, gx0, gy0, inv_step, xb, yb):
+def _unstretched(stretch, gy0, inv_step, xb, yb):
+    """The body point the stretch x -> x (1 + e) (within the trunk's half width; beyond it, the arms
+    moved out with the side, unstretched) brought to xb, and dx/dX, dx/dy there."""
+    if stretch.shape[0] == 0:
+        return xb, 1.0, 0.0
+    row = int(np.floor((yb - gy0) * inv_step + 0.5))
+    if row < 0 or row >= stretch.shape[0]:
+        return xb, 1.0, 0.0
+    half_width = stretch[row, ST_HALF_WIDTH]
+    if xb >= 0.0:
+        e, de, dew, sign = stretch[row, ST_E_POS], stretch[row, ST_DE_POS], stretch[row, ST_DEW_POS], 1.0
+    else:
+        e, de, dew, sign = stretch[row, ST_E_NEG], stretch[row, ST_DE_NEG], stretch[row, ST_DEW_NEG], -1.0
+    if abs(xb) <= half_width * (1.0 + e):
+        x = xb / (1.0 + e)
+        return x, 1.0 / (1.0 + e), -x * de / (1.0 + e)
+    return xb - sign * e * half_width, 1.0, -sign * dew
+
+
+@njit(inline="always", fastmath=_FAST)
+def _surface_at(fields, amps, gx0, gy0, inv_step, xb, yb, stretch):
     """Height, gradient (x, y) and albedo of the breathing surface at body point (xb, yb), bilinear
-    on the grid; the height is NaN off the object."""
+    on the grid, the trunk stretched sideways by `stretch`; the height is NaN off the object."""
+    xb, dx_dX, dx_dy = _unstretched(stretch, gy0, inv_step, xb, yb)
     fx = (xb - gx0) * inv_step
     fy = (yb - gy0) * inv_step
     jj = int(np.floor(fx))
@@ -171,7 +199,7 @@ def _surface_at(fields, amps, gx0, gy0, inv_step, xb, yb):
                        + w10 * fields[ii + 1, jj, k + 1] + w11 * fields[ii + 1, jj + 1, k + 1])
             gy += a * (w00 * fields[ii, jj, k + 2] + w01 * fields[ii, jj + 1, k + 2]
                        + w10 * fields[ii + 1, jj, k + 2] + w11 * fields[ii + 1, jj + 1, k + 2])
-    return hh, gx, gy, alb
+    return hh, gx * dx_dX, gy + gx * dx_dy, alb
 
 
 @njit(parallel=True, fastmath=_FAST, nogil=True, cache=True)
@@ -211,19 +239,19 @@ _BISECTIONS = 14
 
 
 @njit(fastmath=_FAST, nogil=True, cache=True)
-def _first_hit(fields, amps, gx0, gy0, inv_step, uj, vi, sign_x, sx, sy, z0, z_front):
+def _first_hit(fields, amps, gx0, gy0, inv_step, uj, vi, sign_x, sx, sy, z0, z_front, stretch):
     """The nearest meeting of the ray with the surface, marched from depth z_front (in front of the
     whole surface) and bisected: (hit, depth). Newton's method fails on a flank the ray nearly
     grazes; the silhouette is where the ray is tangent to the surface, not where Newton's method,
     started from the mid-plane, stops converging."""
     za = z_front
-    hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * za * uj - sx, za * vi - sy)
+    hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * za * uj - sx, za * vi - sy, stretch)
     if not np.isfinite(hh) or za - z0 + hh >= 0.0:
         return False, za
     gap = z0 - hh - za
     while True:
         zb = za + max(_MARCH_STEP_MM, _MARCH_GAP_FRACTION * gap)
-        hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zb * uj - sx, zb * vi - sy)
+        hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zb * uj - sx, zb * vi - sy, stretch)
         if not np.isfinite(hh):
             return False, zb
         if zb - z0 + hh >= 0.0:
@@ -232,7 +260,7 @@ def _first_hit(fields, amps, gx0, gy0, inv_step, uj, vi, sign_x, sx, sy, z0, z_f
         gap = z0 - hh - za
     for _ in range(_BISECTIONS):
         zm = 0.5 * (za + zb)
-        hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zm * uj - sx, zm * vi - sy)
+        hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zm * uj - sx, zm * vi - sy, stretch)
         if not np.isfinite(hh):
             return False, zm
         if zm - z0 + hh >= 0.0:
@@ -245,11 +273,12 @@ def _first_hit(fields, amps, gx0, gy0, inv_step, uj, vi, sign_x, sx, sy, z0, z_f
 @njit(parallel=True, fastmath=_FAST, nogil=True, cache=True)
 def render_height_field(out, z_state, ray_u, ray_v, vignette, fields, gx0, gy0, step, amps, sign_x, sx, sy, z0, front_mm,
                         spec, shin, light, lit, gain, ambient_e, background_e, read_e, dn_per_e, max_dn,
-                        key0, want_maps, depth_out, normal_out):
+                        key0, want_maps, depth_out, normal_out, stretch):
     """Render one frame of a height field `Z = z0 - h(sign_x * X - sx, Y - sy)`; returns nothing.
 
     front_mm: no point of the surface stands out of the mid-plane by more. z_state holds each
-    pixel's depth from the previous call (NaN: none) and is updated.
+    pixel's depth from the previous call (NaN: none) and is updated. stretch: the trunk's sideways
+    stretch (ST_* rows, HeightFieldScene's stretch_table; empty: none).
     """
     height, width = out.shape
     inv_step = 1.0 / step
@@ -262,7 +291,8 @@ def render_height_field(out, z_state, ray_u, ray_v, vignette, fields, gx0, gy0, 
                 zc = z0
             hit = False
             for _ in range(16):
-                hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zc * uj - sx, zc * vi - sy)
+                hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zc * uj - sx, zc * vi - sy,
+                                              stretch)
                 if not np.isfinite(hh):
                     break
                 g = zc - z0 + hh
@@ -275,10 +305,11 @@ def render_height_field(out, z_state, ray_u, ray_v, vignette, fields, gx0, gy0, 
                     hit = True
                     break
             if not hit:
-                hit, zc = _first_hit(fields, amps, gx0, gy0, inv_step, uj, vi, sign_x, sx, sy, z0, z0 - front_mm)
+                hit, zc = _first_hit(fields, amps, gx0, gy0, inv_step, uj, vi, sign_x, sx, sy, z0, z0 - front_mm,
+                                     stretch)
                 if hit:
                     hh, gx, gy, alb = _surface_at(fields, amps, gx0, gy0, inv_step, sign_x * zc * uj - sx,
-                                                  zc * vi - sy)
+                                                  zc * vi - sy, stretch)
             key = key0 + np.uint64(i * width + j)
             if hit:
                 z_state[i, j] = zc

@@ -15,8 +15,9 @@ from typing import Callable
 import numpy as np
 
 from core.rig import Head
-from core.sim.render import CameraModel, breathing_surface, camera_rays, pack_lights, render_height_field, render_spheres
-from core.sim.surfaces import F_H, HeightField, Sphere, mode_volumes_mm3
+from core.sim.render import (STRETCH_COLUMNS, CameraModel, breathing_surface, camera_rays, pack_lights,
+                             render_height_field, render_spheres)
+from core.sim.surfaces import F_H, HeightField, Sphere, mode_volumes_mm3, stretched_volume_mm3
 
 HEAD_KEYS = {"front": 0, "back": 1}
 
@@ -100,6 +101,20 @@ def _empty_maps(head: Head, want: bool) -> tuple[np.ndarray, np.ndarray]:
 GRID_CELLS_PER_RAY = 6.0
 
 
+def stretch_table(surface: HeightField, amplitudes: np.ndarray) -> np.ndarray:
+    """The renderer's table of the trunk's sideways stretch at these amplitudes (core/sim/render.py,
+    ST_*): one row per grid row; empty where the surface has no stretch."""
+    if surface.stretch_modes is None:
+        return np.zeros((0, STRETCH_COLUMNS))
+    e = np.einsum("m,mrs->rs", np.asarray(amplitudes, dtype=float), surface.stretch_modes)
+    half_width = surface.trunk_half_width_mm
+    step = surface.grid.step
+    de = np.gradient(e, step, axis=0)
+    dew = np.gradient(e * half_width[:, None], step, axis=0)
+    return np.ascontiguousarray(np.column_stack([e[:, 0], e[:, 1], half_width, de[:, 0], de[:, 1],
+                                                 dew[:, 0], dew[:, 1]]))
+
+
 class HeightFieldScene(Scene):
     """A height-field object (torso, board, vase, relief) with optional breathing and sway."""
 
@@ -156,18 +171,23 @@ class HeightFieldScene(Scene):
                             np.zeros(0) if on_grid else amps, sign_x, sx, sy, z0, surface.front_mm(amps),
                             surface.specular, surface.shininess, lights[max(light, 0)], light >= 0,
                             *digitiser.args(), key,
-                            want_maps, depth, normals)
+                            want_maps, depth, normals, stretch_table(surface, amps))
         return out, (RenderedMaps(depth, normals) if want_maps else None)
 
+    def volume_mm3(self, amplitudes: np.ndarray) -> float:
+        """The volume between front and back surfaces at these mode amplitudes less at rest (mm^3):
+        each mode's quadrature and the sideways stretch's exact widening (stretched_volume_mm3)."""
+        amplitudes = np.asarray(amplitudes, dtype=float)
+        return float(sum(amplitudes @ mode_volumes_mm3(s) + stretched_volume_mm3(s, amplitudes)
+                         for s in self.surfaces.values()))
+
     def truth_volume_l(self, t_s: np.ndarray) -> np.ndarray:
-        """Volume swept between front and back surfaces since t = 0 (L): grid quadrature of the modes."""
+        """Volume swept between front and back surfaces since t = 0 (L)."""
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         if self._amps is None:
             return np.zeros_like(t)
-        per_mode = sum(mode_volumes_mm3(s) for s in self.surfaces.values()) * 1e-6
-        amps = np.array([self._amps(ti) for ti in t])
-        base = np.asarray(self._amps(0.0))
-        return (amps - base) @ per_mode
+        base = self.volume_mm3(self._amps(0.0))
+        return np.array([self.volume_mm3(self._amps(ti)) - base for ti in t]) * 1e-6
 
     def truth_flow_lps(self, t_s: np.ndarray) -> np.ndarray:
         return self._flow(np.asarray(t_s, dtype=float)) if self._flow is not None else super().truth_flow_lps(t_s)

@@ -21,7 +21,7 @@ from core.sim.textures import fitzpatrick_albedo
 from core.sim.breathing import RATE_HZ, ForcedBlow, Subject, Sway, Waveform, protocol_waveform
 from core.sim.flowsensor import FlowSensorModel
 from core.sim.render import CameraModel
-from core.sim.surfaces import mode_volumes_mm3
+from core.sim.surfaces import HeightField, mode_volumes_mm3, stretched_volume_mm3
 from core.sim.scene import Digitiser, HeightFieldScene, Scene, SpherePlacement, SphereScene, noise_key
 
 SCENES = ("torso", "plane", "vase", "relief", "sphere", "specular-sphere", "matte-sphere")
@@ -66,6 +66,9 @@ class SimConfig:
     steps: int = 0  # the subject steps 20-50 mm (within 0.5 s) this many times
     arm_swing_mm: float = 0.0  # a body's arms move sideways by up to this (slowly), hiding and showing its sides
     skin_type: int | None = None  # Fitzpatrick I-VI of a body's bare skin (None: albedo 0.45)
+    # a body's trunk stretched sideways as it breathes (its silhouette widens); False: its sides' motion
+    # is a height change, cut near the sides, and the silhouette stays put (core/sim/bodies.py)
+    widening: bool = False
     flow_sensor: FlowSensorModel | None = field(default_factory=FlowSensorModel)
     drop_rate: float = 0.0  # fraction of frames lost on the way (gaps in frame_id)
     # crossed linear polarisers on the LEDs and the lenses (polarised_camera, POLARISER_EXTINCTION): the
@@ -193,6 +196,8 @@ WORLDS: dict[str, dict[str, float | bool]] = {
 }
 # the clinic with crossed polarisers on the LEDs and lenses (the rig the glossy-skin refusal asks for)
 WORLDS["clinic-polarised"] = dict(WORLDS["clinic"], polarisers=True)
+# and bodies whose trunk widens as they breathe (the silhouette grows; SimConfig.widening)
+WORLDS["clinic-widening"] = dict(WORLDS["clinic-polarised"], widening=True)
 
 
 def in_world(config: SimConfig, world: str) -> SimConfig:
@@ -211,7 +216,7 @@ def world_json(config: SimConfig) -> str:
     """The simulated world's realism settings, for /truth."""
     keys = ("led_offset_mm", "led_intensity_spread", "led_mu", "led_mu_spread", "led_tilt_deg", "led_drift",
             "ambient_flicker", "mains_hz", "specular", "clothing", "skin_type", "lens_k1", "vignetting", "steps",
-            "arm_swing_mm", "drop_rate", "polarisers", "distance_mm",
+            "arm_swing_mm", "drop_rate", "polarisers", "widening", "distance_mm",
             "distance_back_mm", "scale", "seed")
     values = {k: getattr(config, k) for k in keys}
     return json.dumps(values, sort_keys=True)
@@ -232,7 +237,28 @@ def _torso_surfaces(config: SimConfig):
         return shapes.torso(config.grid_step_mm, config.clothing, config.seed, specular)
     skin = 0.45 if config.skin_type is None else fitzpatrick_albedo(config.skin_type)
     return body_surfaces(config.body, config.grid_step_mm, config.clothing, config.seed, skin_albedo=skin,
-                         specular=specular, arm_motion=config.arm_swing_mm > 0)
+                         specular=specular, arm_motion=config.arm_swing_mm > 0, widening=config.widening)
+
+
+def linear_volumes_mm3(surfaces: dict[str, HeightField]) -> np.ndarray:
+    """Each mode's volume at unit amplitude (mm^3), both heads: its quadrature and its sideways stretch
+    of the trunk at rest."""
+    return sum(mode_volumes_mm3(s) + np.array([stretched_volume_mm3(s, np.eye(s.n_modes)[k], modes_too=False)
+                                               for k in range(s.n_modes)]) for s in surfaces.values())
+
+
+def widened_share(surfaces: dict[str, HeightField], amplitudes: np.ndarray) -> float:
+    """lambda such that the exact volume at lambda * amplitudes is the linear volume at amplitudes:
+    a stretch widens the modes' own areas too (stretched_volume_mm3), a term in amplitude squared
+    Q, so lambda^2 Q + lambda L - L = 0 (L the linear volume); 1 without a stretch."""
+    amplitudes = np.asarray(amplitudes, dtype=float)
+    linear = float(amplitudes @ linear_volumes_mm3(surfaces))
+    quadratic = sum(stretched_volume_mm3(s, amplitudes) - stretched_volume_mm3(s, amplitudes, modes_too=False)
+                    for s in surfaces.values())
+    if quadratic == 0.0 or linear == 0.0:
+        return 1.0
+    root = np.sqrt(max(linear * linear + 4.0 * quadratic * linear, 0.0))
+    return 2.0 * linear / (linear + np.sign(linear) * root)
 
 
 def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> HeightFieldScene:
@@ -242,7 +268,7 @@ def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> Heig
     modes = surfaces["front"].mode_names
     names = tuple(n for n in modes if n in shares)  # the breathing modes; "arms" moves without volume
     breathing = np.array([modes.index(n) for n in names])
-    per_mode_l = ((mode_volumes_mm3(surfaces["front"]) + mode_volumes_mm3(surfaces["back"])) * 1e-6)[breathing]
+    per_mode_l = (linear_volumes_mm3(surfaces) * 1e-6)[breathing]
     lags = np.array([subject.abdomen_lag_s if n == "abdomen" else 0.0 for n in names])
     share = np.array([shares[n] for n in names])
     swing = ArmSwing(config.arm_swing_mm, config.seed) if "arms" in modes else None
@@ -254,6 +280,7 @@ def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> Heig
     def amplitudes(t: float) -> np.ndarray:
         out = np.zeros(len(modes))
         out[breathing] = compartments(np.array(t)) / per_mode_l
+        out *= widened_share(surfaces, out)
         if swing is not None:
             out[modes.index("arms")] = swing.at(t)
         return out

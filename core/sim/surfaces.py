@@ -9,7 +9,7 @@ volume swept by the surfaces is exact to the grid's quadrature (see `mode_volume
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -56,6 +56,15 @@ class HeightField:
     # what each mode sweeps on the object itself, where the rendered modes are hidden in places
     # (arms in front of the trunk's sides); None: the rendered modes' own quadrature
     swept_mode_volumes_mm3: tuple[float, ...] | None = None
+    # A trunk whose sides move out as it breathes (None: its modes move it along the axis only). The
+    # stretch x -> x (1 + e) of each grid row's two sides (x > 0, x < 0) per unit amplitude of each
+    # mode (n_modes, ny, 2), within the trunk's half width on each row (ny,); and for the truth, the
+    # area of this head's half of the trunk's section on each row side at rest (ny, 2; mm^2) and
+    # each mode's at unit amplitude (n_modes, ny, 2). Both heads hold the same stretch.
+    stretch_modes: np.ndarray | None = field(default=None, compare=False)
+    trunk_half_width_mm: np.ndarray | None = field(default=None, compare=False)
+    section_area_mm2: np.ndarray | None = field(default=None, compare=False)
+    mode_section_area_mm2: np.ndarray | None = field(default=None, compare=False)
 
     @property
     def n_modes(self) -> int:
@@ -127,3 +136,18 @@ class Sphere:
     def as_row(self) -> np.ndarray:
         return np.array([*np.asarray(self.centre_mm, float), self.radius_mm, self.albedo, self.specular,
                          self.shininess])
+
+
+def stretched_volume_mm3(surface: HeightField, amplitudes: np.ndarray, modes_too: bool = True) -> float:
+    """What the trunk's sideways stretch adds to this head's half of the trunk at these amplitudes
+    (mm^3): each row side's section area (its rest area and, with `modes_too`, the modes') times its
+    stretch e, since x -> x (1 + e) widens every area by the factor 1 + e. 0 for a surface without a
+    stretch."""
+    if surface.stretch_modes is None:
+        return 0.0
+    amplitudes = np.asarray(amplitudes, dtype=float)
+    e = np.einsum("m,mrs->rs", amplitudes, surface.stretch_modes)
+    area = surface.section_area_mm2
+    if modes_too:
+        area = area + np.einsum("m,mrs->rs", amplitudes, surface.mode_section_area_mm2)
+    return float(np.sum(e * area, dtype=np.float64)) * surface.grid.step

@@ -117,3 +117,87 @@ def test_moving_arms_change_the_images_but_not_the_true_volume(tmp_path):
         changed = np.isfinite(moving["truth/front/depth_mm"][1]) != np.isfinite(still["truth/front/depth_mm"][1])
         depth_change = np.nan_to_num(moving["truth/front/depth_mm"][1] - still["truth/front/depth_mm"][1])
         assert changed.sum() + np.count_nonzero(np.abs(depth_change) > 1.0) > 20  # the arms are elsewhere
+
+
+def _trunk_edge_mm(depth: np.ndarray, head, row: int) -> tuple[float, float]:
+    """The lateral place (mm, camera frame) of the outermost pixel of the trunk's run of one image row,
+    on each side: the run through the image's middle column, so that an arm held away is not in it."""
+    valid = np.isfinite(depth[row])
+    middle = depth.shape[1] // 2
+    lo = hi = middle
+    while lo > 0 and valid[lo - 1]:
+        lo -= 1
+    while hi < depth.shape[1] - 1 and valid[hi + 1]:
+        hi += 1
+    return tuple((c - head.cx) / head.fx * depth[row, c] for c in (lo, hi))
+
+
+def test_a_widening_trunk_moves_its_silhouette_out_and_its_truth_is_the_stretch():
+    """With `widening` the rib cage's sides move out as the trunk itself stretched sideways, x -> x (1 + e):
+    the rendered surface is the rest surface at x / (1 + e), the silhouette moves out by e times the
+    trunk's half width (a height field's sideways motion never moved it), and the volume the session's
+    truth gives is the waveform's: the stretch widens the modes' own areas too, which the amplitudes
+    take out (widened_share)."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    from core.rig import thesis_head
+    from core.sim.render import CameraModel
+    from core.sim.scene import Digitiser, HeightFieldScene, stretch_table
+    from core.sim.simulate import linear_volumes_mm3, widened_share
+
+    body = PRESETS["average-man"]
+    surfaces = body_surfaces(body, 1.0, widening=True)
+    front = surfaces["front"]
+    amps = np.array([15.0, 15.0, 15.0])
+    table = stretch_table(front, amps)
+    head = thesis_head("front", scale=0.5)
+    digitiser = Digitiser(CameraModel(noise=False), 12)
+    maps = {}
+    for label, a in (("rest", np.zeros(3)), ("breath", amps)):
+        scene = HeightFieldScene(surfaces, 2100.0, 4500.0, mode_amplitudes=lambda t, a=a: a)
+        maps[label] = scene.render(head, 0.0, 1, np.uint64(0), digitiser, want_maps=True)[1].depth_mm
+
+    grid = front.grid
+    x_axis, y_axis = grid.x0 + grid.step * np.arange(grid.nx), grid.y0 + grid.step * np.arange(grid.ny)
+    breathing = front.height_mm + sum(amps[k] * front.mode(k) for k in range(3))
+    surface = RegularGridInterpolator((y_axis, x_axis), breathing.astype(float), bounds_error=False)
+    v, u = np.mgrid[0:head.height, 0:head.width]
+    z = maps["breath"]
+    hit = np.isfinite(z)
+    x_body, y_body = (u[hit] - head.cx) / head.fx * z[hit], (v[hit] - head.cy) / head.fy * z[hit]
+    rows = np.clip(np.floor((y_body - grid.y0) / grid.step + 0.5).astype(int), 0, grid.ny - 1)
+    e = np.where(x_body >= 0, table[rows, 0], table[rows, 1])
+    inside = np.abs(x_body) <= table[rows, 2] * (1 + e)
+    expected = 2100.0 - surface(np.column_stack([y_body, np.where(inside, x_body / (1 + e), x_body)]))
+    flank = inside & (np.abs(x_body) > 0.8 * table[rows, 2]) & np.isfinite(expected)
+    error = np.abs(z[hit][flank] - expected[flank])  # the ray's depth tolerance, times the steep flank's slope
+    assert flank.sum() > 200 and np.percentile(error, 99) < 0.005 and error.max() < 0.2
+
+    level = int(np.argmin(np.abs(y_axis - (-60.0))))  # a row through the rib cage, as above
+    image_row = int(round(head.cy + head.fy * y_axis[level] / 2100.0))
+    (rest_left, rest_right), (left, right) = (_trunk_edge_mm(maps[k], head, image_row) for k in ("rest", "breath"))
+    pixel_mm = 2100.0 / head.fx
+    assert right - rest_right == pytest.approx(table[level, 0] * table[level, 2], abs=pixel_mm)
+    assert rest_left - left == pytest.approx(table[level, 1] * table[level, 2], abs=pixel_mm)
+    assert table[level, 0] * table[level, 2] > 2.5 * pixel_mm  # the side moved out by several pixels
+
+    scene = HeightFieldScene(surfaces, 2100.0, 4500.0)
+    share = widened_share(surfaces, amps)
+    assert 0.9 < share < 0.999  # the stretch of the modes' own areas is felt
+    assert scene.volume_mm3(share * amps) == pytest.approx(float(amps @ linear_volumes_mm3(surfaces)), rel=1e-9)
+    assert scene.volume_mm3(amps) > float(amps @ linear_volumes_mm3(surfaces))
+
+
+def test_a_widening_body_breathes_the_volume_its_flow_sensor_measures(tmp_path):
+    """The session's true volume (the exact stretch) is the compartments' waveform, which the flow
+    sensor measures: without widened_share a widening body breathed 0.35 % more than its flow in quiet
+    breathing (the stretch widens the modes' own areas too), more at full inspiration."""
+    path = tmp_path / "widening.h5"
+    simulate(path, SimConfig(body=PRESETS["average-man"], protocol="tidal", seconds=2.0, scale=0.08, widening=True,
+                             truth_maps_at=[4]))
+    with h5py.File(path) as f:
+        volume = f["truth/volume_l"][:]
+        compartments = f["truth/compartment_volume_l"][:].sum(axis=1)
+        assert json.loads(f["truth"].attrs["world"])["widening"] is True
+    assert np.ptp(volume) > 0.1
+    np.testing.assert_allclose(volume, compartments - compartments[0], atol=1e-9)

@@ -189,7 +189,7 @@ def test_steep_flanks_are_rendered_up_to_the_silhouette():
 def test_the_modes_summed_on_the_grid_render_the_surface_summed_per_ray():
     """breathing_surface sums the breathing modes once a frame; the renderer's own sum of each mode's
     interpolation along every ray (both linear) gives the same depths and grey levels."""
-    from core.sim.render import pack_lights, render_height_field
+    from core.sim.render import STRETCH_COLUMNS, pack_lights, render_height_field
 
     x, _ = BodyGrid.covering(400.0, -320.0, 320.0, 1.0).coordinates()
     grid, board = _board(0.1, 0.05, modes={"bump": np.exp(-x**2 / 8000.0), "tilt": 0.01 * x})
@@ -203,7 +203,8 @@ def test_the_modes_summed_on_the_grid_render_the_surface_summed_per_ray():
     depth, normals = np.empty(head.shape), np.empty((*head.shape, 3))
     render_height_field(per_ray, np.full(head.shape, np.nan), u, v, vignette, board.fields, grid.x0, grid.y0, grid.step,
                         amps, 1.0, 0.0, 0.0, 2010.0, board.front_mm(amps), board.specular, board.shininess,
-                        pack_lights(head)[1], True, *digitiser.args(), np.uint64(0), True, depth, normals)
+                        pack_lights(head)[1], True, *digitiser.args(), np.uint64(0), True, depth, normals,
+                        np.zeros((0, STRETCH_COLUMNS)))
     assert np.isfinite(maps.depth_mm).sum() > 1000
     np.testing.assert_allclose(maps.depth_mm, depth, atol=1e-6, equal_nan=True)
     np.testing.assert_allclose(maps.normals, normals, atol=1e-9, equal_nan=True)
