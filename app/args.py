@@ -40,4 +40,4 @@ def add_force(p: argparse.ArgumentParser) -> None:
 
 # The simulator's worlds by name (core/sim/simulate.py, WORLDS; a test keeps the two the same), here
 # so that building the parser does not import the simulator
-WORLD_NAMES = ("ideal", "clinic", "clinic-polarised")
+WORLD_NAMES = ("ideal", "clinic", "clinic-polarised", "clinic-widening")

@@ -431,7 +431,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     po.add_argument("--max-sheen", type=finite, default=None,
                     help="skin sheen drawn from 0 to this (default 0.3; 0: matte skin)")
     po.add_argument("--world", choices=tuple(w for w in WORLD_NAMES if w != "ideal"), default="clinic",
-                    help="the clinic's rig, or the same behind crossed polarisers on the LEDs and lenses")
+                    help="the clinic's rig, or the same behind crossed polarisers on the LEDs and lenses, or that "
+                         "with bodies whose trunk widens as they breathe (clinic-widening)")
     po.add_argument("--keep", type=Path, default=None,
                     help="keep each finished subject here and, run again, go on from them (long runs)")
     po.add_argument("--no-write", action="store_true", help="print only")

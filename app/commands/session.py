@@ -85,6 +85,7 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
                    help="realism: ideal (today's rig as drawn) or clinic (LEDs as built with cos^mu falloff, tilt and "
                         "drift, mains flicker, oily skin, lens distortion and vignetting, steps, lost frames); "
                         "clinic-polarised: the clinic behind crossed polarisers on the LEDs and lenses; "
+                        "clinic-widening: that, with a --body's trunk widening as it breathes; "
                         "the world's values replace the options below")
     c.add_argument("--skin-type", type=int, choices=range(1, 7), metavar="1-6",
                    help="Fitzpatrick skin type of a --body's bare skin (default: albedo 0.45)")
