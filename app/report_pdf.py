@@ -161,7 +161,16 @@ def _quality_lines(data: ReportData) -> list[str]:
                          f"for FEV1 and {p['acceptable_FVC']} for FVC, of {p['manoeuvres']}.")
         else:
             lines.append(f"<b>{source.capitalize()}</b>: no forced expiration graded.")
+    if OPTICAL in data.sources:
+        lines.append(OPTICAL_LIMITS)
     return lines
+
+
+# What the optical values are not yet (docs/volume.md, "A trunk that widens"; issue 27)
+OPTICAL_LIMITS = ("<b>Optical</b> VC, FVC and FEV1 are not validated within spirometry's tolerance (3 %): the "
+                  "trunk's flanks, which neither camera sees, are not in the optical volume, and a rib cage that "
+                  "widens as it breathes moves them. Read the optical values beside the flow sensor's, not in "
+                  "place of them.")
 
 
 def _plot(width: float, height: float, series: list[list[tuple[float, float]]], x_label: str, y_label: str,
