@@ -10,6 +10,7 @@ by the sway.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable
 
 import numpy as np
@@ -178,8 +179,13 @@ class HeightFieldScene(Scene):
         """The volume between front and back surfaces at these mode amplitudes less at rest (mm^3):
         each mode's quadrature and the sideways stretch's exact widening (stretched_volume_mm3)."""
         amplitudes = np.asarray(amplitudes, dtype=float)
-        return float(sum(amplitudes @ mode_volumes_mm3(s) + stretched_volume_mm3(s, amplitudes)
-                         for s in self.surfaces.values()))
+        return float(amplitudes @ self._mode_volumes_mm3 + sum(stretched_volume_mm3(s, amplitudes)
+                                                              for s in self.surfaces.values()))
+
+    @cached_property
+    def _mode_volumes_mm3(self) -> np.ndarray:
+        """Each mode's volume at unit amplitude, both heads (a grid quadrature: once, not per sample)."""
+        return sum(mode_volumes_mm3(s) for s in self.surfaces.values())
 
     def truth_volume_l(self, t_s: np.ndarray) -> np.ndarray:
         """Volume swept between front and back surfaces since t = 0 (L)."""

@@ -247,12 +247,15 @@ def linear_volumes_mm3(surfaces: dict[str, HeightField]) -> np.ndarray:
                                                for k in range(s.n_modes)]) for s in surfaces.values())
 
 
-def widened_share(surfaces: dict[str, HeightField], amplitudes: np.ndarray) -> float:
+def widened_share(surfaces: dict[str, HeightField], amplitudes: np.ndarray,
+                  linear_mm3: np.ndarray | None = None) -> float:
     """lambda such that the exact volume at lambda * amplitudes is the linear volume at amplitudes:
     a stretch widens the modes' own areas too (stretched_volume_mm3), a term in amplitude squared
     Q, so lambda^2 Q + lambda L - L = 0 (L the linear volume); 1 without a stretch."""
+    if all(s.stretch_modes is None for s in surfaces.values()):
+        return 1.0
     amplitudes = np.asarray(amplitudes, dtype=float)
-    linear = float(amplitudes @ linear_volumes_mm3(surfaces))
+    linear = float(amplitudes @ (linear_volumes_mm3(surfaces) if linear_mm3 is None else linear_mm3))
     quadratic = sum(stretched_volume_mm3(s, amplitudes) - stretched_volume_mm3(s, amplitudes, modes_too=False)
                     for s in surfaces.values())
     if quadratic == 0.0 or linear == 0.0:
@@ -268,7 +271,8 @@ def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> Heig
     modes = surfaces["front"].mode_names
     names = tuple(n for n in modes if n in shares)  # the breathing modes; "arms" moves without volume
     breathing = np.array([modes.index(n) for n in names])
-    per_mode_l = (linear_volumes_mm3(surfaces) * 1e-6)[breathing]
+    linear_mm3 = linear_volumes_mm3(surfaces)
+    per_mode_l = (linear_mm3 * 1e-6)[breathing]
     lags = np.array([subject.abdomen_lag_s if n == "abdomen" else 0.0 for n in names])
     share = np.array([shares[n] for n in names])
     swing = ArmSwing(config.arm_swing_mm, config.seed) if "arms" in modes else None
@@ -280,7 +284,7 @@ def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> Heig
     def amplitudes(t: float) -> np.ndarray:
         out = np.zeros(len(modes))
         out[breathing] = compartments(np.array(t)) / per_mode_l
-        out *= widened_share(surfaces, out)
+        out *= widened_share(surfaces, out, linear_mm3)
         if swing is not None:
             out[modes.index("arms")] = swing.at(t)
         return out
