@@ -761,7 +761,8 @@ class LiveRig:
                     self._optical.append((t_s, sum(self._gradient.values())))
                     if np.isfinite(litres):
                         self._metric_curve.append((t_s, litres))
-                        self._checks.add_volumes(t_s, litres, self._metric.top_referred_l())
+                        self._checks.add_volumes(t_s, litres, self._metric.top_referred_l(),
+                                                 self._metric.silhouette_sample())
 
     def _look(self, head: str, t_s: float, result: HeadMap, reconstructor: HeadReconstructor, cycle: tuple) -> None:
         """What `process` checks on a map made at the geometric distance: its sides along the height

@@ -262,6 +262,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     out["optical_refused"] = optical_refusal(results)
     with ResultsFile(results) as r:
         out["distance_refused"] = r.distance_refused
+        out["volume_checks"] = r.volume_checks()
     out["distance_errors_mm"] = [] if out["distance_refused"] else _distance_errors(session, results, after_cycles=10)
     stages["analyse"] = time.perf_counter() - started - sum(stages.values())
     out["seconds"] = sum(stages.values())
@@ -544,6 +545,7 @@ REFUSAL_KINDS = (("an arm lies against the trunk", "an arm against the trunk"),
                  ("jumps away and back", "jumps"),
                  ("noise from map to map", "a noisy curve"),
                  ("referred to the top of the view", "the two references"),
+                 ("silhouette widens by", "a trunk that widens"),
                  ("and its depth in this head's maps", "a head's scale"))
 
 

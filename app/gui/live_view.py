@@ -300,8 +300,8 @@ class LiveView(QWidget):
         if s.optical_refused is not None:
             self.status.set("optical", f"not valid now: {s.optical_refused}", warn=True)
         else:
-            self.status.set("optical", "the skin's shading, the maps' sides and the volume's two references pass the "
-                            "checks" if s.optical_checked
+            self.status.set("optical", "the skin's shading, the maps' sides, the volume's two references and the "
+                            "trunk's silhouettes pass the checks" if s.optical_checked
                             else "not checked yet: both heads must see the trunk" if len(self.heads) == 2
                             else "not checked: the checks take two heads")
         if s.recording is not None:

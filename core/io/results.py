@@ -127,6 +127,10 @@ def is_results_file(path: str | os.PathLike) -> bool:
         return False
 
 
+# The figures `process` stores with the metric volume for its refusal (MetricVolume.refusal)
+VOLUME_CHECKS = ("top_referred_slope", "widening_per_l", "flank_share")
+
+
 class ResultsFile:
     """An open results file, read by name rather than by HDF5 path."""
 
@@ -181,6 +185,11 @@ class ResultsFile:
         """Why the subject distance is not given (its maps are scaled to one all the same), or None."""
         reason = self._f.attrs.get("distance_refused")
         return None if reason is None else str(reason)
+
+    def volume_checks(self) -> dict[str, float]:
+        """The figures the metric volume's refusal weighed (top_referred_slope, widening_per_l,
+        flank_share; core/volume/metric.py), those the file has."""
+        return {k: float(self._f.attrs[k]) for k in VOLUME_CHECKS if k in self._f.attrs}
 
     def parameters(self) -> dict:
         """The stored pulmonary function values (/parameters), with their `source`."""

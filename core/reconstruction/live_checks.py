@@ -2,13 +2,15 @@
 for the live view: the operator learns during the session, not from the report, that the skin or
 the lights do not follow the light model (a sheen, reflectance_refusal), that the two heads' maps are bent
 against each other (core/volume/sides.py, bend_refusal), or that the trunk's sides move with the
-breathing (core/volume/metric.py, reference_refusal), and can act (polarising filters, a towel on
+breathing (core/volume/metric.py, reference_refusal) or that its silhouettes widen as it breathes
+(flank_refusal), and can act (polarising filters, a towel on
 oily skin, the rig's calibration, the arms held away).
 
 The first two look at a map of each head's stream every LOOK_INTERVAL_S (`process`: every
 SURVEY_INTERVAL_S) and take the median of what the last WINDOW_S gave, where `process` takes the
 whole session's. The third compares the live volume referred to the sides and to the top of the
-view over the last REFERENCE_WINDOW_S, every map."""
+view over the last REFERENCE_WINDOW_S, every map; the fourth the two heads' silhouette widths
+against the volume over the same window."""
 
 from __future__ import annotations
 
@@ -18,7 +20,8 @@ import threading
 import numpy as np
 
 from core.reconstruction.process import reflectance_refusal
-from core.volume.metric import reference_refusal, reference_slope
+from core.volume.metric import (MIN_WIDENING_SPAN_S, flank_refusal, flank_share, reference_refusal, reference_slope,
+                                silhouette_widening)
 from core.volume.sides import bend_refusal, sides_tilt
 
 # A look costs a side profile and the sheen's fit, a few ms. Until 2026-11-27 it cost a map at the
@@ -72,11 +75,13 @@ class LiveOpticalChecks:
                 self._tilts.append((t_s, sides_tilt(front, back)))
             self._forget(t_s)
 
-    def add_volumes(self, t_s: float, side_referred_l: float, top_referred_l: float) -> None:
+    def add_volumes(self, t_s: float, side_referred_l: float, top_referred_l: float,
+                    silhouette: tuple[float, float] = (float("nan"), float("nan"))) -> None:
         """The live volume at t_s referred to the trunk's sides and to the top of the view
-        (core/volume/metric.py, LiveMetricVolume.top_referred_l)."""
+        (core/volume/metric.py, LiveMetricVolume.top_referred_l), and the heads' silhouettes then
+        (LiveMetricVolume.silhouette_sample)."""
         with self._lock:
-            self._volumes.append((t_s, float(side_referred_l), float(top_referred_l)))
+            self._volumes.append((t_s, float(side_referred_l), float(top_referred_l), *map(float, silhouette)))
             self._forget(t_s)
 
     def _forget(self, now_s: float) -> None:
@@ -107,12 +112,22 @@ class LiveOpticalChecks:
             return self._reference_slope()
 
     def _reference_slope(self) -> float:
-        volumes = np.array([v[1:] for v in self._volumes], dtype=float).reshape(-1, 2)
+        volumes = np.array([v[1:3] for v in self._volumes], dtype=float).reshape(-1, 2)
         return reference_slope(volumes[:, 0], volumes[:, 1])
+
+    def _widening(self) -> tuple[float, float]:
+        """The silhouettes' widening per litre over the last REFERENCE_WINDOW_S and the flank_share it gives."""
+        rows = np.array([v for v in self._volumes], dtype=float).reshape(-1, 5)
+        if len(rows) == 0 or np.ptp(rows[:, 0]) < MIN_WIDENING_SPAN_S:
+            return float("nan"), float("nan")
+        widening = silhouette_widening(rows[:, 3], rows[:, 1])
+        area = float(np.nanmedian(rows[:, 4])) if np.isfinite(rows[:, 4]).any() else float("nan")
+        return widening, flank_share(widening, area)
 
     def refusal(self) -> str | None:
         with self._lock:
             sheen = {h: float(np.median([o for _, o in s])) for h, s in self._sheen.items() if s}
             tilts = np.array([t for _, t in self._tilts], dtype=float)
-            slope = self._reference_slope()
-        return reflectance_refusal(sheen) or bend_refusal(tilts) or reference_refusal(slope)
+            slope, widening = self._reference_slope(), self._widening()
+        return (reflectance_refusal(sheen) or bend_refusal(tilts) or flank_refusal(*widening)
+                or reference_refusal(slope))

@@ -23,7 +23,7 @@ from core.io.outputs import atomic_output, stop_if_requested
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
-from core.io.results import ResultsFile, ResultsWriter
+from core.io.results import VOLUME_CHECKS, ResultsFile, ResultsWriter
 from core.limits import past_limit
 from core.volume.maps import DisplacementSums, DisplacementTracker, smooth_in_time
 from core.volume.sides import bend_refusal, paired_tilts, side_profile_mm
@@ -433,8 +433,9 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             shown = {name: sides_shown(occluded[name]) for name in displacements}
             metric = (metric_volume({n: d.of_maps(shown[n]) for n, d in displacements.items()}, rig.baseline_mm)
                       if all(counts.values()) and refused is None and all(m.any() for m in shown.values()) else None)
-            if metric is not None and np.isfinite(metric.top_referred_slope):
-                results.attr("top_referred_slope", metric.top_referred_slope)
+            for check in VOLUME_CHECKS:  # the figures MetricVolume.refusal weighs
+                if metric is not None and np.isfinite(getattr(metric, check)):
+                    results.attr(check, getattr(metric, check))
             for name, level in (metric.levels.items() if metric is not None else ()):
                 results.attr(f"level_{name}", level)  # the session's or each map's own (core/volume/metric.py)
             if metric is not None and (refused := metric.refusal()) is not None:

@@ -145,14 +145,17 @@ class BodySilhouette:
     outline by fy 3 / Z with Z between those depths; the fit finds that one shift of the whole.
     """
 
-    def __init__(self, valid: np.ndarray, widths_px: np.ndarray, head: Head) -> None:
-        """valid: the reference map's valid pixels; widths_px: its row_widths_px."""
+    def __init__(self, valid: np.ndarray, widths_px: np.ndarray, head: Head,
+                 silhouette: np.ndarray | None = None) -> None:
+        """valid: the reference map's valid pixels; widths_px: its row_widths_px; silhouette: its
+        HeadMap.silhouette (valid where not given), for silhouette_ratio."""
         self.head = head
         rows = torso_rows(valid)
         if len(rows) > 2 * FRAME_TRIM_ROWS + MIN_SIDE_ROWS:
             rows = rows[FRAME_TRIM_ROWS:-FRAME_TRIM_ROWS]
         self._rows = rows.astype(float)
         self._widths = widths_px[rows]
+        self._silhouette_widths = (valid if silhouette is None else silhouette)[rows].sum(axis=1).astype(float)
         self._centre = _silhouette_centre_px(valid)
         blurred = _blurred(valid)
         band = (blurred > 0.01) & (blurred < 0.99)
@@ -179,6 +182,28 @@ class BodySilhouette:
                 break
             frame = self._shifted(BodyFrame(ratio, frame.shift_u_px, frame.shift_v_px), blurred, gradient, iterations=2)
         return frame
+
+    def silhouette_ratio(self, silhouette: np.ndarray, frame: BodyFrame) -> float:
+        """The other map's silhouette widths (every pixel of the trunk's, those without depth included)
+        on the reference's rows, carried through the frame, over the reference's: summed over the rows
+        whose ratio lies within SILHOUETTE_ROW_OUTLIER of the rows' median (an arm that joins the
+        silhouette on some rows is no part of it). The sum, not the median: each row's width is whole
+        pixels, and their sum over the rows follows a change of a tenth of a pixel. Where the trunk
+        widens as it breathes this grows with the volume in both heads, where sway grows it in one
+        head and shrinks it in the other (widening_per_l)."""
+        rows = self.head.cy + (self._rows - self.head.cy) * frame.scale + frame.shift_v_px
+        widths = silhouette.sum(axis=1).astype(float)
+        if len(rows) == 0 or len(widths) < 2:
+            return float("nan")
+        below = np.clip(np.floor(rows).astype(int), 0, len(widths) - 2)
+        after = rows - below
+        carried = (1.0 - after) * widths[below] + after * widths[below + 1]
+        inside = (after >= 0) & (after <= 1) & (carried > 0) & (self._silhouette_widths > 0)
+        if inside.sum() < MIN_SIDE_ROWS:
+            return float("nan")
+        ratio = carried[inside] / self._silhouette_widths[inside]
+        kept = np.abs(ratio / np.median(ratio) - 1.0) < SILHOUETTE_ROW_OUTLIER
+        return float(carried[inside][kept].sum() / self._silhouette_widths[inside][kept].sum())
 
     def width_ratio(self, widths_px: np.ndarray, frame: BodyFrame) -> float:
         """The other map's trunk widths on the reference's rows, carried through the frame, over the
@@ -298,6 +323,8 @@ class DisplacementSums:
     # the trunk's widths over the reference's on the same body rows (BodySilhouette.width_ratio; 1 on
     # the reference): what the width follows where an arm joins the trunk on some rows
     width_ratio: float = float("nan")
+    # the trunk's silhouette widths over the reference's on the same body rows (BodySilhouette.silhouette_ratio)
+    silhouette_ratio: float = float("nan")
 
 
 def _row_edges(mask: np.ndarray, width: int):
@@ -365,6 +392,9 @@ SIDE_FIT_PX = 6
 SIDE_MAX_GAP_PX = 4
 # Trunk rows that must give both sides for the trunk's width to come from them (trunk_width_px)
 MIN_SIDE_ROWS = 10
+# A row whose silhouette width lies this far from the rows' median ratio (an arm joined to the trunk) is
+# left out of the silhouette's width (BodySilhouette.silhouette_ratio)
+SILHOUETTE_ROW_OUTLIER = 0.05
 CONTOUR_MIN_VIEW_ANGLE_DEG = 60.0
 
 
@@ -735,7 +765,7 @@ class DisplacementTracker:
             self._reference = (np.where(valid, depth_mm, np.nan), valid, footprint, regions)
             self._reference_width = width
             self._reference_distance = float(distance_mm) if known else float("nan")
-            self._silhouette = BodySilhouette(valid, row_widths, self.head)
+            self._silhouette = BodySilhouette(valid, row_widths, self.head, silhouette)
             self._band_px = rim_band_px(depth_mm, valid, self.head, self.rim_band_mm)
             self._skip_px = rim_skip_px(depth_mm, valid, self.head)
             self._rim = rim_model(depth_mm, valid, self.head, self._band_px, self._skip_px)
@@ -753,6 +783,7 @@ class DisplacementTracker:
             frame, width = self._gated(self._silhouette.frame(valid, row_widths, width / self._reference_width),
                                        valid, row_widths, width)
         width_ratio = self._silhouette.width_ratio(row_widths, frame)
+        silhouette_ratio = self._silhouette.silhouette_ratio(valid if silhouette is None else silhouette, frame)
         z = frame.resampled(depth_mm, valid, ref_mask.shape, self.head)
         both = ref_mask & np.isfinite(z)
         _, rim = rim_depths(ref_depth, z, both, self._band_px, self._skip_px)
@@ -766,7 +797,8 @@ class DisplacementTracker:
                                 {k: float(current[m].sum()) for k, m in parts.items()},
                                 {k: float(area[m].sum()) for k, m in parts.items()},
                                 {k: float(displaced[m].sum()) for k, m in parts.items()},
-                                (level_ref, level), self._rim.edge_statistics(z - ref_depth, both), width_ratio)
+                                (level_ref, level), self._rim.edge_statistics(z - ref_depth, both), width_ratio,
+                                silhouette_ratio)
         top = self._top & both
         if top.any():  # sum fp (z - top) = sum fp (z - level) + (level - top) sum fp
             whole = sums.areas["all"]

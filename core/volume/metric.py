@@ -72,6 +72,23 @@ MAX_JUMP_SHARE = 0.01
 # (0.29-0.72 at scale 0.1), which says nothing against the sides; a negative slope is refused too.
 MAX_REFERENCE_DISAGREEMENT = 0.15
 MIN_REFERENCE_SWING_L = 0.2  # a session whose volume swings less tells too little to compare them
+# The trunk's flanks between the two heads' occluding contours, which neither camera sees, span up to
+# this depth along the axis (45-62 mm on the simulator's bodies; docs/volume.md, "A trunk that widens").
+# Where the silhouettes widen as the trunk breathes, those flanks move out and the volume misses about
+# widening x the trunk's area in view x this (flank_share), and no reference of the visible surface
+# gives it back: at most MAX_FLANK_SHARE of it, VC's and FVC's tolerance, or the volume is refused.
+# Population subjects at scale 0.25 (docs/volume.md, "Silhouettes that widen"): shares of 4.2-5.8 % where
+# the optical FVC or TV read 5-10 % low, 13-28 % where it read 24 % low; our own torso 0.12 % (FVC +2.6 %).
+FLANK_DEPTH_MM = 60.0
+MAX_FLANK_SHARE = 0.03
+# A widening within this many standard errors of none is the silhouettes' whole-pixel noise (1 s of quiet
+# breathing at scale 0.1 read 0.23 % a litre), not a measurement; the maps' errors are not independent
+# from map to map, so the standard error is optimistic and the bar high
+WIDENING_MIN_T = 5.0
+# Over a single breath sway that drifts in step with it (0.03-0.25 Hz) is no noise the standard error sees:
+# 1 s of our own torso's inhalation at scale 0.1 read 0.25 % a litre with the drift, against 0.008 % on the
+# demo's 4-minute session; a session shorter than this (several breaths) is not weighed
+MIN_WIDENING_SPAN_S = 10.0
 
 
 def maps_within(seconds: np.ndarray, window_s: float) -> int:
@@ -102,6 +119,10 @@ class HeadDisplacements:
 
     def series(self, key: str, region: str) -> np.ndarray:
         return np.array([getattr(s, key).get(region, np.nan) for s in self.sums], dtype=float)
+
+    def series_of(self, key: str) -> np.ndarray:
+        """A number each map's DisplacementSums carries (NaN where an older one lacks it)."""
+        return np.array([getattr(s, key, np.nan) for s in self.sums], dtype=float)
 
     def of_maps(self, kept: np.ndarray) -> "HeadDisplacements":
         """These displacements on the maps `kept` (a mask over them) only."""
@@ -161,6 +182,10 @@ class MetricVolume:
     top_referred_l: np.ndarray | None = None
     # each head's level: "the session's" (session_shifts) or "each map's own" (RimModel.level)
     levels: dict[str, str] = field(default_factory=dict)
+    # the two heads' silhouettes' widening per litre of volume (widening_per_l) and the share of the
+    # volume the unseen flanks would then move (flank_share)
+    widening_per_l: float = float("nan")
+    flank_share: float = float("nan")
 
     def refusal(self) -> str | None:
         """Why this volume cannot be reported, or None: a head whose maps had to be rescaled by more
@@ -183,7 +208,7 @@ class MetricVolume:
                 return (f"head {name}: the trunk's width in the two heads' views and its depth in this head's maps "
                         f"disagree by {100 * mismatch:.0f} % (arms against the trunk's sides, or the trunk not "
                         "wholly in view)")
-        return reference_refusal(self.top_referred_slope)
+        return flank_refusal(self.widening_per_l, self.flank_share) or reference_refusal(self.top_referred_slope)
 
     def with_gaps(self, timestamp_ns: np.ndarray, maps_shown: dict[str, tuple[np.ndarray, np.ndarray]],
                   ) -> "MetricVolume":
@@ -247,6 +272,64 @@ def reference_refusal(slope: float) -> str | None:
                 f"referred to the trunk's sides (at most {limit:.0f} %): the "
                 "trunk's sides move with the breathing on this body, and the volume referred to them would miss "
                 "what they move")
+    return None
+
+
+def widening_per_l(heads: dict[str, HeadDisplacements], distances_mm: dict[str, np.ndarray],
+                   timestamp_ns: np.ndarray, volume_l: np.ndarray) -> float:
+    """How much wider the trunk's silhouette grows per litre of volume in both heads at once
+    (silhouette_widening of sway_free_log_ratio). NaN without two heads."""
+    if len(heads) != 2:
+        return float("nan")
+    t = np.asarray(timestamp_ns, dtype=float)
+    logs, distances = [], []
+    for name, h in heads.items():
+        with np.errstate(invalid="ignore", divide="ignore"):
+            logs.append(np.interp(t, h.timestamp_ns.astype(float), _bridged(np.log(h.series_of("silhouette_ratio")))))
+        distances.append(float(np.nanmedian(distances_mm[name])) if np.isfinite(distances_mm[name]).any() else np.nan)
+    if np.ptp(t) < MIN_WIDENING_SPAN_S * 1e9:
+        return float("nan")
+    return silhouette_widening(sway_free_log_ratio(logs, distances), volume_l)
+
+
+def sway_free_log_ratio(log_ratios: list, distances_mm: list[float]):
+    """The two heads' log silhouette ratios, each weighed by its distance: axial sway s widens one view
+    by s / D_front and narrows the other by s / D_back, which this mean leaves out, and a trunk that
+    widens by a share e widens both by e, which it keeps."""
+    (front, back), (d_front, d_back) = log_ratios, distances_mm
+    return (d_front * front + d_back * back) / (d_front + d_back)
+
+
+def silhouette_widening(mean_log_ratio: np.ndarray, volume_l: np.ndarray) -> float:
+    """The slope of the heads' mean log silhouette ratio on the volume (per litre); 0 where it lies
+    within WIDENING_MIN_T standard errors of none, NaN where the volume swings less than
+    MIN_REFERENCE_SWING_L."""
+    mean, volume = np.asarray(mean_log_ratio, dtype=float), np.asarray(volume_l, dtype=float)
+    both = np.isfinite(mean) & np.isfinite(volume)
+    if both.sum() < 10 or np.ptp(volume[both]) < MIN_REFERENCE_SWING_L:
+        return float("nan")
+    (slope, _), covariance = np.polyfit(volume[both], mean[both], 1, cov=True)
+    return float(slope) if abs(slope) > WIDENING_MIN_T * np.sqrt(covariance[0, 0]) else 0.0
+
+
+def trunk_area_mm2(sums: DisplacementSums) -> float:
+    """The trunk's area in a map's view: its quadrants' footprint over the trunk rows (mm^2)."""
+    return float(sum(sums.areas.get(r, np.nan) for r in REGIONS)) if sums.areas else float("nan")
+
+
+def flank_share(widening: float, trunk_area: float) -> float:
+    """The share of the volume the unseen flanks move on a trunk that widens this much per litre
+    (widening_per_l) with this area in view (trunk_area_mm2): widening x area x FLANK_DEPTH_MM."""
+    return abs(widening) * trunk_area * FLANK_DEPTH_MM / 1e6
+
+
+def flank_refusal(widening: float, share: float) -> str | None:
+    """Why a volume whose trunk widens this much (widening_per_l, flank_share) cannot be reported, or None."""
+    if np.isfinite(share) and share > MAX_FLANK_SHARE:
+        return (f"the trunk's silhouette widens by {100 * widening:.1f} % per litre in both views: its flanks, "
+                f"which neither camera sees, move out as it breathes, and the optical volume would miss up to "
+                f"{past_limit(100 * share, 100 * MAX_FLANK_SHARE, 1)} % of the breath "
+                f"(at most {100 * MAX_FLANK_SHARE:.0f} %)")
     return None
 
 
@@ -447,8 +530,13 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
         return smooth_in_time(seconds, values, VOLUME_SMOOTHING_S)
 
     per_head = {name: smooth(v) for name, v in per_head.items()}
-    return MetricVolume(t, sum(per_head.values()), per_head, {r: smooth(v) for r, v in regions.items()},
-                        targets, scale_from, mismatch, smooth(sum(top_referred.values())), levels)
+    volume = sum(per_head.values())
+    widening = widening_per_l(heads, targets, t, volume)
+    areas = [np.nanmedian(a) for h in heads.values() if np.isfinite(a := [trunk_area_mm2(x) for x in h.sums]).any()]
+    area = float(np.mean(areas)) if areas else float("nan")
+    return MetricVolume(t, volume, per_head, {r: smooth(v) for r, v in regions.items()},
+                        targets, scale_from, mismatch, smooth(sum(top_referred.values())), levels,
+                        widening, flank_share(widening, area))
 
 
 def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
@@ -492,6 +580,8 @@ class LiveMetricVolume:
         self._volume = {name: 0.0 for name in heads}
         self._top_referred = {name: float("nan") for name in heads}  # each head's, referred to the top of its view
         self._geometric: dict[str, float] = {}  # each head's subject distance from the two heads' geometry
+        # each head's last map: its log silhouette_ratio and trunk area (silhouette_sample)
+        self._silhouette: dict[str, tuple[float, float]] = {}
 
     def _smoothed(self, name: str, t_s: float, value: float, time_constant_s: float) -> float:
         if name in self._target:
@@ -541,6 +631,8 @@ class LiveMetricVolume:
                 self._robust_width[name] = sums.width_ratio * float(np.median(self._reference_widths[name]))
             if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
                 return float("nan")
+            with np.errstate(invalid="ignore", divide="ignore"):
+                self._silhouette[name] = (float(np.log(sums.silhouette_ratio)), trunk_area_mm2(sums))
             reference_side = self._reference_side.setdefault(name, sums.side_mm)  # the first is the reference
             if target is None:
                 target = self._smoothed(name, t_s, sums.side_mm, SIDE_SMOOTHING_S)
@@ -553,6 +645,16 @@ class LiveMetricVolume:
                 self._top_referred[name] = float(head_volume_l(sums.reference[TOP_REFERRED],
                                                                sums.current[TOP_REFERRED], k_reference, k))
             return sum(self._volume.values()) if len(self._k_reference) == len(self._names) else float("nan")
+
+    def silhouette_sample(self) -> tuple[float, float]:
+        """The two heads' last maps' log silhouette ratios weighed by their distances (sway_free_log_ratio)
+        and their mean trunk area (mm^2); NaN with one head or before both have one."""
+        with self._lock:
+            if not self._two_heads or len(self._silhouette) < 2:
+                return float("nan"), float("nan")
+            logs, areas = zip(*(self._silhouette[n] for n in self._names))
+            distances = [self._target[n][1] if n in self._target else np.nan for n in self._names]
+            return float(sway_free_log_ratio(list(logs), distances)), float(np.mean(areas))
 
     def top_referred_l(self) -> float:
         """The volume (L) as `add` last gave it, with each head's maps referred to the top of its view

@@ -66,3 +66,25 @@ def test_sides_that_move_with_the_breathing_are_refused_over_the_last_breaths():
     for when, side in zip(t, 0.4 * MIN_REFERENCE_SWING_L * np.sin(2 * np.pi * t / 4.0)):
         shallow.add_volumes(float(when), side, side / 0.6)
     assert not shallow.checked and shallow.refusal() is None  # too little breathing to tell
+
+
+def test_silhouettes_that_widen_with_the_breathing_are_refused_over_the_last_breaths():
+    """The two heads' silhouettes against the live volume, as `process` weighs them (flank_refusal):
+    a trunk of 0.12 m^2 in view whose silhouettes grow 1.5 % a litre moves its unseen flanks by about
+    11 % of the breath; one whose silhouettes keep their width is not refused, whatever sway does to
+    each head's alone (it leaves their mean)."""
+    from core.volume.metric import MAX_FLANK_SHARE, flank_share
+
+    t = np.arange(0.0, REFERENCE_WINDOW_S, 0.2)
+    breath = 0.5 * np.sin(2 * np.pi * t / 4.0)
+    noise = 0.001 * np.random.default_rng(2).standard_normal(len(t))
+    area_mm2 = 120_000.0
+    checks = LiveOpticalChecks(["front", "back"])
+    for when, volume, n in zip(t, breath, noise):
+        checks.add_volumes(float(when), volume, volume, (0.015 * volume + n, area_mm2))
+    assert flank_share(0.015, area_mm2) > 3 * MAX_FLANK_SHARE
+    assert "silhouette widens by 1.5 % per litre" in checks.refusal() and "neither camera sees" in checks.refusal()
+    steady = LiveOpticalChecks(["front", "back"])
+    for when, volume, n in zip(t, breath, noise):
+        steady.add_volumes(float(when), volume, volume, (n, area_mm2))
+    assert steady.checked and steady.refusal() is None

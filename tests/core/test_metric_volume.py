@@ -512,3 +512,48 @@ def test_maps_left_out_for_an_arm_leave_gaps_in_the_volume_not_a_bridge():
     assert np.isnan(full.regions["upper left"][[2, 6, 7]]).all() and np.isnan(full.heads["back"][2])
     assert np.isnan(full.side_distance_mm["back"][[6, 7]]).all() and full.side_distance_mm["back"][5] == 1900.0
     assert np.flatnonzero(np.isnan(full.side_distance_mm["front"])).tolist() == [2]
+
+
+def _true_map_volume(surfaces):
+    """metric_volume of a simulated body's true depth maps from both heads, over three deep breaths with
+    10 mm of axial sway out of step with them."""
+    from core.reconstruction.pipeline import trunk_mask
+    from core.sim.render import CameraModel
+    from core.sim.scene import Digitiser, HeightFieldScene
+
+    times = np.linspace(0.0, 12.0, 25)
+    n_modes = surfaces["front"].n_modes
+    scene = HeightFieldScene(surfaces, 2100.0, 4200.0,
+                             mode_amplitudes=lambda t: np.full(n_modes, 12.0 * (1 - np.cos(np.pi * t / 2)) / 2),
+                             sway=lambda t: np.array([0.0, 0.0, 10.0 * np.sin(2.3 * t)]))
+    digitiser = Digitiser(CameraModel(noise=False), 12)
+    heads = {}
+    for name in ("front", "back"):
+        head, sums = thesis_head(name, scale=0.25), []
+        tracker = DisplacementTracker(head)
+        for t in times:
+            maps = scene.render(head, float(t), 1, np.uint64(0), digitiser, want_maps=True)[1]
+            trunk = trunk_mask(np.isfinite(maps.depth_mm), maps.normals)
+            sums.append(tracker.add(maps.depth_mm, trunk, trunk))
+        heads[name] = HeadDisplacements((times * 1e9).astype(np.int64), sums)
+    return metric_volume(heads, 4200.0)
+
+
+def test_a_trunk_whose_silhouette_widens_as_it_breathes_is_refused():
+    """The flanks between the two heads' contours are in no map; where the trunk widens as it breathes
+    they move out with it (on true maps the heads' pixels hold 0.853-0.860 of a breath, docs/volume.md),
+    and no reference of the visible surface gives that back. Both silhouettes widen with the volume
+    (axial sway widens one and narrows the other, and leaves their mean): refused with the widening. Our
+    own torso, whose flanks move forward with the breath and not out, keeps its silhouettes."""
+    from core.sim import shapes
+    from core.sim.bodies import PRESETS, body_surfaces
+    from core.volume.metric import MAX_FLANK_SHARE, flank_refusal
+
+    still = _true_map_volume(shapes.torso(2.0))
+    widening = _true_map_volume(body_surfaces(PRESETS["average-man"], 2.0, widening=True))
+    assert abs(still.widening_per_l) < 0.001 and still.flank_share < 0.3 * MAX_FLANK_SHARE
+    assert flank_refusal(still.widening_per_l, still.flank_share) is None
+    assert widening.widening_per_l > 0.01 and widening.flank_share > 3 * MAX_FLANK_SHARE
+    refused = flank_refusal(widening.widening_per_l, widening.flank_share)
+    assert "silhouette widens by" in refused and "neither camera sees" in refused
+    assert refused in widening.refusal() or "noise from map to map" in widening.refusal()  # 25 maps, with sway
