@@ -16,7 +16,7 @@ from app.records import Patient, Records, ReportState
 from core.analysis.values import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.reconstruction.pipeline import ReconstructionSettings
 from core.reconstruction.process import maps_at, processed_distance_mm
-from core.io.results import ResultsFile, optical_refusal, optical_volume, session_of_results
+from core.io.results import ResultsFile, optical_flank, optical_refusal, optical_volume, session_of_results
 from core.io.hdf5_probe import probe
 from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
                                  bronchodilator_statement, interpret)
@@ -25,6 +25,7 @@ from core.analysis.reference import Reference, ReferenceUnavailable, reference
 from core.io.session import SessionError, SessionFile
 from core.analysis.session_analysis import analyse_session
 from core.volume.maps import body_aligned_displacement, normalised_gradient_volume, torso_rows, trunk_regions
+from core.volume.metric import TIDAL_WITHHELD, withheld_for_flanks
 
 OPTICAL = "optical"
 FLOW_SENSOR = "flow sensor"
@@ -191,7 +192,9 @@ def _gradient_correlation(results: Path, start_ns: int, t_flow: np.ndarray, v_fl
 
 
 def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tuple[float, str]],
-             results: Path | None, start_ns: int) -> Comparison | None:
+             results: Path | None, start_ns: int, optical: SessionValues | None = None) -> Comparison | None:
+    """optical: the optical values as given; where they withhold the tidal volume (withheld_for_flanks),
+    its breaths are not paired with the flow sensor's either."""
     if FLOW_SENSOR not in curves:
         return None
     t_flow, v_flow = curves[FLOW_SENSOR]
@@ -209,14 +212,15 @@ def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tupl
     on_grid = np.interp(grid, t_opt, v_opt)
     measured = np.isfinite(on_grid)  # not in a gap of maps left out (an arm against the trunk)
     r = float(np.corrcoef(on_grid[measured], np.interp(grid[measured], t_flow, v_flow))[0, 1])
-    optical = tidal_breaths(tidal_stretches(t_opt, v_opt, events))
+    withheld = next((p for p in (optical.problems if optical is not None else []) if p.startswith(TIDAL_WITHHELD)), "")
+    breaths = [] if withheld else tidal_breaths(tidal_stretches(t_opt, v_opt, events))
     flow = tidal_breaths(tidal_stretches(t_flow, v_flow, events))
     pairs = []
-    for b in optical:
+    for b in breaths:
         match = min(flow, key=lambda f: abs(f[6] - b[6]), default=None)
         if match is not None and abs(match[6] - b[6]) < 1.0:
             pairs.append((float(b[0]), float(match[0])))
-    return Comparison(r, pairs, gradient)
+    return Comparison(r, pairs, gradient, f"optical {withheld}" if withheld else "")
 
 
 def _manoeuvres(values: SessionValues) -> list[Manoeuvre]:
@@ -422,7 +426,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
         optical = _optical_curve(results_path, start) if results_path is not None else None
         if optical is not None:
             curves[OPTICAL] = optical
-            sources[OPTICAL] = analyse_volume(*optical, events, subject.age_years if subject else None, fitted=True)
+            analysed_optical = analyse_volume(*optical, events, subject.age_years if subject else None, fitted=True)
+            sources[OPTICAL] = withheld_for_flanks(analysed_optical, optical_flank(results_path))
         elif results_path is not None and (refused := optical_refusal(results_path)):
             if analysed.flow_sensor is None:  # with one, the comparison with it says why (_compare), once
                 notes.append(f"Optical volume in litres: refused when the session was processed: {refused}.")
@@ -486,7 +491,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
                                                   "height_cm": subject.height_cm, "weight_kg": subject.weight_kg},
             patient=_patient(records, subject), equations=equations, sources=sources, curves=curves,
             main_source=main, rows=rows, tidal_rows=tidal_rows, manoeuvres=manoeuvres,
-            comparison=_compare(curves, events, results_path, start), maps=maps, breath_times_s=breath, notes=notes,
+            comparison=_compare(curves, events, results_path, start, sources.get(OPTICAL)), maps=maps,
+            breath_times_s=breath, notes=notes,
             interpretation=_interpretation(main, sources, analysed.references),
             optical_manoeuvres=_manoeuvres(sources[OPTICAL]) if OPTICAL in sources and main != OPTICAL else [])
     _on_record(data, records, analysed.references)

@@ -10,6 +10,7 @@ import numpy as np
 
 from core.analysis.values import SessionValues, analyse_volume, tidal_windows
 from core.volume.flow_sensor import btps_factor, flow_sensor_volume
+from core.volume.metric import withheld_for_flanks
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
 from core.io.session import SessionError, SessionFile
 
@@ -30,8 +31,11 @@ def _events(session: SessionFile, start_ns: int) -> list[tuple[float, str]]:
 
 
 def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
-                    optical_volume: tuple[np.ndarray, np.ndarray] | None = None) -> SessionReport:
-    """optical_volume: (timestamp_ns, litres) on the session's clock, e.g. a results file's /volume."""
+                    optical_volume: tuple[np.ndarray, np.ndarray] | None = None,
+                    optical_flank: tuple[float, float] | None = None) -> SessionReport:
+    """optical_volume: (timestamp_ns, litres) on the session's clock, e.g. a results file's /volume;
+    optical_flank: its (widening_per_l, flank_share) (core/io/results.py, optical_flank), which may
+    withhold some of its values (core/volume/metric.py, withheld_for_flanks)."""
     with SessionFile(path) as s:
         start = s.start_ns()
         events = _events(s, start)
@@ -67,7 +71,7 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
         if optical_volume is not None:
             t = (np.asarray(optical_volume[0], dtype=np.int64) - start) / 1e9
             volume = np.asarray(optical_volume[1], dtype=float)
-            optical_values = analyse_volume(t, volume, events, age, fitted=True)
+            optical_values = withheld_for_flanks(analyse_volume(t, volume, events, age, fitted=True), optical_flank)
             optical_curve = (t, volume)
         references: dict[str, Reference] = {}
         problem = None

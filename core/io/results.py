@@ -214,6 +214,14 @@ def optical_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] 
         return r.volume()
 
 
+def optical_flank(results: str | os.PathLike) -> tuple[float, float] | None:
+    """A results file's (widening_per_l, flank_share), the figures of the flanks neither head sees
+    (core/volume/metric.py, withheld_for_flanks), or None where `process` stored none."""
+    with ResultsFile(results) as r:
+        checks = r.volume_checks()
+    return (checks["widening_per_l"], checks["flank_share"]) if "flank_share" in checks else None
+
+
 def optical_refusal(results: str | os.PathLike) -> str | None:
     """Why a results file holds no optical volume, when `process` refused one."""
     with ResultsFile(results) as r:

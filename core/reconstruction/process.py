@@ -714,7 +714,9 @@ def _write_parameters(session_path: str | os.PathLike, results: ResultsWriter) -
     which. The optical values are also kept as attributes of /volume, beside the flow sensor's."""
     from core.analysis.session_analysis import analyse_session
 
-    report = analyse_session(session_path, optical_volume=results.written_volume())
+    attrs = results.out.attrs
+    flank = (float(attrs["widening_per_l"]), float(attrs["flank_share"])) if "flank_share" in attrs else None
+    report = analyse_session(session_path, optical_volume=results.written_volume(), optical_flank=flank)
     if report.optical is not None:
         results.volume_parameters(report.optical.parameters())
     if report.flow_sensor is not None:

@@ -368,7 +368,7 @@ def body_surfaces(body: Body, grid_step_mm: float = 1.0, clothing: str = "skin",
                                                                  grid.step),
                                 mode_section_area_mm2=np.stack([
                                     _row_side_areas(modes[n], x, grid.step) if n in modes
-                                    else np.zeros((grid.ny, 2)) for n in front.mode_names]))
+                                    else still for n in front.mode_names]))
     return out
 
 

@@ -29,7 +29,7 @@ from functools import cached_property
 import numpy as np
 from scipy import ndimage
 
-from core.analysis.values import curve_noise_l, tidal_stretches, tidal_values, tidal_windows
+from core.analysis.values import SessionValues, curve_noise_l, tidal_stretches, tidal_values, tidal_windows
 from core.limits import past_limit
 from core.volume.compartments import compartment_shares, phase_angle_deg
 from core.rig import Head
@@ -76,11 +76,14 @@ MIN_REFERENCE_SWING_L = 0.2  # a session whose volume swings less tells too litt
 # this depth along the axis (45-62 mm on the simulator's bodies; docs/volume.md, "A trunk that widens").
 # Where the silhouettes widen as the trunk breathes, those flanks move out and the volume misses about
 # widening x the trunk's area in view x this (flank_share), and no reference of the visible surface
-# gives it back: at most MAX_FLANK_SHARE of it, VC's and FVC's tolerance, or the volume is refused.
+# gives it back: at most MAX_FLANK_SHARE of it, VC's and FVC's tolerance, or the values held to that
+# tolerance are not given (withheld_for_flanks).
 # Population subjects at scale 0.25 (docs/volume.md, "Silhouettes that widen"): shares of 4.2-5.8 % where
-# the optical FVC or TV read 5-10 % low, 13-28 % where it read 24 % low; our own torso 0.12 % (FVC +2.6 %).
+# the optical FVC or TV read 5-10 % low, 13-28 % where it read 24 % low; our own torso's demo 0.12 %.
 FLANK_DEPTH_MM = 60.0
 MAX_FLANK_SHARE = 0.03
+TIDAL_TOLERANCE_L = 0.05  # the tidal volume's: a flank share that costs it more withholds it too
+TIDAL_WITHHELD = "tidal volume and rate not given"  # how withheld_for_flanks's problem line starts
 # A widening within this many standard errors of none is the silhouettes' whole-pixel noise (1 s of quiet
 # breathing at scale 0.1 read 0.23 % a litre), not a measurement; the maps' errors are not independent
 # from map to map, so the standard error is optimistic and the bar high
@@ -208,7 +211,7 @@ class MetricVolume:
                 return (f"head {name}: the trunk's width in the two heads' views and its depth in this head's maps "
                         f"disagree by {100 * mismatch:.0f} % (arms against the trunk's sides, or the trunk not "
                         "wholly in view)")
-        return flank_refusal(self.widening_per_l, self.flank_share) or reference_refusal(self.top_referred_slope)
+        return reference_refusal(self.top_referred_slope)
 
     def with_gaps(self, timestamp_ns: np.ndarray, maps_shown: dict[str, tuple[np.ndarray, np.ndarray]],
                   ) -> "MetricVolume":
@@ -327,10 +330,29 @@ def flank_refusal(widening: float, share: float) -> str | None:
     """Why a volume whose trunk widens this much (widening_per_l, flank_share) cannot be reported, or None."""
     if np.isfinite(share) and share > MAX_FLANK_SHARE:
         return (f"the trunk's silhouette widens by {100 * widening:.1f} % per litre in both views: its flanks, "
-                f"which neither camera sees, move out as it breathes, and the optical volume would miss up to "
-                f"{past_limit(100 * share, 100 * MAX_FLANK_SHARE, 1)} % of the breath "
-                f"(at most {100 * MAX_FLANK_SHARE:.0f} %)")
+                f"which neither camera sees, move out as it breathes, and the optical volume would miss about "
+                f"{past_limit(100 * share, 100 * MAX_FLANK_SHARE, 1)} % of the breath with a flank "
+                f"{FLANK_DEPTH_MM:.0f} mm deep (at most {100 * MAX_FLANK_SHARE:.0f} %)")
     return None
+
+
+def withheld_for_flanks(values: SessionValues, flank: tuple[float, float] | None) -> SessionValues:
+    """The optical values without those the unseen flanks' motion (flank: widening_per_l, flank_share)
+    puts outside their tolerance: VC, FVC, FEV1, PEF and the forced values over MAX_FLANK_SHARE, the tidal
+    ones too where the tidal volume would lose more than TIDAL_TOLERANCE_L. The flanks take a share of
+    every volume alike, which leaves the rate, the times and the shape of the curve."""
+    reason = flank_refusal(*flank) if flank is not None else None
+    if reason is None:
+        return values
+    problems = [*values.problems, f"VC, FVC, FEV1 and PEF not given: {reason}"]
+    tidal = values.tidal
+    if tidal is not None and flank[1] * tidal.tidal_volume_l > TIDAL_TOLERANCE_L:
+        problems.append(f"{TIDAL_WITHHELD}: {1000 * flank[1] * tidal.tidal_volume_l:.0f} mL of its "
+                        f"{1000 * tidal.tidal_volume_l:.0f} mL would be missing (at most "
+                        f"{1000 * TIDAL_TOLERANCE_L:.0f} mL)")
+        tidal = None
+    return replace(values, tidal=tidal, vital_capacity=None, vc_manoeuvres=[], forced=None, forced_curves=[],
+                   problems=problems)
 
 
 def side_targets(heads: dict[str, HeadDisplacements], baseline_mm: float | None) -> tuple[dict[str, np.ndarray], str]:

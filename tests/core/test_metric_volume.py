@@ -539,12 +539,13 @@ def _true_map_volume(surfaces):
     return metric_volume(heads, 4200.0)
 
 
-def test_a_trunk_whose_silhouette_widens_as_it_breathes_is_refused():
+def test_a_trunk_whose_silhouette_widens_as_it_breathes_is_found():
     """The flanks between the two heads' contours are in no map; where the trunk widens as it breathes
     they move out with it (on true maps the heads' pixels hold 0.853-0.860 of a breath, docs/volume.md),
     and no reference of the visible surface gives that back. Both silhouettes widen with the volume
-    (axial sway widens one and narrows the other, and leaves their mean): refused with the widening. Our
-    own torso, whose flanks move forward with the breath and not out, keeps its silhouettes."""
+    (axial sway widens one and narrows the other, and leaves their mean): the values held to 3 % are
+    withheld with the widening (withheld_for_flanks; the report's test reads them back). Our own torso,
+    whose flanks move forward with the breath and not out, keeps its silhouettes."""
     from core.sim import shapes
     from core.sim.bodies import PRESETS, body_surfaces
     from core.volume.metric import MAX_FLANK_SHARE, flank_refusal
@@ -556,4 +557,4 @@ def test_a_trunk_whose_silhouette_widens_as_it_breathes_is_refused():
     assert widening.widening_per_l > 0.01 and widening.flank_share > 3 * MAX_FLANK_SHARE
     refused = flank_refusal(widening.widening_per_l, widening.flank_share)
     assert "silhouette widens by" in refused and "neither camera sees" in refused
-    assert refused in widening.refusal() or "noise from map to map" in widening.refusal()  # 25 maps, with sway
+    assert widening.refusal() is None or "widens" not in widening.refusal()  # the volume itself is kept
