@@ -219,7 +219,8 @@ def optical_flank(results: str | os.PathLike) -> tuple[float, float] | None:
     (core/volume/metric.py, withheld_for_flanks), or None where `process` stored none."""
     with ResultsFile(results) as r:
         checks = r.volume_checks()
-    return (checks["widening_per_l"], checks["flank_share"]) if "flank_share" in checks else None
+    figures = (checks.get("widening_per_l", np.nan), checks.get("flank_share", np.nan))
+    return figures if np.all(np.isfinite(figures)) else None
 
 
 def optical_refusal(results: str | os.PathLike) -> str | None:
