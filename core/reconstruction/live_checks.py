@@ -129,5 +129,7 @@ class LiveOpticalChecks:
             sheen = {h: float(np.median([o for _, o in s])) for h, s in self._sheen.items() if s}
             tilts = np.array([t for _, t in self._tilts], dtype=float)
             slope, widening = self._reference_slope(), self._widening()
-        return (reflectance_refusal(sheen) or bend_refusal(tilts) or flank_refusal(*widening)
+        flanks = flank_refusal(*widening)
+        return (reflectance_refusal(sheen) or bend_refusal(tilts)
+                or (f"VC, FVC, FEV1 and PEF would not be given: {flanks}" if flanks else None)
                 or reference_refusal(slope))

@@ -281,17 +281,16 @@ def reference_refusal(slope: float) -> str | None:
 def widening_per_l(heads: dict[str, HeadDisplacements], distances_mm: dict[str, np.ndarray],
                    timestamp_ns: np.ndarray, volume_l: np.ndarray) -> float:
     """How much wider the trunk's silhouette grows per litre of volume in both heads at once
-    (silhouette_widening of sway_free_log_ratio). NaN without two heads."""
-    if len(heads) != 2:
-        return float("nan")
+    (silhouette_widening of sway_free_log_ratio). NaN without two heads or over less than
+    MIN_WIDENING_SPAN_S."""
     t = np.asarray(timestamp_ns, dtype=float)
+    if len(heads) != 2 or len(t) < 2 or np.ptp(t) < MIN_WIDENING_SPAN_S * 1e9:
+        return float("nan")
     logs, distances = [], []
     for name, h in heads.items():
         with np.errstate(invalid="ignore", divide="ignore"):
             logs.append(np.interp(t, h.timestamp_ns.astype(float), _bridged(np.log(h.series_of("silhouette_ratio")))))
         distances.append(float(np.nanmedian(distances_mm[name])) if np.isfinite(distances_mm[name]).any() else np.nan)
-    if np.ptp(t) < MIN_WIDENING_SPAN_S * 1e9:
-        return float("nan")
     return silhouette_widening(sway_free_log_ratio(logs, distances), volume_l)
 
 
@@ -327,7 +326,8 @@ def flank_share(widening: float, trunk_area: float) -> float:
 
 
 def flank_refusal(widening: float, share: float) -> str | None:
-    """Why a volume whose trunk widens this much (widening_per_l, flank_share) cannot be reported, or None."""
+    """Why the values held to MAX_FLANK_SHARE cannot be given from a volume whose trunk widens this much
+    (widening_per_l, flank_share), or None."""
     if np.isfinite(share) and share > MAX_FLANK_SHARE:
         return (f"the trunk's silhouette widens by {100 * widening:.1f} % per litre in both views: its flanks, "
                 f"which neither camera sees, move out as it breathes, and the optical volume would miss about "
