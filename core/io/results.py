@@ -87,6 +87,13 @@ def _check_parameters(path: Path, f: h5py.File) -> None:
             raise SessionError(f"{path}: /parameters {key} must be a finite number, found {value!r}")
 
 
+def _check_volume_checks(path: Path, f: h5py.File) -> None:
+    for key in VOLUME_CHECKS:
+        value = np.asarray(f.attrs.get(key, 0.0))
+        if value.shape != () or value.dtype.kind not in "fiu" or not np.isfinite(value):
+            raise SessionError(f"{path}: the attribute {key} must be a finite number, found {f.attrs[key]!r}")
+
+
 def check_results(path: str | os.PathLike) -> None:
     """Refuses a results file that any reader would stumble on (see the module doc)."""
     from core.io.hdf5_probe import probe
@@ -106,6 +113,7 @@ def check_results(path: str | os.PathLike) -> None:
                 _check_head(path, heads[name])
             _check_volume(path, f)
             _check_parameters(path, f)
+            _check_volume_checks(path, f)
             if not isinstance(f.attrs.get("session", ""), str):
                 raise SessionError(f"{path}: its session attribute is not a file name")
     except SessionError:
