@@ -545,8 +545,10 @@ REFUSAL_KINDS = (("an arm lies against the trunk", "an arm against the trunk"),
                  ("jumps away and back", "jumps"),
                  ("noise from map to map", "a noisy curve"),
                  ("referred to the top of the view", "the two references"),
-                 ("silhouette widens by", "a trunk that widens"),
                  ("and its depth in this head's maps", "a head's scale"))
+
+
+FLANKS_WITHHELD = "not given: the trunk's silhouette widens"  # core/volume/metric.py, withheld_for_flanks
 
 
 def refusal_kind(reason: str) -> str:
@@ -616,8 +618,11 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
                         and not row.get("optical_refused") else ""))
     subject_seconds = [r["seconds"] for r in rows if "seconds" in r]
     tally = refusal_tally(rows)
+    flanks = sum(any(FLANKS_WITHHELD in p for p in r.get("optical_problems", [])) for r in rows)
     lines += ["", f"{len(refused)} of {len(rows)} subjects refused before analysis"
-              + (f"; optical values refused {tally}" if tally else "") + f". Run time {elapsed:.0f} s with "
+              + (f"; optical values refused {tally}" if tally else "")
+              + (f"; optical VC, FVC, FEV1 and PEF withheld for the flanks neither head sees on {flanks}"
+                 if flanks else "") + f". Run time {elapsed:.0f} s with "
               f"{workers} subject(s) at once on {os.cpu_count()} cores"
               + (f" ({resumed} subjects kept from an earlier run of the same bench)" if resumed else "")
               + (f"; subjects run at commit(s) {', '.join(sorted({r.get('commit', 'unknown') for r in rows}))}")
