@@ -313,6 +313,9 @@ class Snapshot:
     # why `process` would refuse the optical volume of what the heads see now (skin, bent maps), or None
     optical_refused: str | None = None
     optical_checked: bool = False  # whether the heads' last seconds gave those checks anything to judge by
+    # which optical values `process` would withhold while it gives the tidal volume and rate (the
+    # unseen flanks, core/volume/metric.py withheld_for_flanks), and why, or None
+    optical_withheld: str | None = None
     replay_position_s: float = float("nan")  # a replay's position and length in its recording, and pause
     replay_length_s: float = float("nan")
     replay_paused: bool = False
@@ -802,7 +805,8 @@ class LiveRig:
                             recorder.frames_written() if recorder is not None else {},
                             recorder.dropped if recorder is not None else 0, problems,
                             time.monotonic() - self._started, metric[:, 0], metric[:, 1], flow_until,
-                            self.replay_finished, self._checks.refusal(), self._checks.checked)
+                            self.replay_finished, self._checks.refusal(), self._checks.checked,
+                            self._checks.withheld())
         clock = self.source.replay_clock
         if clock is not None:
             snapshot.replay_position_s = (min(clock.now_ns(), clock.last_ns) - clock.first_ns) / 1e9

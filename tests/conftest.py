@@ -35,10 +35,20 @@ if "PHOTOPFT_SHARED" in os.environ:
 _GROUPED_FIXTURES = ("processed_full_session",)
 
 
+# the two longest tests, the installer's build (3-4 minutes) and the whole patient session in real
+# time (2 minutes), go first, one to each worker, so that each runs beside the rest instead of
+# after it (xdist keeps this order: --no-loadscope-reorder in pyproject.toml; its default puts the
+# groups of many tests first, and these began when the other worker had little left)
+_LONG_FIRST = ("tests/e2e/", "tests/app/test_gui.py::test_a_whole_patient_session")
+
+
+def _started_at(item) -> int:
+    nodeid = item.nodeid.replace("\\", "/")
+    return next((rank for rank, prefix in enumerate(_LONG_FIRST) if nodeid.startswith(prefix)), len(_LONG_FIRST))
+
+
 def pytest_collection_modifyitems(items) -> None:
-    # the installer's end-to-end test (about 3 minutes) first: collected last, it started when the
-    # other worker had little left and the run waited for it
-    items.sort(key=lambda item: "tests/e2e/" not in item.nodeid.replace("\\", "/"))
+    items.sort(key=_started_at)
     for item in items:
         for name in _GROUPED_FIXTURES:
             if name in getattr(item, "fixturenames", ()):

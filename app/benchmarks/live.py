@@ -34,8 +34,9 @@ def run_live_bench(seconds: float, scale: float, seed: int = 1) -> tuple[str, di
                "slope": float(slope), "rms_l": float(np.sqrt(np.mean(residual ** 2))),
                "swing_true_l": float(np.ptp(truth)), "maps": float(sum(v.reconstructed for v in snapshot.heads.values())),
                "reference_slope": reference_slope}
-    verdict = f"refused: {snapshot.optical_refused}" if snapshot.optical_refused else (
-        "pass" if snapshot.optical_checked else "nothing to judge by yet")
+    verdict = (f"refused: {snapshot.optical_refused}" if snapshot.optical_refused
+               else f"withheld: {snapshot.optical_withheld}" if snapshot.optical_withheld
+               else "pass" if snapshot.optical_checked else "nothing to judge by yet")
     text = "\n".join([
         f"The simulated rig at scale {scale:g} (seed {seed}, tidal breathing with sway), the live engine as the window "
         f"runs it, {seconds:g} s; the live metric volume (both heads, no calibration) against the subject's true lung "

@@ -299,6 +299,8 @@ class LiveView(QWidget):
             self.status.set(f"{h}_distance", text, warn=not ok or bool(arms) or arm)
         if s.optical_refused is not None:
             self.status.set("optical", f"not valid now: {s.optical_refused}", warn=True)
+        elif s.optical_withheld is not None:
+            self.status.set("optical", f"tidal volume and rate valid; {s.optical_withheld}", warn=True)
         else:
             self.status.set("optical", "the skin's shading, the maps' sides, the volume's two references and the "
                             "trunk's silhouettes pass the checks" if s.optical_checked

@@ -3,7 +3,8 @@ for the live view: the operator learns during the session, not from the report, 
 the lights do not follow the light model (a sheen, reflectance_refusal), that the two heads' maps are bent
 against each other (core/volume/sides.py, bend_refusal), or that the trunk's sides move with the
 breathing (core/volume/metric.py, reference_refusal) or that its silhouettes widen as it breathes
-(flank_refusal), and can act (polarising filters, a towel on
+(withheld_for_flanks: VC, FVC, FEV1 and PEF not given, the tidal volume too where the breaths would
+lose over 50 mL to the flanks), and can act (polarising filters, a towel on
 oily skin, the rig's calibration, the arms held away).
 
 The first two look at a map of each head's stream every LOOK_INTERVAL_S (`process`: every
@@ -20,8 +21,8 @@ import threading
 import numpy as np
 
 from core.reconstruction.process import reflectance_refusal
-from core.volume.metric import (MIN_WIDENING_SPAN_S, flank_refusal, flank_share, reference_refusal, reference_slope,
-                                silhouette_widening)
+from core.volume.metric import (MIN_WIDENING_SPAN_S, flank_refusal, flank_share, reference_refusal,
+                                reference_slope, silhouette_widening, tidal_flank_loss)
 from core.volume.sides import bend_refusal, sides_tilt
 
 # A look costs a side profile and the sheen's fit, a few ms. Until 2026-11-27 it cost a map at the
@@ -38,7 +39,7 @@ class LiveOpticalChecks:
     """Each head's thread tells it, every LOOK_INTERVAL_S (`due`), its map's sheen
     (`add_sheen`, core/reconstruction/reflectance.py) and side profile (`add_profile`,
     core/volume/sides.py side_profile_mm); `refusal` says why the optical volume would be refused
-    now, or None."""
+    now, or None, and `withheld` which of its values would not be given."""
 
     def __init__(self, heads: list[str]) -> None:
         self._heads = list(heads)
@@ -115,21 +116,38 @@ class LiveOpticalChecks:
         volumes = np.array([v[1:3] for v in self._volumes], dtype=float).reshape(-1, 2)
         return reference_slope(volumes[:, 0], volumes[:, 1])
 
-    def _widening(self) -> tuple[float, float]:
-        """The silhouettes' widening per litre over the last REFERENCE_WINDOW_S and the flank_share it gives."""
+    def _flanks(self) -> tuple[str | None, str | None]:
+        """What the silhouettes' widening over the last REFERENCE_WINDOW_S withholds, as `process` does
+        (core/volume/metric.py, withheld_for_flanks): (why VC, FVC, FEV1 and PEF would not be given, what
+        the breaths would lose where that withholds the tidal volume too), each None where it does not."""
         rows = np.array([v for v in self._volumes], dtype=float).reshape(-1, 5)
         if len(rows) == 0 or np.ptp(rows[:, 0]) < MIN_WIDENING_SPAN_S:
-            return float("nan"), float("nan")
+            return None, None
         widening = silhouette_widening(rows[:, 3], rows[:, 1])
         area = float(np.nanmedian(rows[:, 4])) if np.isfinite(rows[:, 4]).any() else float("nan")
-        return widening, flank_share(widening, area)
+        share = flank_share(widening, area)
+        reason = flank_refusal(widening, share)
+        if reason is None:
+            return None, None
+        # the breaths' size: the swing of the last REFERENCE_WINDOW_S, its 5th to 95th percentile
+        swing_l = float(np.subtract(*np.nanpercentile(rows[:, 1], [95, 5])))
+        return reason, tidal_flank_loss(share, swing_l)
 
     def refusal(self) -> str | None:
+        """Why the optical volume would be refused now, or None; the silhouettes' widening only where
+        it withholds the tidal volume too (`withheld` says what it withholds otherwise)."""
         with self._lock:
             sheen = {h: float(np.median([o for _, o in s])) for h, s in self._sheen.items() if s}
             tilts = np.array([t for _, t in self._tilts], dtype=float)
-            slope, widening = self._reference_slope(), self._widening()
-        flanks = flank_refusal(*widening)
+            slope, (flanks, tidal_loss) = self._reference_slope(), self._flanks()
         return (reflectance_refusal(sheen) or bend_refusal(tilts)
-                or (f"VC, FVC, FEV1 and PEF would not be given: {flanks}" if flanks else None)
+                or (f"no tidal volume, rate, VC, FVC, FEV1 or PEF would be given: {flanks}; of a breath of the "
+                    f"last {REFERENCE_WINDOW_S:.0f} s {tidal_loss}" if tidal_loss else None)
                 or reference_refusal(slope))
+
+    def withheld(self) -> str | None:
+        """The optical values the silhouettes' widening would withhold while the tidal volume and rate
+        would still be given, and why; None otherwise."""
+        with self._lock:
+            flanks, tidal_loss = self._flanks()
+        return f"VC, FVC, FEV1 and PEF would not be given: {flanks}" if flanks and not tidal_loss else None

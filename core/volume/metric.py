@@ -336,6 +336,16 @@ def flank_refusal(widening: float, share: float) -> str | None:
     return None
 
 
+def tidal_flank_loss(share: float, tidal_volume_l: float) -> str | None:
+    """What a breath of tidal_volume_l would lose to the unseen flanks (flank_share), where that is more
+    than TIDAL_TOLERANCE_L, or None."""
+    loss_l = share * tidal_volume_l
+    if not loss_l > TIDAL_TOLERANCE_L:
+        return None
+    return (f"{1000 * loss_l:.0f} mL of its {1000 * tidal_volume_l:.0f} mL would be missing (at most "
+            f"{1000 * TIDAL_TOLERANCE_L:.0f} mL)")
+
+
 def withheld_for_flanks(values: SessionValues, flank: tuple[float, float] | None) -> SessionValues:
     """The optical values without those the unseen flanks' motion (flank: widening_per_l, flank_share)
     puts outside their tolerance: VC, FVC, FEV1, PEF and the forced values over MAX_FLANK_SHARE, the tidal
@@ -346,10 +356,9 @@ def withheld_for_flanks(values: SessionValues, flank: tuple[float, float] | None
         return values
     problems = [*values.problems, f"VC, FVC, FEV1 and PEF not given: {reason}"]
     tidal = values.tidal
-    if tidal is not None and flank[1] * tidal.tidal_volume_l > TIDAL_TOLERANCE_L:
-        problems.append(f"{TIDAL_WITHHELD}: {1000 * flank[1] * tidal.tidal_volume_l:.0f} mL of its "
-                        f"{1000 * tidal.tidal_volume_l:.0f} mL would be missing (at most "
-                        f"{1000 * TIDAL_TOLERANCE_L:.0f} mL)")
+    tidal_problem = tidal_flank_loss(flank[1], tidal.tidal_volume_l) if tidal is not None else None
+    if tidal_problem:
+        problems.append(f"{TIDAL_WITHHELD}: {tidal_problem}")
         tidal = None
     return replace(values, tidal=tidal, vital_capacity=None, vc_manoeuvres=[], forced=None, forced_curves=[],
                    problems=problems)

@@ -654,3 +654,30 @@ def test_an_arm_in_one_view_marks_both_heads_distances(qtbot):
     snapshot.heads["back"] = HeadView(distance_mm=2139.0, occluded_side_share=0.0)
     view.show(snapshot, "simulated", "simulated")
     assert back.text().startswith("2139 mm") and back.styleSheet() == ""
+
+
+def test_unseen_flanks_withhold_the_spirometry_in_the_live_view_and_keep_the_tidal_curve(qtbot):
+    """Silhouettes that widen 0.7 % a litre (5 % of the breath in the flanks, core/reconstruction/live_checks.py):
+    `process` gives the tidal volume and rate and withholds VC, FVC, FEV1 and PEF, and the live view
+    says so in red while it draws the volume curve as valid; where the breaths would lose more than
+    50 mL the curve goes grey and dashed as for any refusal."""
+    from PySide6.QtCore import Qt
+
+    from app.gui.live_view import METRIC_PEN, LiveView
+    from app.live import Snapshot
+
+    view = LiveView(["front", "back"])
+    qtbot.addWidget(view)
+    snapshot = Snapshot.empty(["front", "back"])
+    snapshot.optical_checked = True
+    snapshot.optical_withheld = "VC, FVC, FEV1 and PEF would not be given: the trunk's silhouette widens by 0.7 %"
+    view.show(snapshot, "simulated", "simulated")
+    line = view.status.labels["optical"]
+    assert line.text().startswith("tidal volume and rate valid; VC, FVC, FEV1 and PEF would not be given")
+    assert "b00020" in line.styleSheet()
+    assert view.volume.metric_curve.opts["pen"].style() == METRIC_PEN.style() == Qt.PenStyle.SolidLine
+    snapshot.optical_withheld = None
+    snapshot.optical_refused = "no tidal volume, rate, VC, FVC, FEV1 or PEF would be given"
+    view.show(snapshot, "simulated", "simulated")
+    assert line.text().startswith("not valid now: no tidal volume")
+    assert view.volume.metric_curve.opts["pen"].style() == Qt.PenStyle.DashLine

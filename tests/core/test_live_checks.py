@@ -68,7 +68,7 @@ def test_sides_that_move_with_the_breathing_are_refused_over_the_last_breaths():
     assert not shallow.checked and shallow.refusal() is None  # too little breathing to tell
 
 
-def test_silhouettes_that_widen_with_the_breathing_are_refused_over_the_last_breaths():
+def test_silhouettes_that_widen_with_the_breathing_withhold_values_over_the_last_breaths():
     """The two heads' silhouettes against the live volume, as `process` weighs them (flank_refusal):
     a trunk of 0.12 m^2 in view whose silhouettes grow 1.5 % a litre moves its unseen flanks by about
     11 % of the breath; one whose silhouettes keep their width is not refused, whatever sway does to
@@ -83,8 +83,19 @@ def test_silhouettes_that_widen_with_the_breathing_are_refused_over_the_last_bre
     for when, volume, n in zip(t, breath, noise):
         checks.add_volumes(float(when), volume, volume, (0.015 * volume + n, area_mm2))
     assert flank_share(0.015, area_mm2) > 3 * MAX_FLANK_SHARE
+    # a breath of 1 L would lose about 106 mL: the tidal volume goes too, as `process` withholds it
     assert "silhouette widens by 1.5 % per litre" in checks.refusal() and "neither camera sees" in checks.refusal()
+    assert checks.refusal().startswith("no tidal volume, rate, VC") and "of its 9" in checks.refusal()
+    assert checks.withheld() is None
     steady = LiveOpticalChecks(["front", "back"])
     for when, volume, n in zip(t, breath, noise):
         steady.add_volumes(float(when), volume, volume, (n, area_mm2))
-    assert steady.checked and steady.refusal() is None
+    assert steady.checked and steady.refusal() is None and steady.withheld() is None
+    # 0.7 % a litre: 5 % of the volume in the flanks, 25 mL of a 0.5 L breath; the tidal volume and
+    # rate stay and the curve is not refused, VC, FVC, FEV1 and PEF would be withheld
+    some = LiveOpticalChecks(["front", "back"])
+    for when, volume, n in zip(t, breath / 2, noise):
+        some.add_volumes(float(when), volume, volume, (0.007 * volume + n, area_mm2))
+    assert some.refusal() is None
+    assert some.withheld().startswith("VC, FVC, FEV1 and PEF would not be given: "
+                                      "the trunk's silhouette widens by 0.7 %")
