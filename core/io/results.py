@@ -226,8 +226,13 @@ def optical_flank(results: str | os.PathLike) -> tuple[float, float] | None:
     """A results file's (widening_per_l, flank_share), the figures of the flanks neither head sees
     (core/volume/metric.py, withheld_for_flanks), or None where `process` stored none."""
     with ResultsFile(results) as r:
-        checks = r.volume_checks()
-    figures = (checks.get("widening_per_l", np.nan), checks.get("flank_share", np.nan))
+        return flank_figures(r.volume_checks())
+
+
+def flank_figures(checks) -> tuple[float, float] | None:
+    """(widening_per_l, flank_share) from a results file's attributes or volume_checks, or None unless
+    both are there and finite."""
+    figures = (float(checks.get("widening_per_l", np.nan)), float(checks.get("flank_share", np.nan)))
     return figures if np.all(np.isfinite(figures)) else None
 
 

@@ -23,7 +23,7 @@ from core.io.outputs import atomic_output, stop_if_requested
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
-from core.io.results import VOLUME_CHECKS, ResultsFile, ResultsWriter
+from core.io.results import VOLUME_CHECKS, ResultsFile, ResultsWriter, flank_figures
 from core.limits import past_limit
 from core.volume.maps import DisplacementSums, DisplacementTracker, smooth_in_time
 from core.volume.sides import bend_refusal, paired_tilts, side_profile_mm
@@ -714,9 +714,8 @@ def _write_parameters(session_path: str | os.PathLike, results: ResultsWriter) -
     which. The optical values are also kept as attributes of /volume, beside the flow sensor's."""
     from core.analysis.session_analysis import analyse_session
 
-    attrs = results.out.attrs
-    flank = (float(attrs["widening_per_l"]), float(attrs["flank_share"])) if "flank_share" in attrs else None
-    report = analyse_session(session_path, optical_volume=results.written_volume(), optical_flank=flank)
+    report = analyse_session(session_path, optical_volume=results.written_volume(),
+                             optical_flank=flank_figures(results.out.attrs))
     if report.optical is not None:
         results.volume_parameters(report.optical.parameters())
     if report.flow_sensor is not None:
