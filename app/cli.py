@@ -11,7 +11,7 @@ from pathlib import Path
 
 from core import __version__
 from app.errors import UserError
-from core.io.outputs import OutputError, clear_stop, request_stop
+from core.io.outputs import OutputError, clear_stop, request_stop, requested_stop
 from core.io.session import SessionError
 
 log = logging.getLogger("photopft")
@@ -106,19 +106,39 @@ def main(argv: list[str] | None = None) -> int:
     sys.unraisablehook = _quiet_stop_in_callbacks
     try:
         return int(args.run(args) or 0)
-    except (UserError, SessionError, OutputError, OSError) as exc:
+    except KeyboardInterrupt as exc:
+        return _stopped(args, exc)
+    except Exception as exc:
+        if requested_stop() is not None:
+            return _stopped(args, requested_stop())
+        if not isinstance(exc, (UserError, SessionError, OutputError, OSError)):
+            raise
         print(f"photopft {args.verb}: error: {_one_line_naming_the_input(exc, args)}", file=sys.stderr)
         return 2
-    except Terminated:
+    finally:
+        _restore_handlers(previous)
+        sys.unraisablehook = sys.__unraisablehook__
+
+
+def _stopped(args: argparse.Namespace, reason: BaseException) -> int:
+    """A stop asked for by a signal, whatever it broke on its way out: a library whose work it cut
+    short may fail in its own words after it (numba, stopped while it compiled, failing to cache
+    the kernel), and that failure is the stop's, not the input's."""
+    if isinstance(reason, Terminated):
         print(f"photopft {args.verb}: terminated; nothing half-written was left", file=sys.stderr)
         return 143
-    except KeyboardInterrupt:
-        print(f"photopft {args.verb}: interrupted; nothing half-written was left", file=sys.stderr)
-        return 130
-    finally:
-        for sig, handler in previous.items():
+    print(f"photopft {args.verb}: interrupted; nothing half-written was left", file=sys.stderr)
+    return 130
+
+
+def _restore_handlers(previous: dict) -> None:
+    """The handlers the command found, put back. `signal.signal` runs a signal still pending: a
+    second Ctrl-C while the first is answered is the same request, not a new traceback."""
+    for sig, handler in previous.items():
+        try:
             signal.signal(sig, handler)
-        sys.unraisablehook = sys.__unraisablehook__
+        except KeyboardInterrupt:
+            pass
 
 
 if __name__ == "__main__":

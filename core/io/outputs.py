@@ -37,6 +37,11 @@ def stop_if_requested() -> None:
         raise reason if isinstance(reason, BaseException) else KeyboardInterrupt()
 
 
+def requested_stop() -> BaseException | None:
+    """The stop a signal asked for in this command, or None."""
+    return _stop_requested[-1] if _stop_requested else None
+
+
 def clear_stop() -> None:
     _stop_requested.clear()
 

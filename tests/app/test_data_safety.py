@@ -118,6 +118,23 @@ def test_an_interrupted_process_leaves_no_results_file(session, tmp_path, sig):
     assert not out.exists() and not _partials(tmp_path)
 
 
+def test_a_library_failing_after_the_stop_is_reported_as_the_stop(session, tmp_path, capsys, monkeypatch):
+    """Ctrl-C while numba compiles: its handler's exception is swallowed inside the compiler, which
+    then fails in its own words (caching a kernel it never finished). Seen with an empty numba cache."""
+    from core.io.outputs import request_stop
+    from core.reconstruction import process
+
+    def cut_short(*args, **kwargs):
+        request_stop(KeyboardInterrupt())
+        raise RuntimeError("no compiled object yet for <Library '_log_depth_gradients'>")
+
+    monkeypatch.setattr(process, "process_session", cut_short)
+    out = tmp_path / "results.h5"
+    code, err = run(["process", str(session), "-o", str(out)], capsys)
+    assert code == 130 and "interrupted; nothing half-written was left" in err
+    assert not out.exists() and not _partials(tmp_path)
+
+
 def test_every_number_on_the_command_line_is_finite():
     """No verb takes a bare float: `finite` or `positive` refuse nan and inf everywhere."""
     def actions(parser):
