@@ -117,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     finally:
         _restore_handlers(previous)
+        clear_stop()  # answered: a caller in the same process (a test, a script) goes on unstopped
         sys.unraisablehook = sys.__unraisablehook__
 
 
