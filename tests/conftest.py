@@ -35,13 +35,13 @@ if "PHOTOPFT_SHARED" in os.environ:
 _GROUPED_FIXTURES = ("processed_full_session",)
 
 
-# the two longest tests, the installer's build (3-4 minutes; 8-9 beside the rest) and the whole
-# patient session in real time (2 minutes), go first, one to each worker, so that each runs beside
-# the rest instead of after it (xdist keeps this order: --no-loadscope-reorder in pyproject.toml; its
-# default puts the groups of many tests first, and these began when the other worker had little
-# left). The README runs three workers on CI's two cores: with two, the cores stood idle a sixth of
-# the time (166 % of 2 cores busy, 644 s on a warm clone) while tests waited on cameras leaving and
-# returning or on the patient session's real time; with three 189 %, 564 s.
+# the two longest tests, the installer's build (3-4 minutes) and the whole patient session in real
+# time (2 minutes), go first, one to each worker, so that each runs beside the rest instead of
+# after it (xdist keeps this order: --no-loadscope-reorder in pyproject.toml; its default puts the
+# groups of many tests first, and these began when the other worker had little left). Three workers
+# on CI's two cores were tried (2026-11-29): 564 s on a warm clone against 644 s with two (the cores
+# busy 189 % against 166 %), but on a fresh clone 617 s and the installed bundle's first maps came
+# after 300 s, its kernels compiling beside three workers compiling theirs: the smoke test failed.
 _LONG_FIRST = ("tests/e2e/", "tests/app/test_gui.py::test_a_whole_patient_session")
 
 
