@@ -243,6 +243,7 @@ def test_a_trunk_whose_flanks_move_unseen_keeps_its_tidal_values_and_not_its_spi
 
     widening = tmp_path / "widening.h5"
     shutil.copy(processed_full_session[1], widening)
+    unwithheld = analyse_session(processed_full_session[0], optical_volume=optical_volume(widening)).optical.parameters()
     for share, tidal_kept in ((0.06, True), (0.20, False)):
         with h5py.File(widening, "r+") as r:
             r.attrs["widening_per_l"], r.attrs["flank_share"] = 0.012, share
@@ -268,3 +269,9 @@ def test_a_trunk_whose_flanks_move_unseen_keeps_its_tidal_values_and_not_its_spi
         assert _row(page1, "FVC", "L")[0] == "–" and _row(page1, "FEV1", "L")[0] == "–"
         assert (_row(page1, "Tidal volume", "L")[0] != "–") == tidal_kept
         assert "VC, FVC, FEV1 and PEF not given" in " ".join(page1.split())
+        # FEV1/FVC and the blows' grades stay: the flanks take the same share of FEV1 and of FVC
+        kept = data.parameters(OPTICAL)
+        assert not {"FVC_l", "FEV1_l", "PEF_lps", "FEF2575_lps", "FEV6_l"} & set(kept), kept
+        assert kept["FEV1_FVC"] == pytest.approx(unwithheld["FEV1_FVC"]) and kept["grade"] == unwithheld["grade"]
+        assert _row(page1, "FEV1/FVC", "")[0] == f"{unwithheld['FEV1_FVC']:.2f}"
+        assert "FEV1/FVC is given" in " ".join(page1.split())
