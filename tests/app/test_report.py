@@ -243,7 +243,8 @@ def test_a_trunk_whose_flanks_move_unseen_keeps_its_tidal_values_and_not_its_spi
 
     widening = tmp_path / "widening.h5"
     shutil.copy(processed_full_session[1], widening)
-    unwithheld = analyse_session(processed_full_session[0], optical_volume=optical_volume(widening)).optical.parameters()
+    unwithheld = analyse_session(processed_full_session[0],
+                                 optical_volume=optical_volume(widening)).optical.parameters()
     for share, tidal_kept in ((0.06, True), (0.20, False)):
         with h5py.File(widening, "r+") as r:
             r.attrs["widening_per_l"], r.attrs["flank_share"] = 0.012, share
