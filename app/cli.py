@@ -109,8 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         return _stopped(args, exc)
     except Exception as exc:
-        if requested_stop() is not None:
-            return _stopped(args, requested_stop())
+        if (stop := requested_stop()) is not None:
+            return _stopped(args, stop)
         if not isinstance(exc, (UserError, SessionError, OutputError, OSError)):
             raise
         print(f"photopft {args.verb}: error: {_one_line_naming_the_input(exc, args)}", file=sys.stderr)

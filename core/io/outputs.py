@@ -32,8 +32,8 @@ def request_stop(reason: BaseException) -> None:
 def stop_if_requested() -> None:
     """Raises the stop a signal asked for, where the handler's own exception was swallowed: long
     loops call this once a step, so a stop never waits for the end of the work."""
-    if _stop_requested:
-        reason = _stop_requested[-1]
+    reason = requested_stop()
+    if reason is not None:
         raise reason if isinstance(reason, BaseException) else KeyboardInterrupt()
 
 

@@ -357,9 +357,8 @@ def withheld_for_flanks(values: SessionValues, flank: tuple[float, float] | None
     reason = flank_refusal(*flank) if flank is not None else None
     if reason is None:
         return values
-    kept = forced_proportions(values.forced) if values.forced is not None else {}
-    if not np.isfinite(kept.get("FEV1_FVC", np.nan)):
-        kept = {}
+    forced = values.forced
+    kept = forced_proportions(forced) if forced is not None and np.isfinite(forced.fev1_fvc) else {}
     ratio = "; FEV1/FVC is given: the flanks take the same share of FEV1 and of FVC" if kept else ""
     problems = [*values.problems, f"VC, FVC, FEV1 and PEF not given: {reason}{ratio}"]
     tidal = values.tidal
