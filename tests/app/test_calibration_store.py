@@ -69,8 +69,8 @@ def test_record_opens_the_rig_with_the_profiles_in_force(config, tmp_path, capsy
 def test_a_broken_profile_in_force_is_one_line_naming_it(config, tmp_path):
     (config / RIG_PROFILE).write_text("{not json")
     # the command in its own process, as a user runs it: in a full run its line twice reached pytest's own
-    # capture instead of the stderr handed to it in this process (2026-11-27, with capsys and then with
-    # redirect_stderr; the same symptom as pytest-dev/pytest#5997)
+    # capture instead of the stderr handed to it in this process (2026-11-27; numba's coloured messages
+    # swapped `sys.stderr` from another thread, core/__init__.py)
     done = subprocess.run([sys.executable, "-m", "app.cli", "record", "-o", str(tmp_path / "s.h5"), "--seconds", "0.5"],
                           capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2], timeout=120)
     assert done.returncode != 0

@@ -110,3 +110,14 @@ def test_the_world_choices_are_the_simulators_worlds():
     from core.sim.simulate import WORLDS
 
     assert WORLD_NAMES == tuple(WORLDS)
+
+
+def test_numba_leaves_the_processes_stderr_alone():
+    """numba's coloured messages swap `sys.stderr` through colorama in whatever thread compiles; a
+    line the command printed afterwards could reach a stream no longer the process's (CI, 2026-11-29:
+    the error line of `simulate --scale 2` reached a finished test's capture)."""
+    probe = ("import app.cli, sys, numba.core.errors as e; "
+             "sys.stdout.write(type(e.termcolor()).__name__)")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == "NOPColorScheme"
