@@ -206,9 +206,12 @@ def _surface_at(fields, amps, gx0, gy0, inv_step, xb, yb, stretch):
 def breathing_surface(fields, amps):
     """The height field at one instant: its rest height, gradient and albedo plus each breathing
     mode's height and gradient times its amplitude, on the grid (H, W, 4). Interpolating this once a
-    frame is what _surface_at does per ray with all the modes, since both are linear."""
+    frame is what _surface_at does per ray with all the modes, since both are linear. Summed in
+    float64, kept in the stored fields' float32 (to 2e-5 mm at 300 mm): render_height_field and
+    _first_hit then take one type of field whether the modes are summed here or per ray, and compile
+    once, not twice (the live view's first start: 17 s a signature for render_height_field)."""
     rows, cols = fields.shape[0], fields.shape[1]
-    out = np.empty((rows, cols, 4))
+    out = np.empty((rows, cols, 4), dtype=fields.dtype)
     for i in prange(rows):
         for j in range(cols):
             hh = fields[i, j, 0]
