@@ -7,7 +7,7 @@ cd "$(dirname "$0")/.."
 # Aravis 0.8 (GigE Vision) through PyGObject, built against Debian 12's GLib; iproute2 for the
 # tests' second loopback address; the libraries Qt's xcb and offscreen platforms load; Xvfb for
 # screenshots and poppler-utils to look at reports.
-SYSTEM_PACKAGES=(python3 python3-venv python3-dev gcc pkg-config git iproute2
+SYSTEM_PACKAGES=(python3 python3-venv python3-dev gcc binutils pkg-config git iproute2
                  aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev
                  libegl1 libgl1 libfontconfig1 libdbus-1-3 libxkbcommon0 libxkbcommon-x11-0 libxcb-cursor0
                  libxcb-icccm4 libxcb-keysyms1 libxcb-shape0 libxcb-render-util0 libxcb-image0 libxcb-xinerama0
