@@ -195,12 +195,18 @@ class EngineProcess:
             self._process.join(timeout=5)
             log.error("the engine process stopped (exit code %s)", self._process.exitcode)
 
+    @property
+    def stopped(self) -> bool:
+        """The engine process ended without being asked to (it crashed or was killed): nothing more
+        comes from it."""
+        return not self._closed and not self._process.is_alive()
+
     def snapshot(self) -> Snapshot:
         """The newest state of the engine, without waiting (an empty one before the first arrives)."""
         latest = self._latest
         if latest is None:
             latest = Snapshot.empty(self.info.heads)
-        if not self._process.is_alive() and not self._closed:
+        if self.stopped:
             message = (f"the capture engine stopped (exit code {self._process.exitcode}); the recording so far "
                        "is on disk. Restart photopft.")
             latest = replace(latest, problems=latest.problems + [message])

@@ -57,11 +57,13 @@ def measure_live_view(app, window, seconds: float, record_to: Path | None = None
 
     def begin() -> None:
         heads = window.engine.snapshot().heads
-        if not all(v.reconstructed > 0 for v in heads.values()) and time.monotonic() - waited < first_maps_timeout_s:
-            QTimer.singleShot(200, begin)
+        mapped = all(v.reconstructed > 0 for v in heads.values())
+        if not mapped and not window.engine.stopped and time.monotonic() - waited < first_maps_timeout_s:
+            QTimer.singleShot(200, begin)  # a stopped engine sends no maps: not waited for
             return
-        figures.first_maps_s = time.monotonic() - waited
-        figures.rss_first_maps_mb = both_mb()
+        if mapped:  # else first_maps_s stays NaN: none came
+            figures.first_maps_s = time.monotonic() - waited
+            figures.rss_first_maps_mb = both_mb()
         QTimer.singleShot(int(warmup_s * 1000), measure)
 
     def measure() -> None:

@@ -77,6 +77,7 @@ def test_an_engine_that_dies_is_said_and_the_recording_so_far_is_kept(engine, tm
     time.sleep(1.5)
     os.kill(engine.pid, signal.SIGKILL)
     _wait(lambda: any("capture engine stopped" in p for p in engine.snapshot().problems), 10)
+    assert engine.stopped
     with pytest.raises(EngineError, match="stopped"):
         engine.stop_recording()
     kept = recover_session(path).kept
