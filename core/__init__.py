@@ -16,3 +16,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # stream that was no longer the process's (under pytest, a finished test's capture). Plain messages
 # leave `sys.stderr` alone. Set before numba is imported; a value already set is kept.
 os.environ.setdefault("NUMBA_DISABLE_ERROR_MESSAGE_HIGHLIGHTING", "1")
+
+# The live view calls parallel kernels from several threads at once (each camera's, the
+# reconstruction's). numba's own workqueue layer, its last resort where neither OpenMP nor TBB loads,
+# aborts the process on that (seen 2026-11-29 in a bundle whose OpenMP pool no longer loaded): ask
+# for a thread-safe layer, so that a machine without one fails at the first kernel with numba's
+# message instead of the engine aborting mid-session. A value already set is kept.
+os.environ.setdefault("NUMBA_THREADING_LAYER", "threadsafe")
