@@ -19,10 +19,11 @@ def run_gui_bench(scale: float, seconds: float, record: bool, warmup_s: float = 
     from core.io.session import SubjectRecord
 
     app = QApplication.instance() or QApplication([])
+    app.setApplicationName("photopft")  # as the application names itself (app/gui/app.py)
     window = MainWindow(partial(simulated_source, scale=scale, loop_cycles=loop_cycles))
     window.show()
     folder = Path(tempfile.mkdtemp(prefix="photopft-bench-gui-"))
-    f = measure_live_view(app, window, seconds, folder / "bench.h5" if record else None,
+    f = measure_live_view(window, seconds, folder / "bench.h5" if record else None,
                           SubjectRecord("BENCH", "male", 30.0, 175.0, 75.0), warmup_s=warmup_s)
     for path in folder.glob("*"):
         path.unlink()

@@ -57,7 +57,7 @@ def run_gui(args: argparse.Namespace) -> int:
         return app.exec()
     if window.engine is None:
         raise UserError(f"cannot start: {window.diagnostics.problem.text()}")
-    return _smoke_test(app, window, args.smoke_test, failed)
+    return _smoke_test(window, args.smoke_test, failed)
 
 
 def settings_rig() -> Path | None:
@@ -68,7 +68,7 @@ def settings_rig() -> Path | None:
     return Path(chosen) if chosen else None
 
 
-def _smoke_test(app, window, seconds: float, failed: list[bool]) -> int:
+def _smoke_test(window, seconds: float, failed: list[bool]) -> int:
     """Record on the simulated rig in the real window, then process and report the recording.
     `failed` holds an entry once an unexpected error has ended the window's event loop."""
     from app.gui.measure import measure_live_view
@@ -76,7 +76,7 @@ def _smoke_test(app, window, seconds: float, failed: list[bool]) -> int:
 
     folder = Path(tempfile.mkdtemp(prefix="photopft-smoke-"))
     session = folder / "smoke.h5"
-    f = measure_live_view(app, window, seconds, session, SubjectRecord("SMOKE-0001", "male", 30.0, 175.0, 75.0))
+    f = measure_live_view(window, seconds, session, SubjectRecord("SMOKE-0001", "male", 30.0, 175.0, 75.0))
     if failed:
         print("smoke test: an unexpected error ended it (its traceback above, and in the log)")
         return 1

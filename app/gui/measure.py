@@ -32,14 +32,14 @@ class LiveFigures:
     recording: RecordSummary | None = None
 
 
-def measure_live_view(app, window, seconds: float, record_to: Path | None = None, subject=None,
+def measure_live_view(window, seconds: float, record_to: Path | None = None, subject=None,
                       kind: str = "simulation", first_maps_timeout_s: float = 300.0, warmup_s: float = 0.0) -> LiveFigures:
-    """Run the window's event loop until every head has a map (a cold numba cache compiles first),
+    """Run an event loop of its own until every head has a map (a cold numba cache compiles first),
     then for `warmup_s` more (the live view before a recording, as while the operator positions
     the patient: the engine's buffers and the drawing reach their working size), then measure for
     `seconds` (recording into `record_to` when given, with a tidal-start event), stop the
     recording, close the window and return the figures."""
-    from PySide6.QtCore import QTimer
+    from PySide6.QtCore import QEventLoop, QTimer
 
     waited = time.monotonic()
     figures = LiveFigures(first_maps_s=float("nan"))
@@ -92,8 +92,9 @@ def measure_live_view(app, window, seconds: float, record_to: Path | None = None
         if record_to is not None:
             figures.recording = window.engine.stop_recording()
         window.close()
-        app.quit()
+        loop.quit()
 
     QTimer.singleShot(500, begin)
-    app.exec()
+    loop = QEventLoop()  # its own loop, not the application's: a measurement leaves the application as it was
+    loop.exec()
     return figures

@@ -192,7 +192,7 @@ def test_a_measurement_of_the_live_view_ends_when_the_engine_dies_before_its_fir
 
     os.kill(window.engine.pid, signal.SIGKILL)
     started = time.monotonic()
-    figures = measure_live_view(QApplication.instance(), window, 0.5)  # closes the window at its end
+    figures = measure_live_view(window, 0.5)  # closes the window at its end
     assert time.monotonic() - started < 20
     assert all(rate == 0 for rate in figures.maps_per_s.values())
     assert np.isnan(figures.first_maps_s)
