@@ -10,9 +10,9 @@ __version__ = "0.1.0"
 # (docs/benchmarks.md). Set before any kernel loads OpenMP; a value already set is kept.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-# numba colours its typing messages through colorama, whose every use puts back as `sys.stderr` the
-# stream that was in place when numba was first imported: a cold compile did it 76,524 times in
-# `photopft process` here, in whatever thread compiled, so a line printed afterwards could go to a
+# numba colours its typing messages through colorama, each use of which takes `sys.stderr` as it
+# finds it, swaps it and puts it back: a cold compile did it 76,524 times in `photopft process` here,
+# in whatever thread compiled, so a compile running beside a change of `sys.stderr` could put back a
 # stream that was no longer the process's (under pytest, a finished test's capture). Plain messages
 # leave `sys.stderr` alone. Set before numba is imported; a value already set is kept.
 os.environ.setdefault("NUMBA_DISABLE_ERROR_MESSAGE_HIGHLIGHTING", "1")
