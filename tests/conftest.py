@@ -30,12 +30,9 @@ if "PHOTOPFT_SHARED" in os.environ:
     SHARED = Path(os.environ["PHOTOPFT_SHARED"])
 
 
-# the tests that share a costly fixture run on one xdist worker (--dist loadgroup in pyproject.toml):
-# one built once per run (_built_once), so that no other worker sits waiting for the build; a
-# module's sessions (small_sessions), which each worker running one of its tests built again (20 s
-# twice in CI, 2026-11-29); Aravis' fake cameras, which share the loopback addresses and take a lock
-# across workers, where the other worker sat waiting (8-17 s a test)
-_GROUPED_FIXTURES = ("processed_full_session", "small_sessions", "fake_gv_cameras")
+# fixtures built once per run (_built_once): the tests that use one run on one xdist worker
+# (--dist loadgroup in pyproject.toml), so no other worker sits waiting for the build
+_GROUPED_FIXTURES = ("processed_full_session",)
 
 
 # the two longest tests, the installer's build (3-4 minutes) and the whole patient session in real
