@@ -46,12 +46,32 @@ class SphereFit:
     background_noise: float = 0.0  # rms of the image around the sphere (its units)
 
 
+# The sphere's shading inside its outline, which each profile's half level refers to, is read between
+# OUTLINE_INSIDE_PX[1] and [0] pixels inside the edge as last found, and carried to the edge along a
+# line; nearer the edge the samples hold the pixels the edge crosses. The line holds where the limb's
+# darkening is straight over those pixels, so on spheres at least OUTLINE_MIN_RADIUS_PX in radius:
+# at scale 0.5 (a 75 mm sphere 2 m away is 60 px in radius) the spheres' centres came within 1.1 mm
+# of the truth (3-4 mm too near before), at scale 1 within 0.6 mm (0.3-1.9 mm too far). At scale
+# 0.25 (28 px) the limb bends within them: the centres came within 2.8 mm and the LEDs triangulated
+# from the wizard's simulated sphere 21-28 mm off (2-12 mm before), so smaller spheres keep the level
+# of the sample one pixel inside the outermost one (docs/benchmarks.md, Light calibration).
+OUTLINE_INSIDE_PX = (3.0, 1.5)
+OUTLINE_MIN_RADIUS_PX = 40.0
+OUTLINE_LEVEL_ITERATIONS = 4
+
+
 def _outline_points(image: np.ndarray, centre: np.ndarray, radius: float, background: float, noise: float,
                     n_angles: int = 360) -> np.ndarray:
-    """Sub-pixel outline along radial profiles, at half the local step from background to sphere.
+    """Sub-pixel outline along radial profiles, where each crosses half the step from the background
+    to the sphere's shading at the crossing.
 
-    A sphere darkens towards its limb (the light grazes it there), so the level is taken just
-    inside the edge on each profile, not from the middle of the disc.
+    A sphere darkens towards its limb (the light grazes it there), so its shading is followed up to
+    the edge (_shading_at_edge, found again from each new crossing) on spheres large enough in the
+    image (OUTLINE_MIN_RADIUS_PX), and read one pixel inside the outermost sample above the background
+    on smaller ones. That level, which all spheres took until the thirtieth session, comes from the
+    pixels the edge crosses on every profile that runs across the pixel grid: at scale 0.5 the outline
+    came out about 0.1 px too wide, the sphere 3-4 mm too near at 2 m, each highlight's normal 0.04 px
+    inward, and the LEDs triangulated from them 10-16 mm off along their rays.
     """
     angles = np.linspace(0, 2 * np.pi, n_angles, endpoint=False)
     step = 0.25
@@ -61,25 +81,51 @@ def _outline_points(image: np.ndarray, centre: np.ndarray, radius: float, backgr
         xs = centre[0] + steps * np.cos(a)
         ys = centre[1] + steps * np.sin(a)
         profile = ndimage.map_coordinates(image, [ys, xs], order=1, mode="nearest")
-        above = np.nonzero(profile > background + 6.0 * noise)[0]
-        if len(above) == 0:
+        above = profile > background + 6.0 * noise
+        if not above.any():
             continue
-        outer = above[-1]  # the outermost sample clearly on the sphere
-        inner_index = outer - int(round(1.0 / step))  # the full pixel just inside the edge
-        if inner_index < 0:
+        if radius < OUTLINE_MIN_RADIUS_PX:
+            outer = int(np.flatnonzero(above)[-1])  # the outermost sample clearly on the sphere
+            inner = outer - int(round(1.0 / step))  # the full pixel just inside the edge
+            s = None if inner < 0 else _half_level_crossing(profile, steps, outer,
+                                                            background + 0.5 * (profile[inner] - background))
+        elif above[0] and not above.all():
+            outer = int(np.argmin(above)) - 1  # the last sample clearly on the sphere before the background
+            s = steps[outer] - 0.5
+            for _ in range(OUTLINE_LEVEL_ITERATIONS):
+                s = _half_level_crossing(profile, steps, outer,
+                                         background + 0.5 * (_shading_at_edge(profile, steps, s) - background))
+                if s is None:
+                    break
+        else:
             continue
-        level = background + 0.5 * (profile[inner_index] - background)
-        k = outer
-        while k + 1 < len(profile) and profile[k + 1] >= level:
-            k += 1
-        while k > 0 and profile[k] < level:
-            k -= 1
-        if k + 1 >= len(profile) or profile[k] == profile[k + 1]:
-            continue
-        f = (profile[k] - level) / (profile[k] - profile[k + 1])
-        s = steps[k] + f * step
-        points.append((centre[0] + s * np.cos(a), centre[1] + s * np.sin(a)))
+        if s is not None:
+            points.append((centre[0] + s * np.cos(a), centre[1] + s * np.sin(a)))
     return np.array(points)
+
+
+def _shading_at_edge(profile: np.ndarray, steps: np.ndarray, edge: float) -> float:
+    """The sphere's shading at its edge (`edge`, along the profile), from a line through the samples
+    OUTLINE_INSIDE_PX inside it."""
+    d = edge - steps
+    inside = (d >= OUTLINE_INSIDE_PX[1]) & (d <= OUTLINE_INSIDE_PX[0])
+    if inside.sum() < 4:
+        return float(profile[np.argmin(np.abs(d - OUTLINE_INSIDE_PX[1]))])
+    design = np.column_stack([np.ones(int(inside.sum())), d[inside]])
+    (a, _), *_ = np.linalg.lstsq(design, profile[inside], rcond=None)
+    return float(a)
+
+
+def _half_level_crossing(profile: np.ndarray, steps: np.ndarray, outer: int, level: float) -> float | None:
+    """Where a profile falls through `level` about its sample `outer` (linear between samples), or None."""
+    k = outer
+    while k + 1 < len(profile) and profile[k + 1] >= level:
+        k += 1
+    while k > 0 and profile[k] < level:
+        k -= 1
+    if k + 1 >= len(profile) or profile[k] == profile[k + 1]:
+        return None
+    return float(steps[k] + (profile[k] - level) / (profile[k] - profile[k + 1]) * (steps[1] - steps[0]))
 
 
 def detect_sphere(image: np.ndarray, head: Head, radius_mm: float) -> SphereFit:
