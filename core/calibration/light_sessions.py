@@ -244,8 +244,9 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
     else:
         shading = None
         problems.append("the specular sphere shows no diffuse shading to refine on (a mirror finish, or too dark): "
-                        "the lights are triangulated only, each 10-20 mm off along its highlight rays in the clinic "
-                        "world (docs/benchmarks.md, Light calibration); a matte sphere session places them better")
+                        "the lights are triangulated only (in the clinic world within 1-5 mm with the sphere 60 px "
+                        "or more in radius, 2-12 mm below 40 px; docs/reconstruction.md, Light calibration); a matte "
+                        "sphere session places them better")
     if shading is not None:
         positions, intensity = shading.positions_mm, shading.intensity
         axis, mu = shading.axis, shading.mu
