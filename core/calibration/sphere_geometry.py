@@ -54,7 +54,7 @@ class SphereFit:
 # of the truth (3-4 mm too near before), at scale 1 within 0.6 mm (0.3-1.9 mm too far). At scale
 # 0.25 (28 px) the limb bends within them: the centres came within 2.8 mm and the LEDs triangulated
 # from the wizard's simulated sphere 21-28 mm off (2-12 mm before), so smaller spheres keep the level
-# of the sample one pixel inside the outermost one (docs/benchmarks.md, Light calibration).
+# of the sample one pixel inside the outermost one (docs/reconstruction.md, Light calibration).
 OUTLINE_INSIDE_PX = (3.0, 1.5)
 OUTLINE_MIN_RADIUS_PX = 40.0
 OUTLINE_LEVEL_ITERATIONS = 4
