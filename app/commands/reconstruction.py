@@ -107,6 +107,9 @@ def run_calibrate_lights(args: argparse.Namespace) -> int:
                   f"intensity {cal.light_intensity[k]:.3f}"
                   + (f"  falloff cos^{cal.light_mu[k]:.2f}, axis tilted "
                      f"{np.degrees(np.arccos(cal.light_axis[k, 2])):.1f} deg" if cal.light_mu is not None else ""))
+        for drift in cal.extra.get("shading_drift_per_min", []):
+            print("  the LEDs' output drifted by " + ", ".join(f"{100 * d:+.2f}" for d in drift)
+                  + " % a minute over a recording (fitted with the shading)")
         for problem in report.problems:
             print(f"  note: {problem}")
     print(f"wrote {args.output}")

@@ -47,6 +47,7 @@ class PlacementImages:
     index: int
     signal: np.ndarray  # (4, H, W)
     saturated: np.ndarray  # (4, H, W) bool: full scale in any frame of the placement
+    time_s: float = 0.0  # the placement's cycles' mid-time from the recording's first frame
 
 
 def placement_images(session: SessionFile, head_name: str) -> list[PlacementImages]:
@@ -79,7 +80,8 @@ def placement_images(session: SessionFile, head_name: str) -> list[PlacementImag
                 frame = frames[w.lit[light]]
                 saturated[light] |= frame >= head.max_value
                 total[light] += frame.astype(np.float64) - dark
-        out.append(PlacementImages(k, total / len(chosen), saturated))
+        mid_ns = np.mean([timestamps[w.newest] for w in chosen]) - timestamps[0]
+        out.append(PlacementImages(k, total / len(chosen), saturated, float(mid_ns) / 1e9))
     return out
 
 
@@ -110,13 +112,13 @@ def specular_placements(session: SessionFile, head_name: str, radius_mm: float,
             except CalibrationError as exc:
                 result.problems.append(f"placement {placement.index + 1}, light {light}: {exc}")
         if shading:
-            result.diffuse = _diffuse_shading(head, placement, result, radius_mm)
+            result.diffuse = _diffuse_shading(head, placement, result, radius_mm, str(session.path))
         results.append(result)
     return results
 
 
 def _diffuse_shading(head: Head, placement: PlacementImages, result: PlacementResult,
-                     radius_mm: float) -> MattePlacement | None:
+                     radius_mm: float, recording: str = "") -> MattePlacement | None:
     """A glossy sphere's diffuse shading as a matte sphere's (dichromatic reflection: a diffuse body
     under a specular surface), with each highlight's neighbourhood and every clipped pixel left out;
     None where a highlight is missing or the shading does not stand out of the noise."""
@@ -133,7 +135,7 @@ def _diffuse_shading(head: Head, placement: PlacementImages, result: PlacementRe
     if np.min(np.median(shading[:, mask], axis=1)) < DIFFUSE_MIN_SNR * result.sphere.background_noise:
         return None
     rays, signal = binned_sphere(head, shading, mask, matte_binning(int(mask.sum())))
-    return MattePlacement(rays, signal, result.sphere.centre_mm, radius_mm)
+    return MattePlacement(rays, signal, result.sphere.centre_mm, radius_mm, placement.time_s, recording)
 
 
 def matte_binning(sphere_pixels: int, max_bins: int = MATTE_BINS_PER_PLACEMENT) -> int:
@@ -169,7 +171,7 @@ def _matte_placements(session: SessionFile, head_name: str, radius_mm: float) ->
         sphere = detect_sphere(placement.signal.sum(0), head, radius_mm)
         shading = placement.signal / illumination if illumination is not None else placement.signal
         rays, signal = binned_sphere(head, shading, sphere.mask, matte_binning(int(sphere.mask.sum())))
-        out.append(MattePlacement(rays, signal, sphere.centre_mm, radius_mm))
+        out.append(MattePlacement(rays, signal, sphere.centre_mm, radius_mm, placement.time_s, str(session.path)))
     return out
 
 
@@ -253,6 +255,8 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
         extra["refined_on"] = refined_on
         extra["shading_fit_rms"] = np.round(shading.rms, 6).tolist()
         extra["shading_distance_factors"] = np.round(shading.distance_factors, 6).tolist()
+        if shading.drift_per_min is not None:  # each recording of three or more placements, each LED
+            extra["shading_drift_per_min"] = np.round(shading.drift_per_min, 5).tolist()
     calibration = HeadCalibration(positions, intensity, sigma, residual, pseudo, extra, axis, mu)
     report = HeadReport(head.name, len(results), pair_error, triangulated, refined_on, problems)
     return calibration, report

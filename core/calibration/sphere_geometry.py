@@ -297,6 +297,10 @@ class MattePlacement:
     signal: np.ndarray  # (4, N) lit minus dark
     centre_mm: np.ndarray  # (3,) from the outline
     radius_mm: float
+    # when the placement was held (its cycles' mid-time, s, on its recording's clock) and which
+    # recording: an LED's intensity drifts as it warms, and within one recording that is fitted
+    time_s: float = 0.0
+    recording: str = ""
 
 
 @dataclass(frozen=True)
@@ -307,6 +311,8 @@ class MatteRefinement:
     rms: np.ndarray  # (4,) relative rms residual per light
     axis: np.ndarray | None = None  # (4, 3) unit vectors each LED points along (anisotropic model)
     mu: np.ndarray | None = None  # (4,) exponent of each LED's cos^mu falloff about its axis
+    # (recordings of three or more placements, 4): each LED's intensity change per minute within one
+    drift_per_min: np.ndarray | None = None
 
 
 def sphere_surface(rays: np.ndarray, centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -323,6 +329,10 @@ def sphere_surface(rays: np.ndarray, centre: np.ndarray, radius: float) -> tuple
 MAX_AXIS_TILT = np.tan(np.radians(30.0))
 MU_BOUNDS = (0.0, 8.0)
 COARSE_BINS_PER_PLACEMENT = 400
+# An LED's intensity drifts as it warms (2 % over minutes in the clinic world): within a recording of
+# at least this many placements each LED's intensity is fitted as a line in time, which the placements'
+# spread in time and space tells from the inverse square of their distances (docs/reconstruction.md)
+MIN_PLACEMENTS_FOR_DRIFT = 3
 
 
 def _placement_major(misfit: np.ndarray, sizes: list[int]) -> np.ndarray:
@@ -331,16 +341,35 @@ def _placement_major(misfit: np.ndarray, sizes: list[int]) -> np.ndarray:
     return np.concatenate([b.ravel() for b in blocks])
 
 
-def _sparsity(sizes: list[int], anisotropic: bool):
+def _drift_groups(placements: list["MattePlacement"]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each placement's drift group (its recording, where that holds MIN_PLACEMENTS_FOR_DRIFT or
+    more placements; -1 elsewhere), its time from the group's mean over the group's span (so the
+    fitted drift is the change over the recording), and each group's span in minutes."""
+    recordings = [p.recording for p in placements]
+    kept = sorted({r for r in recordings if recordings.count(r) >= MIN_PLACEMENTS_FOR_DRIFT})
+    group = np.array([kept.index(r) if r in kept else -1 for r in recordings], dtype=int)
+    times = np.array([p.time_s for p in placements], dtype=float)
+    share = np.zeros(len(placements))
+    spans = np.zeros(len(kept))
+    for g in range(len(kept)):
+        inside = group == g
+        spans[g] = max(float(np.ptp(times[inside])), 1e-3) / 60.0
+        share[inside] = (times[inside] - times[inside].mean()) / (60.0 * spans[g])
+    return group, share, spans
+
+
+def _sparsity(sizes: list[int], anisotropic: bool, drift_group: np.ndarray | None = None):
     """Which parameters move which residuals: a light's own (position, intensity, axis, falloff)
-    only its pixels, a placement's distance only that placement's. Finite differences then
-    perturb the four lights (and all placements) at once."""
+    only its pixels, a placement's distance only that placement's, a recording's drift of a light
+    only that light's pixels in its placements. Finite differences then perturb the four lights
+    (and all placements) at once."""
     from scipy.sparse import lil_matrix
 
     n_placements = len(sizes)
     n_base = 16 + n_placements
-    columns = n_base + (12 if anisotropic else 0)
-    out = lil_matrix((4 * sum(sizes), columns), dtype=np.int8)
+    n_shape = n_base + (12 if anisotropic else 0)
+    groups = 0 if drift_group is None else int(drift_group.max(initial=-1)) + 1
+    out = lil_matrix((4 * sum(sizes), n_shape + 4 * groups), dtype=np.int8)
     row = 0
     for p, size in enumerate(sizes):
         for k in range(4):
@@ -348,6 +377,8 @@ def _sparsity(sizes: list[int], anisotropic: bool):
             own = list(range(3 * k, 3 * k + 3)) + [12 + k, 16 + p]
             if anisotropic:
                 own += [n_base + 2 * k, n_base + 2 * k + 1, n_base + 8 + k]
+            if groups and drift_group[p] >= 0:
+                own.append(n_shape + 4 * int(drift_group[p]) + k)
             for c in own:
                 out[rows, c] = 1
             row += size
@@ -402,19 +433,25 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
     scale0 = np.array([sum(m[k] @ s[k] for m, s in zip(model0, signal)) / sum(m[k] @ m[k] for m in model0)
                        for k in range(4)])
     n_base = 16 + n_placements
+    n_shape = n_base + (12 if anisotropic else 0)
+    drift_group, share, spans_min = _drift_groups(placements)
+    n_groups = len(spans_min)
 
     def unpack(x: np.ndarray):
         positions, scales, factors = x[:12].reshape(4, 3), scale0 * x[12:16], x[16:n_base]
+        drift = x[n_shape:].reshape(n_groups, 4)
         if not anisotropic:
-            return positions, scales, factors, nominal_axes, np.zeros(4)
+            return positions, scales, factors, nominal_axes, np.zeros(4), drift
         axes = np.column_stack([x[n_base:n_base + 8].reshape(4, 2), np.ones(4)])
-        return positions, scales, factors, axes / np.linalg.norm(axes, axis=1, keepdims=True), x[n_base + 8:]
+        return positions, scales, factors, axes / np.linalg.norm(axes, axis=1, keepdims=True), x[n_base + 8:n_shape], drift
 
     def misfit(x: np.ndarray, every: int = 1) -> np.ndarray:
         """(4, all pixels, or every so many) model minus signal, relative to the typical signal."""
-        positions, scales, factors, axes, mus = unpack(x)
+        positions, scales, factors, axes, mus, drift = unpack(x)
         model = shading(positions, factors, axes, mus, every)
-        return np.concatenate([scales[:, None] * m - s[:, ::every] for m, s in zip(model, signal)], axis=1) / typical
+        gains = [scales * (1.0 + drift[g] * t) if g >= 0 else scales for g, t in zip(drift_group, share)]
+        return np.concatenate([gain[:, None] * m - s[:, ::every] for gain, m, s in zip(gains, model, signal)],
+                              axis=1) / typical
 
     x0 = np.r_[initial.ravel(), np.ones(4), np.ones(n_placements)]
     x_scale = np.r_[np.full(12, 10.0), np.full(4, 0.01), np.full(n_placements, 0.001)]
@@ -424,16 +461,20 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
         x_scale = np.r_[x_scale, np.full(8, 0.02), np.full(4, 0.3)]
         lower = np.r_[lower, np.full(8, -MAX_AXIS_TILT), np.full(4, MU_BOUNDS[0])]
         upper = np.r_[upper, np.full(8, MAX_AXIS_TILT), np.full(4, MU_BOUNDS[1])]
+    x0, x_scale = np.r_[x0, np.zeros(4 * n_groups)], np.r_[x_scale, np.full(4 * n_groups, 0.002)]
+    lower, upper = np.r_[lower, np.full(4 * n_groups, -np.inf)], np.r_[upper, np.full(4 * n_groups, np.inf)]
     # first on a sample of the bins (where most of the iterations are spent), then on all of them
     every = max(1, int(np.ceil(max(sizes) / COARSE_BINS_PER_PLACEMENT)))
     stages = [every, 1] if every > 1 else [1]
     for stride in stages:
         sampled = [len(range(0, n, stride)) for n in sizes]
         fit = least_squares(lambda x: _placement_major(misfit(x, stride), sampled), x0, x_scale=x_scale,
-                            bounds=(lower, upper), jac_sparsity=_sparsity(sampled, anisotropic), tr_solver="lsmr")
+                            bounds=(lower, upper), jac_sparsity=_sparsity(sampled, anisotropic, drift_group),
+                            tr_solver="lsmr")
         x0 = fit.x
-    positions, scales, factors, axes, mus = unpack(fit.x)
+    positions, scales, factors, axes, mus, drift = unpack(fit.x)
     rms = np.sqrt(np.mean(misfit(fit.x) ** 2, axis=1))
+    drift_per_min = drift / spans_min[:, None] if n_groups else None
     if not anisotropic:
-        return MatteRefinement(positions, scales / scales.mean(), factors, rms)
-    return MatteRefinement(positions, scales / scales.mean(), factors, rms, axes, mus)
+        return MatteRefinement(positions, scales / scales.mean(), factors, rms, drift_per_min=drift_per_min)
+    return MatteRefinement(positions, scales / scales.mean(), factors, rms, axes, mus, drift_per_min)

@@ -201,6 +201,42 @@ def test_matte_refinement_finds_the_lights_when_the_outline_puts_the_spheres_too
     np.testing.assert_allclose(fit.distance_factors, 1 / 1.003, atol=2e-4)
 
 
+
+def test_matte_refinement_follows_leds_that_drift_as_they_warm():
+    """Five placements of one recording over 30 s while each LED's output drifts by up to 1.9 % a
+    minute (the clinic world's thermal drift, 2 % over minutes). Taken as steady, the drift between
+    placements reads as their distances' inverse square and moves the lights along their rays; fitted
+    as a line in time per LED it is recovered, and the lights with it."""
+    lights = np.array([[-300.0, -250.0, 20.0], [300.0, -250.0, 20.0], [-300.0, 250.0, 20.0], [300.0, 250.0, 20.0]])
+    drift_per_min = np.array([-0.013, 0.007, 0.019, -0.009])
+    radius = 75.0
+    centres = ([0.0, 0.0, 2000.0], [-220.0, 150.0, 2000.0], [220.0, 150.0, 2000.0], [-220.0, -150.0, 2000.0],
+               [220.0, -150.0, 2000.0])
+    placements = []
+    for k, centre in enumerate(centres):
+        centre = np.array(centre)
+        u, v = np.meshgrid(np.linspace(-1.2, 1.2, 60), np.linspace(-1.2, 1.2, 60))
+        aim = centre / centre[2]
+        rays = np.column_stack([aim[0] + u.ravel() * radius / centre[2], aim[1] + v.ravel() * radius / centre[2],
+                                np.ones(u.size)])
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        b = rays @ centre
+        rays = rays[b * b - (centre @ centre - radius**2) > 0]
+        points, normals = sphere_surface(rays, centre, radius)
+        d = lights[:, None, :] - points[None]
+        time_s = 7.5 * k
+        gain = 1.0 + drift_per_min * (time_s - 15.0) / 60.0
+        signal = 5e6 * gain[:, None] * np.clip(np.sum(normals[None] * d, axis=2), 0, None) \
+            / np.linalg.norm(d, axis=2) ** 3
+        placements.append(MattePlacement(rays, signal, centre, radius, time_s, "one.h5"))
+    start = lights + np.array([3.0, -2.0, 4.0])
+    fit = refine_on_matte(placements, start)
+    np.testing.assert_allclose(fit.drift_per_min[0], drift_per_min, atol=1e-3)
+    assert np.max(np.linalg.norm(fit.positions_mm - lights, axis=1)) < 0.3
+    steady = refine_on_matte([replace(p, recording=f"{k}.h5") for k, p in enumerate(placements)], start)
+    assert steady.drift_per_min is None
+    assert np.max(np.linalg.norm(steady.positions_mm - lights, axis=1)) > 1.0
+
 def test_matte_sphere_bins_keep_every_pixel_inside_the_outline():
     """The matte fit's bins: whole bins inside the sphere only, each with its pixels' mean signal
     and mean unit ray; the factor keeps a full-resolution sphere under the bound."""
