@@ -205,8 +205,9 @@ def test_matte_refinement_finds_the_lights_when_the_outline_puts_the_spheres_too
 def test_matte_refinement_follows_leds_that_drift_as_they_warm():
     """Five placements of one recording over 30 s while each LED's output drifts by up to 1.9 % a
     minute (the clinic world's thermal drift, 2 % over minutes). Taken as steady, the drift between
-    placements reads as their distances' inverse square and moves the lights along their rays; fitted
-    as a line in time per LED it is recovered, and the lights with it."""
+    placements reads as their distances' inverse square and moves the lights along their rays
+    (measured 10-41 mm); fitted as a line in time per LED it is recovered (within 1e-7 a minute),
+    and the lights with it (0.000 mm)."""
     lights = np.array([[-300.0, -250.0, 20.0], [300.0, -250.0, 20.0], [-300.0, 250.0, 20.0], [300.0, 250.0, 20.0]])
     drift_per_min = np.array([-0.013, 0.007, 0.019, -0.009])
     radius = 75.0
