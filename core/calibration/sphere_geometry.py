@@ -443,7 +443,8 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
         if not anisotropic:
             return positions, scales, factors, nominal_axes, np.zeros(4), drift
         axes = np.column_stack([x[n_base:n_base + 8].reshape(4, 2), np.ones(4)])
-        return positions, scales, factors, axes / np.linalg.norm(axes, axis=1, keepdims=True), x[n_base + 8:n_shape], drift
+        axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+        return positions, scales, factors, axes, x[n_base + 8:n_shape], drift
 
     def misfit(x: np.ndarray, every: int = 1) -> np.ndarray:
         """(4, all pixels, or every so many) model minus signal, relative to the typical signal."""

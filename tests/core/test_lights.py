@@ -172,34 +172,42 @@ def test_calibration_refuses_a_patient_session(small_session):
         calibrate_lights([small_session])
 
 
+SHADED_LIGHTS_MM = np.array([[-300.0, -250.0, 20.0], [300.0, -250.0, 20.0], [-300.0, 250.0, 20.0],
+                             [300.0, 250.0, 20.0]])
+
+
+def shaded_sphere(centre_mm, gain: np.ndarray, radius_mm: float = 75.0) -> tuple[np.ndarray, np.ndarray]:
+    """(unit rays, signal (4, N)) of a matte sphere lit by SHADED_LIGHTS_MM, each light times its gain:
+    the refinement's own model, on a 60 x 60 grid of rays over the sphere."""
+    centre = np.asarray(centre_mm, float)
+    u, v = np.meshgrid(np.linspace(-1.2, 1.2, 60), np.linspace(-1.2, 1.2, 60))
+    aim = centre / centre[2]
+    rays = np.column_stack([aim[0] + u.ravel() * radius_mm / centre[2], aim[1] + v.ravel() * radius_mm / centre[2],
+                            np.ones(u.size)])
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    b = rays @ centre
+    rays = rays[b * b - (centre @ centre - radius_mm**2) > 0]  # the sphere's pixels
+    points, normals = sphere_surface(rays, centre, radius_mm)
+    d = SHADED_LIGHTS_MM[:, None, :] - points[None]
+    signal = 5e6 * gain[:, None] * np.clip(np.sum(normals[None] * d, axis=2), 0, None) / np.linalg.norm(d, axis=2) ** 3
+    return rays, signal
+
+
 def test_matte_refinement_finds_the_lights_when_the_outline_puts_the_spheres_too_far():
     """Shading made with the model itself: three spheres whose outlines put them 0.3 % (6 mm) too
     far along their rays, lights started 8 mm off. The refinement finds the lights, the
     intensities and each sphere's distance."""
-    lights = np.array([[-300.0, -250.0, 20.0], [300.0, -250.0, 20.0], [-300.0, 250.0, 20.0], [300.0, 250.0, 20.0]])
+    lights = SHADED_LIGHTS_MM
     intensity = np.array([1.0, 1.04, 0.97, 0.99])
-    radius = 75.0
     placements = []
     for centre in ([0.0, 0.0, 2000.0], [-250.0, 120.0, 1850.0], [200.0, -150.0, 2200.0]):
-        centre = np.array(centre)
-        u, v = np.meshgrid(np.linspace(-1.2, 1.2, 60), np.linspace(-1.2, 1.2, 60))
-        aim = centre / centre[2]
-        rays = np.column_stack([aim[0] + u.ravel() * radius / centre[2], aim[1] + v.ravel() * radius / centre[2],
-                                np.ones(u.size)])
-        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-        b = rays @ centre
-        rays = rays[b * b - (centre @ centre - radius**2) > 0]  # the sphere's pixels
-        points, normals = sphere_surface(rays, centre, radius)
-        d = lights[:, None, :] - points[None]
-        signal = 5e6 * intensity[:, None] * np.clip(np.sum(normals[None] * d, axis=2), 0, None) \
-            / np.linalg.norm(d, axis=2) ** 3
-        placements.append(MattePlacement(rays, signal, centre * 1.003, radius))
+        rays, signal = shaded_sphere(centre, intensity)
+        placements.append(MattePlacement(rays, signal, np.array(centre) * 1.003, 75.0))
     start = lights + np.array([5.0, -4.0, 5.0])
     fit = refine_on_matte(placements, start)
     np.testing.assert_allclose(fit.positions_mm, lights, atol=0.3)
     np.testing.assert_allclose(fit.intensity, intensity / intensity.mean(), atol=1e-3)
     np.testing.assert_allclose(fit.distance_factors, 1 / 1.003, atol=2e-4)
-
 
 
 def test_matte_refinement_follows_leds_that_drift_as_they_warm():
@@ -208,28 +216,15 @@ def test_matte_refinement_follows_leds_that_drift_as_they_warm():
     placements reads as their distances' inverse square and moves the lights along their rays
     (measured 10-41 mm); fitted as a line in time per LED it is recovered (within 1e-7 a minute),
     and the lights with it (0.000 mm)."""
-    lights = np.array([[-300.0, -250.0, 20.0], [300.0, -250.0, 20.0], [-300.0, 250.0, 20.0], [300.0, 250.0, 20.0]])
+    lights = SHADED_LIGHTS_MM
     drift_per_min = np.array([-0.013, 0.007, 0.019, -0.009])
-    radius = 75.0
     centres = ([0.0, 0.0, 2000.0], [-220.0, 150.0, 2000.0], [220.0, 150.0, 2000.0], [-220.0, -150.0, 2000.0],
                [220.0, -150.0, 2000.0])
     placements = []
     for k, centre in enumerate(centres):
-        centre = np.array(centre)
-        u, v = np.meshgrid(np.linspace(-1.2, 1.2, 60), np.linspace(-1.2, 1.2, 60))
-        aim = centre / centre[2]
-        rays = np.column_stack([aim[0] + u.ravel() * radius / centre[2], aim[1] + v.ravel() * radius / centre[2],
-                                np.ones(u.size)])
-        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-        b = rays @ centre
-        rays = rays[b * b - (centre @ centre - radius**2) > 0]
-        points, normals = sphere_surface(rays, centre, radius)
-        d = lights[:, None, :] - points[None]
         time_s = 7.5 * k
-        gain = 1.0 + drift_per_min * (time_s - 15.0) / 60.0
-        signal = 5e6 * gain[:, None] * np.clip(np.sum(normals[None] * d, axis=2), 0, None) \
-            / np.linalg.norm(d, axis=2) ** 3
-        placements.append(MattePlacement(rays, signal, centre, radius, time_s, "one.h5"))
+        rays, signal = shaded_sphere(centre, 1.0 + drift_per_min * (time_s - 15.0) / 60.0)
+        placements.append(MattePlacement(rays, signal, np.array(centre), 75.0, time_s, "one.h5"))
     start = lights + np.array([3.0, -2.0, 4.0])
     fit = refine_on_matte(placements, start)
     np.testing.assert_allclose(fit.drift_per_min[0], drift_per_min, atol=1e-3)
@@ -237,6 +232,7 @@ def test_matte_refinement_follows_leds_that_drift_as_they_warm():
     steady = refine_on_matte([replace(p, recording=f"{k}.h5") for k, p in enumerate(placements)], start)
     assert steady.drift_per_min is None
     assert np.max(np.linalg.norm(steady.positions_mm - lights, axis=1)) > 1.0
+
 
 def test_matte_sphere_bins_keep_every_pixel_inside_the_outline():
     """The matte fit's bins: whole bins inside the sphere only, each with its pixels' mean signal
