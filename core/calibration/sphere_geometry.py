@@ -393,7 +393,9 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
     Model: signal_k = s_k * cos(a_k, X - P_k)^mu_k * max(0, n . (P_k - X)) / |P_k - X|^3 (Lambertian,
     inverse square, an LED's radiant intensity falling off as cos^mu of the angle from its own axis
     a_k; the thesis' point source is mu = 0), X and n where the pixel's ray meets the sphere (known
-    radius) at its centre c * f, f fitted per placement. The outline alone leaves the sphere's
+    radius) at its centre c * f, f fitted per placement. Within a recording of MIN_PLACEMENTS_FOR_DRIFT
+    or more placements s_k is s_k (1 + d_k t), t the placement's time from the recording's mean over its
+    span, d_k fitted (MatteRefinement.drift_per_min: d_k over the span in minutes). The outline alone leaves the sphere's
     distance off by a fraction of a pixel of its radius (a few mm at 2 m, docs/reconstruction.md),
     and the lights would absorb that error; the shading inside the outline tells the distance too,
     through how fast the normal turns from pixel to pixel. Every pixel (or bin of pixels) facing
