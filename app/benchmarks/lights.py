@@ -2,9 +2,10 @@
 
 Each rig is drawn as the population bench draws them (app/benchmarks/population.py: LEDs 0-15 mm off
 the drawing, and the clinic world's cos^mu falloff with tilted axes, intensity spread, drift,
-mains flicker, lens distortion and vignetting). Its sphere sessions are simulated as the
-calibration wizard records them and calibrated as a user would (core/calibration/light_sessions.py): from
-the specular sphere alone, and from the specular and the matte sphere. The truth is read only to
+mains flicker, lens distortion and vignetting). Its sphere captures are simulated as the calibration
+wizard records them (each place its own recording, the LEDs drifting from one to the next) and
+calibrated as a user would (core/calibration/light_sessions.py): from the specular sphere alone, and
+from the specular and the matte sphere. The truth is read only to
 compare (issue 27: every LED within 5 mm from specular sessions alone, better with matte ones).
 """
 
@@ -18,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.benchmarks.population import VirtualSubject, draw_subjects, light_errors, lights_truth, sphere_sessions
+from app.benchmarks.population import (CAPTURE_INTERVAL_S, LEDS_ON_BEFORE_S, SPHERE_PLACES, VirtualSubject,
+                                       draw_subjects, light_errors, lights_truth, sphere_sessions)
 
 WITHIN_MM = 5.0
 
@@ -29,19 +31,22 @@ def run_rig(subject: VirtualSubject, scale: float, folder: str) -> dict:
     from core.rig import thesis_rig
 
     started = time.perf_counter()
-    spheres = sphere_sessions(subject, scale, Path(folder))
-    truth = lights_truth(spheres[0])
+    captures = sphere_sessions(subject, scale, Path(folder))
+    specular, matte = captures["specular-sphere"], captures["matte-sphere"]
+    truth = lights_truth(specular[0])
     drawn = thesis_rig(scale)
     out: dict = {"index": subject.index, "seed": subject.seed,
                  "built_offset_mm": {h: np.linalg.norm(truth[h]["light_positions_mm"]
                                                        - drawn.heads[h].light_positions_mm, axis=1).tolist()
                                      for h in truth}}
-    for label, paths in (("specular", spheres[:1]), ("specular+matte", spheres)):
+    for label, paths in (("specular", specular), ("specular+matte", specular + matte)):
         try:
-            out[label] = light_errors(calibrate_lights(paths)[0], truth)
+            calibration, reports = calibrate_lights(paths)
+            out[label] = light_errors(calibration, truth)
+            out[f"{label} refined on"] = {r.head: r.refined_on or "the highlights alone" for r in reports}
         except Exception as exc:  # reported as the wizard would show it
             out[label] = {"failed": str(exc)}
-    for path in spheres:
+    for path in specular + matte:
         path.unlink(missing_ok=True)
     out["seconds"] = time.perf_counter() - started
     return out
@@ -69,12 +74,15 @@ def lights_table(rows: list[dict], scale: float, seed: int, elapsed: float, work
     world = ", ".join(f"{k} {v:g}" for k, v in WORLDS["clinic"].items()
                       if k.startswith(("led_", "ambient", "lens", "vignetting")) and k != "led_offset_mm")
     lines = [f"{len(rows)} rigs (seed {seed}), two heads of {head.width} x {head.height} pixels; LEDs 0-15 mm off "
-             f"the drawing and the clinic's {world}; each rig's specular and matte sphere sessions as the wizard "
-             "records them (7 placements), calibrated from the specular one alone and from both. Position error: "
+             f"the drawing and the clinic's {world}; each rig's specular and matte sphere captured as the wizard "
+             f"records them ({SPHERE_PLACES} places of each, one recording each, {CAPTURE_INTERVAL_S:g} s apart, the "
+             f"LEDs on {LEDS_ON_BEFORE_S / 60:g} min before), calibrated from the specular captures alone and from "
+             "both. Position error: "
              "the distance from each calibrated LED to the LED as built.", "",
              "| rig | LEDs off the drawing (mm, worst) | specular: worst / median (mm) | specular + matte: worst / "
-             "median (mm) | axis (deg, worst) | falloff mu (worst error) |",
-             "|---|---|---|---|---|---|"]
+             "median (mm) | axis (deg, worst) | falloff mu (worst error) | placed along the rays by (specular; with "
+             "matte) |",
+             "|---|---|---|---|---|---|---|"]
     for r in rows:
         cells = []
         for label in ("specular", "specular+matte"):
@@ -88,7 +96,9 @@ def lights_table(rows: list[dict], scale: float, seed: int, elapsed: float, work
         axis = _worst(matte, "axis_deg") if "failed" not in matte else float("nan")
         mu = _worst(matte, "mu") if "failed" not in matte else float("nan")
         built = max(v for h in r["built_offset_mm"].values() for v in h)
-        lines.append(f"| {r['index']} | {built:.1f} | {cells[0]} | {cells[1]} | {axis:.1f} | {mu:.2f} |")
+        placed = "; ".join(", ".join(sorted(set(r.get(f"{label} refined on", {}).values()))) or "failed"
+                           for label in ("specular", "specular+matte"))
+        lines.append(f"| {r['index']} | {built:.1f} | {cells[0]} | {cells[1]} | {axis:.1f} | {mu:.2f} | {placed} |")
     lines.append("")
     for label in ("specular", "specular+matte"):
         errors = _all(rows, label)

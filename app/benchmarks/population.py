@@ -116,20 +116,38 @@ CALIBRATION_SCALE = 0.5
 RECORDING_COMPRESSION = "blosc-lz4"
 
 
+# The wizard's captures (app/gui/wizards/sphere.py): each place its own recording, the next one this long
+# after the last (the sphere moved and held still), the LEDs switched on minutes before the first.
+CAPTURE_INTERVAL_S = 15.0
+LEDS_ON_BEFORE_S = 300.0
+SPHERE_PLACES = 7
+
+
 def sphere_sessions(subject: VirtualSubject, scale: float, folder: Path,
-                    scenes: tuple[str, ...] = ("specular-sphere", "matte-sphere"), world: str = WORLD) -> list[Path]:
-    """The subject's rig's sphere sessions at `scale`, as long as the calibration wizard records."""
+                    scenes: tuple[str, ...] = ("specular-sphere", "matte-sphere"),
+                    world: str = WORLD) -> dict[str, list[Path]]:
+    """The subject's rig's sphere captures at `scale`, {scene: paths}, as the calibration wizard records
+    them: SPHERE_PLACES places of each sphere, one recording each, CAPTURE_INTERVAL_S apart on the rig's
+    clock (its LEDs drift on from one to the next)."""
+    import datetime as dt
+
     from core.calibration.light_sessions import CAPTURE_SECONDS
     from core.rig import thesis_rig
     from core.sim.simulate import simulate
 
     rig = thesis_rig(scale)
     hold = int(round(CAPTURE_SECONDS * rig.frame_rate_hz / rig.cycle_length))
-    paths = []
+    switched_on = dt.datetime.now(dt.timezone.utc).replace(microsecond=0)
+    clock_s = LEDS_ON_BEFORE_S
+    paths: dict[str, list[Path]] = {}
     for scene in scenes:
-        path = folder / f"{subject.index}-{scene}-{scale:g}.h5"
-        simulate(path, _config(subject, scale, world, scene=scene, placement_cycles=hold, steps=0, drop_rate=0.0))
-        paths.append(path)
+        for place in range(SPHERE_PLACES):
+            path = folder / f"{subject.index}-{scene}-{scale:g}-{place + 1}.h5"
+            created = (switched_on + dt.timedelta(seconds=clock_s)).isoformat(timespec="seconds")
+            simulate(path, _config(subject, scale, world, scene=scene, placement_only=place, placement_cycles=hold,
+                                   steps=0, drop_rate=0.0, truth_maps_at=[], rig_clock_s=clock_s, created=created))
+            paths.setdefault(scene, []).append(path)
+            clock_s += CAPTURE_INTERVAL_S
     return paths
 
 
@@ -149,9 +167,9 @@ def calibrate_rig(subject: VirtualSubject, scale: float, folder: Path, world: st
     wizard would show."""
     from core.calibration.light_sessions import calibrate_lights
 
-    spheres = []
+    spheres: list[Path] = []
     try:
-        spheres = sphere_sessions(subject, scale, folder, world=world)
+        spheres = [p for paths in sphere_sessions(subject, scale, folder, world=world).values() for p in paths]
         return calibrate_lights(spheres)[0], lights_truth(spheres[0])
     finally:
         for path in spheres:

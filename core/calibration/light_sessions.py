@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from core.reconstruction.binning import bin_all, bin_mean
-from core.calibration.sphere_geometry import (CalibrationError, Highlight, MattePlacement, SphereFit, closest_points, detect_highlight,
-                         detect_sphere, pixel_rays, refine_on_matte, triangulate)
+from core.calibration.sphere_geometry import (CalibrationError, Highlight, MattePlacement, MatteRefinement, SphereFit,
+                                             closest_points, detect_highlight, detect_sphere, pixel_rays,
+                                             refine_on_matte, triangulate)
 from core.reconstruction.photometric import complete_cycles
 from core.calibration.rig_profile import HeadCalibration, RigCalibration
 from core.rig import Head
@@ -38,6 +39,15 @@ DIFFUSE_MIN_SNR = 3.0
 # fits a finish it does not describe, and is not taken.
 MAX_SHADING_OFF_RAYS = 3.0
 MIN_SHADING_OFF_RAYS_MM = 3.0
+# The shading places the lights along those rays through the inverse square of the placements' distances,
+# which holds only while each LED's output stays as it was from one placement to the next. Where it
+# changed (LEDs warming between the wizard's captures) the fit moves the lights along their rays by tens
+# of mm, and leaving out one placement moves them as much. The shading is taken only while that
+# jackknife standard error stays within this many times the triangulation's own. Measured on the clinic
+# world at 700 x 512 with the wizard's captures 15 s apart (docs/reconstruction.md), the worst light of a
+# head: steady LEDs 0.8-1.7 times on the matte sphere, 4.1-4.5 on the glossy sphere's shading (1.4-2.4 in
+# the simulated rig's own wizard, spheres under 40 px); LEDs drifting by 0.3 % over minutes 17-24, 2 % 50-124.
+MAX_SHADING_LEAVE_ONE_OUT = 8.0
 
 
 @dataclass
@@ -227,13 +237,16 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
     refined_on = ""
     axis = mu = None
     shaded = [r.diffuse for r in results if r.diffuse is not None]
+    shading = None
     if matte:
-        shading = _refine(triangulated, [p for session, radius in matte for p in _matte_placements(session, head.name, radius)])
-        refined_on = "the matte sphere"
+        placements = [p for session, radius in matte for p in _matte_placements(session, head.name, radius)]
+        shading = steady_shading(_refine(triangulated, placements), sigma, "the matte sphere's shading", problems)
+        refined_on = "the matte sphere" if shading is not None else ""
     elif len(shaded) >= 3:
-        shading = _refine(triangulated, shaded)
+        shading = steady_shading(_refine(triangulated, shaded), sigma, "the specular sphere's diffuse shading",
+                                 problems)
         off_rays = [_ray_rms_mm(shading.positions_mm[k], [r.highlights[k] for r in results if k in r.highlights])
-                    for k in range(4)]
+                    if shading is not None else 0.0 for k in range(4)]
         strayed = [k for k in range(4) if off_rays[k] > max(MAX_SHADING_OFF_RAYS * residual[k], MIN_SHADING_OFF_RAYS_MM)]
         if strayed:
             k = strayed[0]
@@ -241,10 +254,9 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
                             f"highlight rays ({residual[k]:.1f} mm triangulated): a finish the shading model does not "
                             "describe; the lights are triangulated only")
             shading = None
-        else:
+        elif shading is not None:
             refined_on = "the specular sphere's diffuse shading"
     else:
-        shading = None
         problems.append("the specular sphere shows no diffuse shading to refine on (a mirror finish, or too dark): "
                         "the lights are triangulated only (in the clinic world within 1-5 mm with the sphere 60 px "
                         "or more in radius, 2-12 mm below 40 px; docs/reconstruction.md, Light calibration); a matte "
@@ -255,6 +267,8 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
         extra["refined_on"] = refined_on
         extra["shading_fit_rms"] = np.round(shading.rms, 6).tolist()
         extra["shading_distance_factors"] = np.round(shading.distance_factors, 6).tolist()
+        if shading.leave_one_out_mm is not None:
+            extra["shading_leave_one_out_mm"] = np.round(shading.leave_one_out_mm, 2).tolist()
         if shading.drift_per_min is not None:  # each recording of three or more placements, each LED
             extra["shading_drift_per_min"] = np.round(shading.drift_per_min, 5).tolist()
     calibration = HeadCalibration(positions, intensity, sigma, residual, pseudo, extra, axis, mu)
@@ -264,11 +278,30 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
 
 def _refine(triangulated_mm: np.ndarray, placements: list[MattePlacement]):
     """The lights refined on a sphere's shading: anisotropic LEDs, or point sources where every
-    fitted falloff is that of one."""
-    fit = refine_on_matte(placements, triangulated_mm, anisotropic=True)
+    fitted falloff is that of one; with how far each moves as each placement is left out."""
+    fit = refine_on_matte(placements, triangulated_mm, anisotropic=True, leave_one_out=True)
     if np.all(fit.mu < ISOTROPIC_MU):
-        fit = refine_on_matte(placements, triangulated_mm, anisotropic=False)
+        fit = refine_on_matte(placements, triangulated_mm, anisotropic=False, leave_one_out=True)
     return fit
+
+
+def steady_shading(fit: MatteRefinement, sigma_mm: np.ndarray, what: str,
+                   problems: list[str]) -> MatteRefinement | None:
+    """The shading's fit, or None (with the reason among the problems) where leaving out one placement
+    moves a light by more than MAX_SHADING_LEAVE_ONE_OUT times its triangulation's standard error
+    (sigma_mm, (4, 3)): the LEDs' output changed between placements."""
+    if fit.leave_one_out_mm is None:  # two placements or fewer: nothing to leave out
+        return fit
+    ratio = fit.leave_one_out_mm / np.maximum(np.linalg.norm(sigma_mm, axis=1), 1e-6)
+    k = int(np.argmax(ratio))
+    if ratio[k] <= MAX_SHADING_LEAVE_ONE_OUT:
+        return fit
+    problems.append(f"{what} does not hold light {k} still: leaving out one placement moves it by "
+                    f"{fit.leave_one_out_mm[k]:.1f} mm (jackknife), {ratio[k]:.0f} times the highlights' own "
+                    f"{np.linalg.norm(sigma_mm[k]):.1f} mm, as when the LEDs' output changes between captures; the "
+                    "lights are triangulated only. Switch the LEDs on some minutes before calibrating and capture "
+                    "one place after the other without pausing")
+    return None
 
 
 def _ray_rms_mm(position_mm: np.ndarray, highlights: list[Highlight]) -> float:

@@ -313,6 +313,9 @@ class MatteRefinement:
     mu: np.ndarray | None = None  # (4,) exponent of each LED's cos^mu falloff about its axis
     # (recordings of three or more placements, 4): each LED's intensity change per minute within one
     drift_per_min: np.ndarray | None = None
+    # (4,) with leave_one_out: how far each light moves (jackknife standard error, mm) as each placement
+    # is left out of the fit in turn (on the fit's sample of the bins)
+    leave_one_out_mm: np.ndarray | None = None
 
 
 def sphere_surface(rays: np.ndarray, centre: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -385,8 +388,16 @@ def _sparsity(sizes: list[int], anisotropic: bool, drift_group: np.ndarray | Non
     return out
 
 
+def _jackknife_mm(left_out_mm: np.ndarray) -> np.ndarray:
+    """(4,) each light's jackknife standard error (mm) from its positions (n, 4, 3) fitted with each of
+    the n placements left out in turn."""
+    n = len(left_out_mm)
+    variance = (n - 1) / n * np.sum((left_out_mm - left_out_mm.mean(axis=0)) ** 2, axis=0)
+    return np.sqrt(np.sum(variance, axis=1))
+
+
 def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
-                    anisotropic: bool = True) -> MatteRefinement:
+                    anisotropic: bool = True, leave_one_out: bool = False) -> MatteRefinement:
     """Positions, relative intensities and (anisotropic) each LED's axis and falloff exponent from
     a matte sphere's shading, with each placement's distance along its ray fitted too.
 
@@ -448,13 +459,20 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
         axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
         return positions, scales, factors, axes, x[n_base + 8:n_shape], drift
 
-    def misfit(x: np.ndarray, every: int = 1) -> np.ndarray:
-        """(4, all pixels, or every so many) model minus signal, relative to the typical signal."""
+    def misfit(x: np.ndarray, every: int = 1, left_out: int = -1) -> np.ndarray:
+        """(4, all pixels, or every so many) model minus signal, relative to the typical signal; a
+        placement left out has no pixels."""
         positions, scales, factors, axes, mus, drift = unpack(x)
         model = shading(positions, factors, axes, mus, every)
         gains = [scales * (1.0 + drift[g] * t) if g >= 0 else scales for g, t in zip(drift_group, share)]
-        return np.concatenate([gain[:, None] * m - s[:, ::every] for gain, m, s in zip(gains, model, signal)],
-                              axis=1) / typical
+        return np.concatenate([(gain[:, None] * m - s[:, ::every])[:, :0 if p == left_out else None]
+                               for p, (gain, m, s) in enumerate(zip(gains, model, signal))], axis=1) / typical
+
+    def solve(x_start: np.ndarray, stride: int, left_out: int = -1):
+        sampled = [0 if p == left_out else len(range(0, n, stride)) for p, n in enumerate(sizes)]
+        return least_squares(lambda x: _placement_major(misfit(x, stride, left_out), sampled), x_start,
+                             x_scale=x_scale, bounds=(lower, upper),
+                             jac_sparsity=_sparsity(sampled, anisotropic, drift_group), tr_solver="lsmr", ftol=1e-6)
 
     x0 = np.r_[initial.ravel(), np.ones(4), np.ones(n_placements)]
     x_scale = np.r_[np.full(12, 10.0), np.full(4, 0.01), np.full(n_placements, 0.001)]
@@ -472,14 +490,16 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
     every = max(1, int(np.ceil(max(sizes) / COARSE_BINS_PER_PLACEMENT)))
     stages = [every, 1] if every > 1 else [1]
     for stride in stages:
-        sampled = [len(range(0, n, stride)) for n in sizes]
-        fit = least_squares(lambda x: _placement_major(misfit(x, stride), sampled), x0, x_scale=x_scale,
-                            bounds=(lower, upper), jac_sparsity=_sparsity(sampled, anisotropic, drift_group),
-                            tr_solver="lsmr", ftol=1e-6)
+        fit = solve(x0, stride)
         x0 = fit.x
     positions, scales, factors, axes, mus, drift = unpack(fit.x)
     rms = np.sqrt(np.mean(misfit(fit.x) ** 2, axis=1))
     drift_per_min = drift / spans_min[:, None] if n_groups else None
+    spread = None
+    if leave_one_out and n_placements > 2:
+        left = np.array([unpack(solve(fit.x, stages[0], p).x)[0] for p in range(n_placements)])
+        spread = _jackknife_mm(left)
     if not anisotropic:
-        return MatteRefinement(positions, scales / scales.mean(), factors, rms, drift_per_min=drift_per_min)
-    return MatteRefinement(positions, scales / scales.mean(), factors, rms, axes, mus, drift_per_min)
+        return MatteRefinement(positions, scales / scales.mean(), factors, rms, drift_per_min=drift_per_min,
+                               leave_one_out_mm=spread)
+    return MatteRefinement(positions, scales / scales.mean(), factors, rms, axes, mus, drift_per_min, spread)

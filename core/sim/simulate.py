@@ -59,6 +59,9 @@ class SimConfig:
     led_mu_spread: float = 0.0  # as built: each LED's exponent led_mu +- this (uniform)
     led_tilt_deg: float = 0.0  # as built: each LED's axis up to this far from the optical axis
     led_drift: float = 0.0  # thermal drift: each LED's intensity 1 +- this, over periods of 3-10 minutes
+    # the rig's time at the recording's first frame (s): its LEDs' drift and the room light go on from
+    # there, so recordings made one after another on one rig (a wizard's captures) see one drift
+    rig_clock_s: float = 0.0
     ambient_flicker: float = 0.0  # room light modulated +- this at twice the mains frequency
     mains_hz: float = 50.0
     lens_k1: float = 0.0  # radial distortion (OpenCV k1) of every camera; written to /rig, as a calibrated lens
@@ -143,6 +146,7 @@ class Drift:
     def __init__(self, config: SimConfig) -> None:
         rng = np.random.default_rng(config.seed + 71)
         self.amplitude = config.led_drift
+        self.start_s = config.rig_clock_s
         self.periods_s = rng.uniform(180.0, 600.0, 4)
         self.phases = rng.uniform(0, 2 * np.pi, 4)
         self.flicker = config.ambient_flicker
@@ -152,16 +156,17 @@ class Drift:
     def head_at(self, head: Head, t_s: float) -> Head:
         if self.amplitude == 0:
             return head
-        factor = 1.0 + self.amplitude * np.sin(2 * np.pi * t_s / self.periods_s + self.phases)
+        factor = 1.0 + self.amplitude * np.sin(2 * np.pi * (self.start_s + t_s) / self.periods_s + self.phases)
         return replace(head, light_intensity=head.light_intensity * factor)
 
     def relative_intensity(self, t_s: np.ndarray) -> np.ndarray:
         """(T, 4) each LED's output against its mean."""
-        t = np.asarray(t_s, dtype=float)[:, None]
+        t = self.start_s + np.asarray(t_s, dtype=float)[:, None]
         return 1.0 + self.amplitude * np.sin(2 * np.pi * t / self.periods_s + self.phases)
 
     def ambient_at(self, t_s: float) -> float:
-        return 1.0 + self.flicker * float(np.sin(2 * np.pi * self.flicker_hz * t_s + self.flicker_phase))
+        phase = 2 * np.pi * self.flicker_hz * (self.start_s + t_s) + self.flicker_phase
+        return 1.0 + self.flicker * float(np.sin(phase))
 
 
 # Crossed polarisers (docs/simulator.md): the LED's polariser passes POLARISED_LED of its light; the

@@ -7,7 +7,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from core.calibration.light_sessions import binned_sphere, calibrate_lights, matte_binning
+from core.calibration.light_sessions import (MAX_SHADING_LEAVE_ONE_OUT, steady_shading, binned_sphere, calibrate_lights,
+                                            matte_binning)
 from core.calibration.sphere_geometry import (CalibrationError, MattePlacement, sphere_surface, closest_points, detect_highlight,
                          detect_sphere, pixel_rays, refine_on_matte, triangulate)
 from core.calibration.rig_profile import ProfileError, load_profile
@@ -232,6 +233,37 @@ def test_matte_refinement_follows_leds_that_drift_as_they_warm():
     steady = refine_on_matte([replace(p, recording=f"{k}.h5") for k, p in enumerate(placements)], start)
     assert steady.drift_per_min is None
     assert np.max(np.linalg.norm(steady.positions_mm - lights, axis=1)) > 1.0
+
+
+def test_leaving_out_a_placement_shows_leds_whose_output_changed_between_captures():
+    """The wizard's captures, each its own recording 15 s after the last, of LEDs drifting by 1 % over
+    minutes: the drift cannot be fitted across recordings and the shading reads it as distance; leaving
+    out one placement moves the lights by more than MAX_SHADING_LEAVE_ONE_OUT times a 2 mm triangulation,
+    and the shading is not taken. With steady LEDs the same placements hold them within 0.1 mm."""
+    lights = SHADED_LIGHTS_MM
+    periods_s, phases = np.array([530.0, 180.0, 280.0, 230.0]), np.array([4.5, 2.0, 3.6, 0.3])
+    offsets = ([0, 0, 0], [-220, -150, -150], [220, 150, 150], [220, -150, 0], [-220, 150, 0], [0, -170, 150],
+               [0, 170, -150])
+    start = lights + np.array([3.0, -2.0, 4.0])
+    triangulation_sigma_mm = np.full((4, 3), 2.0 / np.sqrt(3.0))
+    for drift in (0.0, 0.01):
+        placements = []
+        for k, offset in enumerate(offsets):
+            centre = np.array([0.0, 0.0, 2000.0]) + offset
+            gain = 1.0 + drift * np.sin(2 * np.pi * (300.0 + 15.0 * k) / periods_s + phases)
+            rays, signal = shaded_sphere(centre, gain)
+            placements.append(MattePlacement(rays, signal, centre, 75.0, 0.5, f"capture-{k}.h5"))
+        fit = refine_on_matte(placements, start, anisotropic=False, leave_one_out=True)
+        problems: list[str] = []
+        taken = steady_shading(fit, triangulation_sigma_mm, "the shading", problems)
+        if drift == 0.0:
+            assert np.max(fit.leave_one_out_mm) < 0.1
+            assert np.max(np.linalg.norm(fit.positions_mm - lights, axis=1)) < 0.1
+            assert taken is fit and not problems
+        else:
+            assert np.max(fit.leave_one_out_mm) > MAX_SHADING_LEAVE_ONE_OUT * 2.0
+            assert taken is None
+            assert "does not hold light" in problems[0] and "triangulated only" in problems[0]
 
 
 def test_matte_sphere_bins_keep_every_pixel_inside_the_outline():
