@@ -43,7 +43,9 @@ def run_rig(subject: VirtualSubject, scale: float, folder: str) -> dict:
         try:
             calibration, reports = calibrate_lights(paths)
             out[label] = light_errors(calibration, truth)
-            out[f"{label} refined on"] = {r.head: r.refined_on or "the highlights alone" for r in reports}
+            out[f"{label} refined on"] = {r.head: r.refined_on or "the highlights alone"
+                                          + (f" (axes and falloff: {r.pattern_on})" if r.pattern_on else "")
+                                          for r in reports}
         except Exception as exc:  # reported as the wizard would show it
             out[label] = {"failed": str(exc)}
     for path in specular + matte:

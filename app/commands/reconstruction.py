@@ -97,8 +97,10 @@ def run_calibrate_lights(args: argparse.Namespace) -> int:
     _logged(audit, "lights", args.output)
     for report in reports:
         cal = calibration.heads[report.head]
-        print(f"{report.head}: {report.placements} placements, "
-              f"{'refined on ' + report.refined_on if report.refined_on else 'specular triangulation only'}")
+        how = f"refined on {report.refined_on}" if report.refined_on else "specular triangulation only"
+        if report.pattern_on:
+            how += f", axes and falloff from {report.pattern_on} (each placement's output on its own)"
+        print(f"{report.head}: {report.placements} placements, {how}")
         for k in range(4):
             x, y, z = cal.light_positions_mm[k]
             sx, sy, sz = cal.light_position_sigma_mm[k]

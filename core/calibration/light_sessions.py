@@ -193,6 +193,8 @@ class HeadReport:
     triangulated_mm: np.ndarray
     refined_on: str  # what refined the triangulated lights ('' when nothing did)
     problems: list[str]
+    # where the lights stay triangulated, what gave their axes and falloff all the same ('' when nothing did)
+    pattern_on: str = ""
 
 
 def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte: list[tuple[SessionFile, float]],
@@ -238,23 +240,29 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
     axis = mu = None
     shaded = [r.diffuse for r in results if r.diffuse is not None]
     shading = None
+    pattern_on = ""
     if matte:
         placements = [p for session, radius in matte for p in _matte_placements(session, head.name, radius)]
         shading = steady_shading(_refine(triangulated, placements), sigma, "the matte sphere's shading", problems)
-        refined_on = "the matte sphere" if shading is not None else ""
+        if shading is None:
+            shading, pattern_on = _pattern(triangulated, placements), "the matte sphere"
+        else:
+            refined_on = "the matte sphere"
     elif len(shaded) >= 3:
         shading = steady_shading(_refine(triangulated, shaded), sigma, "the specular sphere's diffuse shading",
                                  problems)
+        if shading is None:
+            shading, pattern_on = _pattern(triangulated, shaded), "the specular sphere's diffuse shading"
         off_rays = [_ray_rms_mm(shading.positions_mm[k], [r.highlights[k] for r in results if k in r.highlights])
-                    if shading is not None else 0.0 for k in range(4)]
+                    for k in range(4)]
         strayed = [k for k in range(4) if off_rays[k] > max(MAX_SHADING_OFF_RAYS * residual[k], MIN_SHADING_OFF_RAYS_MM)]
         if strayed:
             k = strayed[0]
             problems.append(f"the specular sphere's diffuse shading put light {k} {off_rays[k]:.1f} mm rms off its "
                             f"highlight rays ({residual[k]:.1f} mm triangulated): a finish the shading model does not "
                             "describe; the lights are triangulated only")
-            shading = None
-        elif shading is not None:
+            shading, pattern_on = None, ""
+        elif not pattern_on:
             refined_on = "the specular sphere's diffuse shading"
     else:
         problems.append("the specular sphere shows no diffuse shading to refine on (a mirror finish, or too dark): "
@@ -264,7 +272,9 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
     if shading is not None:
         positions, intensity = shading.positions_mm, shading.intensity
         axis, mu = shading.axis, shading.mu
-        extra["refined_on"] = refined_on
+        extra["refined_on"] = refined_on or "the highlights alone"
+        if pattern_on:
+            extra["axes_and_falloff_from"] = f"{pattern_on}, each placement's output fitted on its own"
         extra["shading_fit_rms"] = np.round(shading.rms, 6).tolist()
         extra["shading_distance_factors"] = np.round(shading.distance_factors, 6).tolist()
         if shading.leave_one_out_mm is not None:
@@ -272,7 +282,7 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
         if shading.drift_per_min is not None:  # each recording of three or more placements, each LED
             extra["shading_drift_per_min"] = np.round(shading.drift_per_min, 5).tolist()
     calibration = HeadCalibration(positions, intensity, sigma, residual, pseudo, extra, axis, mu)
-    report = HeadReport(head.name, len(results), pair_error, triangulated, refined_on, problems)
+    report = HeadReport(head.name, len(results), pair_error, triangulated, refined_on, problems, pattern_on)
     return calibration, report
 
 
@@ -282,6 +292,19 @@ def _refine(triangulated_mm: np.ndarray, placements: list[MattePlacement]):
     fit = refine_on_matte(placements, triangulated_mm, anisotropic=True, leave_one_out=True)
     if np.all(fit.mu < ISOTROPIC_MU):
         fit = refine_on_matte(placements, triangulated_mm, anisotropic=False, leave_one_out=True)
+    return fit
+
+
+def _pattern(triangulated_mm: np.ndarray, placements: list[MattePlacement]) -> MatteRefinement:
+    """The LEDs' axes, falloff and intensities from a sphere's shading with their positions held where the
+    highlights put them and each placement's output per light fitted on its own: what LEDs whose output
+    changed between placements leave to measure (each light's falloff across every sphere; on the
+    clinic world's 2 % of drift, captures 15 s apart, axes within 0.7 deg and exponents within 0.09 where
+    the full fit was 1.8-26 deg and 0.2-1.8 off; docs/reconstruction.md). Point sources where every
+    falloff is that of one."""
+    fit = refine_on_matte(placements, triangulated_mm, anisotropic=True, gains_per_placement=True)
+    if np.all(fit.mu < ISOTROPIC_MU):
+        fit = refine_on_matte(placements, triangulated_mm, anisotropic=False, gains_per_placement=True)
     return fit
 
 
@@ -299,8 +322,8 @@ def steady_shading(fit: MatteRefinement, sigma_mm: np.ndarray, what: str,
     problems.append(f"{what} does not hold light {k} still: leaving out one placement moves it by "
                     f"{fit.leave_one_out_mm[k]:.1f} mm (jackknife), {ratio[k]:.0f} times the highlights' own "
                     f"{np.linalg.norm(sigma_mm[k]):.1f} mm, as when the LEDs' output changes between captures; the "
-                    "lights are triangulated only. Switch the LEDs on some minutes before calibrating and capture "
-                    "one place after the other without pausing")
+                    "lights are where the highlights put them. Switch the LEDs on some minutes before calibrating and "
+                    "capture one place after the other without pausing")
     return None
 
 

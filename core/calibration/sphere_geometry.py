@@ -397,7 +397,8 @@ def _jackknife_mm(left_out_mm: np.ndarray) -> np.ndarray:
 
 
 def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
-                    anisotropic: bool = True, leave_one_out: bool = False) -> MatteRefinement:
+                    anisotropic: bool = True, leave_one_out: bool = False,
+                    gains_per_placement: bool = False) -> MatteRefinement:
     """Positions, relative intensities and (anisotropic) each LED's axis and falloff exponent from
     a matte sphere's shading, with each placement's distance along its ray fitted too.
 
@@ -413,6 +414,12 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
     the camera counts; those near the limb, where the outline's error matters most, are left out
     (normal within 70 degrees of the view). An isotropic model fitted to LEDs that are not moves
     them hundreds of millimetres to mimic their falloff: the falloff belongs in the model.
+
+    leave_one_out: each light's jackknife standard error too (MatteRefinement.leave_one_out_mm), the fit
+    repeated with each placement left out in turn on the first stage's sample of bins, from the solution.
+    gains_per_placement: the positions held at initial_mm and s_k free in every placement (the first's
+    the reference), which leaves each light's axis and falloff to the shading across each sphere: what
+    an output that changed from one placement to the next, unknown, still lets the fit measure.
     """
     rays, signal, centres, radii = [], [], [], []
     for placement in placements:
@@ -447,7 +454,11 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
                        for k in range(4)])
     n_base = 16 + n_placements
     n_shape = n_base + (12 if anisotropic else 0)
-    drift_group, share, spans_min = _drift_groups(placements)
+    if gains_per_placement:  # every placement but the first its own gain per light (its "drift" at t = 1)
+        drift_group, share = np.arange(-1, n_placements - 1), np.ones(n_placements)
+        spans_min = np.ones(n_placements - 1)
+    else:
+        drift_group, share, spans_min = _drift_groups(placements)
     n_groups = len(spans_min)
 
     def unpack(x: np.ndarray):
@@ -468,11 +479,21 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
         return np.concatenate([(gain[:, None] * m - s[:, ::every])[:, :0 if p == left_out else None]
                                for p, (gain, m, s) in enumerate(zip(gains, model, signal))], axis=1) / typical
 
-    def solve(x_start: np.ndarray, stride: int, left_out: int = -1):
+    def solve(x_start: np.ndarray, stride: int, left_out: int = -1) -> np.ndarray:
+        """The parameters fitted from x_start (those not free held as they are)."""
         sampled = [0 if p == left_out else len(range(0, n, stride)) for p, n in enumerate(sizes)]
-        return least_squares(lambda x: _placement_major(misfit(x, stride, left_out), sampled), x_start,
-                             x_scale=x_scale, bounds=(lower, upper),
-                             jac_sparsity=_sparsity(sampled, anisotropic, drift_group), tr_solver="lsmr", ftol=1e-6)
+
+        def residuals(free_x: np.ndarray) -> np.ndarray:
+            x = x_start.copy()
+            x[free] = free_x
+            return _placement_major(misfit(x, stride, left_out), sampled)
+
+        sparsity = _sparsity(sampled, anisotropic, drift_group).tocsc()[:, np.nonzero(free)[0]]
+        fit = least_squares(residuals, x_start[free], x_scale=x_scale[free], bounds=(lower[free], upper[free]),
+                            jac_sparsity=sparsity, tr_solver="lsmr", ftol=1e-6)
+        x = x_start.copy()
+        x[free] = fit.x
+        return x
 
     x0 = np.r_[initial.ravel(), np.ones(4), np.ones(n_placements)]
     x_scale = np.r_[np.full(12, 10.0), np.full(4, 0.01), np.full(n_placements, 0.001)]
@@ -487,17 +508,20 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
     # first on a sample of the bins (where most of the iterations are spent), then on all of them; to a
     # relative change of the misfit of 1e-6 (at 1e-8 the drifts' weak direction took 81 steps for 8, the
     # lights moving by under 0.1 mm)
+    free = np.ones(len(x0), dtype=bool)
+    free[:12] = not gains_per_placement  # the positions held where they start
     every = max(1, int(np.ceil(max(sizes) / COARSE_BINS_PER_PLACEMENT)))
     stages = [every, 1] if every > 1 else [1]
     for stride in stages:
-        fit = solve(x0, stride)
-        x0 = fit.x
-    positions, scales, factors, axes, mus, drift = unpack(fit.x)
-    rms = np.sqrt(np.mean(misfit(fit.x) ** 2, axis=1))
-    drift_per_min = drift / spans_min[:, None] if n_groups else None
+        x0 = solve(x0, stride)
+    positions, scales, factors, axes, mus, drift = unpack(x0)
+    rms = np.sqrt(np.mean(misfit(x0) ** 2, axis=1))
+    drift_per_min = drift / spans_min[:, None] if n_groups and not gains_per_placement else None
+    if gains_per_placement:  # each light's intensity: its mean over the placements
+        scales = scales * (1.0 + np.sum(drift, axis=0) / n_placements)
     spread = None
     if leave_one_out and n_placements > 2:
-        left = np.array([unpack(solve(fit.x, stages[0], p).x)[0] for p in range(n_placements)])
+        left = np.array([unpack(solve(x0, stages[0], p))[0] for p in range(n_placements)])
         spread = _jackknife_mm(left)
     if not anisotropic:
         return MatteRefinement(positions, scales / scales.mean(), factors, rms, drift_per_min=drift_per_min,

@@ -385,6 +385,8 @@ def _refinement_notes(reports) -> list[str]:
     notes = []
     for report in reports:
         how = f"refined on {report.refined_on}" if report.refined_on else "triangulated from the highlights only"
+        if report.pattern_on:
+            how = f"triangulated from the highlights, the LEDs' axes and falloff from {report.pattern_on}"
         notes.append(f"{report.head.capitalize()}: {how}" + "".join(f"; {p}" for p in report.problems) + ".")
     return notes
 
