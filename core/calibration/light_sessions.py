@@ -245,14 +245,14 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
         placements = [p for session, radius in matte for p in _matte_placements(session, head.name, radius)]
         shading = steady_shading(_refine(triangulated, placements), sigma, "the matte sphere's shading", problems)
         if shading is None:
-            shading, pattern_on = _pattern(triangulated, placements), "the matte sphere"
+            shading, pattern_on = _refine(triangulated, placements, held=True), "the matte sphere"
         else:
             refined_on = "the matte sphere"
     elif len(shaded) >= 3:
         shading = steady_shading(_refine(triangulated, shaded), sigma, "the specular sphere's diffuse shading",
                                  problems)
         if shading is None:
-            shading, pattern_on = _pattern(triangulated, shaded), "the specular sphere's diffuse shading"
+            shading, pattern_on = _refine(triangulated, shaded, held=True), "the specular sphere's diffuse shading"
         off_rays = [_ray_rms_mm(shading.positions_mm[k], [r.highlights[k] for r in results if k in r.highlights])
                     for k in range(4)]
         strayed = [k for k in range(4) if off_rays[k] > max(MAX_SHADING_OFF_RAYS * residual[k], MIN_SHADING_OFF_RAYS_MM)]
@@ -286,25 +286,20 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
     return calibration, report
 
 
-def _refine(triangulated_mm: np.ndarray, placements: list[MattePlacement]):
+def _refine(triangulated_mm: np.ndarray, placements: list[MattePlacement],
+            held: bool = False) -> MatteRefinement:
     """The lights refined on a sphere's shading: anisotropic LEDs, or point sources where every
-    fitted falloff is that of one; with how far each moves as each placement is left out."""
-    fit = refine_on_matte(placements, triangulated_mm, anisotropic=True, leave_one_out=True)
-    if np.all(fit.mu < ISOTROPIC_MU):
-        fit = refine_on_matte(placements, triangulated_mm, anisotropic=False, leave_one_out=True)
-    return fit
+    fitted falloff is that of one; with how far each moves as each placement is left out.
 
-
-def _pattern(triangulated_mm: np.ndarray, placements: list[MattePlacement]) -> MatteRefinement:
-    """The LEDs' axes, falloff and intensities from a sphere's shading with their positions held where the
-    highlights put them and each placement's output per light fitted on its own: what LEDs whose output
-    changed between placements leave to measure (each light's falloff across every sphere; on the
-    clinic world's 2 % of drift, captures 15 s apart, axes within 0.7 deg and exponents within 0.09 where
-    the full fit was 1.8-26 deg and 0.2-1.8 off; docs/reconstruction.md). Point sources where every
-    falloff is that of one."""
-    fit = refine_on_matte(placements, triangulated_mm, anisotropic=True, gains_per_placement=True)
+    held: their positions held where the highlights put them and each placement's output per light
+    fitted on its own, which leaves the axes, falloff and intensities to measure where the LEDs' output
+    changed between placements (each light's falloff across every sphere; on the clinic world's 2 % of
+    drift, captures 15 s apart, axes within 0.7 deg and exponents within 0.09 where the full fit was
+    1.8-26 deg and 0.2-1.8 off; docs/reconstruction.md)."""
+    options = {"gains_per_placement": True} if held else {"leave_one_out": True}
+    fit = refine_on_matte(placements, triangulated_mm, anisotropic=True, **options)
     if np.all(fit.mu < ISOTROPIC_MU):
-        fit = refine_on_matte(placements, triangulated_mm, anisotropic=False, gains_per_placement=True)
+        fit = refine_on_matte(placements, triangulated_mm, anisotropic=False, **options)
     return fit
 
 

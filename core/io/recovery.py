@@ -166,12 +166,21 @@ def _copy_readable(source: h5py.Group, target: h5py.Group, keys: tuple[str, ...]
     return n
 
 
+def _readable(group: h5py.Group, key: str) -> bool:
+    """Whether the dataset is there and its header reads back (a writer killed while writing it can
+    leave its object header with a wrong checksum)."""
+    try:
+        return key in group and group[key].shape is not None
+    except _READ_ERRORS:
+        return False
+
+
 def _copy_head(src: h5py.Group, dst: h5py.File, name: str, notes: list[str]) -> int:
-    missing = [k for k in HEAD_KEYS if k not in src]
+    missing = [k for k in HEAD_KEYS if not _readable(src, k)]
     out = dst.require_group(src.name)
     if missing:
-        notes.append(f"head {name}: {', '.join(missing)} lost; none of its frames can be kept")
-        _copy_readable(src, out, tuple(k for k in HEAD_KEYS if k in src), 0)
+        notes.append(f"head {name}: {', '.join(missing)} lost or unreadable; none of its frames can be kept")
+        _copy_readable(src, out, tuple(k for k in HEAD_KEYS if k not in missing), 0)
         rig = dst[f"rig/{name}"].attrs
         shapes = {"frames": ((0, int(rig["height"]), int(rig["width"])),
                              np.uint8 if int(rig["bit_depth"]) <= 8 else np.uint16),

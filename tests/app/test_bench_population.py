@@ -19,13 +19,16 @@ def test_the_quick_population_runs_end_to_end_and_reports_what_it_found(tmp_path
     for row in rows:
         # each subject either gave its values or says at which stage and why it stopped
         assert "truth" in row or row["refused"].startswith(("light calibration:", "process:"))
+        # 16-px spheres on LEDs that drift between the wizard's captures leave the lights 20-25 mm off (the
+        # shading cannot hold them; docs/reconstruction.md), which the light model's misfit then refuses
         refused = row.get("optical_refused")
-        assert refused is None or "outside the rig's working range" in refused or "an arm lies against" in refused
+        assert refused is None or any(reason in refused for reason in (
+            "outside the rig's working range", "an arm lies against", "the shading does not follow the light model"))
         assert row["body"]["name"] in ("average-woman", "arms-close")
     analysed = [r for r in rows if "truth" in r]
     assert analysed, "no subject reached the analysis"
     sources = {(label, source) for label, _, source, *_ in agreement(rows)}
-    assert ("TV", "flow") in sources and ("TV", "optical") in sources
+    assert ("TV", "flow") in sources and ("TV", "optical") in sources  # an optical value refused counts as one
     flow_tv = next(r for r in agreement(rows) if r[0] == "TV" and r[2] == "flow")
     assert flow_tv[8] == 1.0  # the flow sensor's tidal volume is within 50 mL of the truth on every subject
     assert "| TV (L) | flow sensor |" in text and "arms-close" in text and "ISO26782" in text

@@ -242,6 +242,26 @@ def test_recover_a_file_missing_a_dataset_says_which(session, tmp_path, capsys):
     assert code == 2 and "not an HDF5 file" in err and str(other) in err
 
 
+def test_recover_a_file_whose_dataset_header_was_cut_mid_write_keeps_the_other_head(session, tmp_path, capsys):
+    """A writer killed while writing a dataset's object header leaves it failing its checksum (seen when
+    the capture engine was killed under load): that head's frames are lost, the other head's kept."""
+    path = _crashed_copy(session, tmp_path / "cut.h5")
+    with h5py.File(path, "r", swmr=True) as f:  # its writer's flags still set, as a dead writer leaves them
+        header = h5py.h5o.get_info(f["heads/back/frame_id"].id).addr
+    with open(path, "r+b") as fh:
+        fh.seek(header + 20)
+        byte = fh.read(1)[0]
+        fh.seek(header + 20)
+        fh.write(bytes([byte ^ 0xFF]))
+    code = main(["recover", str(path)])
+    captured = capsys.readouterr()
+    assert code == 0 and "Traceback" not in captured.err
+    assert "head back: frame_id lost or unreadable" in captured.out
+    assert validate_session(path) == []
+    with SessionFile(path) as s:
+        assert s.n_frames("front") == 40 and s.n_frames("back") == 0
+
+
 # ------------------------------------------------------------------------- impossible values
 
 
