@@ -45,8 +45,8 @@ MIN_SHADING_OFF_RAYS_MM = 3.0
 # of mm, and leaving out one placement moves them as much. The shading is taken only while that
 # jackknife standard error stays within this many times the triangulation's own. Measured on the clinic
 # world at 700 x 512 with the wizard's captures 15 s apart (docs/reconstruction.md), the worst light of a
-# head: steady LEDs 0.8-1.7 times on the matte sphere, 4.1-4.5 on the glossy sphere's shading (1.4-2.4 in
-# the simulated rig's own wizard, spheres under 40 px); LEDs drifting by 0.3 % over minutes 17-24, 2 % 50-124.
+# head: steady LEDs 0.8-1.7 times on the matte sphere, 3.8-4.5 on the glossy sphere's shading (1.4-2.4 in
+# the simulated rig's own wizard, spheres under 40 px); LEDs drifting by 0.3 % over minutes 12-16, 2 % 19-82.
 MAX_SHADING_LEAVE_ONE_OUT = 8.0
 
 

@@ -336,6 +336,10 @@ COARSE_BINS_PER_PLACEMENT = 400
 # at least this many placements each LED's intensity is fitted as a line in time, which the placements'
 # spread in time and space tells from the inverse square of their distances (docs/reconstruction.md)
 MIN_PLACEMENTS_FOR_DRIFT = 3
+# Each leave-one-out refit starts from the whole fit's solution and stops after this many evaluations:
+# where the LEDs were steady it has converged in a few, where their output changed it has already
+# wandered far (tens of mm); the refits left to converge took 13-106 evaluations there
+LEAVE_ONE_OUT_MAX_NFEV = 12
 
 
 def _placement_major(misfit: np.ndarray, sizes: list[int]) -> np.ndarray:
@@ -490,7 +494,8 @@ def refine_on_matte(placements: list[MattePlacement], initial_mm: np.ndarray,
 
         sparsity = _sparsity(sampled, anisotropic, drift_group).tocsc()[:, np.nonzero(free)[0]]
         fit = least_squares(residuals, x_start[free], x_scale=x_scale[free], bounds=(lower[free], upper[free]),
-                            jac_sparsity=sparsity, tr_solver="lsmr", ftol=1e-6)
+                            jac_sparsity=sparsity, tr_solver="lsmr", ftol=1e-6,
+                            max_nfev=LEAVE_ONE_OUT_MAX_NFEV if left_out >= 0 else None)
         x = x_start.copy()
         x[free] = fit.x
         return x
