@@ -253,17 +253,19 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
                                  problems)
         if shading is None:
             shading, pattern_on = _refine(triangulated, shaded, held=True), "the specular sphere's diffuse shading"
-        off_rays = [_ray_rms_mm(shading.positions_mm[k], [r.highlights[k] for r in results if k in r.highlights])
-                    for k in range(4)]
-        strayed = [k for k in range(4) if off_rays[k] > max(MAX_SHADING_OFF_RAYS * residual[k], MIN_SHADING_OFF_RAYS_MM)]
-        if strayed:
-            k = strayed[0]
-            problems.append(f"the specular sphere's diffuse shading put light {k} {off_rays[k]:.1f} mm rms off its "
-                            f"highlight rays ({residual[k]:.1f} mm triangulated): a finish the shading model does not "
-                            "describe; the lights are triangulated only")
-            shading, pattern_on = None, ""
-        elif not pattern_on:
-            refined_on = "the specular sphere's diffuse shading"
+        else:  # the positions the shading moved: still on the rays their highlights reflect towards them?
+            off_rays = [_ray_rms_mm(shading.positions_mm[k], [r.highlights[k] for r in results if k in r.highlights])
+                        for k in range(4)]
+            strayed = [k for k in range(4)
+                       if off_rays[k] > max(MAX_SHADING_OFF_RAYS * residual[k], MIN_SHADING_OFF_RAYS_MM)]
+            if strayed:
+                k = strayed[0]
+                problems.append(f"the specular sphere's diffuse shading put light {k} {off_rays[k]:.1f} mm rms off "
+                                f"its highlight rays ({residual[k]:.1f} mm triangulated): a finish the shading model "
+                                "does not describe; the lights are triangulated only")
+                shading = None
+            else:
+                refined_on = "the specular sphere's diffuse shading"
     else:
         problems.append("the specular sphere shows no diffuse shading to refine on (a mirror finish, or too dark): "
                         "the lights are triangulated only (in the clinic world within 1-5 mm with the sphere 60 px "
