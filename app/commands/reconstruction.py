@@ -83,7 +83,7 @@ def _logged(audit, kind: str, saved: Path) -> None:
 
 
 def run_calibrate_lights(args: argparse.Namespace) -> int:
-    from core.calibration.light_sessions import calibrate_lights
+    from core.calibration.light_sessions import advice, calibrate_lights
     from core.calibration.sphere_geometry import CalibrationError
     from core.io.outputs import check_output
 
@@ -114,6 +114,8 @@ def run_calibrate_lights(args: argparse.Namespace) -> int:
                   + " % a minute over a recording (fitted with the shading)")
         for problem in report.problems:
             print(f"  note: {problem}")
+    for line in advice(reports):
+        print(line)
     print(f"wrote {args.output}")
     return 0
 

@@ -382,13 +382,15 @@ class ResultPage(QWizardPage):
 
 def _refinement_notes(reports) -> list[str]:
     """What placed each head's lights along their highlight rays, in the wizard's words."""
+    from core.calibration.light_sessions import advice
+
     notes = []
     for report in reports:
         how = f"refined on {report.refined_on}" if report.refined_on else "triangulated from the highlights only"
         if report.pattern_on:
             how = f"triangulated from the highlights, the LEDs' axes and falloff from {report.pattern_on}"
         notes.append(f"{report.head.capitalize()}: {how}" + "".join(f"; {p}" for p in report.problems) + ".")
-    return notes
+    return notes + [f"{line}." for line in advice(reports)]
 
 
 class SphereCalibrationWizard(QWizard):
