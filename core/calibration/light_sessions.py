@@ -45,6 +45,7 @@ DIFFUSE_MIN_SNR = 3.0
 # minutes 2.7-6.4 on the matte sphere (which then places them within 4.6 mm) and 4.3-8.0 on the glossy one
 # (up to 10 mm off: below), by 0.3 % 12-16, by 2 % 19-82.
 MAX_SHADING_LEAVE_ONE_OUT = 8.0
+LEDS_THAT_CHANGED = "as when the LEDs' output changes between captures"
 LEDS_THAT_CHANGE_ADVICE = ("Where the LEDs' output changed between captures: switch them on some minutes before "
                            "calibrating and capture one place after the other without pausing")
 # A glossy sphere's diffuse shading, a tenth of a matte sphere's and read only away from the highlights,
@@ -315,14 +316,14 @@ def steady_shading(fit: MatteRefinement, sigma_mm: np.ndarray, what: str,
         return fit
     problems.append(f"{what} does not hold light {k} still: leaving out one placement moves it by "
                     f"{fit.leave_one_out_mm[k]:.1f} mm (jackknife), {ratio[k]:.0f} times the highlights' own "
-                    f"{np.linalg.norm(sigma_mm[k]):.1f} mm, as when the LEDs' output changes between captures; the "
-                    "lights are where the highlights put them")
+                    f"{np.linalg.norm(sigma_mm[k]):.1f} mm, {LEDS_THAT_CHANGED}; the lights are where the highlights "
+                    "put them")
     return None
 
 
 def advice(reports: list["HeadReport"]) -> list[str]:
     """What the engineer can do about the heads' problems, each piece of advice once for all heads."""
-    changed = any("changes between captures" in p for r in reports for p in r.problems)
+    changed = any(LEDS_THAT_CHANGED in p for r in reports for p in r.problems)
     return [LEDS_THAT_CHANGE_ADVICE] if changed else []
 
 
