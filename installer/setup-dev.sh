@@ -35,16 +35,4 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e '.[test,bench]'
-# numba compiles each kernel at its first call and keeps it beside its source (__pycache__). Compiled here
-# once, on a small simulated session (simulate, then process), the test workers and the demo load them
-# instead of compiling each its own at the same time (a fresh clone's test suite ran a minute longer
-# than a warm one's)
-if ! ls core/reconstruction/__pycache__/*.nbi >/dev/null 2>&1; then
-    echo "setup: compiling the simulator's and the reconstruction's kernels"
-    warm=$(mktemp -d)
-    { .venv/bin/photopft simulate -o "$warm/session.h5" --protocol tidal --seconds 1 --scale 0.1 \
-        && .venv/bin/photopft process "$warm/session.h5" -o "$warm/results.h5"; } >"$warm/log" 2>&1 \
-        || { cat "$warm/log" >&2; rm -rf "$warm"; exit 1; }
-    rm -rf "$warm"
-fi
 echo "setup: done; the command is .venv/bin/photopft"
