@@ -245,25 +245,18 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
     extra: dict[str, object] = {"width": int(head.width), "height": int(head.height),
                                 "triangulated_positions_mm": np.round(triangulated, 4).tolist(),
                                 "thesis_pair_error_mm": np.round(pair_error, 4).tolist()}
-    refined_on = ""
+    refined_on = pattern_on = ""
     axis = mu = None
     shaded = [r.diffuse for r in results if r.diffuse is not None]
     shading = None
-    pattern_on = ""
     if matte:
         placements = [p for session, radius in matte for p in _matte_placements(session, head.name, radius)]
-        shading = steady_shading(_refine(triangulated, placements), sigma, "the matte sphere's shading", problems)
-        if shading is None:
-            shading, pattern_on = _refine(triangulated, placements, held=True), "the matte sphere"
-        else:
-            refined_on = "the matte sphere"
+        shading, refined_on, pattern_on = _shading(triangulated, sigma, placements, "the matte sphere",
+                                                   "the matte sphere's shading", problems)
     elif len(shaded) >= 3:
-        shading = steady_shading(_refine(triangulated, shaded), sigma, "the specular sphere's diffuse shading",
-                                 problems)
-        if shading is None or strays_from_highlights(shading, triangulated, sigma, problems):
-            shading, pattern_on = _refine(triangulated, shaded, held=True), "the specular sphere's diffuse shading"
-        else:
-            refined_on = "the specular sphere's diffuse shading"
+        shading, refined_on, pattern_on = _shading(triangulated, sigma, shaded, "the specular sphere's diffuse shading",
+                                                   "the specular sphere's diffuse shading", problems,
+                                                   held_to_highlights=True)
     else:
         problems.append("the specular sphere shows no diffuse shading to refine on (a mirror finish, or too dark): "
                         "the lights are triangulated only (in the clinic world within 1-5 mm with the sphere 60 px "
@@ -284,6 +277,17 @@ def calibrate_head(head: Head, specular: list[tuple[SessionFile, float]], matte:
     calibration = HeadCalibration(positions, intensity, sigma, residual, pseudo, extra, axis, mu)
     report = HeadReport(head.name, len(results), pair_error, triangulated, refined_on, problems, pattern_on)
     return calibration, report
+
+
+def _shading(triangulated_mm: np.ndarray, sigma_mm: np.ndarray, placements: list[MattePlacement], source: str,
+             what: str, problems: list[str], held_to_highlights: bool = False) -> tuple[MatteRefinement, str, str]:
+    """(the shading's fit, what placed the lights, what gave their axes and falloff where the highlights
+    placed them): the positions the shading gives where it holds them still (and, held_to_highlights,
+    within the highlights' standard errors), else held where the highlights put them."""
+    fit = steady_shading(_refine(triangulated_mm, placements), sigma_mm, what, problems)
+    if fit is None or (held_to_highlights and strays_from_highlights(fit, triangulated_mm, sigma_mm, problems)):
+        return _refine(triangulated_mm, placements, held=True), "", source
+    return fit, source, ""
 
 
 def _refine(triangulated_mm: np.ndarray, placements: list[MattePlacement],
