@@ -36,6 +36,7 @@ def cycle_frame(raw: np.ndarray, binning: int, max_value: int, time_s: float, fr
 
 def cycle_signal_of(lit: list[CycleFrame], dark: CycleFrame, previous: list[CycleFrame] | None = None,
                     excess: Callable[[CycleFrame], np.ndarray | None] | None = None,
+                    following: list[CycleFrame] | None = None,
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(signal (4, h, w): each light minus the dark frame, saturated (4, h, w), the dark level).
 
@@ -43,6 +44,10 @@ def cycle_signal_of(lit: list[CycleFrame], dark: CycleFrame, previous: list[Cycl
     motion compensation (the subject moves within a cycle: a forced expiration moves the chest
     millimetres in 45 ms, and the thesis' static assumption would mix five instants into one
     normal), each light extrapolated linearly along the frame ids to the cycle's newest frame;
+    `following`: the same lights one cycle later (a recorded session has them), each light then
+    interpolated to the newest frame between its frame in the cycle and the next one instead: the
+    error of a straight line between two captures, not beyond them (up to 0.72 of the change's
+    curvature over a period for the oldest light extrapolated, at most 0.125 interpolated);
     `excess`: the room light's flicker in a frame (FlickerCorrection), taken out first."""
     def level(frame: CycleFrame) -> np.ndarray:
         extra = excess(frame) if excess is not None else None
@@ -51,11 +56,15 @@ def cycle_signal_of(lit: list[CycleFrame], dark: CycleFrame, previous: list[Cycl
     dark_level = level(dark)
     saturated = np.stack([f.saturated for f in lit])
     signal = np.stack([level(f) for f in lit])
-    if previous is not None:
-        newest = max([f.frame_id for f in lit] + [dark.frame_id])
+    newest = max([f.frame_id for f in lit] + [dark.frame_id])
+    if following is not None:
+        for k, (now, after) in enumerate(zip(lit, following)):
+            ahead = (newest - now.frame_id) / (after.frame_id - now.frame_id)
+            saturated[k] |= after.saturated
+            signal[k] += ahead * ndimage.gaussian_filter(level(after) - signal[k], MOTION_SMOOTHING_PX)
+    elif previous is not None:
         for k, (now, before) in enumerate(zip(lit, previous)):
-            period = now.frame_id - before.frame_id
-            ahead = (newest - now.frame_id) / period
+            ahead = (newest - now.frame_id) / (now.frame_id - before.frame_id)
             saturated[k] |= before.saturated
             signal[k] += ahead * ndimage.gaussian_filter(signal[k] - level(before), MOTION_SMOOTHING_PX)
     return signal - dark_level[None], saturated, dark_level

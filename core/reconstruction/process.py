@@ -271,12 +271,38 @@ class DarkFeed:
         return float(np.median(self.correction.amplitudes)) if self.correction.amplitudes else 0.0
 
 
+# How each light's frame is brought to its cycle's newest instant (core/reconstruction/cycle.py): a
+# recorded session has the cycle after each one, so `process` interpolates towards it; the live view,
+# which has only the frames so far, extrapolates from the cycle before (`photopft bench motion`).
+MOTION_MODES = ("none", "extrapolated", "interpolated")
+
+
+def motion_mode(motion_compensation: bool | str) -> str:
+    """The mode of MOTION_MODES that `process`'s motion_compensation names: True interpolates, False is none."""
+    mode = {True: "interpolated", False: "none"}.get(motion_compensation, motion_compensation)
+    if mode not in MOTION_MODES:
+        raise ValueError(f"motion_compensation must be one of {', '.join(MOTION_MODES)}, got {motion_compensation!r}")
+    return mode
+
+
+def neighbour_cycles(windows_by_id: dict[int, CycleWindow], newest_id: int, cycle_length: int,
+                     mode: str) -> tuple[CycleWindow | None, CycleWindow | None]:
+    """(the cycle before, the cycle after) a window whose newest frame has id newest_id, as `mode` uses
+    them; the last cycle of a recording, which has none after it, is extrapolated."""
+    if mode == "none":
+        return None, None
+    previous = windows_by_id.get(newest_id - cycle_length)
+    following = windows_by_id.get(newest_id + cycle_length) if mode == "interpolated" else None
+    return previous, following
+
+
 def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindow | None, max_value: int,
                  cache: dict[int, CycleFrame], frame_id: np.ndarray, timestamp_ns: np.ndarray,
                  flicker: Callable[[CycleFrame], np.ndarray | None] | None = None, binning: int = 1,
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 following: CycleWindow | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A window's signal from a session's frames (core/reconstruction/cycle.py, as the live view makes it): with
-    `previous` (the cycle one period earlier) motion-compensated; `flicker` (DarkFeed.flicker_of,
+    `previous` (the cycle one period earlier) motion-compensated, or with `following` too (the cycle one
+    period later) interpolated towards it; `flicker` (DarkFeed.flicker_of,
     binned alike) the room light's flicker in a frame; `cache` keeps each frame read."""
     def frame(i: int) -> CycleFrame:
         if i not in cache:
@@ -284,13 +310,14 @@ def cycle_signal(frames: h5py.Dataset, window: CycleWindow, previous: CycleWindo
         return cache[i]
 
     return cycle_signal_of([frame(i) for i in window.lit], frame(window.dark),
-                           [frame(i) for i in previous.lit] if previous is not None else None, flicker)
+                           [frame(i) for i in previous.lit] if previous is not None else None, flicker,
+                           [frame(i) for i in following.lit] if following is not None else None)
 
 
 def process_session(session_path: str | os.PathLike, output: str | os.PathLike, *,
                     calibration: RigCalibration | None = None, maps_at: list[int] | None = None,
                     settings: ReconstructionSettings | None = None, heads: list[str] | None = None,
-                    every: int | None = None, motion_compensation: bool = True, volume_calibration=None,
+                    every: int | None = None, motion_compensation: bool | str = True, volume_calibration=None,
                     progress: Callable[[float], None] | None = None, workers: int | None = 1,
                     distance_from: str = "heads", binning: int | None = None) -> ProcessSummary:
     """Reconstruct every complete light cycle of each head: windows of one cycle's frames, sliding
@@ -302,7 +329,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
     None: one per core when the work repays starting them (AUTO_WORKERS_PIXEL_MAPS).
     `binning`: the stream reconstructed on binning x binning bins; None: each head binned to about
     WORKING_WIDTH_PX wide, as the live view does (core/reconstruction/binning.py); 1: every pixel. Maps asked for
-    in `maps_at` keep every pixel either way.
+    in `maps_at` keep every pixel either way. `motion_compensation` (MOTION_MODES; True: "interpolated")
+    brings each light's frame to its cycle's newest instant.
 
     Maps "at frame i" come from the newest complete cycle ending at frame i; frames asked for
     in `maps_at` that end no complete cycle are reported as an error.
@@ -313,6 +341,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
         raise ValueError("every must be 1 or more")
     if distance_from not in ("heads", "photometric"):
         raise ValueError(f"distance_from must be 'heads' or 'photometric', got {distance_from!r}")
+    motion_compensation = motion_mode(motion_compensation)
     with SessionFile(session_path) as session:
         rig = session.rig
         every = every or rig.cycle_length
@@ -342,7 +371,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             results = ResultsWriter(out, session_path, f"photopft {__version__}", method=settings.method,
                                     integrator=settings.integrator,
                                     calibration=calibration.created if calibration is not None else "session /rig",
-                                    motion_compensation=bool(motion_compensation))
+                                    motion_compensation=motion_compensation != "none")
             total_windows = 0
             plans, complete = {}, {}
             for name in names:
@@ -471,7 +500,7 @@ class _HeadJob:
     windows: list[CycleWindow]
     settings: ReconstructionSettings
     pseudo_light_vectors: np.ndarray | None
-    motion_compensation: bool
+    motion_compensation: str  # one of MOTION_MODES
     maps_at: tuple[int, ...]
     distances_mm: np.ndarray | None = None  # each window's subject distance, when known from elsewhere
     binning: int = 1  # the stream reconstructed on binning x binning bins (maps_at frames at full resolution)
@@ -524,10 +553,10 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             stop_if_requested()
             for stale in [k for k in cache if k < window.newest - 2 * rig.cycle_length]:
                 del cache[stale]
-            previous = (all_windows.get(int(ids[window.newest]) - rig.cycle_length)
-                        if job.motion_compensation else None)
+            previous, following = neighbour_cycles(all_windows, int(ids[window.newest]), rig.cycle_length,
+                                                   job.motion_compensation)
             signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids, stamps,
-                                                   darks.flicker_of(window), job.binning)
+                                                   darks.flicker_of(window), job.binning, following)
             known = job.distances_mm[number] if job.distances_mm is not None else np.nan
             result = reconstructor.reconstruct(signal, saturated, dark, float(known) if np.isfinite(known) else None)
             rows["timestamp_ns"].append(stamps[window.newest])
@@ -554,7 +583,8 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                     full_darks = DarkFeed(frames, session.light_index(name), stamps, rig.mains_hz)
                     full = full_reconstructor.reconstruct(
                         *cycle_signal(frames, window, previous, head.max_value, {}, ids, stamps,
-                                      full_darks.flicker_of(window)), float(result.distance_mm))
+                                      full_darks.flicker_of(window), following=following),
+                        float(result.distance_mm))
                 saved_index.append(window.newest)
                 saved_normals.append(full.normals.astype(np.float32))
                 saved_depth.append(full.depth_mm.astype(np.float32))
@@ -644,7 +674,7 @@ class _HeadWorkers:
 
 
 def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list[int], *,
-            settings: ReconstructionSettings | None = None, motion_compensation: bool = True,
+            settings: ReconstructionSettings | None = None, motion_compensation: bool | str = True,
             distances_mm: list[float] | None = None) -> list[HeadMap]:
     """Maps of one head at the given frames (each the newest complete cycle ending at or before
     it), by the same reconstruction `process_session` runs, for reports and reviews.
@@ -652,6 +682,7 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
     without it, or where it is NaN, each map's distance is the photometric fit's, which the
     lights' and the skin's errors move by tens to hundreds of millimetres (docs/reconstruction.md)."""
     settings = settings or ReconstructionSettings()
+    mode = motion_mode(motion_compensation)
     with SessionFile(session_path) as session:
         rig = session.rig
         if head_name not in rig.heads:
@@ -670,10 +701,10 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
         known = list(distances_mm) if distances_mm is not None else [float("nan")] * len(frame_indices)
         for index, distance in zip(frame_indices, known):
             window = windows[max(0, int(np.searchsorted(ends, index, side="right")) - 1)]
-            previous = by_id.get(int(ids[window.newest]) - rig.cycle_length) if motion_compensation else None
+            previous, following = neighbour_cycles(by_id, int(ids[window.newest]), rig.cycle_length, mode)
             darks = DarkFeed(frames, lights, stamps, rig.mains_hz)  # a feed per frame asked: they come in any order
             signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, {}, ids, stamps,
-                                                   darks.flicker_of(window))
+                                                   darks.flicker_of(window), following=following)
             out.append(reconstructor.reconstruct(signal, saturated, dark,
                                                  float(distance) if np.isfinite(distance) else None))
     return out
