@@ -289,6 +289,17 @@ class ResultsWriter:
         if offset_mm is not None:
             g.attrs["photometric_offset_mm"] = offset_mm
 
+    def light_gain(self, head: str, timestamp_ns: np.ndarray, measured: np.ndarray, followed: np.ndarray) -> None:
+        """/heads/<head>/light_gain: each light's output against the calibration's intensities as read from the
+        four lights' redundancy on the survey's cycles (measured, NaN where not read) and as followed through
+        the session (followed: smoothed, 1 at the session's median; the factors the maps were solved with);
+        its attribute `largest_change` the largest range of a light's followed factor."""
+        g = self.out.require_group(f"heads/{head}").create_group("light_gain")
+        g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
+        g.create_dataset("measured", data=np.asarray(measured, dtype=np.float64))
+        g.create_dataset("followed", data=np.asarray(followed, dtype=np.float64))
+        g.attrs["largest_change"] = float(np.max(np.ptp(followed, axis=0))) if len(followed) else 0.0
+
     def head(self, head: str, series: dict[str, np.ndarray], attrs: dict, map_index: list[int],
              normals: list[np.ndarray], depth_mm: list[np.ndarray], shape: tuple[int, int]) -> None:
         """A head's per-map series (HEAD_SERIES and the shares), its attributes, and the full maps

@@ -33,7 +33,7 @@ from core.reconstruction.integrate import ROBUST_ITERATIONS, integrate_dct, inte
 from core.reconstruction.lens import LensCorrection, needs_correction
 from core.reconstruction.photometric import distant_light_normals, gradients_from_normals, near_light_normals
 from core.reconstruction.prefilter import noise_binning, prefilter_sigma_px, prefiltered
-from core.reconstruction.reflectance import sheen_relative_to_albedo
+from core.reconstruction.reflectance import RedundancyFit, redundancy_fit
 from core.rig import Head
 
 NOMINAL_DISTANCE_MM = 2000.0
@@ -446,12 +446,17 @@ class HeadReconstructor:
         """The sheen on the skin over its albedo (core/reconstruction/reflectance.py) on the cycle
         `result` was reconstructed from, seen as `reconstruct` saw it (lens, prefilter, shadows).
         About 5 ms a map, so `process` and the live view look at a map every so often, not at each."""
+        return self.redundancy(signal, saturated, result).sheen
+
+    def redundancy(self, signal: np.ndarray, saturated: np.ndarray | None, result: HeadMap) -> RedundancyFit:
+        """The sheen and the lights' outputs against the intensities the cycle was solved with
+        (core/reconstruction/reflectance.py), as `sheen` sees them."""
         h, s = self.head, self.settings
         signal, saturated, _ = self._as_pinhole(signal, saturated, None)
         solved, solved_saturated = prefiltered(signal, saturated, self._prefilter_px)
-        return sheen_relative_to_albedo(solved, self._rays * result.depth_mm[..., None], result.mask,
-                                        h.light_positions_mm, self._intensity(), self._axis, self._mu,
-                                        shadow_threshold(signal, result.mask, s.shadow_fraction), solved_saturated)
+        return redundancy_fit(solved, self._rays * result.depth_mm[..., None], result.mask,
+                              h.light_positions_mm, self._intensity(), self._axis, self._mu,
+                              shadow_threshold(signal, result.mask, s.shadow_fraction), solved_saturated)
 
     def _as_pinhole(self, signal: np.ndarray, saturated: np.ndarray | None, dark: np.ndarray | None
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

@@ -15,12 +15,14 @@ from core import __version__
 from core.reconstruction.ambient import FlickerCorrection
 from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
+from core.reconstruction.drift import light_gains_over_time
 from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, metric_volume, on_maps_shown, side_targets,
                                  tidal_compartments)
 from core.reconstruction.photometric import CycleWindow, complete_cycles
 from core.rig import DARK
 from core.io.outputs import atomic_output, stop_if_requested
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
+from core.reconstruction.reflectance import RedundancyFit
 from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
 from core.io.results import VOLUME_CHECKS, ResultsFile, ResultsWriter, flank_figures
@@ -152,6 +154,30 @@ def _geometric_pass(results: ResultsWriter, jobs: list[_HeadJob], baseline_mm: f
             offsets[r.name] = float(np.nanmedian(r.distance_mm - along))
         results.photometric_survey(r.name, r.timestamp_ns, r.distance_mm, along, offsets.get(r.name))
     return geometric, offsets
+
+
+def _light_gain_pass(results: ResultsWriter, session: SessionFile, rig, survey: dict[str, list[CycleWindow]],
+                     plans: dict[str, list[CycleWindow]], geometric: dict, settings: ReconstructionSettings,
+                     pseudo: dict, motion_compensation: str, binning: dict[str, int], workers: "_HeadWorkers",
+                     progress: Callable[[float], None]) -> dict[str, np.ndarray]:
+    """The lights' outputs through the session (core/reconstruction/drift.py): the survey's cycles made
+    again at the two heads' distance, each read for its lights' outputs, smoothed; {head: (len(plans[head]), 4)
+    factors of the intensities for each planned window}, written to /heads/<head>/light_gain."""
+    jobs = []
+    for name, (t, d) in geometric.items():
+        stamps = session.timestamp_ns(name)
+        at = np.array([stamps[w.newest] for w in survey[name]], dtype=float)
+        jobs.append(_HeadJob(Path(session.path), rig, name, survey[name], settings, pseudo[name], motion_compensation,
+                             (), np.interp(at, t, d), binning[name], 1))
+    out = {}
+    for r in workers.run(jobs, progress):
+        stamps = session.timestamp_ns(r.name)
+        planned = np.array([stamps[w.newest] for w in plans[r.name]], dtype=float) / 1e9
+        measured_t = r.timestamp_ns.astype(float) / 1e9
+        out[r.name] = light_gains_over_time(measured_t, r.light_gain, planned)
+        results.light_gain(r.name, r.timestamp_ns, r.light_gain,
+                           light_gains_over_time(measured_t, r.light_gain, measured_t))
+    return out
 
 
 def trunk_area_m2(valid_pixels: np.ndarray, distance_mm: np.ndarray, head) -> np.ndarray:
@@ -397,7 +423,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             survey = {}
             if geometry:
                 survey = {name: _survey_windows(complete[name], rig.frame_rate_hz) for name in names}
-                total_windows += sum(len(w) for w in survey.values())
+                total_windows += 2 * sum(len(w) for w in survey.values())  # the photometric survey, the lights' outputs
             if workers is None:
                 work = sum(len(plans[n]) * stream_heads[n].width * stream_heads[n].height for n in names)
                 workers = (os.cpu_count() or 1) if work >= AUTO_WORKERS_PIXEL_MAPS else 1
@@ -408,13 +434,17 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                     progress((done_before + fraction_of_pass * pass_windows) / total_windows)
 
             with _HeadWorkers(workers, len(names)) as pool:
-                geometric, offsets = {}, {}
+                geometric, offsets, light_gains = {}, {}, {}
                 if geometry:
                     jobs = [_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name],
                                      motion_compensation, (), binning=factors[name]) for name in names]
                     geometric, offsets = _geometric_pass(results, jobs, rig.baseline_mm, pool,
                                                          lambda f: overall(f, sum(len(w) for w in survey.values())))
                     done_before = sum(len(w) for w in survey.values())
+                    light_gains = _light_gain_pass(results, session, rig, survey, plans, geometric, settings, pseudo,
+                                                   motion_compensation, factors, pool,
+                                                   lambda f: overall(f, sum(len(w) for w in survey.values())))
+                    done_before += sum(len(w) for w in survey.values())
                 jobs = []
                 # the sides' agreement (core/volume/sides.py) is looked at on maps made at the geometric distance
                 maps_per_survey = max(1, int(round(SURVEY_INTERVAL_S * rig.frame_rate_hz / every)))
@@ -426,7 +456,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                         distances_mm = np.interp(np.array([stamps[w.newest] for w in plans[name]], dtype=float), t, d)
                     jobs.append(_HeadJob(Path(session_path), rig, name, plans[name], settings, pseudo[name],
                                          motion_compensation, tuple(maps_at), distances_mm, factors[name],
-                                         maps_per_survey if geometric else 0))
+                                         maps_per_survey if geometric else 0, light_gains.get(name)))
                 pass_windows = sum(len(plans[n]) for n in names)
                 profiles = {}
                 for result in pool.run(jobs, lambda f: overall(f, pass_windows)):
@@ -505,6 +535,9 @@ class _HeadJob:
     distances_mm: np.ndarray | None = None  # each window's subject distance, when known from elsewhere
     binning: int = 1  # the stream reconstructed on binning x binning bins (maps_at frames at full resolution)
     profile_every: int = 0  # every so many maps, the trunk's sides along its height (side_profile_mm); 0 none
+    # (len(windows), 4) the lights' outputs at each window as factors of the rig's intensities
+    # (light_gains_over_time); None: the intensities as calibrated
+    light_gains: np.ndarray | None = None
 
 
 @dataclass
@@ -523,6 +556,8 @@ class _HeadResult:
     saved_depth: list[np.ndarray]
     sums: list
     ambient_flicker: float = 0.0  # DarkFeed.flicker_share
+    # (n, 4) every job.profile_every maps the lights' outputs against the intensities solved with (NaN between)
+    light_gain: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     # (timestamp_ns, side_profile_mm) every job.profile_every maps
     side_profiles: tuple[np.ndarray, list] = field(default_factory=lambda: (np.zeros(0, np.int64), []))
 
@@ -538,7 +573,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
     tracker = DisplacementTracker(head)
     rows: dict[str, list] = {"timestamp_ns": [], "frame_index": [], "distance_mm": [], "gradient_volume": [],
                              "valid_pixels": [], "occluded_side_share": [], "side_out_of_view_share": [], "sheen": []}
-    saved_index, saved_normals, saved_depth, sums = [], [], [], []
+    saved_index, saved_normals, saved_depth, sums, gains = [], [], [], [], []
     profile_times, profiles = [], []
     near = job.settings.method == "near"  # the sheen's fit needs the near lights' per-pixel irradiance
     with SessionFile(job.session_path) as session:
@@ -558,6 +593,8 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             signal, saturated, dark = cycle_signal(frames, window, previous, head.max_value, cache, ids, stamps,
                                                    darks.flicker_of(window), job.binning, following)
             known = job.distances_mm[number] if job.distances_mm is not None else np.nan
+            if job.light_gains is not None:
+                reconstructor.intensity_factors = job.light_gains[number]
             result = reconstructor.reconstruct(signal, saturated, dark, float(known) if np.isfinite(known) else None)
             rows["timestamp_ns"].append(stamps[window.newest])
             rows["frame_index"].append(window.newest)
@@ -567,7 +604,10 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
             for key in ("occluded_side_share", "side_out_of_view_share"):
                 rows[key].append(result.extra.get(key, np.nan))
             looked_at = job.profile_every and number % job.profile_every == 0
-            rows["sheen"].append(reconstructor.sheen(signal, saturated, result) if looked_at and near else np.nan)
+            redundancy = (reconstructor.redundancy(signal, saturated, result) if looked_at and near
+                          else RedundancyFit.none())
+            rows["sheen"].append(redundancy.sheen)
+            gains.append(redundancy.light_gain)
             if sides_shown(rows["occluded_side_share"][-1]):
                 sums.append(tracker.add(result.depth_mm, result.mask, result.silhouette, known))
             else:  # an arm hides the sides the map is referred to: left out (MAX_HIDDEN_MAPS), nor the reference
@@ -580,6 +620,7 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                 if job.binning > 1:
                     full_reconstructor = full_reconstructor or HeadReconstructor(full_head, job.pseudo_light_vectors,
                                                                                  job.settings)
+                    full_reconstructor.intensity_factors = reconstructor.intensity_factors
                     full_darks = DarkFeed(frames, session.light_index(name), stamps, rig.mains_hz)
                     full = full_reconstructor.reconstruct(
                         *cycle_signal(frames, window, previous, head.max_value, {}, ids, stamps,
@@ -597,7 +638,9 @@ def _process_head(job: _HeadJob, tick: Callable[[], None]) -> _HeadResult:
                        np.asarray(rows["occluded_side_share"], dtype=np.float64),
                        np.asarray(rows["side_out_of_view_share"], dtype=np.float64),
                        np.asarray(rows["sheen"], dtype=np.float64), saved_index, saved_normals,
-                       saved_depth, sums, darks.flicker_share, (np.asarray(profile_times, dtype=np.int64), profiles))
+                       saved_depth, sums, darks.flicker_share,
+                       light_gain=np.asarray(gains, dtype=np.float64).reshape(-1, 4),
+                       side_profiles=(np.asarray(profile_times, dtype=np.int64), profiles))
 
 
 _worker_ticks = None  # in a worker process: the queue its progress goes to

@@ -21,6 +21,8 @@ is not known, so the estimate was measured against sheens rendered with exponent
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 # the Blinn-Phong exponent of the lobe fitted, broader than the simulator's skin (30): skin rendered with
@@ -43,13 +45,35 @@ def null_vectors(directions: np.ndarray) -> np.ndarray:
     return w / np.linalg.norm(w, axis=1, keepdims=True)
 
 
+@dataclass(frozen=True)
+class RedundancyFit:
+    """What the four lights' redundant value says of one cycle."""
+    sheen: float  # the sheen's weight over the albedo (spec / rho)
+    light_gain: np.ndarray  # (4,) each light's output over the one its intensity says, the last light's taken as 1
+
+    @classmethod
+    def none(cls) -> "RedundancyFit":
+        return cls(float("nan"), np.full(4, np.nan))
+
+
 def sheen_relative_to_albedo(signal: np.ndarray, points_mm: np.ndarray, pixels: np.ndarray,
                              light_positions_mm: np.ndarray, light_intensity: np.ndarray,
                              light_axis: np.ndarray, light_mu: np.ndarray, min_signal: float,
                              saturated: np.ndarray | None = None) -> float:
-    """The sheen's weight over the albedo (spec / rho) on one cycle: signal (4, H, W) lit minus
-    dark, points_mm (H, W, 3) the map's surface in the head's frame, pixels (H, W) the map's valid
-    ones. NaN where fewer than 50 frontal pixels have all four lights."""
+    """The sheen's weight over the albedo (spec / rho) on one cycle (redundancy_fit)."""
+    return redundancy_fit(signal, points_mm, pixels, light_positions_mm, light_intensity, light_axis, light_mu,
+                          min_signal, saturated).sheen
+
+
+def redundancy_fit(signal: np.ndarray, points_mm: np.ndarray, pixels: np.ndarray,
+                   light_positions_mm: np.ndarray, light_intensity: np.ndarray,
+                   light_axis: np.ndarray, light_mu: np.ndarray, min_signal: float,
+                   saturated: np.ndarray | None = None) -> RedundancyFit:
+    """The sheen's weight over the albedo (spec / rho) and the lights' outputs against their
+    intensities (1 + delta_k; the four's common factor is the albedo's, so the last light is the
+    reference) on one cycle: signal (4, H, W) lit minus dark, points_mm (H, W, 3) the map's surface
+    in the head's frame, pixels (H, W) the map's valid ones. NaN where fewer than 50 frontal pixels
+    have all four lights."""
     use = pixels & np.isfinite(points_mm[..., 2]) & (signal >= min_signal).all(axis=0)
     if saturated is not None:
         use &= ~saturated.any(axis=0)
@@ -75,7 +99,7 @@ def sheen_relative_to_albedo(signal: np.ndarray, points_mm: np.ndarray, pixels: 
     frontal = np.einsum("ni,ni->n", normal, view) > np.cos(np.radians(FRONTAL_DEG))
     keep = frontal & np.isfinite(b).all(axis=1) & (albedo > 0)
     if keep.sum() < 50:
-        return float("nan")
+        return RedundancyFit.none()
     l, b, albedo, normal, view = l[keep], b[keep], albedo[keep], normal[keep], view[keep]
     w = null_vectors(l)
     half = l + view[:, None, :]
@@ -86,4 +110,4 @@ def sheen_relative_to_albedo(signal: np.ndarray, points_mm: np.ndarray, pixels: 
     design = np.column_stack([lambertian[:, :3], np.einsum("nk,nk->n", w, lobe)])
     target = np.einsum("nk,nk->n", w, b) / albedo
     coefficients, *_ = np.linalg.lstsq(design, target, rcond=None)
-    return float(coefficients[-1])
+    return RedundancyFit(float(coefficients[-1]), np.r_[1.0 + coefficients[:3], 1.0])
