@@ -48,9 +48,13 @@ def light_gains_over_time(t_s: np.ndarray, gains: np.ndarray, at_s: np.ndarray,
     return np.exp(out)
 
 
-def _smoothed(at_s: np.ndarray, t_s: np.ndarray, values: np.ndarray, sigma_s: float) -> np.ndarray:
+def _smoothed(at_s: np.ndarray, t_s: np.ndarray, values: np.ndarray, sigma_s: float, block: int = 2000) -> np.ndarray:
     """A line fitted about each time of at_s to values (at t_s, in any spacing) with Gaussian weights,
-    its value there: a drift's slope is kept to the session's ends, where a weighted mean would lag."""
+    its value there: a drift's slope is kept to the session's ends, where a weighted mean would lag.
+    `block` times of at_s at once (a long session's every map against every reading)."""
+    if len(at_s) > block:
+        return np.concatenate([_smoothed(at_s[i:i + block], t_s, values, sigma_s, block)
+                               for i in range(0, len(at_s), block)])
     dt = t_s[None, :] - at_s[:, None]
     weights = np.exp(-0.5 * (dt / sigma_s) ** 2)
     s0, s1, s2 = weights.sum(axis=1), (weights * dt).sum(axis=1), (weights * dt * dt).sum(axis=1)

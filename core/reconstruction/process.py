@@ -167,7 +167,7 @@ def _light_gain_pass(results: ResultsWriter, session: SessionFile, rig, survey: 
     for name, (t, d) in geometric.items():
         stamps = session.timestamp_ns(name)
         at = np.array([stamps[w.newest] for w in survey[name]], dtype=float)
-        jobs.append(_HeadJob(Path(session.path), rig, name, survey[name], settings, pseudo[name], motion_compensation,
+        jobs.append(_HeadJob(session.path, rig, name, survey[name], settings, pseudo[name], motion_compensation,
                              (), np.interp(at, t, d), binning[name], 1))
     out = {}
     for r in workers.run(jobs, progress):
