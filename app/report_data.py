@@ -15,7 +15,7 @@ import numpy as np
 from app.records import Patient, Records, ReportState
 from core.analysis.values import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.reconstruction.pipeline import ReconstructionSettings
-from core.reconstruction.process import maps_at, processed_distance_mm
+from core.reconstruction.process import maps_at, processed_distance_mm, processed_light_gains
 from core.io.results import ResultsFile, optical_flank, optical_refusal, optical_volume, session_of_results
 from core.io.hdf5_probe import probe
 from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
@@ -277,7 +277,10 @@ def _head_maps(session_path: Path, session: SessionFile, times_s: tuple[float, f
         stamps = (session.timestamp_ns(name) - start_ns) / 1e9
         frames = [int(np.clip(np.searchsorted(stamps, t), 0, len(stamps) - 1)) for t in times_s]
         known = processed_distance_mm(results_path, name, frames) if results_path is not None else None
-        inspiration, expiration = maps_at(session_path, name, frames, settings=settings, distances_mm=known)
+        gains = (processed_light_gains(results_path, name, session.timestamp_ns(name)[frames])
+                 if results_path is not None else None)
+        inspiration, expiration = maps_at(session_path, name, frames, settings=settings, distances_mm=known,
+                                          light_gains=gains)
         head = session.rig.heads[name]
         depth_in = np.where(inspiration.mask, inspiration.depth_mm, np.nan)
         depth_ex = np.where(expiration.mask, expiration.depth_mm, np.nan)

@@ -170,6 +170,12 @@ class ResultsFile:
     def has_series(self, head: str, name: str) -> bool:
         return f"heads/{head}/{name}" in self._f
 
+    def light_gain(self, head: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """(timestamp_ns, followed (n, 4)): the factors of the lights' intensities `process` followed the
+        LEDs' drift with (ResultsWriter.light_gain), or None where it did not."""
+        g = self._f.get(f"heads/{head}/light_gain")
+        return None if g is None else (g["timestamp_ns"][:], g["followed"][:])
+
     def volume(self) -> tuple[np.ndarray, np.ndarray] | None:
         """/volume as (timestamp_ns, litres), or None if there is none."""
         f = self._f

@@ -718,12 +718,14 @@ class _HeadWorkers:
 
 def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list[int], *,
             settings: ReconstructionSettings | None = None, motion_compensation: bool | str = True,
-            distances_mm: list[float] | None = None) -> list[HeadMap]:
+            distances_mm: list[float] | None = None, light_gains: np.ndarray | None = None) -> list[HeadMap]:
     """Maps of one head at the given frames (each the newest complete cycle ending at or before
     it), by the same reconstruction `process_session` runs, for reports and reviews.
     distances_mm: the subject's distance at each frame as `process` measured it (processed_distance_mm);
     without it, or where it is NaN, each map's distance is the photometric fit's, which the
-    lights' and the skin's errors move by tens to hundreds of millimetres (docs/reconstruction.md)."""
+    lights' and the skin's errors move by tens to hundreds of millimetres (docs/reconstruction.md).
+    light_gains: (len(frame_indices), 4) the lights' outputs `process` followed at those frames
+    (processed_light_gains); None: the intensities as calibrated."""
     settings = settings or ReconstructionSettings()
     mode = motion_mode(motion_compensation)
     with SessionFile(session_path) as session:
@@ -742,7 +744,9 @@ def maps_at(session_path: str | os.PathLike, head_name: str, frame_indices: list
         lights, stamps = session.light_index(head_name), session.timestamp_ns(head_name)
         out = []
         known = list(distances_mm) if distances_mm is not None else [float("nan")] * len(frame_indices)
-        for index, distance in zip(frame_indices, known):
+        for number, (index, distance) in enumerate(zip(frame_indices, known)):
+            if light_gains is not None:
+                reconstructor.intensity_factors = np.asarray(light_gains[number], dtype=float)
             window = windows[max(0, int(np.searchsorted(ends, index, side="right")) - 1)]
             previous, following = neighbour_cycles(by_id, int(ids[window.newest]), rig.cycle_length, mode)
             darks = DarkFeed(frames, lights, stamps, rig.mains_hz)  # a feed per frame asked: they come in any order
@@ -766,6 +770,18 @@ def processed_distance_mm(results_path: str | os.PathLike, head_name: str, frame
     if not good.any():
         return [float("nan")] * len(frame_indices)
     return [float(d) for d in np.interp(np.asarray(frame_indices, dtype=float), frames[good], distance[good])]
+
+
+def processed_light_gains(results_path: str | os.PathLike, head_name: str, timestamp_ns: np.ndarray) -> np.ndarray | None:
+    """(len(timestamp_ns), 4) the lights' outputs `process` solved a head's maps with at those instants
+    (interpolated between its readings, held beyond them), or None where it did not follow them."""
+    with ResultsFile(results_path) as r:
+        followed = r.light_gain(head_name)
+    if followed is None or not len(followed[0]):
+        return None
+    t, gains = followed[0].astype(float), followed[1]
+    at = np.asarray(timestamp_ns, dtype=float)
+    return np.stack([np.interp(at, t, gains[:, k]) for k in range(gains.shape[1])], axis=1)
 
 
 def with_true_lights(session: SessionFile) -> RigCalibration:
