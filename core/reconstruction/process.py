@@ -174,9 +174,10 @@ def _light_gain_pass(results: ResultsWriter, session: SessionFile, rig, survey: 
         stamps = session.timestamp_ns(r.name)
         planned = np.array([stamps[w.newest] for w in plans[r.name]], dtype=float) / 1e9
         measured_t = r.timestamp_ns.astype(float) / 1e9
-        out[r.name] = light_gains_over_time(measured_t, r.light_gain, planned)
-        results.light_gain(r.name, r.timestamp_ns, r.light_gain,
-                           light_gains_over_time(measured_t, r.light_gain, measured_t))
+        # the readings' outliers found and the smoothing made once, at the planned windows and the readings alike
+        followed = light_gains_over_time(measured_t, r.light_gain, np.r_[planned, measured_t])
+        out[r.name] = followed[:len(planned)]
+        results.light_gain(r.name, r.timestamp_ns, r.light_gain, followed[len(planned):])
     return out
 
 
@@ -423,7 +424,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             survey = {}
             if geometry:
                 survey = {name: _survey_windows(complete[name], rig.frame_rate_hz) for name in names}
-                total_windows += 2 * sum(len(w) for w in survey.values())  # the photometric survey, the lights' outputs
+                survey_windows = sum(len(w) for w in survey.values())
+                total_windows += 2 * survey_windows  # the photometric survey, the lights' outputs
             if workers is None:
                 work = sum(len(plans[n]) * stream_heads[n].width * stream_heads[n].height for n in names)
                 workers = (os.cpu_count() or 1) if work >= AUTO_WORKERS_PIXEL_MAPS else 1
@@ -439,12 +441,12 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                     jobs = [_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name],
                                      motion_compensation, (), binning=factors[name]) for name in names]
                     geometric, offsets = _geometric_pass(results, jobs, rig.baseline_mm, pool,
-                                                         lambda f: overall(f, sum(len(w) for w in survey.values())))
-                    done_before = sum(len(w) for w in survey.values())
+                                                         lambda f: overall(f, survey_windows))
+                    done_before = survey_windows
                     light_gains = _light_gain_pass(results, session, rig, survey, plans, geometric, settings, pseudo,
                                                    motion_compensation, factors, pool,
-                                                   lambda f: overall(f, sum(len(w) for w in survey.values())))
-                    done_before += sum(len(w) for w in survey.values())
+                                                   lambda f: overall(f, survey_windows))
+                    done_before += survey_windows
                 jobs = []
                 # the sides' agreement (core/volume/sides.py) is looked at on maps made at the geometric distance
                 maps_per_survey = max(1, int(round(SURVEY_INTERVAL_S * rig.frame_rate_hz / every)))
