@@ -173,6 +173,13 @@ def _optical_curve(results: Path, start_ns: int) -> tuple[np.ndarray, np.ndarray
     return None if volume is None else ((volume[0] - start_ns) / 1e9, volume[1])
 
 
+def _peak_flow_curve(results: Path, start_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The optical volume at every frame through the blows' peak flows (/peak_flow_volume), in s from start_ns."""
+    with ResultsFile(results) as r:
+        volume = r.peak_flow_volume()
+    return None if volume is None else ((volume[0] - start_ns) / 1e9, volume[1])
+
+
 def _gradient_correlation(results: Path, start_ns: int, t_flow: np.ndarray, v_flow: np.ndarray) -> dict[str, float]:
     out: dict[str, float] = {}
     with ResultsFile(results) as r:
@@ -429,7 +436,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
         optical = _optical_curve(results_path, start) if results_path is not None else None
         if optical is not None:
             curves[OPTICAL] = optical
-            analysed_optical = analyse_volume(*optical, events, subject.age_years if subject else None, fitted=True)
+            analysed_optical = analyse_volume(*optical, events, subject.age_years if subject else None, fitted=True,
+                                              peak_flow_volume=_peak_flow_curve(results_path, start))
             sources[OPTICAL] = withheld_for_flanks(analysed_optical, optical_flank(results_path))
         elif results_path is not None and (refused := optical_refusal(results_path)):
             if analysed.flow_sensor is None:  # with one, the comparison with it says why (_compare), once

@@ -507,6 +507,8 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     bl.add_argument("--seed", type=int, default=0)
     bl.add_argument("--waveforms", type=Path, default=SHARED / "data" / "spirometry-waveforms",
                     help="the standard test waveforms (default ../shared/data/spirometry-waveforms)")
+    bl.add_argument("--every-frame", action="store_true",
+                    help="one map a frame (1/110 s), as process makes through the top of each forced blow")
     bl.add_argument("--no-write", action="store_true", help="print only")
 
     def run_blows(args: argparse.Namespace) -> int:
@@ -517,12 +519,14 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
         if args.phases < 1 or args.draws < 1:
             raise UserError("--phases and --draws take 1 or more")
         try:
-            text = run_blows_bench(args.waveforms, noise, args.phases, args.draws, args.seed)
+            text = run_blows_bench(args.waveforms, noise, args.phases, args.draws, args.seed, args.every_frame)
         except (FileNotFoundError, ValueError) as exc:
             raise UserError(str(exc)) from exc
-        return _publish(args, "blows", f"Forced expirations read through the maps' noise (`photopft bench blows "
-                                       f"--noise-ml {args.noise_ml} --phases {args.phases} --draws {args.draws} "
-                                       f"--seed {args.seed}`)", text)
+        frames = " --every-frame" if args.every_frame else ""
+        return _publish(args, "blows-frames" if args.every_frame else "blows",
+                        f"Forced expirations read through the maps' noise (`photopft bench blows "
+                        f"--noise-ml {args.noise_ml} --phases {args.phases} --draws {args.draws} "
+                        f"--seed {args.seed}{frames}`)", text)
 
     bl.set_defaults(run=run_blows)
     ti = what.add_parser("tidal", help="the population's quiet breathing read as optical maps with noise: TV and RR")

@@ -200,7 +200,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     profile, the session, the results) so that a run stopped midway goes on from the last one:
     a subject at the camera's full resolution takes longer than a working session."""
     from core.reconstruction.process import process_session
-    from core.io.results import ResultsFile, optical_flank, optical_refusal, optical_volume
+    from core.io.results import ResultsFile, optical_inputs, optical_refusal
     from core.rig import thesis_rig
     from core.io.session import SessionFile
     from core.analysis.session_analysis import analyse_session
@@ -269,7 +269,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
             stages["process"] = time.perf_counter() - started - sum(stages.values())
             if stages_done:
                 stages_done.finish("process", stages)
-        report = analyse_session(session, optical_volume=optical_volume(results), optical_flank=optical_flank(results))
+        report = analyse_session(session, **optical_inputs(results))
     except Exception as exc:
         out["refused"] = f"process: {exc}"
         return out

@@ -19,7 +19,7 @@ import numpy as np
 
 from core.reconstruction.pipeline import ReconstructionSettings
 from core.reconstruction.process import process_session
-from core.io.results import ResultsFile, optical_flank, optical_volume
+from core.io.results import ResultsFile, optical_inputs
 from core.io.session import SessionFile
 from core.analysis.session_analysis import analyse_session
 from core.volume.maps import gradient_volume_correlations
@@ -87,8 +87,7 @@ def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ..
                 "--distance-back-mm", f"{scenario.distance_mm:g}", "--sway-mm", f"{scenario.axial_sway_mm:g}",
                 "--world", world]))
             process_session(session, results, every=every, settings=ReconstructionSettings(track=True))
-            report = analyse_session(session, optical_volume=optical_volume(results),
-                                     optical_flank=optical_flank(results))
+            report = analyse_session(session, **optical_inputs(results))
             truth = report.truth.parameters()
             flow = report.flow_sensor.parameters() if report.flow_sensor is not None else {}
             rows.append((scenario, truth, flow, report.optical.parameters(), _gradient_correlations(session, results),

@@ -106,15 +106,13 @@ def _as_json(session: Path, results: Path | None, equations: str, report, named,
 def run_analyze_session(args: argparse.Namespace) -> int:
     """A session file (flow sensor and truth), or a results file (its session, and its optical volume)."""
     from app.report_data import open_inputs
-    from core.io.results import optical_flank, optical_refusal, optical_volume
+    from core.io.results import optical_inputs, optical_refusal
     from core.io.session import SessionError
     from core.analysis.session_analysis import analyse_session
 
     try:
         session, results = open_inputs(args.session)
-        optical = optical_volume(results) if results is not None else None
-        report = analyse_session(session, args.equations, optical_volume=optical,
-                                 optical_flank=optical_flank(results) if results is not None else None)
+        report = analyse_session(session, args.equations, **optical_inputs(results))
     except (SessionError, ValueError, OSError, KeyError) as exc:
         raise UserError(str(exc) if str(args.session) in str(exc) else f"{args.session}: {exc}") from exc
     named = (("flow sensor", report.flow_sensor), ("optical", report.optical), ("truth (simulation)", report.truth))

@@ -11,7 +11,7 @@ from app.args import positive
 from core.io.outputs import OutputError
 from core.reconstruction.pipeline import ReconstructionSettings
 from core.reconstruction.process import process_session
-from core.io.results import ResultsFile, optical_flank, optical_volume
+from core.io.results import ResultsFile, optical_inputs, optical_volume
 from core.io.session import SessionFile, validate_session
 from core.analysis.session_analysis import analyse_session
 from core.volume.maps import gradient_volume_correlations
@@ -92,8 +92,7 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
                     slope = np.polyfit(true_at - true_at[0], optical[1][measured], 1)[0]
                     lines.append(f"  metric optical volume (litres, no calibration) against the true volume: "
                                  f"r = {np.corrcoef(optical[1][measured], true_at)[0, 1]:.4f}, slope {slope:.3f}")
-    report = analyse_session(path, optical_volume=optical,
-                             optical_flank=optical_flank(results) if results is not None else None)
+    report = analyse_session(path, **optical_inputs(results))
     if report.flow_volume is not None:
         t_flow, v_flow = report.flow_volume
         lines.append(f"  flow sensor (BTPS, zero drift removed): range {v_flow.min():+.3f} to {v_flow.max():+.3f} L")

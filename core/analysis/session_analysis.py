@@ -32,10 +32,13 @@ def _events(session: SessionFile, start_ns: int) -> list[tuple[float, str]]:
 
 def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
                     optical_volume: tuple[np.ndarray, np.ndarray] | None = None,
-                    optical_flank: tuple[float, float] | None = None) -> SessionReport:
+                    optical_flank: tuple[float, float] | None = None,
+                    optical_peak_flow: tuple[np.ndarray, np.ndarray] | None = None) -> SessionReport:
     """optical_volume: (timestamp_ns, litres) on the session's clock, e.g. a results file's /volume;
     optical_flank: its (widening_per_l, flank_share) (core/io/results.py, optical_flank), which may
-    withhold some of its values (core/volume/metric.py, withheld_for_flanks)."""
+    withhold some of its values (core/volume/metric.py, withheld_for_flanks); optical_peak_flow:
+    (timestamp_ns, litres), its volume at every frame through the forced blows' tops (/peak_flow_volume),
+    which its PEF is read from (analyse_volume). core.io.results.optical_inputs gives all three."""
     with SessionFile(path) as s:
         start = s.start_ns()
         events = _events(s, start)
@@ -71,7 +74,10 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
         if optical_volume is not None:
             t = (np.asarray(optical_volume[0], dtype=np.int64) - start) / 1e9
             volume = np.asarray(optical_volume[1], dtype=float)
-            optical_values = withheld_for_flanks(analyse_volume(t, volume, events, age, fitted=True), optical_flank)
+            dense = None if optical_peak_flow is None else (
+                (np.asarray(optical_peak_flow[0], dtype=np.int64) - start) / 1e9, np.asarray(optical_peak_flow[1], float))
+            optical_values = withheld_for_flanks(analyse_volume(t, volume, events, age, fitted=True,
+                                                                peak_flow_volume=dense), optical_flank)
             optical_curve = (t, volume)
         references: dict[str, Reference] = {}
         problem = None

@@ -42,6 +42,9 @@ class ForcedValues:
     # the curve's flow noise over one sample step (sqrt(2) sigma / step) over its PEF; 0 for a curve
     # whose noise is not weighed (a flow sensor's)
     pef_noise_ratio: float = 0.0
+    # the step (s) between the samples PEF was read on, where not the curve's own: an optical blow's
+    # maps at every frame (core/analysis/values.py, analyse_volume's peak_flow_volume)
+    pef_step_s: float = float("nan")
     problems: list[str] = field(default_factory=list)
 
     @property
@@ -163,6 +166,7 @@ class SessionGrade:
     acceptable_fev1: int
     acceptable_fvc: int
     pef_noise_ratio: float = 0.0  # that of the blow PEF is taken from
+    pef_step_s: float = float("nan")  # that blow's (ForcedValues.pef_step_s)
 
     @property
     def grade(self) -> str:
@@ -225,7 +229,8 @@ def grade_session(manoeuvres: list[ForcedValues], age_years: float | None = None
     fvc = max(m.fvc_l for m in fvc_from)
     best = max(fvc_ok or fev1_ok or manoeuvres, key=lambda m: m.fev1_l + m.fvc_l)
     return SessionGrade(manoeuvres, fev1_grade, fvc_grade, fev1, fvc, fev1 / fvc, best.fef2575_lps, best.pef_lps,
-                        fev1_spread, fvc_spread, len(fev1_ok), len(fvc_ok), best.pef_noise_ratio)
+                        fev1_spread, fvc_spread, len(fev1_ok), len(fvc_ok), best.pef_noise_ratio,
+                        best.pef_step_s)
 
 
 @dataclass

@@ -176,6 +176,12 @@ class ResultsFile:
         g = self._f.get(f"heads/{head}/light_gain")
         return None if g is None else (g["timestamp_ns"][:], g["followed"][:])
 
+    def peak_flow_volume(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """/peak_flow_volume as (timestamp_ns, litres): the volume at every frame through the top of each
+        forced blow (ResultsWriter.peak_flow_volume), or None where `process` made none."""
+        g = self._f.get("peak_flow_volume")
+        return None if g is None else (g["timestamp_ns"][:], g["volume_l"][:].astype(float))
+
     def volume(self) -> tuple[np.ndarray, np.ndarray] | None:
         """/volume as (timestamp_ns, litres), or None if there is none."""
         f = self._f
@@ -226,6 +232,22 @@ def optical_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] 
     """A results file's /volume as (timestamp_ns, litres), or None if it has none."""
     with ResultsFile(results) as r:
         return r.volume()
+
+
+def optical_peak_flow_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
+    """A results file's /peak_flow_volume as (timestamp_ns, litres), or None if it has none."""
+    with ResultsFile(results) as r:
+        return r.peak_flow_volume()
+
+
+def optical_inputs(results: str | os.PathLike | None) -> dict:
+    """What a results file gives the session's analysis (core.analysis.session_analysis.analyse_session's
+    optical_volume, optical_flank and optical_peak_flow), as its keywords; none for no results file."""
+    if results is None:
+        return {}
+    with ResultsFile(results) as r:
+        return {"optical_volume": r.volume(), "optical_flank": flank_figures(r.volume_checks()),
+                "optical_peak_flow": r.peak_flow_volume()}
 
 
 def optical_flank(results: str | os.PathLike) -> tuple[float, float] | None:
@@ -305,6 +327,19 @@ class ResultsWriter:
         g.create_dataset("measured", data=np.asarray(measured, dtype=np.float64))
         g.create_dataset("followed", data=np.asarray(followed, dtype=np.float64))
         g.attrs["largest_change"] = float(np.max(np.ptp(followed, axis=0))) if len(followed) else 0.0
+
+    def peak_flow_volume(self, timestamp_ns: np.ndarray, volume_l: np.ndarray, spans_ns: list[tuple[int, int]],
+                         maps: dict[str, int]) -> None:
+        """/peak_flow_volume: the metric volume at every frame (the first head's) through the top of each
+        forced blow, where its peak flow is (its attribute `spans_ns`, (start, end) pairs), on the same
+        reference maps and levels as /metric_volume but not its zero; `maps_<head>` the maps made for it
+        beside the session's."""
+        g = self.out.create_group("peak_flow_volume")
+        g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
+        g.create_dataset("volume_l", data=np.asarray(volume_l, dtype=np.float64))
+        g.attrs["spans_ns"] = np.asarray(spans_ns, dtype=np.int64).reshape(-1, 2)
+        for name, count in maps.items():
+            g.attrs[f"maps_{name}"] = np.int64(count)
 
     def head(self, head: str, series: dict[str, np.ndarray], attrs: dict, map_index: list[int],
              normals: list[np.ndarray], depth_mm: list[np.ndarray], shape: tuple[int, int]) -> None:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
+from contextlib import ExitStack
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -16,8 +17,9 @@ from core.reconstruction.ambient import FlickerCorrection
 from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.reconstruction.drift import light_gains_over_time
-from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, metric_volume, on_maps_shown, side_targets,
-                                 tidal_compartments)
+from core.analysis.values import peak_flow_spans_s
+from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, on_maps_shown,
+                                side_targets, tidal_compartments)
 from core.reconstruction.photometric import CycleWindow, complete_cycles
 from core.rig import DARK
 from core.io.outputs import atomic_output, stop_if_requested
@@ -352,6 +354,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
     distance_from: "heads" (two heads and a baseline: each map scaled to the distance the two
     heads' trunk widths give, `geometric_distances`; one head: as "photometric") or
     "photometric" (each head's own photometric fit, core/reconstruction/distance.py).
+    With a map every light cycle (`every` the cycle's length) and a metric volume, maps at every frame
+    are made through each forced blow's peak flow too (_peak_flow_pass, /peak_flow_volume).
     `workers` > 1 reconstructs the heads in that many processes at once (one head each, at most);
     None: one per core when the work repays starting them (AUTO_WORKERS_PIXEL_MAPS).
     `binning`: the stream reconstructed on binning x binning bins; None: each head binned to about
@@ -394,7 +398,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
         stream_heads = {name: binned_head(rig.heads[name], factors[name]) for name in names}
         maps_at = sorted(set(maps_at or []))
         counts, distances, displacements, occluded, out_of_view, areas, sheen = {}, {}, {}, {}, {}, {}, {}
-        with atomic_output(output) as partial, h5py.File(partial, "w") as out:
+        with atomic_output(output) as partial, h5py.File(partial, "w") as out, ExitStack() as stack:
             results = ResultsWriter(out, session_path, f"photopft {__version__}", method=settings.method,
                                     integrator=settings.integrator,
                                     calibration=calibration.created if calibration is not None else "session /rig",
@@ -435,53 +439,54 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 if progress is not None and total_windows:
                     progress((done_before + fraction_of_pass * pass_windows) / total_windows)
 
-            with _HeadWorkers(workers, len(names)) as pool:
-                geometric, offsets, light_gains = {}, {}, {}
-                if geometry:
-                    jobs = [_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name],
-                                     motion_compensation, (), binning=factors[name]) for name in names]
-                    geometric, offsets = _geometric_pass(results, jobs, rig.baseline_mm, pool,
-                                                         lambda f: overall(f, survey_windows))
-                    done_before = survey_windows
-                    light_gains = _light_gain_pass(results, session, rig, survey, plans, geometric, settings, pseudo,
-                                                   motion_compensation, factors, pool,
-                                                   lambda f: overall(f, survey_windows))
-                    done_before += survey_windows
-                jobs = []
-                # the sides' agreement (core/volume/sides.py) is looked at on maps made at the geometric distance
-                maps_per_survey = max(1, int(round(SURVEY_INTERVAL_S * rig.frame_rate_hz / every)))
-                for name in names:
-                    distances_mm = None
-                    if name in geometric:
-                        stamps = session.timestamp_ns(name)
-                        t, d = geometric[name]
-                        distances_mm = np.interp(np.array([stamps[w.newest] for w in plans[name]], dtype=float), t, d)
-                    jobs.append(_HeadJob(Path(session_path), rig, name, plans[name], settings, pseudo[name],
-                                         motion_compensation, tuple(maps_at), distances_mm, factors[name],
-                                         maps_per_survey if geometric else 0, light_gains.get(name)))
-                pass_windows = sum(len(plans[n]) for n in names)
-                profiles = {}
-                for result in pool.run(jobs, lambda f: overall(f, pass_windows)):
-                    profiles[result.name] = result.side_profiles
-                    name, head = result.name, rig.heads[result.name]
-                    results.head(name, {"timestamp_ns": result.timestamp_ns, "frame_index": result.frame_index,
-                                        "distance_mm": result.distance_mm, "gradient_volume": result.gradient_volume,
-                                        "valid_pixels": result.valid_pixels,
-                                        "occluded_side_share": result.occluded_side_share,
-                                        "side_out_of_view_share": result.side_out_of_view_share,
-                                        "sheen": result.sheen},
-                                 # binning: the stream's; valid_pixels count its bins
-                                 {"ambient_flicker": result.ambient_flicker, "binning": np.int64(factors[name])},
-                                 result.saved_index, result.saved_normals, result.saved_depth,
-                                 (head.height, head.width))
-                    counts[name] = len(result.frame_index)
-                    displacements[name] = HeadDisplacements(result.timestamp_ns, result.sums)
-                    distances[name] = (float(np.nanmean(result.distance_mm)) if len(result.distance_mm)
-                                       else float("nan"))
-                    occluded[name] = result.occluded_side_share
-                    out_of_view[name] = result.side_out_of_view_share
-                    sheen[name] = float(np.nanmedian(result.sheen)) if np.isfinite(result.sheen).any() else float("nan")
-                    areas[name] = trunk_area_m2(result.valid_pixels, result.distance_mm, stream_heads[name])
+            pool = stack.enter_context(_HeadWorkers(workers, len(names)))  # both passes, and the peak flow's
+            geometric, offsets, light_gains = {}, {}, {}
+            if geometry:
+                jobs = [_HeadJob(Path(session_path), rig, name, survey[name], settings, pseudo[name],
+                                 motion_compensation, (), binning=factors[name]) for name in names]
+                geometric, offsets = _geometric_pass(results, jobs, rig.baseline_mm, pool,
+                                                     lambda f: overall(f, survey_windows))
+                done_before = survey_windows
+                light_gains = _light_gain_pass(results, session, rig, survey, plans, geometric, settings, pseudo,
+                                               motion_compensation, factors, pool,
+                                               lambda f: overall(f, survey_windows))
+                done_before += survey_windows
+            jobs = []
+            # the sides' agreement (core/volume/sides.py) is looked at on maps made at the geometric distance
+            maps_per_survey = max(1, int(round(SURVEY_INTERVAL_S * rig.frame_rate_hz / every)))
+            for name in names:
+                distances_mm = None
+                if name in geometric:
+                    stamps = session.timestamp_ns(name)
+                    t, d = geometric[name]
+                    distances_mm = np.interp(np.array([stamps[w.newest] for w in plans[name]], dtype=float), t, d)
+                jobs.append(_HeadJob(Path(session_path), rig, name, plans[name], settings, pseudo[name],
+                                     motion_compensation, tuple(maps_at), distances_mm, factors[name],
+                                     maps_per_survey if geometric else 0, light_gains.get(name)))
+            pass_windows = sum(len(plans[n]) for n in names)
+            profiles, made = {}, {}
+            for result in pool.run(jobs, lambda f: overall(f, pass_windows)):
+                made[result.name] = result
+                profiles[result.name] = result.side_profiles
+                name, head = result.name, rig.heads[result.name]
+                results.head(name, {"timestamp_ns": result.timestamp_ns, "frame_index": result.frame_index,
+                                    "distance_mm": result.distance_mm, "gradient_volume": result.gradient_volume,
+                                    "valid_pixels": result.valid_pixels,
+                                    "occluded_side_share": result.occluded_side_share,
+                                    "side_out_of_view_share": result.side_out_of_view_share,
+                                    "sheen": result.sheen},
+                             # binning: the stream's; valid_pixels count its bins
+                             {"ambient_flicker": result.ambient_flicker, "binning": np.int64(factors[name])},
+                             result.saved_index, result.saved_normals, result.saved_depth,
+                             (head.height, head.width))
+                counts[name] = len(result.frame_index)
+                displacements[name] = HeadDisplacements(result.timestamp_ns, result.sums)
+                distances[name] = (float(np.nanmean(result.distance_mm)) if len(result.distance_mm)
+                                   else float("nan"))
+                occluded[name] = result.occluded_side_share
+                out_of_view[name] = result.side_out_of_view_share
+                sheen[name] = float(np.nanmedian(result.sheen)) if np.isfinite(result.sheen).any() else float("nan")
+                areas[name] = trunk_area_m2(result.valid_pixels, result.distance_mm, stream_heads[name])
             tilts = paired_tilts(*profiles.values()) if len(profiles) == 2 and geometric else np.zeros(0)
             if np.isfinite(tilts).any():
                 results.attr("sides_tilt", float(np.nanmedian(tilts)))
@@ -503,6 +508,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 metric = None
                 results.refuse_optical(refused)
             in_view = metric is not None and np.isfinite(metric.volume_l).all()  # a trunk in every head's view
+            if in_view and volume_calibration is None and every == rig.cycle_length:
+                _peak_flow_pass(results, session, {job.name: job for job in jobs}, made, complete, metric, pool)
             if in_view:
                 compartments = tidal_compartments(session, metric)
                 first = next(iter(displacements))
@@ -521,6 +528,63 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             _write_parameters(session_path, results)
     return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances, refused, offsets,
                           distance_refused, sheen)
+
+
+def _peak_flow_pass(results: ResultsWriter, session: SessionFile, jobs: dict[str, "_HeadJob"],
+                    made: dict[str, "_HeadResult"], complete: dict[str, list[CycleWindow]], metric: MetricVolume,
+                    workers: "_HeadWorkers") -> None:
+    """/peak_flow_volume: maps at every frame through the top of each forced blow, where its peak flow is
+    (peak_flow_spans_s on the session's volume), beside the session's maps, and the metric volume of
+    the two together there. One map a light cycle, each the volume at its newest frame, reads PEF
+    within 10 % on 78 % of the standard waveforms, one map a frame on 95 % (docs/volume.md, "Peak
+    flow"). Each head's new maps follow its reference map (made again first), distances and lights'
+    outputs as the session's maps have them; the volume takes the levels /metric_volume took."""
+    t0 = int(metric.timestamp_ns[0])
+    events = [((int(ts) - t0) / 1e9, label) for ts, label in session.events()]
+    spans_s = peak_flow_spans_s((metric.timestamp_ns - t0) / 1e9, metric.volume_l, events)
+    if not spans_s:
+        return
+    spans_ns = [(t0 + int(a * 1e9), t0 + int(b * 1e9)) for a, b in spans_s]
+    new_jobs = {}
+    for name, job in jobs.items():
+        stamps = session.timestamp_ns(name)
+        planned = {w.newest for w in job.windows}
+        inside = [w for w in complete[name] if w.newest not in planned
+                  and any(a <= stamps[w.newest] <= b for a, b in spans_ns)]
+        first = next((i for i, s in enumerate(made[name].sums) if np.isfinite(s.reference.get("all", np.nan))), None)
+        if not inside or first is None:
+            return
+        windows = [job.windows[first]] + inside
+        planned_s = made[name].timestamp_ns.astype(float) / 1e9
+        at_s = np.array([stamps[w.newest] for w in windows], dtype=float) / 1e9
+
+        def along(values: np.ndarray | None) -> np.ndarray | None:
+            if values is None:
+                return None
+            values = np.asarray(values, dtype=float)
+            columns = values.reshape(len(values), -1).T
+            return np.stack([np.interp(at_s, planned_s, c) for c in columns], axis=-1).reshape(len(at_s), *values.shape[1:])
+
+        new_jobs[name] = replace(job, windows=windows, maps_at=(), distances_mm=along(job.distances_mm),
+                                 profile_every=0, light_gains=along(job.light_gains))
+    heads = {}
+    for r in workers.run(list(new_jobs.values()), lambda f: None):
+        main = made[r.name]
+        t = np.concatenate([main.timestamp_ns, r.timestamp_ns[1:]])
+        sums = list(main.sums) + list(r.sums[1:])
+        occluded = np.concatenate([main.occluded_side_share, r.occluded_side_share[1:]])
+        order = np.argsort(t, kind="stable")
+        shown = sides_shown(occluded[order])
+        heads[r.name] = HeadDisplacements(t[order], [sums[i] for i in order]).of_maps(shown)
+    if not all(len(h.timestamp_ns) for h in heads.values()):
+        return
+    dense = metric_volume({n: heads[n] for n in jobs}, jobs[next(iter(jobs))].rig.baseline_mm,
+                          levels_of=metric.levels)
+    inside = np.zeros(len(dense.timestamp_ns), dtype=bool)
+    for a, b in spans_ns:
+        inside |= (dense.timestamp_ns >= a) & (dense.timestamp_ns <= b)
+    results.peak_flow_volume(dense.timestamp_ns[inside], dense.volume_l[inside], spans_ns,
+                             {n: len(j.windows) - 1 for n, j in new_jobs.items()})
 
 
 @dataclass(frozen=True)

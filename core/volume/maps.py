@@ -825,14 +825,59 @@ def metric_head_volume_l(reference: np.ndarray, current: np.ndarray, side_mm: np
 
 
 def smooth_in_time(t_s: np.ndarray, values: np.ndarray, sigma_s: float) -> np.ndarray:
-    """Gaussian smoothing of a series on (nearly) even time steps; NaNs bridged by interpolation."""
+    """Gaussian smoothing of a series in time (sigma in s); NaNs bridged by interpolation. On (nearly)
+    even steps a Gaussian filter over the samples; on a series that holds a stretch of samples much
+    closer together than the rest (maps at every frame beside maps at every light cycle: uneven_steps)
+    each sample the value at it of the line fitted, with Gaussian weights in time, to the samples within
+    4 sigma of it: on even steps the same as the Gaussian's mean, and where the samples crowd on one
+    side it is not pulled to their side."""
     t, x = np.asarray(t_s, float), np.asarray(values, float)
     good = np.isfinite(x)
     if good.sum() < 2:
         return x.copy()
     x = np.interp(t, t[good], x[good])
     step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
-    return ndimage.gaussian_filter1d(x, sigma_s / step, mode="nearest") if step > 0 else x
+    if step <= 0:
+        return x
+    if uneven_steps(t):
+        return _weighted_in_time(t, x, sigma_s)
+    return ndimage.gaussian_filter1d(x, sigma_s / step, mode="nearest")
+
+
+def uneven_steps(t_s: np.ndarray) -> bool:
+    """Whether a series' time steps (increasing times) are not nearly even: some step under half the
+    median step, or more than a tenth of them over twice it."""
+    steps = np.diff(np.asarray(t_s, float))
+    if len(steps) < 2:
+        return False
+    median = float(np.median(steps))
+    return bool(steps.min() < 0.5 * median or np.mean(steps > 2.0 * median) > 0.1)
+
+
+def _weighted_in_time(t: np.ndarray, x: np.ndarray, sigma_s: float) -> np.ndarray:
+    """Each sample the value at it of the line fitted with Gaussian weights (sigma_s) to the samples within
+    4 sigma_s of it (t increasing; local-linear regression)."""
+    n = len(t)
+    reach = 4.0 * sigma_s
+    index = np.arange(n)
+    before = int((index - np.searchsorted(t, t - reach, "left")).max())
+    after = int((np.searchsorted(t, t + reach, "right") - 1 - index).max())
+    s0, s1, s2, x0, x1 = (np.zeros(n) for _ in range(5))
+    for offset in range(-before, after + 1):
+        j = index + offset
+        inside = (j >= 0) & (j < n)
+        j = np.clip(j, 0, n - 1)
+        d = (t[j] - t) / sigma_s
+        w = np.where(inside & (np.abs(d) <= 4.0), np.exp(-0.5 * d ** 2), 0.0)
+        s0 += w
+        s1 += w * d
+        s2 += w * d * d
+        x0 += w * x[j]
+        x1 += w * d * x[j]
+    determinant = s0 * s2 - s1 * s1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        line = (s2 * x0 - s1 * x1) / determinant
+    return np.where(determinant > 1e-9 * s0 * s0, line, x0 / s0)
 
 
 def two_head_distances(width_front_px: np.ndarray, width_back_px: np.ndarray, baseline_mm: float,

@@ -529,8 +529,11 @@ def level_agreement(timestamp_ns: np.ndarray, session_l: np.ndarray, each_map_l:
     return gain, float(-coefficients[1] / gain) if gain else float("nan")
 
 
-def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None) -> MetricVolume:
-    """Both heads' volumes on the first head's times, their sum and the regions' sums."""
+def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None,
+                  levels_of: dict[str, str] | None = None) -> MetricVolume:
+    """Both heads' volumes on the first head's times, their sum and the regions' sums. levels_of: each
+    head's level as another volume of the same session chose it (MetricVolume.levels), instead of
+    choosing here."""
     targets, scale_from = side_targets(heads, baseline_mm)
     t = next(iter(heads.values())).timestamp_ns
     per_head, regions, top_referred = {}, {r: np.zeros(len(t)) for r in REGIONS}, {}
@@ -548,9 +551,14 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
             return metric_head_volume_l(h.series("reference", region), h.current(region, session_level), side, target)
 
         whole = volume("all", False)
-        session = h.session_shifts_mm is not None and (
-            jump_share(h.timestamp_ns, whole)[0] > MAX_JUMP_SHARE or curve_noise_l(whole) > MAX_MAP_NOISE_L)
-        if session:
+        if levels_of is not None:
+            session = levels_of.get(name) == "the session's" and h.session_shifts_mm is not None
+            if session:
+                whole = volume("all", True)
+        else:
+            session = h.session_shifts_mm is not None and (
+                jump_share(h.timestamp_ns, whole)[0] > MAX_JUMP_SHARE or curve_noise_l(whole) > MAX_MAP_NOISE_L)
+        if session and levels_of is None:
             session_whole = volume("all", True)
             gain, lag = level_agreement(h.timestamp_ns, session_whole, whole)
             session = abs(gain - 1.0) <= MAX_LEVEL_GAIN and abs(lag) <= MAX_LEVEL_LAG_S
