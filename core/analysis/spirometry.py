@@ -45,6 +45,7 @@ class ForcedValues:
     # the step (s) between the samples PEF was read on, where not the curve's own: an optical blow's
     # maps at every frame (core/analysis/values.py, analyse_volume's peak_flow_volume)
     pef_step_s: float = float("nan")
+    pef_smoothing_s: float = float("nan")  # the Gaussian's sigma those samples were smoothed over first
     problems: list[str] = field(default_factory=list)
 
     @property

@@ -530,10 +530,10 @@ def level_agreement(timestamp_ns: np.ndarray, session_l: np.ndarray, each_map_l:
 
 
 def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None,
-                  levels_of: dict[str, str] | None = None) -> MetricVolume:
+                  levels_of: dict[str, str] | None = None, smoothing_s: float = VOLUME_SMOOTHING_S) -> MetricVolume:
     """Both heads' volumes on the first head's times, their sum and the regions' sums. levels_of: each
     head's level as another volume of the same session chose it (MetricVolume.levels), instead of
-    choosing here."""
+    choosing here. smoothing_s: the sigma each head's volume is smoothed over in time (0: none)."""
     targets, scale_from = side_targets(heads, baseline_mm)
     t = next(iter(heads.values())).timestamp_ns
     per_head, regions, top_referred = {}, {r: np.zeros(len(t)) for r in REGIONS}, {}
@@ -572,7 +572,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
     seconds = t.astype(float) / 1e9
 
     def smooth(values: np.ndarray) -> np.ndarray:
-        return smooth_in_time(seconds, values, VOLUME_SMOOTHING_S)
+        return smooth_in_time(seconds, values, smoothing_s) if smoothing_s > 0 else values
 
     per_head = {name: smooth(v) for name, v in per_head.items()}
     volume = sum(per_head.values())

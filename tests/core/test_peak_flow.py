@@ -1,5 +1,5 @@
 """A forced blow's peak flow read on maps at every frame through it (core/reconstruction/process.py,
-_peak_flow_pass; core/analysis/values.py, _peak_flow_of_frames), beside the session's map a cycle."""
+_peak_flow_pass; core/analysis/values.py, peak_flow_of_frames), beside the session's map a cycle."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from scipy import ndimage
 from app.benchmarks.blows import CYCLE_S, FRAME_S, maps_of
 from core.analysis.session_analysis import analyse_session
 from core.analysis.spirometry import forced_values
-from core.analysis.values import (MAX_PEF_NOISE_RATIO_FRAMES, PEAK_FLOW_REACH_S, analyse_volume,
-                                  peak_flow_spans_s)
+from core.analysis.values import (MAX_PEF_NOISE_RATIO_FRAMES, PEAK_FLOW_REACH_S, PEAK_FLOW_SIGMAS_S,
+                                  analyse_volume, flow_noise_gain, peak_flow_spans_s)
 from core.io.results import optical_inputs
 from core.reconstruction.process import process_session
 from core.sim.breathing import RATE_HZ, ForcedBlow, Subject, Sway, forced
@@ -107,16 +107,32 @@ def test_maps_at_every_frame_that_miss_the_peak_or_hold_a_gap_leave_the_blow_its
     assert np.isnan(read.pef_step_s) and read.pef_lps == per_cycle
 
 
-def test_a_pef_from_maps_at_every_frame_too_noisy_for_it_is_refused_with_the_frames_limit():
-    t, volume, events, _ = _blow()
+def test_noisy_maps_at_every_frame_are_smoothed_as_little_as_their_noise_allows_and_refused_past_it():
+    """10 mL of white noise a map (a flow noise of 15 % of this blow's peak over a frame step): smoothed
+    over the least sigma that brings it under MAX_PEF_NOISE_RATIO_FRAMES, and read within 10 %. 100 mL:
+    over it at the widest smoothing too, and the PEF is refused with the limit at a map every frame."""
+    t, volume, events, true_pef = _blow()
     tc, vc = _sampled(t, volume, CYCLE_S, 0.0)
     (a, b), = peak_flow_spans_s(tc, vc, events)
     tf, vf = _sampled(t, volume, FRAME_S, 0.0)
     inside = (tf >= a) & (tf <= b)
-    noisy = vf[inside] + np.random.default_rng(0).normal(0.0, 0.010, inside.sum())
-    values = analyse_volume(tc, vc, events, fitted=True, peak_flow_volume=(tf[inside], noisy))
+    draw = np.random.default_rng(0).normal(0.0, 1.0, inside.sum())
+    values = analyse_volume(tc, vc, events, fitted=True, peak_flow_volume=(tf[inside], vf[inside] + 0.010 * draw))
+    blow = values.forced.manoeuvres[0]
+    assert 0 < blow.pef_smoothing_s < PEAK_FLOW_SIGMAS_S[-1] and blow.pef_noise_ratio <= MAX_PEF_NOISE_RATIO_FRAMES
+    assert values.pef_refused is None and abs(values.forced.pef_lps / true_pef - 1) < 0.10
+    values = analyse_volume(tc, vc, events, fitted=True, peak_flow_volume=(tf[inside], vf[inside] + 0.100 * draw))
+    assert values.forced.manoeuvres[0].pef_smoothing_s == PEAK_FLOW_SIGMAS_S[-1]
     assert values.forced.pef_noise_ratio > MAX_PEF_NOISE_RATIO_FRAMES
     assert values.pef_refused is not None and "at a map every 9 ms" in values.pef_refused
+
+
+def test_the_flow_noise_of_a_smoothed_curve_is_what_its_kernel_gives_white_noise():
+    rng = np.random.default_rng(1)
+    noise = rng.normal(0.0, 1.0, 200_000)
+    for sigma in (0.0, 0.55, 1.1, 2.2):
+        smoothed = ndimage.gaussian_filter1d(noise, sigma, mode="nearest") if sigma else noise
+        assert np.std(np.diff(smoothed)) == pytest.approx(flow_noise_gain(sigma), rel=0.01)
 
 
 def test_process_makes_maps_at_every_frame_through_the_blow_and_the_analysis_reads_its_pef(tmp_path):
