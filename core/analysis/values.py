@@ -175,7 +175,7 @@ PEAK_FLOW_WITHIN_S = 0.6
 # peak flow, and the flow of a good blow rises to its peak in 20-100 ms and falls from it over longer
 PEAK_FLOW_REACH_S = 0.3
 # The peak flow read on the maps at every frame lies at least this far inside their span, or the
-# span missed it (_peak_flow_of_frames)
+# span missed it (peak_flow_of_frames)
 PEAK_FLOW_MARGIN_S = 0.05
 
 
@@ -449,10 +449,13 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
     fitted: read each slow VC and forced expiration from a smoothing spline through its samples
     (core.analysis.fitted_curve), for an optical volume, one noisy sample a light cycle; a flow
     sensor's curve is read straight. peak_flow_volume: (times in s, litres) of the same volume at
-    every frame through the top of each forced blow (a results file's /peak_flow_volume): a fitted
-    blow whose top and peak flow it covers takes its PEF from it (_peak_flow_of_frames)."""
+    every frame through each forced blow's peak flow (a results file's /peak_flow_volume): a fitted
+    blow whose peak flow it holds takes its PEF from it (peak_flow_of_frames); a fitted curve that is
+    itself one map a frame is read so too."""
     t = np.asarray(t_s, dtype=float)
     v = np.asarray(volume_l, dtype=float)
+    if fitted and peak_flow_volume is None and len(t) > 1 and float(np.median(np.diff(t))) <= MAX_FRAME_STEP_S:
+        peak_flow_volume = (t, v)
     result = SessionValues()
     end_s = float(t[-1])
     ordered = sorted(events)
@@ -594,7 +597,7 @@ MAX_FRAME_STEP_S = 0.02
 # 10 %, not 8 %
 MAX_PEF_NOISE_RATIO_FRAMES = 0.05
 # The Gaussian smoothings (sigma, s) tried in turn on a blow's maps at every frame before its PEF is read on
-# them (_peak_flow_of_frames): on population subjects in the clinic world the maps' noise, 10-20 mL a map
+# them (peak_flow_of_frames): on population subjects in the clinic world the maps' noise, 10-20 mL a map
 # as at one map a cycle, is 25-36 % of the peak flow over a frame step unsmoothed. On our torso's blow
 # (scale 0.25, true lights, 50 mm of sway) each 5 ms takes 2-3 % off the PEF read, on population subject
 # 4's (lights from the sphere) 5 ms took 10 %, 10 ms 15 % of what the noise had added (docs/volume.md,
