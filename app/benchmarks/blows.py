@@ -63,7 +63,8 @@ def read_sampling(truth: ForcedValues, t_s: np.ndarray, volume_l: np.ndarray, ev
     ratio = pef_noise_ratio(t_s, volume_l, fitted.pef_lps)
     if not every_frame:
         return Reading(ratio, truth, straight, fitted, ratio <= MAX_PEF_NOISE_RATIO)
-    peak_flow_of_frames(straight, t_s, volume_l, float(t_s[0]), float(t_s[-1]), fitted.pef_lps)
+    # the analysis reads a lung volume, which falls as the blow exhales
+    peak_flow_of_frames(straight, t_s, -np.asarray(volume_l), float(t_s[0]), float(t_s[-1]), fitted.pef_lps)
     return Reading(ratio, truth, straight, fitted, straight.pef_noise_ratio <= MAX_PEF_NOISE_RATIO_FRAMES)
 
 

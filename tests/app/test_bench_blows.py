@@ -36,3 +36,17 @@ def test_the_bench_prints_its_bands_and_names_missing_waveforms(shared_data, tmp
     assert main(["bench", "blows", "--waveforms", str(tmp_path), "--no-write"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no standard waveforms" in err[0] and str(tmp_path) in err[0]
+
+
+def test_at_a_map_every_frame_the_pef_is_read_as_the_analysis_reads_maps_at_every_frame(shared_data, tmp_path):
+    """Three ATS waveforms, error-free and with 10 mL of noise a map, one map a frame: every error-free
+    PEF within 10 %, read unsmoothed; the noisy ones smoothed first, and those given within 10 % too."""
+    folder = tmp_path / "ATS24"
+    folder.mkdir()
+    for path in sorted((shared_data / "spirometry-waveforms" / "ATS24").glob("*.wf"))[:3]:
+        (folder / path.name).symlink_to(path)
+    rows = readings(tmp_path, [0.0, 0.010], phases=1, draws=1, seed=0, every_frame=True)
+    clean, noisy = rows[0::2], rows[1::2]
+    assert all(r.straight.pef_smoothing_s == 0.0 and r.given for r in clean)
+    assert all(r.straight.pef_smoothing_s > 0.0 for r in noisy)
+    assert all(within(r.straight.pef_lps, r.truth.pef_lps, 0.30, 0.10) for r in rows if r.given)
