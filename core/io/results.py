@@ -373,6 +373,10 @@ class ResultsWriter:
     def written_volume(self) -> tuple[np.ndarray, np.ndarray] | None:
         return (self.out["volume/timestamp_ns"][:], self.out["volume/volume_l"][:]) if "volume" in self.out else None
 
+    def written_peak_flow_volume(self) -> tuple[np.ndarray, np.ndarray] | None:
+        g = self.out.get("peak_flow_volume")
+        return None if g is None else (g["timestamp_ns"][:], g["volume_l"][:])
+
     def volume_parameters(self, values: dict) -> None:
         """The optical values beside the flow sensor's, as /volume's attributes parameter_*."""
         for key, value in values.items():

@@ -879,7 +879,8 @@ def _write_parameters(session_path: str | os.PathLike, results: ResultsWriter) -
     from core.analysis.session_analysis import analyse_session
 
     report = analyse_session(session_path, optical_volume=results.written_volume(),
-                             optical_flank=flank_figures(results.out.attrs))
+                             optical_flank=flank_figures(results.out.attrs),
+                             optical_peak_flow=results.written_peak_flow_volume())
     if report.optical is not None:
         results.volume_parameters(report.optical.parameters())
     if report.flow_sensor is not None:

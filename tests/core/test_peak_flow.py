@@ -138,7 +138,7 @@ def test_the_flow_noise_of_a_smoothed_curve_is_what_its_kernel_gives_white_noise
 def test_process_makes_maps_at_every_frame_through_the_blow_and_the_analysis_reads_its_pef(tmp_path):
     """One forced blow of our torso at scale 0.05, processed a map a cycle: /peak_flow_volume holds a map
     at every frame over the span about the blow's steepest fall, the session's own maps among them,
-    and the session's analysis reads the optical PEF on them."""
+    and the session's analysis reads the optical PEF on them, as did the values process stored."""
     session, results = tmp_path / "forced.h5", tmp_path / "results.h5"
     simulate(session, SimConfig(protocol="forced", scale=0.05, seed=2, blows=[ForcedBlow()], sway=Sway(0, 0, 0),
                                 truth_maps_at=[]))
@@ -151,6 +151,7 @@ def test_process_makes_maps_at_every_frame_through_the_blow_and_the_analysis_rea
         assert int(g.attrs["maps_back"]) == made
         assert np.isfinite(g["volume_l"][:]).all()
         session_maps = f["heads/front/timestamp_ns"][:] / 1e9
+        stored_pef_lps = float(f["volume"].attrs["parameter_PEF_lps"])  # the values process keeps
     assert summary.maps["front"] == len(session_maps)  # the session's own maps are as before
     steps = np.diff(t)
     assert steps.max() < 1.5 * FRAME_S and t[0] - a < 2 * FRAME_S and b - t[-1] < 2 * FRAME_S
@@ -158,3 +159,4 @@ def test_process_makes_maps_at_every_frame_through_the_blow_and_the_analysis_rea
     report = analyse_session(session, **optical_inputs(results))
     assert report.optical.forced.pef_step_s == pytest.approx(FRAME_S, rel=0.05)
     assert report.optical.forced.pef_lps == pytest.approx(report.truth.forced.pef_lps, rel=0.2)
+    assert stored_pef_lps == pytest.approx(report.optical.forced.pef_lps, rel=1e-9)
