@@ -66,6 +66,8 @@ def _check_volume(path: Path, f: h5py.File) -> None:
         _group_of_series(path, f["volume"], {"timestamp_ns": "i", "volume_l": "f"})
     if "flow_sensor" in f:
         _group_of_series(path, f["flow_sensor"], {"time_s": "f", "volume_l": "f"})
+    if "peak_flow_volume" in f:
+        _group_of_series(path, f["peak_flow_volume"], {"timestamp_ns": "i", "volume_l": "f"})
     if "metric_volume" in f:
         metric = f["metric_volume"]
         length = _group_of_series(path, metric, {"timestamp_ns": "i", "volume_l": "f"})

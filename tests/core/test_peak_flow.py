@@ -9,6 +9,7 @@ import pytest
 from scipy import ndimage
 
 from app.benchmarks.blows import CYCLE_S, FRAME_S, maps_of
+from app.cli import main
 from core.analysis.session_analysis import analyse_session
 from core.analysis.spirometry import forced_values
 from core.analysis.values import (MAX_PEF_NOISE_RATIO_FRAMES, PEAK_FLOW_REACH_S, PEAK_FLOW_SIGMAS_S,
@@ -135,7 +136,7 @@ def test_the_flow_noise_of_a_smoothed_curve_is_what_its_kernel_gives_white_noise
         assert np.std(np.diff(smoothed)) == pytest.approx(flow_noise_gain(sigma), rel=0.01)
 
 
-def test_process_makes_maps_at_every_frame_through_the_blow_and_the_analysis_reads_its_pef(tmp_path):
+def test_process_makes_maps_at_every_frame_through_the_blow_and_the_analysis_reads_its_pef(tmp_path, capsys):
     """One forced blow of our torso at scale 0.05, processed a map a cycle: /peak_flow_volume holds a map
     at every frame over the span about the blow's steepest fall, the session's own maps among them,
     and the session's analysis reads the optical PEF on them, as did the values process stored."""
@@ -160,3 +161,11 @@ def test_process_makes_maps_at_every_frame_through_the_blow_and_the_analysis_rea
     assert report.optical.forced.pef_step_s == pytest.approx(FRAME_S, rel=0.05)
     assert report.optical.forced.pef_lps == pytest.approx(report.truth.forced.pef_lps, rel=0.2)
     assert stored_pef_lps == pytest.approx(report.optical.forced.pef_lps, rel=1e-9)
+    # a results file whose maps at every frame were cut short: one line naming the file and the series
+    with h5py.File(results, "r+") as f:
+        volume = f["peak_flow_volume/volume_l"][:]
+        del f["peak_flow_volume/volume_l"]
+        f["peak_flow_volume/volume_l"] = volume[:-3]
+    assert main(["analyze", str(results)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(results) in err[0] and "/peak_flow_volume/volume_l has" in err[0], err
