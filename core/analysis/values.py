@@ -594,7 +594,7 @@ MAX_FRAME_STEP_S = 0.02
 # 0.30 L/s on 100 % of the samplings under 5 %, 97 % at 5-8 %, 73 % at 8-10 % (`photopft bench blows
 # --every-frame`). The maps are smoothed first as little as brings them under it (PEAK_FLOW_SIGMAS_S), and a
 # smoothing takes a share of the peak itself, so the bar is where the straight reading was always within
-# 10 %, not 8 %
+# 10 %, not 8 %. So read, the same samplings gave PEF on 1392 of 2220, 96 % of them within 10 % or 0.30 L/s
 MAX_PEF_NOISE_RATIO_FRAMES = 0.05
 # The Gaussian smoothings (sigma, s) tried in turn on a blow's maps at every frame before its PEF is read on
 # them (peak_flow_of_frames): on population subjects in the clinic world the maps' noise, 10-20 mL a map
