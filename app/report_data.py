@@ -16,7 +16,7 @@ from app.records import Patient, Records, ReportState
 from core.analysis.values import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.reconstruction.pipeline import ReconstructionSettings
 from core.reconstruction.process import maps_at, processed_distance_mm, processed_light_gains
-from core.io.results import ResultsFile, optical_flank, optical_refusal, optical_volume, session_of_results
+from core.io.results import ResultsFile, optical_inputs, optical_refusal, session_of_results
 from core.io.hdf5_probe import probe
 from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
                                  bronchodilator_statement, interpret)
@@ -168,15 +168,8 @@ def open_inputs(path: str | os.PathLike) -> tuple[Path, Path | None]:
     return session_of_results(path), path
 
 
-def _optical_curve(results: Path, start_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
-    volume = optical_volume(results)
-    return None if volume is None else ((volume[0] - start_ns) / 1e9, volume[1])
-
-
-def _peak_flow_curve(results: Path, start_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """The optical volume at every frame through the blows' peak flows (/peak_flow_volume), in s from start_ns."""
-    with ResultsFile(results) as r:
-        volume = r.peak_flow_volume()
+def _in_seconds(volume: tuple[np.ndarray, np.ndarray] | None, start_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """A (timestamp_ns, litres) curve of a results file in s from start_ns."""
     return None if volume is None else ((volume[0] - start_ns) / 1e9, volume[1])
 
 
@@ -433,12 +426,13 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
         subject = s.subject
         sources: dict[str, SessionValues] = {}
         curves: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        optical = _optical_curve(results_path, start) if results_path is not None else None
+        inputs = optical_inputs(results_path)
+        optical = _in_seconds(inputs.get("optical_volume"), start)
         if optical is not None:
             curves[OPTICAL] = optical
             analysed_optical = analyse_volume(*optical, events, subject.age_years if subject else None, fitted=True,
-                                              peak_flow_volume=_peak_flow_curve(results_path, start))
-            sources[OPTICAL] = withheld_for_flanks(analysed_optical, optical_flank(results_path))
+                                              peak_flow_volume=_in_seconds(inputs["optical_peak_flow"], start))
+            sources[OPTICAL] = withheld_for_flanks(analysed_optical, inputs["optical_flank"])
         elif results_path is not None and (refused := optical_refusal(results_path)):
             if analysed.flow_sensor is None:  # with one, the comparison with it says why (_compare), once
                 notes.append(f"Optical volume in litres: refused when the session was processed: {refused}.")

@@ -37,7 +37,7 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
     """optical_volume: (timestamp_ns, litres) on the session's clock, e.g. a results file's /volume;
     optical_flank: its (widening_per_l, flank_share) (core/io/results.py, optical_flank), which may
     withhold some of its values (core/volume/metric.py, withheld_for_flanks); optical_peak_flow:
-    (timestamp_ns, litres), its volume at every frame through the forced blows' tops (/peak_flow_volume),
+    (timestamp_ns, litres), its volume at every frame through the forced blows' peak flows (/peak_flow_volume),
     which its PEF is read from (analyse_volume). core.io.results.optical_inputs gives all three."""
     with SessionFile(path) as s:
         start = s.start_ns()

@@ -179,8 +179,8 @@ class ResultsFile:
         return None if g is None else (g["timestamp_ns"][:], g["followed"][:])
 
     def peak_flow_volume(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """/peak_flow_volume as (timestamp_ns, litres): the volume at every frame through the top of each
-        forced blow (ResultsWriter.peak_flow_volume), or None where `process` made none."""
+        """/peak_flow_volume as (timestamp_ns, litres): the volume at every frame through each forced blow's
+        peak flow (ResultsWriter.peak_flow_volume), or None where `process` made none."""
         g = self._f.get("peak_flow_volume")
         return None if g is None else (g["timestamp_ns"][:], g["volume_l"][:].astype(float))
 
@@ -234,12 +234,6 @@ def optical_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] 
     """A results file's /volume as (timestamp_ns, litres), or None if it has none."""
     with ResultsFile(results) as r:
         return r.volume()
-
-
-def optical_peak_flow_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
-    """A results file's /peak_flow_volume as (timestamp_ns, litres), or None if it has none."""
-    with ResultsFile(results) as r:
-        return r.peak_flow_volume()
 
 
 def optical_inputs(results: str | os.PathLike | None) -> dict:
@@ -332,10 +326,10 @@ class ResultsWriter:
 
     def peak_flow_volume(self, timestamp_ns: np.ndarray, volume_l: np.ndarray, spans_ns: list[tuple[int, int]],
                          maps: dict[str, int]) -> None:
-        """/peak_flow_volume: the metric volume at every frame (the first head's) through the top of each
-        forced blow, where its peak flow is (its attribute `spans_ns`, (start, end) pairs), on the same
-        reference maps and levels as /metric_volume but not its zero; `maps_<head>` the maps made for it
-        beside the session's."""
+        """/peak_flow_volume: the metric volume at every frame (the first head's) through each forced blow's
+        peak flow (its attribute `spans_ns`, (start, end) pairs), on the same reference maps and levels as
+        /metric_volume, a few mL off it at most (the session's level fitted with its maps too);
+        `maps_<head>` the maps made for it beside the session's."""
         g = self.out.create_group("peak_flow_volume")
         g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
         g.create_dataset("volume_l", data=np.asarray(volume_l, dtype=np.float64))

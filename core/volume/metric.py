@@ -551,19 +551,18 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
             return metric_head_volume_l(h.series("reference", region), h.current(region, session_level), side, target)
 
         whole = volume("all", False)
-        if levels_of is not None:
-            session = levels_of.get(name) == "the session's" and h.session_shifts_mm is not None
-            if session:
-                whole = volume("all", True)
+        session_whole = volume("all", True) if h.session_shifts_mm is not None else None
+        if session_whole is None:
+            session = False
+        elif levels_of is not None:
+            session = levels_of.get(name) == "the session's"
         else:
-            session = h.session_shifts_mm is not None and (
-                jump_share(h.timestamp_ns, whole)[0] > MAX_JUMP_SHARE or curve_noise_l(whole) > MAX_MAP_NOISE_L)
-        if session and levels_of is None:
-            session_whole = volume("all", True)
-            gain, lag = level_agreement(h.timestamp_ns, session_whole, whole)
-            session = abs(gain - 1.0) <= MAX_LEVEL_GAIN and abs(lag) <= MAX_LEVEL_LAG_S
+            session = jump_share(h.timestamp_ns, whole)[0] > MAX_JUMP_SHARE or curve_noise_l(whole) > MAX_MAP_NOISE_L
             if session:
-                whole = session_whole
+                gain, lag = level_agreement(h.timestamp_ns, session_whole, whole)
+                session = abs(gain - 1.0) <= MAX_LEVEL_GAIN and abs(lag) <= MAX_LEVEL_LAG_S
+        if session:
+            whole = session_whole
         levels[name] = "the session's" if session else "each map's own"
         per_head[name] = on_t(whole)
         for r in REGIONS:
