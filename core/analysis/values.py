@@ -536,10 +536,13 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         if fitted:
             fitted_pef_lps = m.pef_lps
             _peak_flow_read_straight(m, t[blow], v[blow])
-            if peak_flow_volume is not None:
-                peak_flow_of_frames(m, *peak_flow_volume, float(tw[i_fitted_top]), stop, fitted_pef_lps)
+        drawn = exhaled[: i_low + 1]
+        if fitted and peak_flow_volume is not None:
+            frames = peak_flow_of_frames(m, *peak_flow_volume, float(tw[i_fitted_top]), stop, fitted_pef_lps)
+            if frames is not None:
+                drawn = drawn_through_frames(drawn, float(tw[i_fitted_top]), *frames)
         blows.append(m)
-        result.forced_curves.append(exhaled[: i_low + 1])
+        result.forced_curves.append(drawn)
     if blows:
         result.forced = grade_session(blows, age_years)
         step = result.forced.pef_step_s
@@ -618,18 +621,19 @@ def flow_noise_gain(sigma_steps: float) -> float:
 
 
 def peak_flow_of_frames(m: ForcedValues, t_s: np.ndarray, volume_l: np.ndarray, top_s: float, end_s: float,
-                         fitted_pef_lps: float) -> None:
+                        fitted_pef_lps: float) -> tuple[np.ndarray, np.ndarray] | None:
     """Give a fitted blow (its top and the end it is read to, s) the PEF of its maps at every frame, where
     they hold its peak flow (at least PEAK_FLOW_MARGIN_S inside their span), are all there (no step over
     MAX_FRAME_STEP_S) and at least 10: read straight on them smoothed with the first of PEAK_FLOW_SIGMAS_S
     whose flow noise (flow_noise_gain times their noise, curve_noise_l, over the step) is at most
     MAX_PEF_NOISE_RATIO_FRAMES of the fitted PEF, else with the last; that ratio, the step and the
-    smoothing go with it. Else the blow keeps what it had."""
+    smoothing go with it. Returns the curve it was read on (s on an even grid at ANALYSIS_RATE_HZ,
+    litres); else None, and the blow keeps what it had."""
     t, v = np.asarray(t_s, dtype=float), np.asarray(volume_l, dtype=float)
     inside = (t >= top_s) & (t <= end_s)
     t, v = t[inside], v[inside]
     if len(t) < 10 or not np.isfinite(v).all() or np.diff(t).max() > MAX_FRAME_STEP_S:
-        return
+        return None
     step = float(np.median(np.diff(t)))
     noise_l = curve_noise_l(v)
     for sigma_s in PEAK_FLOW_SIGMAS_S:
@@ -643,11 +647,31 @@ def peak_flow_of_frames(m: ForcedValues, t_s: np.ndarray, volume_l: np.ndarray, 
     missed_before = t[0] > top_s + MAX_FRAME_STEP_S and grid[peak] < t[0] + PEAK_FLOW_MARGIN_S
     missed_after = t[-1] < end_s - MAX_FRAME_STEP_S and grid[peak] > t[-1] - PEAK_FLOW_MARGIN_S
     if missed_before or missed_after:
-        return
+        return None
     m.pef_lps = float(flow[peak])
     m.pef_noise_ratio = float(ratio)
     m.pef_step_s = step
     m.pef_smoothing_s = float(sigma_s)
+    return grid, straight
+
+
+def drawn_through_frames(exhaled_l: np.ndarray, start_s: float, frames_t_s: np.ndarray,
+                         frames_volume_l: np.ndarray) -> np.ndarray:
+    """A fitted blow's exhaled volume (at ANALYSIS_RATE_HZ from start_s) drawn through the maps at every
+    frame its PEF was read on (peak_flow_of_frames' curve), so that its flow-volume loop peaks at the PEF
+    given: inside their span the maps' exhaled volume, moved onto the fitted curve at both ends of the
+    span by an offset straight between them (the two differ by the noise the fit takes out)."""
+    t = start_s + np.arange(len(exhaled_l)) / ANALYSIS_RATE_HZ
+    inside = (t >= frames_t_s[0]) & (t <= frames_t_s[-1])
+    if inside.sum() < 2:
+        return exhaled_l
+    frames = -np.interp(t[inside], frames_t_s, frames_volume_l)  # exhaled, up to the constant the offset sets
+    first, last = np.nonzero(inside)[0][[0, -1]]
+    offset_first, offset_last = exhaled_l[first] - frames[0], exhaled_l[last] - frames[-1]
+    share = (t[inside] - t[first]) / max(t[last] - t[first], 1e-12)
+    out = np.array(exhaled_l, dtype=float)
+    out[inside] = frames + offset_first + share * (offset_last - offset_first)
+    return out
 
 
 def pef_noise_ratio(t_s: np.ndarray, volume_l: np.ndarray, pef_lps: float) -> float:

@@ -17,7 +17,7 @@ from core.reconstruction.ambient import FlickerCorrection
 from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.reconstruction.drift import light_gains_over_time
-from core.analysis.values import peak_flow_spans_s
+from core.analysis.values import PEAK_FLOW_REACH_S, peak_flow_spans_s
 from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, on_maps_shown,
                                 side_targets, tidal_compartments)
 from core.reconstruction.photometric import CycleWindow, complete_cycles
@@ -430,6 +430,15 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 survey = {name: _survey_windows(complete[name], rig.frame_rate_hz) for name in names}
                 survey_windows = sum(len(w) for w in survey.values())
                 total_windows += 2 * survey_windows  # the photometric survey, the lights' outputs
+            # the maps at every frame through each forced blow's peak flow (_peak_flow_pass), as many as it
+            # will make if the session's volume is given: each head's reference again and the frames of the
+            # span that the session's maps leave out
+            peak_flow_windows = 0
+            if volume_calibration is None and every == rig.cycle_length:
+                blows = sum(1 for _, label in session.events() if label == "forced-start")
+                span_frames = 2 * PEAK_FLOW_REACH_S * rig.frame_rate_hz * (1 - 1 / rig.cycle_length)
+                peak_flow_windows = blows * len(names) * (1 + int(round(span_frames)))
+                total_windows += peak_flow_windows
             if workers is None:
                 work = sum(len(plans[n]) * stream_heads[n].width * stream_heads[n].height for n in names)
                 workers = (os.cpu_count() or 1) if work >= AUTO_WORKERS_PIXEL_MAPS else 1
@@ -487,6 +496,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 out_of_view[name] = result.side_out_of_view_share
                 sheen[name] = float(np.nanmedian(result.sheen)) if np.isfinite(result.sheen).any() else float("nan")
                 areas[name] = trunk_area_m2(result.valid_pixels, result.distance_mm, stream_heads[name])
+            done_before += pass_windows
             tilts = paired_tilts(*profiles.values()) if len(profiles) == 2 and geometric else np.zeros(0)
             if np.isfinite(tilts).any():
                 results.attr("sides_tilt", float(np.nanmedian(tilts)))
@@ -509,7 +519,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 results.refuse_optical(refused)
             in_view = metric is not None and np.isfinite(metric.volume_l).all()  # a trunk in every head's view
             if in_view and volume_calibration is None and every == rig.cycle_length:
-                _peak_flow_pass(results, session, {job.name: job for job in jobs}, made, complete, metric, pool)
+                _peak_flow_pass(results, session, {job.name: job for job in jobs}, made, complete, metric, pool,
+                                lambda f: overall(f, peak_flow_windows))
             if in_view:
                 compartments = tidal_compartments(session, metric)
                 first = next(iter(displacements))
@@ -526,6 +537,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             elif in_view:
                 results.volume(metric.timestamp_ns, metric.volume_l, METRIC_METHOD + metric.scale_from)
             _write_parameters(session_path, results)
+    if progress is not None:
+        progress(1.0)
     return ProcessSummary(Path(output), counts, time.perf_counter() - started, distances, refused, offsets,
                           distance_refused, sheen)
 
@@ -540,14 +553,14 @@ PEAK_FLOW_SMOOTHING_S = 0.0
 
 def _peak_flow_pass(results: ResultsWriter, session: SessionFile, jobs: dict[str, "_HeadJob"],
                     made: dict[str, "_HeadResult"], complete: dict[str, list[CycleWindow]], metric: MetricVolume,
-                    workers: "_HeadWorkers") -> None:
+                    workers: "_HeadWorkers", progress: Callable[[float], None]) -> None:
     """/peak_flow_volume: maps at every frame through each forced blow's peak flow (peak_flow_spans_s on
     the session's volume), beside the session's maps, and the metric volume of the two together there,
     unsmoothed (PEAK_FLOW_SMOOTHING_S). Error-free, one map a light cycle reads PEF within 10 % on 78 %
     of the standard waveforms, one map a frame on 95 %; with 0-35 mL of noise a map, as the analysis
     reads them, 92 % and 96 % of those it gives (docs/volume.md, "Peak flow"). Each head's new maps
     follow its reference map (made again first), distances and lights' outputs as the session's maps
-    have them; the volume takes the levels /metric_volume took."""
+    have them; the volume takes the levels /metric_volume took. `progress` gets the share of its maps made."""
     t0 = int(metric.timestamp_ns[0])
     events = [((int(ts) - t0) / 1e9, label) for ts, label in session.events()]
     spans_s = peak_flow_spans_s((metric.timestamp_ns - t0) / 1e9, metric.volume_l, events)
@@ -577,7 +590,7 @@ def _peak_flow_pass(results: ResultsWriter, session: SessionFile, jobs: dict[str
         new_jobs[name] = replace(job, windows=windows, maps_at=(), distances_mm=along(job.distances_mm),
                                  profile_every=0, light_gains=along(job.light_gains))
     heads = {}
-    for r in workers.run(list(new_jobs.values()), lambda f: None):
+    for r in workers.run(list(new_jobs.values()), progress):
         main = made[r.name]
         t = np.concatenate([main.timestamp_ns, r.timestamp_ns[1:]])
         sums = list(main.sums) + list(r.sums[1:])

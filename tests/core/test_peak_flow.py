@@ -12,7 +12,7 @@ from app.benchmarks.blows import CYCLE_S, FRAME_S, maps_of
 from app.cli import main
 from core.analysis.session_analysis import analyse_session
 from core.analysis.spirometry import forced_values
-from core.analysis.values import (MAX_PEF_NOISE_RATIO_FRAMES, PEAK_FLOW_REACH_S, PEAK_FLOW_SIGMAS_S,
+from core.analysis.values import (ANALYSIS_RATE_HZ, MAX_PEF_NOISE_RATIO_FRAMES, PEAK_FLOW_REACH_S, PEAK_FLOW_SIGMAS_S,
                                   analyse_volume, flow_noise_gain, peak_flow_spans_s)
 from core.io.results import optical_inputs
 from core.reconstruction.process import process_session
@@ -93,6 +93,29 @@ def test_a_blows_pef_is_read_on_its_maps_at_every_frame_where_they_hold_its_peak
     assert max(np.abs(errors_frames)) < 0.045 and np.ptp(errors_frames) < 0.005
 
 
+def test_a_blow_read_on_its_maps_at_every_frame_is_drawn_through_them_and_its_loop_peaks_at_its_pef():
+    """The report's flow-volume loop is drawn from forced_curves: read on maps at every frame, a blow's curve
+    runs through them, so its flow peaks at the PEF given (within 1 %; the fitted curve alone peaks 3 %
+    lower); outside their span it is the fitted curve, and its end (FVC) is where it was."""
+    t, volume, events, true_pef = _blow()
+    tc, vc = _sampled(t, volume, CYCLE_S, 0.0)
+    (a, b), = peak_flow_spans_s(tc, vc, events)
+    tf, vf = _sampled(t, volume, FRAME_S, 0.0)
+    inside = (tf >= a) & (tf <= b)
+    per_cycle = analyse_volume(tc, vc, events, fitted=True)
+    per_frame = analyse_volume(tc, vc, events, fitted=True, peak_flow_volume=(tf[inside], vf[inside]))
+    fitted, drawn = per_cycle.forced_curves[0], per_frame.forced_curves[0]
+    pef = per_frame.forced.manoeuvres[0].pef_lps
+    drawn_peak = float(np.gradient(drawn, 1.0 / ANALYSIS_RATE_HZ).max())
+    assert drawn_peak == pytest.approx(pef, rel=0.01)
+    assert float(np.gradient(fitted, 1.0 / ANALYSIS_RATE_HZ).max()) < 0.98 * pef
+    assert len(drawn) == len(fitted) and drawn[-1] == fitted[-1]
+    changed = np.nonzero(drawn != fitted)[0]
+    assert (len(changed) / ANALYSIS_RATE_HZ) <= b - a + 0.01
+    step_at_seams = np.abs(np.diff(drawn))[[changed[0] - 1, changed[-1]]]
+    assert step_at_seams.max() < pef / ANALYSIS_RATE_HZ  # no jump where the maps join the fitted curve
+
+
 def test_maps_at_every_frame_that_miss_the_peak_or_hold_a_gap_leave_the_blow_its_map_a_cycle():
     t, volume, events, _ = _blow()
     tc, vc = _sampled(t, volume, CYCLE_S, 0.3 * CYCLE_S)
@@ -139,17 +162,22 @@ def test_the_flow_noise_of_a_smoothed_curve_is_what_its_kernel_gives_white_noise
 def test_process_makes_maps_at_every_frame_through_the_blow_and_the_analysis_reads_its_pef(tmp_path, capsys):
     """One forced blow of our torso at scale 0.05, processed a map a cycle: /peak_flow_volume holds a map
     at every frame over the span about the blow's steepest fall, the session's own maps among them,
-    and the session's analysis reads the optical PEF on them, as did the values process stored."""
+    and the session's analysis reads the optical PEF on them, as did the values process stored. The
+    progress counts those maps: it rises through them to its end, not to its end before them."""
     session, results = tmp_path / "forced.h5", tmp_path / "results.h5"
     simulate(session, SimConfig(protocol="forced", scale=0.05, seed=2, blows=[ForcedBlow()], sway=Sway(0, 0, 0),
                                 truth_maps_at=[]))
-    summary = process_session(session, results)
+    shares: list[float] = []
+    summary = process_session(session, results, progress=shares.append)
+    assert shares[-1] == 1.0 and np.all(np.diff(shares) >= 0)
     with h5py.File(results) as f:
         g = f["peak_flow_volume"]
         t = g["timestamp_ns"][:] / 1e9
         (a, b), = g.attrs["spans_ns"] / 1e9
         made = int(g.attrs["maps_front"])
         assert int(g.attrs["maps_back"]) == made
+        pass_ticks = 2 * (made + 1)  # each head's reference again and its new maps; then the end
+        assert shares[-pass_ticks - 2] == pytest.approx(1 - pass_ticks / (len(shares) - 1), abs=0.01)
         assert np.isfinite(g["volume_l"][:]).all()
         session_maps = f["heads/front/timestamp_ns"][:] / 1e9
         stored_pef_lps = float(f["volume"].attrs["parameter_PEF_lps"])  # the values process keeps
