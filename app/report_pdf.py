@@ -292,8 +292,9 @@ def _loops(data: ReportData, styles, width: float) -> list:
                      f"exhaled volume (L), {name}", "expiratory flow (L/s)", v_range, f_range)
         plot.translate(k * (half + 8), 0)
         drawing.add(plot)
-    return [Paragraph("Flow-volume loops: flow sensor (left) and optical method (right), best blows, same axes",
-                      styles["small"]), drawing]
+    # the caption stays with its loops (it fell at a page's foot with the loops over the page)
+    return [KeepTogether([Paragraph("Flow-volume loops: flow sensor (left) and optical method (right), best blows, "
+                                    "same axes", styles["small"]), drawing])]
 
 
 def _bronchodilator(data: ReportData, styles, width: float) -> list:
