@@ -517,8 +517,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         if blow.sum() < 20:
             continue
         note_missing("forced expiration", a, a - 2.0, b + 0.5)
-        if np.any((missing_t >= t[i_top]) & (missing_t <= t[i_top] + PEAK_FLOW_WITHIN_S)):
-            peak_missing.append(a)
+        missing_near_peak = bool(np.any((missing_t >= t[i_top]) & (missing_t <= t[i_top] + PEAK_FLOW_WITHIN_S)))
         if fitted:
             # The top, too, is read on the fitted curve: the largest sample is the noise's largest.
             tw, vw = smoothed_on_grid(t[before | blow], v[before | blow], ANALYSIS_RATE_HZ)
@@ -536,11 +535,13 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         if fitted:
             fitted_pef_lps = m.pef_lps
             _peak_flow_read_straight(m, t[blow], v[blow])
-        drawn = exhaled[: i_low + 1]
+        drawn, frames = exhaled[: i_low + 1], None
         if fitted and peak_flow_volume is not None:
             frames = peak_flow_of_frames(m, *peak_flow_volume, float(tw[i_fitted_top]), stop, fitted_pef_lps)
             if frames is not None:
                 drawn = drawn_through_frames(drawn, float(tw[i_fitted_top]), *frames)
+        if missing_near_peak and frames is None:  # maps at every frame that hold the peak need no other
+            peak_missing.append(a)
         blows.append(m)
         result.forced_curves.append(drawn)
     if blows:

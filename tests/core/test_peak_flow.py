@@ -131,6 +131,25 @@ def test_maps_at_every_frame_that_miss_the_peak_or_hold_a_gap_leave_the_blow_its
     assert np.isnan(read.pef_step_s) and read.pef_lps == per_cycle
 
 
+def test_a_map_a_cycle_missing_outside_the_span_leaves_the_pef_its_maps_at_every_frame_hold():
+    """A map of the session's missing within PEAK_FLOW_WITHIN_S of the blow's top refuses its PEF at one map a
+    cycle (the peak may lie there); where the maps at every frame hold the peak with none missing, one
+    missing between the top and their span takes nothing from it."""
+    t, volume, events, true_pef = _blow()
+    tc, vc = _sampled(t, volume, CYCLE_S, 0.0)
+    (a, b), = peak_flow_spans_s(tc, vc, events)
+    tf, vf = _sampled(t, volume, FRAME_S, 0.0)
+    inside = (tf >= a) & (tf <= b)
+    before = int(np.nonzero(tc < a - 0.01)[0][-1])  # the last map a cycle before the span: after the top
+    holed = vc.copy()
+    holed[before] = np.nan
+    per_cycle = analyse_volume(tc, holed, events, fitted=True)
+    assert per_cycle.pef_refused is not None and "a map is missing" in per_cycle.pef_refused
+    per_frame = analyse_volume(tc, holed, events, fitted=True, peak_flow_volume=(tf[inside], vf[inside]))
+    assert per_frame.pef_refused is None and per_frame.forced.pef_step_s == pytest.approx(FRAME_S, rel=1e-3)
+    assert abs(per_frame.forced.pef_lps / true_pef - 1) < 0.05
+
+
 def test_noisy_maps_at_every_frame_are_smoothed_as_little_as_their_noise_allows_and_refused_past_it():
     """10 mL of white noise a map (a flow noise of 15 % of this blow's peak over a frame step): smoothed
     over the least sigma that brings it under MAX_PEF_NOISE_RATIO_FRAMES, and read within 10 %. 100 mL:
