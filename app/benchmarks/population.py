@@ -11,6 +11,8 @@ analysed. The truth is read only to compare.
 
 from __future__ import annotations
 
+import functools
+
 import json
 import os
 import tempfile
@@ -539,12 +541,17 @@ def _run_job(job: tuple) -> dict:
     return row
 
 
+@functools.cache
 def source_commit() -> str:
-    """The checkout's commit the subject was run with (kept rows may come from several)."""
+    """The checkout's commit the subject was run with (kept rows may come from several), "-dirty" after it
+    where the checkout had changes. Read once a process, when it first runs a subject and imports the code:
+    a worker keeps the code it loaded, and the checkout read at each row's end named commits made while a
+    long run went on (2026-12-02: rows labelled with two later commits ran the code of the run's start)."""
     import subprocess
 
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).resolve().parents[2],
+        return subprocess.run(["git", "describe", "--always", "--dirty", "--abbrev=7"],
+                              cwd=Path(__file__).resolve().parents[2],
                               capture_output=True, text=True, timeout=10).stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
