@@ -27,10 +27,6 @@ MIN_LIGHT_GAIN_READINGS = 5
 # lights drifting by 2 % on a 3-minute sine and 3.6 % a minute, 5 s followed them within 0.25 % rms, 10 s
 # 0.22 %, 15 s 0.20 %, 20 s 0.23 %, 30 s 0.40 % (the curve's bend; scratch, 2026-12-02)
 LIVE_LIGHT_GAIN_SMOOTHING_S = 15.0
-# The live view looks at a map every 2 s while a trunk is in view at the heads' distance: no look for this
-# long is a subject gone (or another come), whose skin and place read the lights a few per cent otherwise
-# (on population subject 4 the readings stood 2-4.5 % off the calibration): the level is taken again
-RELEVEL_GAP_S = 10.0
 
 
 def light_gains_over_time(t_s: np.ndarray, gains: np.ndarray, at_s: np.ndarray,
@@ -76,8 +72,7 @@ class FollowedLightGains:
     gives each light's output at an instant over what it was at the first readings, when the stream's
     first maps (the live volume's reference) were made: a line fitted about the instant with Gaussian
     weights of LIVE_LIGHT_GAIN_SMOOTHING_S over the readings so far, those LIGHT_GAIN_OUTLIER robust deviations
-    from their neighbours' median left out. Ones until MIN_LIGHT_GAIN_READINGS readings have come, and again
-    after a gap of RELEVEL_GAP_S without one."""
+    from their neighbours' median left out. Ones until MIN_LIGHT_GAIN_READINGS readings have come."""
 
     def __init__(self, sigma_s: float = LIVE_LIGHT_GAIN_SMOOTHING_S) -> None:
         self.sigma_s = sigma_s
@@ -91,8 +86,6 @@ class FollowedLightGains:
             return
         if self._t and t_s < self._t[-1]:  # a replay moved back: its readings start afresh, the level stays
             self._t, self._log_gain = [], []
-        elif self._t and t_s - self._t[-1] > RELEVEL_GAP_S:  # a subject gone: the level is taken again
-            self._t, self._log_gain, self._level = [], [], None
         self._t.append(float(t_s))
         self._log_gain.append(np.log(gain))
         if self._level is None and len(self._t) >= MIN_LIGHT_GAIN_READINGS:
