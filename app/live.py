@@ -23,7 +23,6 @@ import numpy as np
 from core.reconstruction.ambient import FLICKER_WINDOW_S, FlickerCorrection
 from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
-from core.reconstruction.drift import FollowedLightGains
 from core.reconstruction.live_checks import LiveOpticalChecks
 from core.volume.flow_sensor import btps_factor
 from core.volume.metric import LiveMetricVolume
@@ -702,7 +701,6 @@ class LiveRig:
         # the DCTs of two heads running at once on all of them oversubscribed the cores
         use_threads((os.cpu_count() or 1) // len(self._live_heads))
         reconstructor = HeadReconstructor(self._live_heads[head], None, self.settings)
-        gains = FollowedLightGains()  # the LEDs' drift, followed from the looks' redundancy (as `process` does)
         done_id = -1
         condition = self._new_frame[head]
         max_value = self.rig.heads[head].max_value
@@ -753,7 +751,7 @@ class LiveRig:
                                          result.silhouette) if t_s is not None
                       else float("nan"))
             if geometric is not None and t_s is not None and result.mask.any() and self._checks.due(head, t_s):
-                self._look(head, t_s, result, reconstructor, (signal, saturated), gains)
+                self._look(head, t_s, result, reconstructor, (signal, saturated))
             view = self._views[head]
             with self._lock:
                 view.height_mm = height
@@ -769,22 +767,18 @@ class LiveRig:
                         self._checks.add_volumes(t_s, litres, self._metric.top_referred_l(),
                                                  self._metric.silhouette_sample())
 
-    def _look(self, head: str, t_s: float, result: HeadMap, reconstructor: HeadReconstructor, cycle: tuple,
-              gains: FollowedLightGains) -> None:
+    def _look(self, head: str, t_s: float, result: HeadMap, reconstructor: HeadReconstructor, cycle: tuple) -> None:
         """What `process` checks on a map made at the geometric distance: its sides along the height
-        and its sheen; and the lights' outputs it reads, which the head's next maps are solved with
-        (core/reconstruction/drift.py)."""
+        and its sheen."""
         try:
             profile = side_profile_mm(result.depth_mm, result.mask, result.silhouette, self._live_heads[head])
-            redundancy = reconstructor.redundancy(*cycle, result)
+            sheen = reconstructor.sheen(*cycle, result)
         except Exception as exc:  # said once; the checks go without this look, the live view goes on
             self._problem(f"{head}: the optical volume's checks failed: {exc}")
             return
         self._checks.add_profile(head, t_s, profile)
-        if np.isfinite(redundancy.sheen):
-            self._checks.add_sheen(head, t_s, redundancy.sheen)
-        gains.add(t_s, redundancy.light_gain, reconstructor.intensity_factors)
-        reconstructor.intensity_factors = gains.factors(t_s)
+        if np.isfinite(sheen):
+            self._checks.add_sheen(head, t_s, sheen)
 
     def _problem(self, message: str) -> None:
         log.warning(message)

@@ -22,11 +22,6 @@ LIGHT_GAIN_SMOOTHING_S = 5.0
 # a cycle's reading this many robust deviations from its neighbours' median is not taken
 LIGHT_GAIN_OUTLIER = 4.0
 MIN_LIGHT_GAIN_READINGS = 5
-# The live view reads the lights every LOOK_INTERVAL_S (2 s, core/reconstruction/live_checks.py) and has only
-# the readings so far: a line through them weighted over this sigma. On readings with 0.2 % of noise of
-# lights drifting by 2 % on a 3-minute sine and 3.6 % a minute, 5 s followed them within 0.25 % rms, 10 s
-# 0.22 %, 15 s 0.20 %, 20 s 0.23 %, 30 s 0.40 % (the curve's bend; scratch, 2026-12-02)
-LIVE_LIGHT_GAIN_SMOOTHING_S = 15.0
 
 
 def light_gains_over_time(t_s: np.ndarray, gains: np.ndarray, at_s: np.ndarray,
@@ -42,7 +37,13 @@ def light_gains_over_time(t_s: np.ndarray, gains: np.ndarray, at_s: np.ndarray,
         good = np.isfinite(log_gain[:, k])
         if good.sum() < MIN_LIGHT_GAIN_READINGS:
             continue
-        tk, gk = _without_outliers(t[good], log_gain[good, k], sigma_s)
+        tk, gk = t[good], log_gain[good, k]
+        near = np.abs(tk[:, None] - tk[None, :]) <= sigma_s
+        local = np.array([np.median(gk[row]) for row in near])
+        deviation = np.abs(gk - local)
+        spread = 1.4826 * np.median(deviation)
+        keep = deviation <= LIGHT_GAIN_OUTLIER * spread if spread > 0 else np.ones(len(gk), bool)
+        tk, gk = tk[keep], gk[keep]
         out[:, k] = _smoothed(np.asarray(at_s, float), tk, gk, sigma_s) - np.median(_smoothed(tk, tk, gk, sigma_s))
     return np.exp(out)
 
@@ -63,53 +64,3 @@ def _smoothed(at_s: np.ndarray, t_s: np.ndarray, values: np.ndarray, sigma_s: fl
     with np.errstate(divide="ignore", invalid="ignore"):
         line = (s2 * t0 - s1 * t1) / determinant
     return np.where(flat, t0 / np.maximum(s0, 1e-300), line)
-
-
-class FollowedLightGains:
-    """The lights' outputs followed as a stream comes in (the live view), where `process` fits them over
-    the whole session (light_gains_over_time). `add` takes a cycle's redundancy reading of each light's
-    output (reflectance.RedundancyFit.light_gain) with the factors the cycle was solved with; `factors`
-    gives each light's output at an instant over what it was at the first readings, when the stream's
-    first maps (the live volume's reference) were made: a line fitted about the instant with Gaussian
-    weights of LIVE_LIGHT_GAIN_SMOOTHING_S over the readings so far, those LIGHT_GAIN_OUTLIER robust deviations
-    from their neighbours' median left out. Ones until MIN_LIGHT_GAIN_READINGS readings have come."""
-
-    def __init__(self, sigma_s: float = LIVE_LIGHT_GAIN_SMOOTHING_S) -> None:
-        self.sigma_s = sigma_s
-        self._t: list[float] = []
-        self._log_gain: list[np.ndarray] = []
-        self._level: np.ndarray | None = None  # each light's log output at the first readings
-
-    def add(self, t_s: float, light_gain: np.ndarray, solved_with: np.ndarray | None) -> None:
-        gain = np.asarray(light_gain, dtype=float) * (1.0 if solved_with is None else np.asarray(solved_with, float))
-        if not np.all(np.isfinite(gain)) or np.any(gain <= 0):
-            return
-        if self._t and t_s < self._t[-1]:  # a replay moved back: its readings start afresh, the level stays
-            self._t, self._log_gain = [], []
-        self._t.append(float(t_s))
-        self._log_gain.append(np.log(gain))
-        if self._level is None and len(self._t) >= MIN_LIGHT_GAIN_READINGS:
-            self._level = np.median(np.array(self._log_gain), axis=0)
-        if self._level is not None:  # a reading 4 sigma back weighs 3e-4 of the newest: the rest are kept
-            while len(self._t) > MIN_LIGHT_GAIN_READINGS and self._t[0] < t_s - 4.0 * self.sigma_s:
-                del self._t[0], self._log_gain[0]
-
-    def factors(self, t_s: float) -> np.ndarray:
-        if self._level is None or not self._t:
-            return np.ones(4)
-        t, log_gain = np.array(self._t), np.array(self._log_gain)
-        out = np.zeros(log_gain.shape[1])
-        for k in range(log_gain.shape[1]):
-            tk, gk = _without_outliers(t, log_gain[:, k], self.sigma_s)
-            out[k] = _smoothed(np.array([float(t_s)]), tk, gk, self.sigma_s)[0] - self._level[k]
-        return np.exp(out)
-
-
-def _without_outliers(t_s: np.ndarray, values: np.ndarray, sigma_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """The readings within LIGHT_GAIN_OUTLIER robust deviations of their neighbours' (within sigma_s) median."""
-    near = np.abs(t_s[:, None] - t_s[None, :]) <= sigma_s
-    local = np.array([np.median(values[row]) for row in near])
-    deviation = np.abs(values - local)
-    spread = 1.4826 * np.median(deviation)
-    keep = deviation <= LIGHT_GAIN_OUTLIER * spread if spread > 0 else np.ones(len(values), bool)
-    return t_s[keep], values[keep]
