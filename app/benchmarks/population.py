@@ -12,7 +12,6 @@ analysed. The truth is read only to compare.
 from __future__ import annotations
 
 import functools
-
 import json
 import os
 import tempfile

@@ -434,7 +434,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             # will make if the session's volume is given: each head's reference again and the frames of the
             # span that the session's maps leave out
             peak_flow_windows = 0
-            if volume_calibration is None and every == rig.cycle_length:
+            dense_peak_flow = volume_calibration is None and every == rig.cycle_length
+            if dense_peak_flow:
                 blows = sum(1 for _, label in session.events() if label == "forced-start")
                 span_frames = 2 * PEAK_FLOW_REACH_S * rig.frame_rate_hz * (1 - 1 / rig.cycle_length)
                 peak_flow_windows = blows * len(names) * (1 + int(round(span_frames)))
@@ -518,7 +519,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 metric = None
                 results.refuse_optical(refused)
             in_view = metric is not None and np.isfinite(metric.volume_l).all()  # a trunk in every head's view
-            if in_view and volume_calibration is None and every == rig.cycle_length:
+            if in_view and dense_peak_flow:
                 _peak_flow_pass(results, session, {job.name: job for job in jobs}, made, complete, metric, pool,
                                 lambda f: overall(f, peak_flow_windows))
             if in_view:
