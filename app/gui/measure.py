@@ -33,12 +33,15 @@ class LiveFigures:
 
 
 def measure_live_view(window, seconds: float, record_to: Path | None = None, subject=None,
-                      kind: str = "simulation", first_maps_timeout_s: float = 300.0, warmup_s: float = 0.0) -> LiveFigures:
+                      kind: str = "simulation", first_maps_timeout_s: float = 300.0, warmup_s: float = 0.0,
+                      until_every_head_maps_s: float = 0.0) -> LiveFigures:
     """Run an event loop of its own until every head has a map (a cold numba cache compiles first),
     then for `warmup_s` more (the live view before a recording, as while the operator positions
     the patient: the engine's buffers and the drawing reach their working size), then measure for
-    `seconds` (recording into `record_to` when given, with a tidal-start event), stop the
-    recording, close the window and return the figures."""
+    `seconds` (recording into `record_to` when given, with a tidal-start event), and up to
+    `until_every_head_maps_s` longer until every head has made a map within the measurement (a short
+    window on a loaded machine may see none from a head that makes one every second or two), stop
+    the recording, close the window and return the figures."""
     from PySide6.QtCore import QEventLoop, QTimer
 
     waited = time.monotonic()
@@ -78,7 +81,15 @@ def measure_live_view(window, seconds: float, record_to: Path | None = None, sub
         sample.start(10000)
         QTimer.singleShot(int(seconds * 1000), end)
 
+    def every_head_mapped() -> bool:
+        heads = window.engine.snapshot().heads
+        return all(v.reconstructed > start["maps"][h] for h, v in heads.items())
+
     def end() -> None:
+        if (not window.engine.stopped and not every_head_mapped()
+                and time.monotonic() - start["t"] < seconds + until_every_head_maps_s):
+            QTimer.singleShot(200, end)
+            return
         sample.stop()
         elapsed = time.monotonic() - start["t"]
         heads = window.engine.snapshot().heads
