@@ -404,6 +404,32 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                         f"World: {args.world} ({_world_words(args.world)}).\n\n{text}")
 
     vol.set_defaults(run=run_volume)
+    sc = what.add_parser("scales", help="the metric volume's slope on the truth, one session rendered at several "
+                                        "of the camera's scales")
+    sc.add_argument("--bodies", default="torso,average-man,random-1004",
+                    help="torso (our own) or bodies as simulate --body names them, comma-separated")
+    sc.add_argument("--scales", default="0.25,0.5,1")
+    sc.add_argument("--protocol", choices=("tidal", "vc", "forced", "full", "short"), default="vc",
+                    help="the simulated protocol (simulate --protocol)")
+    sc.add_argument("--seconds", type=positive, default=None, help="the protocol's length (default: its own)")
+    sc.add_argument("--seed", type=int, default=1)
+    sc.add_argument("--world", choices=WORLD_NAMES, default="ideal", help="realism of the simulated rig")
+    sc.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_scales(args: argparse.Namespace) -> int:
+        from app.benchmarks.scales import run_scales_bench
+
+        scales = tuple(positive(s) for s in args.scales.split(","))
+        text = run_scales_bench(tuple(args.bodies.split(",")), scales, args.protocol, args.seconds, args.seed,
+                                args.world)
+        section = "scales" if args.world == "ideal" else f"scales-{args.world}"
+        command = " ".join(f"--{k} {v}" for k, v in (("bodies", args.bodies), ("scales", args.scales),
+                                                     ("protocol", args.protocol), ("seconds", args.seconds),
+                                                     ("seed", args.seed), ("world", args.world)) if v is not None)
+        return _publish(args, section, f"Scales (`photopft bench scales {command}`)",
+                        f"World: {args.world} ({_world_words(args.world)}).\n\n{text}")
+
+    sc.set_defaults(run=run_scales)
     pr = what.add_parser("process", help="the whole `photopft process` at the camera's resolution, against real time")
     pr.add_argument("--seconds", type=positive, default=2.0)
     pr.add_argument("--scale", type=positive, default=1.0)

@@ -51,7 +51,7 @@ def _gradient_correlations(session: Path, results: Path) -> dict[str, float]:
         return gradient_volume_correlations(series, truth["timestamp_ns"][:], truth["volume_l"][:])
 
 
-def _metric_against_truth(session: Path, results: Path) -> dict[str, float]:
+def metric_against_truth(session: Path, results: Path) -> dict[str, float]:
     """The metric volume against the true volume: r, and the slope and rms of its difference in litres."""
     with ResultsFile(results) as r, SessionFile(session) as s:
         t, volume = r.metric_volume()
@@ -91,7 +91,7 @@ def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ..
             truth = report.truth.parameters()
             flow = report.flow_sensor.parameters() if report.flow_sensor is not None else {}
             rows.append((scenario, truth, flow, report.optical.parameters(), _gradient_correlations(session, results),
-                         _metric_against_truth(session, results), report.optical.problems))
+                         metric_against_truth(session, results), report.optical.problems))
     lines = [f"Simulated subjects (full protocol, {seconds:g} s, scale {scale:g}, 12-bit camera with shot and read "
              "noise, axial sway as given plus 15 mm lateral and 3 mm vertical), both heads at the distance given; "
              f"`photopft process` every {every}{'nd' if every == 2 else 'th'} cycle window (maps at "
