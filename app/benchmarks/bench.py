@@ -417,11 +417,18 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     sc.add_argument("--no-write", action="store_true", help="print only")
 
     def run_scales(args: argparse.Namespace) -> int:
-        from app.benchmarks.scales import run_scales_bench
+        from app.benchmarks.scales import named_body, run_scales_bench
+        from app.errors import UserError
 
-        scales = tuple(positive(s) for s in args.scales.split(","))
-        text = run_scales_bench(tuple(args.bodies.split(",")), scales, args.protocol, args.seconds, args.seed,
-                                args.world)
+        try:  # each name and scale checked before the first body's minutes of rendering
+            scales = tuple(positive(s) for s in args.scales.split(","))
+            bodies = tuple(args.bodies.split(","))
+            for body in bodies:
+                if body != "torso":
+                    named_body(body, args.seed)
+        except (argparse.ArgumentTypeError, ValueError) as exc:
+            raise UserError(f"--scales {args.scales} --bodies {args.bodies}: {exc}") from exc
+        text = run_scales_bench(bodies, scales, args.protocol, args.seconds, args.seed, args.world)
         section = "scales" if args.world == "ideal" else f"scales-{args.world}"
         command = " ".join(f"--{k} {v}" for k, v in (("bodies", args.bodies), ("scales", args.scales),
                                                      ("protocol", args.protocol), ("seconds", args.seconds),

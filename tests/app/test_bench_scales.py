@@ -32,3 +32,14 @@ def test_population_bodies_are_named_by_their_seed():
     assert named_body("average-man", 1).name == "average-man"
     with pytest.raises(ValueError, match="unknown body"):
         named_body("random-x", 1)
+
+
+def test_a_wrong_scale_or_body_gets_one_line_before_any_rendering(capsys):
+    from app.cli import main
+
+    assert main(["bench", "scales", "--scales", "0.5,0", "--no-write"]) == 2
+    assert capsys.readouterr().err.strip().endswith("must be a positive finite number, got 0")
+    assert main(["bench", "scales", "--bodies", "torso,nobody", "--no-write"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("photopft bench: error: --scales 0.25,0.5,1 --bodies torso,nobody: unknown body 'nobody'")
+    assert "\n" not in err
