@@ -404,13 +404,15 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                         f"World: {args.world} ({_world_words(args.world)}).\n\n{text}")
 
     vol.set_defaults(run=run_volume)
+    from core.sim.breathing import PROTOCOLS  # as simulate's parser takes them (app/commands/session.py)
+
     sc = what.add_parser("scales", help="the metric volume's slope on the truth, one session rendered at several "
                                         "of the camera's scales")
     sc.add_argument("--bodies", default="torso,average-man,random-1004",
                     help="torso (our own) or bodies as simulate --body names them, comma-separated")
     sc.add_argument("--scales", default="0.25,0.5,1")
-    sc.add_argument("--protocol", choices=("tidal", "vc", "forced", "full", "short"), default="vc",
-                    help="the simulated protocol (simulate --protocol)")
+    sc.add_argument("--protocol", choices=[p for p in PROTOCOLS if p != "static"], default="vc",
+                    help="the simulated protocol (simulate --protocol; static holds no breath to compare)")
     sc.add_argument("--seconds", type=positive, default=None, help="the protocol's length (default: its own)")
     sc.add_argument("--seed", type=int, default=1)
     sc.add_argument("--world", choices=WORLD_NAMES, default="ideal", help="realism of the simulated rig")

@@ -108,8 +108,11 @@ def scales_table(rows: list[ScaleRow], protocol: str, seconds: float | None, see
              "each other.", "",
              "| body | scale | pixels | maps | slope | r | rms (L) | time (s) | refused |",
              "|---|---|---|---|---|---|---|---|---|"]
+    from core.rig import thesis_rig
+
     for row in rows:
-        lines.append(f"| {row.body} | {row.scale:g} | {round(1400 * row.scale)} x {round(1024 * row.scale)} | "
+        head = next(iter(thesis_rig(row.scale).heads.values()))  # the rig the sessions are simulated on
+        lines.append(f"| {row.body} | {row.scale:g} | {head.width} x {head.height} | "
                      f"{row.maps} | {row.slope:.4f} | {row.r:.4f} | {row.rms_l:.3f} | {row.seconds:.0f} | "
                      f"{row.refused} |")
     lines.append("")
