@@ -74,6 +74,23 @@ def already_done(session: Path, results: Path) -> bool:
         return False
 
 
+def foreign_at_results_name(results: Path) -> str | None:
+    """None when batch may write `results` (nothing there, or a results file of its own, whole or
+    not); otherwise the one line why it must not (a recorded session, another file)."""
+    from core.io.outputs import is_session_file
+    from core.io.results import is_results_file
+
+    if not (results.exists() or results.is_symlink()):
+        return None
+    if results.is_dir() or results.is_symlink():
+        return f"{results} is a {'folder' if results.is_dir() else 'link'}, not a results file: left alone"
+    if is_session_file(results):
+        return f"{results} is a recorded session, never replaced: move it out of the results folder"
+    if not is_results_file(results):
+        return f"{results} is not a photopft results file: left alone (move or rename it)"
+    return None
+
+
 def process_one(session: str, results: str, options: BatchOptions) -> tuple[str, str | None, float]:
     """The task a Dask worker runs: (session, None or the one-line reason it failed, seconds)."""
     from core.reconstruction.process import process_session, use_threads
@@ -84,8 +101,9 @@ def process_one(session: str, results: str, options: BatchOptions) -> tuple[str,
         use_threads(options.threads)
     try:
         calibration = load_profile(options.calibration) if options.calibration is not None else None
-        if os.path.exists(results):
-            os.remove(results)  # an incomplete or foreign results file found by already_done
+        problem = foreign_at_results_name(Path(results))  # again at the task: the folder may have changed
+        if problem is not None:
+            return session, problem, time.perf_counter() - started
         process_session(session, results, calibration=calibration, every=options.every, workers=1,
                         binning=1 if options.full_resolution else None)
     except Exception as exc:  # a task's boundary: any failure is this session's one line, never the batch's
@@ -127,16 +145,23 @@ def run_batch(args: argparse.Namespace) -> int:
     todo = [s for s in sessions if not already_done(s, results_path(s, args.output_dir))]
     print(f"{len(sessions)} session(s) in {args.folder}: {len(sessions) - len(todo)} already processed, "
           f"{len(todo)} to do")
+    refused = []
+    for s in todo:
+        problem = foreign_at_results_name(results_path(s, args.output_dir))
+        if problem is not None:
+            refused.append(s)
+            print(f"  {s.name}: refused: {problem}")
+    todo = [s for s in todo if s not in refused]
     if not todo:
-        return 0
+        return 1 if refused else 0
     local_workers = None if args.scheduler else (args.workers or os.cpu_count() or 1)
     threads = max(1, (os.cpu_count() or 1) // local_workers) if local_workers else None
     options = BatchOptions(args.every, args.full_resolution, args.rig, threads)
     failures = _run_on_cluster(todo, args, options, Progress(f"batch of {len(todo)}"))
     done = len(todo) - len(failures)
     print(f"processed {done} of {len(todo)} session(s) into {args.output_dir}"
-          + (f"; {len(failures)} failed" if failures else ""))
-    return 1 if failures else 0
+          + (f"; {len(failures)} failed" if failures else "") + (f"; {len(refused)} refused" if refused else ""))
+    return 1 if failures or refused else 0
 
 
 def _run_on_cluster(todo: list[Path], args: argparse.Namespace, options: BatchOptions, progress) -> list[str]:

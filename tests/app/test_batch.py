@@ -37,3 +37,22 @@ def test_batch_on_a_local_cluster(tmp_path, capsys):
     assert "3 session(s)" in printed and "2 already processed, 1 to do" in printed
     assert "s3.h5: failed: " in printed and "1 failed" in printed
     assert not (out / "s3-results.h5").exists()
+
+
+def test_batch_never_removes_what_it_did_not_write(tmp_path, capsys):
+    folder, out = tmp_path / "sessions", tmp_path / "results"
+    folder.mkdir()
+    out.mkdir()
+    simulate(folder / "x.h5", SimConfig(protocol="tidal", seconds=0.3, scale=0.05, seed=1))
+    simulate(folder / "y.h5", SimConfig(protocol="tidal", seconds=0.3, scale=0.05, seed=2))
+    recorded = out / "x-results.h5"
+    recorded.write_bytes((folder / "y.h5").read_bytes())  # a recorded session where x's results would go
+    foreign = out / "y-results.h5"
+    foreign.write_bytes(b"someone's notes, not HDF5")
+    before = {p: p.read_bytes() for p in (recorded, foreign)}
+    assert main(["batch", str(folder), "-o", str(out), "--workers", "1"]) == 1
+    printed = capsys.readouterr().out
+    assert "x.h5: refused: " in printed and "is a recorded session, never replaced" in printed
+    assert "y.h5: refused: " in printed and "is not a photopft results file: left alone" in printed
+    assert {p: p.read_bytes() for p in (recorded, foreign)} == before
+    assert sorted(p.name for p in out.iterdir()) == ["x-results.h5", "y-results.h5"]
