@@ -130,10 +130,12 @@ def _observations(data: ReportData, status: str, patient_ref: str, effective: st
 def fhir_bundle(data: ReportData, identified: bool = False) -> dict:
     """The Bundle (type collection) of one session's report."""
     signed = data.review is not None and data.review.signed
-    status = "final" if signed else "preliminary"
+    amended = signed and bool(data.review.amendments)
+    status = "amended" if amended else "final" if signed else "preliminary"
     effective = _effective(data)
     patient_url = _urn()
-    observations = [(_urn(), obs) for obs in _observations(data, status, patient_url, effective,
+    # an amendment adds to the report's text; the measured values stay final
+    observations = [(_urn(), obs) for obs in _observations(data, "final" if amended else status, patient_url, effective,
                                                            _bronchodilator_state(data))]
     conclusion = []
     if data.interpretation is not None and data.interpretation.pattern != NOT_INTERPRETED:
@@ -142,6 +144,8 @@ def fhir_bundle(data: ReportData, identified: bool = False) -> dict:
         conclusion.append(data.bronchodilator.statement)
     if data.review is not None and data.review.comment:
         conclusion.append(f"Clinician's comment: {data.review.comment}")
+    if amended:
+        conclusion += [f"Amended by {a.user} on {a.time:%Y-%m-%d %H:%M} UTC: {a.text}" for a in data.review.amendments]
     report: dict = {"resourceType": "DiagnosticReport", "status": status,
                     "code": {"coding": [_coding(LOINC, *SPIROMETRY_STUDY)], "text": SPIROMETRY_STUDY[1]},
                     "subject": {"reference": patient_url}, "effectiveDateTime": effective,
@@ -163,8 +167,9 @@ def fhir_bundle(data: ReportData, identified: bool = False) -> dict:
 
 
 def write_fhir(data: ReportData, output: str | os.PathLike, identified: bool = False) -> Path:
+    """An identified bundle is readable by its owner only."""
     bundle = fhir_bundle(data, identified)
     output = Path(output)
-    with atomic_output(output) as partial:
+    with atomic_output(output, private=identified) as partial:
         Path(partial).write_text(json.dumps(bundle, indent=2, ensure_ascii=False), encoding="utf-8")
     return output

@@ -17,6 +17,8 @@ import os
 import re
 import secrets
 import sqlite3
+import sys
+import time
 from dataclasses import dataclass
 from datetime import date, datetime, timezone
 from pathlib import Path
@@ -241,6 +243,27 @@ def default_path() -> Path:
     return data_dir() / "records.sqlite3"
 
 
+def make_data_dir(folder: Path) -> None:
+    """The user's data folder, made on first use readable by its owner only (0700)."""
+    if not folder.is_dir():
+        try:
+            folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+            os.chmod(folder, 0o700)  # mkdir's mode is masked by the umask
+        except OSError as exc:
+            raise RecordsError(f"{folder}: cannot make the data folder ({exc})") from exc
+
+
+# How long a write waits for another program's transaction before it is refused, and after how long
+# the wait is said: a clinician's action should neither fail at once nor hang unexplained.
+BUSY_WAIT_S = 30.0
+BUSY_SAY_AFTER_S = 2.0
+
+
+def _is_busy(exc: sqlite3.OperationalError) -> bool:
+    text = str(exc)
+    return "locked" in text or "busy" in text
+
+
 def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
@@ -270,8 +293,8 @@ class Records:
         (default $PHOTOPFT_USER or the computer account); their role decides what they may do."""
         self._user = user
         self.path = Path(path) if path is not None else default_path()
-        if path is None:
-            self.path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        if self.path.absolute() == default_path().absolute():
+            make_data_dir(self.path.parent)
         elif not self.path.parent.is_dir():
             raise RecordsError(f"{self.path}: the folder {self.path.parent} does not exist (records are never "
                                "started in a folder made by mistake)")
@@ -282,7 +305,7 @@ class Records:
             return
         _create_private(self.path)
         try:
-            self._db = sqlite3.connect(self.path, isolation_level=None, timeout=10.0)
+            self._db = sqlite3.connect(self.path, isolation_level=None, timeout=BUSY_SAY_AFTER_S / 4)
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
@@ -329,7 +352,7 @@ class Records:
                 self._db.execute(f"PRAGMA user_version = {step + 1}")
 
     def transaction(self):
-        return _Transaction(self._db)
+        return _Transaction(self._db, self.path)
 
     def integrity(self) -> str:
         return str(self._db.execute("PRAGMA integrity_check").fetchone()[0])
@@ -611,14 +634,29 @@ class Records:
 
 
 class _Transaction:
-    """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK when the block raises."""
+    """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK when the block raises. A database another program is
+    writing is waited for (said on stderr after BUSY_SAY_AFTER_S), then refused with one line."""
 
-    def __init__(self, db: sqlite3.Connection):
-        self._db = db
+    def __init__(self, db: sqlite3.Connection, path: Path):
+        self._db, self._path = db, path
 
     def __enter__(self):
-        self._db.execute("BEGIN IMMEDIATE")
-        return self._db
+        started, said = time.monotonic(), False
+        while True:
+            try:
+                self._db.execute("BEGIN IMMEDIATE")
+                return self._db
+            except sqlite3.OperationalError as exc:
+                if not _is_busy(exc):
+                    raise RecordsError(f"{self._path}: {_first_line(exc)}") from exc
+                waited = time.monotonic() - started
+                if waited >= BUSY_WAIT_S:
+                    raise RecordsError(f"{self._path}: the records database is busy (another photopft is "
+                                       f"writing to it) and stayed so for {waited:.0f} s; try again") from exc
+                if not said and waited >= BUSY_SAY_AFTER_S:
+                    print(f"{self._path}: waiting for another photopft writing to the records (up to "
+                          f"{BUSY_WAIT_S:.0f} s)...", file=sys.stderr, flush=True)
+                    said = True
 
     def __exit__(self, kind, exc, tb) -> None:
         self._db.execute("COMMIT" if kind is None else "ROLLBACK")

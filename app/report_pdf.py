@@ -605,7 +605,7 @@ def write_report(data: ReportData, output: str | os.PathLike, page_size: str = "
     story.append(Spacer(1, 4))
     story.append(KeepTogether(_tidal(data, styles)))
     story.append(KeepTogether(_trend(data, styles, width)))
-    with atomic_output(output) as partial:
+    with atomic_output(output, private=data.patient is not None) as partial:  # a named patient: owner only
         doc = SimpleDocTemplate(str(partial), pagesize=size, leftMargin=margin, rightMargin=margin,
                                 topMargin=12 * mm, bottomMargin=14 * mm, title="Pulmonary function report",
                                 author=f"photopft {__version__}", subject=data.session_path.name)

@@ -8,6 +8,7 @@ finished, so an interrupted command (an error, Ctrl-C, SIGTERM) leaves the old f
 from __future__ import annotations
 
 import os
+import re
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -130,21 +131,66 @@ def partial_path(output: str | os.PathLike) -> Path:
     return output.with_name(f".{output.stem}.{os.getpid()}.partial{output.suffix}")
 
 
+_PARTIAL = re.compile(r"\.(?P<stem>.+)\.(?P<pid>[0-9]+)\.partial(?P<suffix>\.[^.]*)?")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's process
+    return True
+
+
+def remove_dead_partials(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary outputs (`partial_path`) that a process now dead left in `folder` (a
+    command killed with SIGKILL, a machine that lost power); those of live processes are kept.
+    Called before each new output, so the next run of a verb cleans up after the one that died."""
+    removed = []
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return removed
+    for name in names:
+        match = _PARTIAL.fullmatch(name)
+        if match is None or int(match["pid"]) == os.getpid() or _alive(int(match["pid"])):
+            continue
+        path = Path(folder) / name
+        try:
+            if path.is_file() and not path.is_symlink():
+                path.unlink()
+                removed.append(path)
+        except OSError:
+            pass
+    return removed
+
+
 @contextmanager
-def atomic_output(output: str | os.PathLike, *, replace_session: bool = False) -> Iterator[Path]:
+def atomic_output(output: str | os.PathLike, *, replace_session: bool = False,
+                  private: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside `output`; rename it onto `output` when the block ends without
     an exception, remove it otherwise (KeyboardInterrupt and SystemExit included). A recorded
-    session at `output` is refused unless `replace_session` (a recovery, which keeps it aside)."""
+    session at `output` is refused unless `replace_session` (a recovery, which keeps it aside).
+    `private`: the file is readable and writable by its owner only (0600; identified data), from
+    before its first byte to its place."""
     output = Path(output)
     if not replace_session and is_session_file(output):
         raise OutputError(f"{output} is a recorded session and is never replaced: choose another name")
+    remove_dead_partials(output.parent)
     partial = partial_path(output)
+    if private:
+        os.close(os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600))
+        os.chmod(partial, 0o600)
     try:
         yield partial
         if _stop_requested:
             raise _stop_requested[0]
         if not partial.exists():
             raise OutputError(f"{output} was not written")
+        if private:
+            os.chmod(partial, 0o600)  # a writer that made the file anew gets the umask's mode
         os.replace(partial, output)
     finally:
         try:

@@ -129,11 +129,12 @@ def _same_filter(dataset: h5py.Dataset) -> dict:
     """The copy compressed as the original was: Blosc (the recorder's frames) or HDF5's own."""
     from core.io.session import frame_filter
 
+    checksum = {"fletcher32": True} if dataset.fletcher32 else {}
     if "32001" in dataset._filters:  # h5py names a plugin filter by its id
-        return frame_filter("blosc-lz4")
+        return frame_filter("blosc-lz4") | checksum
     if dataset.compression:
-        return {"compression": dataset.compression, "compression_opts": dataset.compression_opts}
-    return {}
+        return {"compression": dataset.compression, "compression_opts": dataset.compression_opts} | checksum
+    return checksum
 
 
 def _copy_readable(source: h5py.Group, target: h5py.Group, keys: tuple[str, ...], limit: int,

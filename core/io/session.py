@@ -196,9 +196,10 @@ class SessionWriter(_OwnsFile):
         for name, head in rig.heads.items():
             g = f.create_group(f"heads/{name}")
             self._heads[name] = {
+                # a Fletcher-32 checksum per frame (one chunk): a byte changed on disk fails the read
                 "frames": g.create_dataset("frames", shape=(0, head.height, head.width), dtype=head.frame_dtype,
                                            maxshape=(None, head.height, head.width),
-                                           chunks=(1, head.height, head.width), **filters),
+                                           chunks=(1, head.height, head.width), fletcher32=True, **filters),
                 "light_index": g.create_dataset("light_index", shape=(0,), dtype=np.int8, maxshape=(None,),
                                                 chunks=(4096,)),
                 "timestamp_ns": g.create_dataset("timestamp_ns", shape=(0,), dtype=np.int64, maxshape=(None,),
@@ -630,6 +631,28 @@ def _check_rig(c: _Checker, f: h5py.File) -> dict[str, tuple[int, int, int]]:
     return heads
 
 
+FRAMES_READ_AT_ONCE = 32
+
+
+def _check_frame_checksums(c: _Checker, frames: h5py.Dataset, head: str) -> None:
+    """Every frame read once, so that each chunk's Fletcher-32 checksum is checked: the first frame
+    that fails is named (a file written before frames carried checksums is read for nothing)."""
+    if not frames.fletcher32:
+        return
+    for start in range(0, frames.shape[0], FRAMES_READ_AT_ONCE):
+        stop = min(start + FRAMES_READ_AT_ONCE, frames.shape[0])
+        try:
+            frames[start:stop]
+        except (OSError, RuntimeError):
+            for k in range(start, stop):
+                try:
+                    frames[k]
+                except (OSError, RuntimeError):
+                    c.add(f"dataset /heads/{head}/frames: frame {k} fails its checksum (its bytes changed "
+                          f"on disk after it was recorded)")
+                    return
+
+
 def _check_heads(c: _Checker, f: h5py.File, heads: dict[str, tuple[int, int, int]]) -> None:
     if "heads" not in f:
         c.add("missing group /heads")
@@ -662,6 +685,8 @@ def _check_heads(c: _Checker, f: h5py.File, heads: dict[str, tuple[int, int, int
                 except (OSError, ValueError, RuntimeError) as exc:
                     c.add(f"dataset /heads/{name}/frames cannot be read to the end (truncated or corrupt "
                           f"file?): {exc}")
+                else:
+                    _check_frame_checksums(c, frames, name)
         lengths = {d.name.rsplit("/", 1)[1]: d.shape[0] for d in (frames, light, ts, ids) if d is not None}
         if len(set(lengths.values())) > 1:
             c.add(f"/heads/{name}: datasets differ in length: "
