@@ -129,7 +129,7 @@ def _observations(data: ReportData, status: str, patient_ref: str, effective: st
 
 def fhir_bundle(data: ReportData, identified: bool = False) -> dict:
     """The Bundle (type collection) of one session's report."""
-    signed = data.review is not None and data.review.signed
+    signed = data.review is not None and data.review.signature_valid  # data changed since: preliminary
     amended = signed and bool(data.review.amendments)
     status = "amended" if amended else "final" if signed else "preliminary"
     effective = _effective(data)
@@ -144,6 +144,8 @@ def fhir_bundle(data: ReportData, identified: bool = False) -> dict:
         conclusion.append(data.bronchodilator.statement)
     if data.review is not None and data.review.comment:
         conclusion.append(f"Clinician's comment: {data.review.comment}")
+    if data.review is not None and data.review.signature_broken:
+        conclusion.append(f"Not signed: {data.review.signature_broken}.")
     if amended:
         conclusion += [f"Amended by {a.user} on {a.time:%Y-%m-%d %H:%M} UTC: {a.text}" for a in data.review.amendments]
     report: dict = {"resourceType": "DiagnosticReport", "status": status,

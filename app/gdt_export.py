@@ -139,9 +139,11 @@ def gdt_record(data: ReportData, receiver: str = "PRAXIS") -> tuple[bytes, list[
     if data.review is not None:
         if data.review.comment:
             lines += _lines("6227", data.review.comment)
-        if data.review.signed:
+        if data.review.signature_broken:
+            lines += _lines("6227", f"Not signed: {data.review.signature_broken}.")
+        elif data.review.signed:
             lines += _lines("6227", f"Signed by {data.review.signed_by} on {data.review.signed_at:%Y-%m-%d %H:%M}")
-        for a in data.review.amendments:
+        for a in data.review.amendments if data.review.signature_valid else ():
             lines += _lines("6227", f"Amended by {a.user} on {a.time:%Y-%m-%d %H:%M}: {a.text}")
     body_length = sum(len(line) for line in lines)
     total = body_length + len(_line("8100", "00000"))

@@ -11,6 +11,7 @@ is versioned with `PRAGMA user_version`; `MIGRATIONS[k]` takes version k to k + 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -24,7 +25,7 @@ from datetime import date, datetime, timezone
 from pathlib import Path
 
 from app import audit
-from app.paths import data_dir
+from app.paths import config_dir, data_dir
 
 SEXES = ("male", "female")
 
@@ -105,7 +106,13 @@ MIGRATIONS: tuple[str, ...] = (
     );
     ALTER TABLE sessions ADD COLUMN pre_session_id INTEGER REFERENCES sessions(id);
     """,
+    # 3 -> 4: what a signature signed (the files' SHA-256 and the values), users' password hashes.
+    """
+    ALTER TABLE reports ADD COLUMN signed_content TEXT;
+    ALTER TABLE users ADD COLUMN password_hash TEXT;
+    """,
 )
+SEALED_AT = 4  # from this version on every clinical row's state is in the audit trail
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -222,10 +229,29 @@ class ReportState:
     signed_by: str | None
     signed_at: datetime | None
     amendments: list[Amendment]
+    # where the data a signature signed changed since: what every reader says instead of the signature
+    signature_broken: str | None = None
 
     @property
     def signed(self) -> bool:
+        """A signature was given (the report is read-only), whether or not its data changed since."""
         return self.signed_by is not None
+
+    @property
+    def signature_valid(self) -> bool:
+        return self.signed and self.signature_broken is None
+
+
+def file_sha256(path: str | os.PathLike) -> str | None:
+    """SHA-256 of a file's bytes, None where it cannot be read."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(block)
+    except OSError:
+        return None
+    return digest.hexdigest()
 
 
 def _create_private(path: Path) -> None:
@@ -292,6 +318,7 @@ class Records:
         not even the journal mode or a schema upgrade, is written to the file. `user`: who acts
         (default $PHOTOPFT_USER or the computer account); their role decides what they may do."""
         self._user = user
+        self._pending: list[tuple[str, str, dict | None]] = []
         self.path = Path(path) if path is not None else default_path()
         if self.path.absolute() == default_path().absolute():
             make_data_dir(self.path.parent)
@@ -346,13 +373,47 @@ class Records:
             raise RecordsError(f"{self.path}: schema version {version} is newer than this photopft "
                                f"({SCHEMA_VERSION}); update photopft")
         for step in range(version, SCHEMA_VERSION):
-            with self.transaction():
+            with _Transaction(self._db, self.path):
                 for statement in _statements(MIGRATIONS[step]):
                     self._db.execute(statement)
+                if step + 1 == SEALED_AT and (rows := audit.changed_rows(self._db)):  # rows as they stand
+                    audit.append(self._db, audit.Actor("photopft", "system"), "records sealed", str(self.path),
+                                 {"rows": rows}, checked=True)
                 self._db.execute(f"PRAGMA user_version = {step + 1}")
+            if step + 1 >= SEALED_AT:
+                self._write_head()
 
     def transaction(self):
-        return _Transaction(self._db, self.path)
+        self._pending = []  # entries of a transaction rolled back are not carried into the next
+        return _Transaction(self._db, self.path, self._entries_with_rows, self._write_head)
+
+    @property
+    def head_file(self) -> Path:
+        """The audit trail's anchored head, beside the database."""
+        return self.path.with_name(self.path.name + ".audit-head")
+
+    @staticmethod
+    def head_key_file() -> Path:
+        return config_dir() / "audit-head.key"
+
+    def _entries_with_rows(self) -> None:
+        """At the end of a transaction: its audit entries written, the last holding the state of every
+        row the transaction changed (app/audit.py)."""
+        pending, self._pending = self._pending, []
+        rows = audit.changed_rows(self._db) if self.schema_version >= SEALED_AT else {}
+        if not pending and rows:
+            pending = [("records changed", str(self.path), {})]
+        for k, (action, target, details) in enumerate(pending):
+            details = dict(details or {})
+            if k == len(pending) - 1 and rows:
+                details["rows"] = rows
+            audit.append(self._db, self.actor, action, target, details, checked=True)
+
+    def _write_head(self) -> None:
+        try:
+            audit.write_head(self._db, self.head_file, self.head_key_file())
+        except OSError as exc:
+            print(f"{self.head_file}: the audit trail's head could not be written ({exc})", file=sys.stderr)
 
     def integrity(self) -> str:
         return str(self._db.execute("PRAGMA integrity_check").fetchone()[0])
@@ -506,9 +567,10 @@ class Records:
         """Inside the transaction that does the action: refused (and rolled back) when the actor's
         role does not allow it."""
         try:
-            audit.append(self._db, self.actor, action, target, details)
+            audit.check_permitted(self._db, self.actor, action)
         except audit.NotPermitted as exc:
             raise RecordsError(str(exc)) from exc
+        self._pending.append((action, target, details))
 
     def log(self, action: str, target: str, details: dict | None = None) -> None:
         """Log an action done outside the database (a calibration saved, an export written)."""
@@ -525,8 +587,14 @@ class Records:
     def audit_trail(self, target: str | None = None, limit: int | None = None) -> list[audit.AuditEntry]:
         return audit.entries(self._db, target, limit)
 
+    def audit_problems(self) -> list[str]:
+        """Every way the records depart from their audit trail (app/audit.py); empty when they agree."""
+        return audit.verify(self._db, self.head_file, self.head_key_file())
+
     def verify_audit_trail(self) -> str | None:
-        return audit.verify(self._db)
+        problems = self.audit_problems()
+        return None if not problems else problems[0] + (f" (and {len(problems) - 1} more)" if len(problems) > 1
+                                                         else "")
 
     def add_user(self, name: str, role: str) -> None:
         """A user with a role. The first user added must be an engineer (who then adds the others)."""
@@ -554,15 +622,37 @@ class Records:
         return str(row[0])
 
     def report_state(self, session_id: int) -> ReportState:
+        """The review, with what changed since signing where anything did (the files are read again)."""
         path = self._session_path(session_id)
-        row = self._db.execute("SELECT comment, signed_by, signed_at FROM reports WHERE session_id = ?",
-                               (session_id,)).fetchone()
+        row = self._db.execute("SELECT comment, signed_by, signed_at, signed_content FROM reports "
+                               "WHERE session_id = ?", (session_id,)).fetchone()
         amendments = [Amendment(datetime.fromisoformat(t), u, text) for t, u, text in self._db.execute(
             "SELECT time, user, text FROM report_amendments WHERE session_id = ? ORDER BY id", (session_id,))]
         if row is None:
             return ReportState(session_id, Path(path), "", None, None, amendments)
-        return ReportState(session_id, Path(path), row[0], row[1],
-                           datetime.fromisoformat(row[2]) if row[2] else None, amendments)
+        signed_at = datetime.fromisoformat(row[2]) if row[2] else None
+        broken = None
+        if row[1] is not None:
+            changed = self._changed_since_signing(session_id, row[3])
+            if changed:
+                broken = (f"the signed data has changed since it was signed (by {row[1]}, "
+                          f"{signed_at:%Y-%m-%d %H:%M} UTC): {changed}")
+        return ReportState(session_id, Path(path), row[0], row[1], signed_at, amendments, broken)
+
+    def _signed_content(self, session_id: int) -> dict:
+        """What a signature binds: the session and results files' SHA-256 and the stored values."""
+        record = self.session(session_id)
+        return {"session_sha256": file_sha256(record.session_path),
+                "results_sha256": file_sha256(record.results_path) if record.results_path else None,
+                "values": record.summary}
+
+    def _changed_since_signing(self, session_id: int, signed_content: str | None) -> str | None:
+        if not signed_content:
+            return "the signature holds no record of what it signed (signed before photopft bound signatures)"
+        signed, now = json.loads(signed_content), self._signed_content(session_id)
+        what = [label for key, label in (("session_sha256", "the session file"), ("results_sha256", "the results file"),
+                                         ("values", "the stored values")) if signed.get(key) != now.get(key)]
+        return " and ".join(what) + (" differ" if len(what) > 1 else " differs") if what else None
 
     def set_comment(self, session_id: int, comment: str) -> None:
         """The clinician's comment, while the report is not signed (afterwards: amend)."""
@@ -581,11 +671,19 @@ class Records:
         if state.signed:
             raise RecordsError(f"the report of {state.session_path.name} is already signed by {state.signed_by}")
         who = self.actor.name
+        content = self._signed_content(session_id)
+        if content["session_sha256"] is None:
+            raise RecordsError(f"{state.session_path}: the session file cannot be read: a report is signed with "
+                               f"its data")
         with self.transaction():
-            self._log("report signed", str(state.session_path), {"comment": state.comment})
-            self._db.execute("INSERT INTO reports (session_id, comment, signed_by, signed_at) VALUES (?, ?, ?, ?) "
-                             "ON CONFLICT(session_id) DO UPDATE SET signed_by = excluded.signed_by, "
-                             "signed_at = excluded.signed_at", (session_id, state.comment, who, _now()))
+            self._log("report signed", str(state.session_path), {"comment": state.comment,
+                                                                  "session_sha256": content["session_sha256"],
+                                                                  "results_sha256": content["results_sha256"]})
+            self._db.execute("INSERT INTO reports (session_id, comment, signed_by, signed_at, signed_content) "
+                             "VALUES (?, ?, ?, ?, ?) ON CONFLICT(session_id) DO UPDATE SET signed_by = "
+                             "excluded.signed_by, signed_at = excluded.signed_at, signed_content = "
+                             "excluded.signed_content",
+                             (session_id, state.comment, who, _now(), json.dumps(content, sort_keys=True)))
         return self.report_state(session_id)
 
     def amend_report(self, session_id: int, text: str) -> None:
@@ -637,8 +735,9 @@ class _Transaction:
     """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK when the block raises. A database another program is
     writing is waited for (said on stderr after BUSY_SAY_AFTER_S), then refused with one line."""
 
-    def __init__(self, db: sqlite3.Connection, path: Path):
+    def __init__(self, db: sqlite3.Connection, path: Path, before_commit=None, after_commit=None):
         self._db, self._path = db, path
+        self._before_commit, self._after_commit = before_commit, after_commit
 
     def __enter__(self):
         started, said = time.monotonic(), False
@@ -659,4 +758,12 @@ class _Transaction:
                     said = True
 
     def __exit__(self, kind, exc, tb) -> None:
+        if kind is None and self._before_commit is not None:
+            try:
+                self._before_commit()
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
         self._db.execute("COMMIT" if kind is None else "ROLLBACK")
+        if kind is None and self._after_commit is not None:
+            self._after_commit()

@@ -443,6 +443,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
         if analysed.flow_sensor is not None:
             sources[FLOW_SENSOR] = analysed.flow_sensor
             curves[FLOW_SENSOR] = analysed.flow_volume
+        elif analysed.flow_refused:
+            notes.append(f"Flow sensor: no values, its signal is impossible: {analysed.flow_refused}.")
         else:
             notes.append("No flow sensor was recorded in this session.")
         # The flow sensor is the reference where one was recorded; the optical method stands beside it.

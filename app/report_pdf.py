@@ -384,7 +384,9 @@ def _review(data: ReportData, styles) -> list:
                              styles["small"]))
         return out
     out.append(Paragraph("Comment: " + (_escape(r.comment) if r.comment else "none"), styles["body"]))
-    if r.signed:
+    if r.signature_broken:
+        out.append(Paragraph(f"<b>Signature void</b>: {_escape(r.signature_broken)}.", styles["body"]))
+    elif r.signed:
         out.append(Paragraph(f"<b>Signed</b> by {_escape(r.signed_by)} on {r.signed_at:%Y-%m-%d %H:%M} UTC; the "
                              "report is read-only since.", styles["body"]))
     else:

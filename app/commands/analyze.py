@@ -100,7 +100,8 @@ def _as_json(session: Path, results: Path | None, equations: str, report, named,
             "references": references, "reference_problem": report.reference_problem,
             "interpretation": {"pattern": verdict.pattern, "severity": verdict.severity, "summary": verdict.summary,
                                "z": verdict.z, "statements": verdict.statements},
-            "optical_refused": optical_refusal(results) if results is not None else None, "problems": problems}
+            "optical_refused": optical_refusal(results) if results is not None else None,
+            "flow_refused": report.flow_refused, "problems": problems}
 
 
 def run_analyze_session(args: argparse.Namespace) -> int:
@@ -117,6 +118,8 @@ def run_analyze_session(args: argparse.Namespace) -> int:
         raise UserError(str(exc) if str(args.session) in str(exc) else f"{args.session}: {exc}") from exc
     named = (("flow sensor", report.flow_sensor), ("optical", report.optical), ("truth (simulation)", report.truth))
     sources = [(name, values.parameters()) for name, values in named if values]
+    if not sources and report.flow_refused:
+        raise UserError(f"{args.session}: the flow sensor's values are refused: {report.flow_refused}")
     if not sources:
         raise UserError(f"{args.session} has neither a flow sensor recording nor a simulation truth to analyse; "
                         "the optical volume comes with `photopft process` (analyse its results file)")
@@ -147,6 +150,8 @@ def run_analyze_session(args: argparse.Namespace) -> int:
         print(f"  no predicted values: {report.reference_problem}")
     if results is not None and (refused := optical_refusal(results)):
         print(f"  optical values refused: {refused}")
+    if report.flow_refused:
+        print(f"  flow sensor values refused: {report.flow_refused}")
     for name, values in named:
         if values is not None:
             for problem in values.problems:

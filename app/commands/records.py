@@ -159,7 +159,8 @@ def _export(args: argparse.Namespace, records) -> int:
         _log_export(records, args, "fhir" if args.fhir is not None else "gdt", out)
         print(f"wrote {out}: {'FHIR R4 bundle' if args.fhir is not None else 'GDT 3.0 record'} of the "
               f"{data.main_source or 'no'} values" + ("" if data.review is None or not data.review.signed else
-                                                      ", signed report"))
+                                                      ", signed report" if data.review.signature_valid else
+                                                      f"; {data.review.signature_broken}"))
         for warning in warnings:
             print(f"  warning: {warning}")
         return 0

@@ -83,7 +83,8 @@ def run_review(args: argparse.Namespace) -> int:
             pre = records.pre_bronchodilator(sid)
         except RecordsError as exc:
             raise UserError(str(exc)) from exc
-    print(f"{state.session_path.name}: " + (f"signed by {state.signed_by} on {state.signed_at:%Y-%m-%d %H:%M} UTC"
+    print(f"{state.session_path.name}: " + (state.signature_broken if state.signature_broken else
+                                           f"signed by {state.signed_by} on {state.signed_at:%Y-%m-%d %H:%M} UTC"
                                            if state.signed else "not signed"))
     print(f"  comment: {state.comment or 'none'}")
     for a in state.amendments:
@@ -116,12 +117,16 @@ def run_audit(args: argparse.Namespace) -> int:
     with _records(args, read_only=True) as records:
         target = str(args.session.resolve()) if args.session is not None else None
         entries = records.audit_trail(target, args.limit or None)
-        broken = records.verify_audit_trail() if args.verify else None
+        problems = records.audit_problems() if args.verify else []
     for e in entries:
-        details = ", ".join(f"{k}={v}" for k, v in e.details.items() if v not in (None, ""))
+        details = ", ".join(f"{k}={v}" for k, v in e.details.items() if v not in (None, "") and k != "rows")
         print(f"{e.time[:19].replace('T', ' ')}  {e.user} ({e.role})  {e.action}  {e.target}"
               + (f"  [{details}]" if details else ""))
     if args.verify:
-        print(f"audit trail: {broken}" if broken else "audit trail: the hash chain is whole")
-        return 1 if broken else 0
+        for problem in problems:
+            print(f"audit trail: {problem}")
+        if not problems:
+            print("audit trail: the hash chain is whole, ends at its anchored head, and every record matches "
+                  "its last audited state")
+        return 1 if problems else 0
     return 0

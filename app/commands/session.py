@@ -282,10 +282,19 @@ def add_validate(sub: argparse._SubParsersAction) -> None:
 
 
 def run_validate(args: argparse.Namespace) -> int:
+    from core.io.session import session_plausibility
+
     problems = validate_session(args.session)
     if problems:
         print(f"{args.session}: {len(problems)} problem(s)")
         for problem in problems:
+            print(f"  - {problem}")
+        return 1
+    implausible = session_plausibility(args.session)
+    if implausible:
+        print(f"{args.session}: follows the session format, but {len(implausible)} signal(s) no instrument "
+              "gives; the values they touch are refused:")
+        for problem in implausible:
             print(f"  - {problem}")
         return 1
     print(f"{args.session}: valid photopft session (format version 1)")

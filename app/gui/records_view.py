@@ -171,6 +171,7 @@ class RecordsWindow(QDialog):
             state = self.records.report_state(visit.id)
             cells = [f"{visit.recorded:%Y-%m-%d %H:%M}", visit.status, _number(values.get("FEV1_l")),
                      _number(values.get("FVC_l")), _number(values.get("FEV1_FVC")), str(values.get("grade", "–")),
+                     "signature void: data changed" if state.signature_broken else
                      f"signed by {state.signed_by}" if state.signed else "not signed"]
             for j, text in enumerate(cells):
                 self.table.setItem(k, j, QTableWidgetItem(text))
@@ -202,7 +203,8 @@ class RecordsWindow(QDialog):
         self.sign.setEnabled(not state.signed)
         self.amendment.setEnabled(state.signed)
         self.amend.setEnabled(state.signed)
-        lines = [f"Signed by {state.signed_by} on {state.signed_at:%Y-%m-%d %H:%M} UTC: read-only." if state.signed
+        lines = [f"Signature void: {state.signature_broken}." if state.signature_broken else
+                 f"Signed by {state.signed_by} on {state.signed_at:%Y-%m-%d %H:%M} UTC: read-only." if state.signed
                  else "Not signed: a preliminary report."]
         lines += [f"Amendment by {a.user} on {a.time:%Y-%m-%d %H:%M}: {a.text}" for a in state.amendments]
         pre = self.records.pre_bronchodilator(visit.id)

@@ -4,7 +4,7 @@ curve when one is given (a results file's /volume), and from its truth (simulati
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -12,6 +12,7 @@ from core.analysis.values import SessionValues, analyse_volume, tidal_windows
 from core.volume.flow_sensor import btps_factor, flow_sensor_volume
 from core.volume.metric import withheld_for_flanks
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
+from core.io.plausibility import flow_gaps, flow_refusal, gaps_in_manoeuvres
 from core.io.session import SessionError, SessionFile
 
 
@@ -24,6 +25,33 @@ class SessionReport:
     flow_volume: tuple[np.ndarray, np.ndarray] | None  # (seconds from the first frame, litres)
     optical: SessionValues | None = None
     optical_volume: tuple[np.ndarray, np.ndarray] | None = None  # (seconds from the first frame, litres)
+    flow_refused: str | None = None  # why none of the flow sensor's values are given (core/io/plausibility.py)
+
+
+def frame_span_ns(session: SessionFile) -> tuple[int, int] | None:
+    """(first, last) frame time over the heads, None where no head recorded a frame."""
+    spans = [session.timestamp_ns(h) for h in session.heads if session.n_frames(h)]
+    if not spans:
+        return None
+    return min(int(t[0]) for t in spans), max(int(t[-1]) for t in spans)
+
+
+def without_gapped_manoeuvres(values: SessionValues, gaps) -> SessionValues:
+    """The values less those of every kind of manoeuvre whose flow samples have a gap."""
+    if not gaps:
+        return values
+    kinds = {g.kind for g in gaps}
+    problems = [*values.problems] + [f"{_KIND_VALUES[g.kind]} not given: {g.reason}" for g in gaps]
+    return replace(values, problems=problems,
+                   tidal=None if "tidal" in kinds else values.tidal,
+                   vital_capacity=None if "vc" in kinds else values.vital_capacity,
+                   vc_manoeuvres=[] if "vc" in kinds else values.vc_manoeuvres,
+                   forced=None if "forced" in kinds else values.forced,
+                   forced_curves=[] if "forced" in kinds else values.forced_curves,
+                   forced_kept={} if "forced" in kinds else values.forced_kept)
+
+
+_KIND_VALUES = {"tidal": "the tidal values", "vc": "VC and its volumes", "forced": "the forced values"}
 
 
 def _events(session: SessionFile, start_ns: int) -> list[tuple[float, str]]:
@@ -45,11 +73,15 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
         age = s.subject.age_years if s.subject is not None else None
         flow_values = None
         flow_volume = None
+        flow_refused = None
         if s.flow is not None:
             info = s.flow
             if info.gain_lps is None:
                 raise SessionError(f"{path}: the flow sensor has no calibration in force (flow_gain_lps)")
             adc, stamps = s.flow_samples()
+            flow_refused = flow_refusal(adc, stamps, info.adc_bits, info.sample_rate_hz, info.gain_lps,
+                                        info.offset_lps, frame_span_ns(s))
+        if s.flow is not None and flow_refused is None:
             factor = 1.0
             if info.conditions == "ATPS":
                 a = info.attrs
@@ -63,7 +95,8 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
             volume = flow_sensor_volume(adc, stamps, info.gain_lps, info.offset_lps, factor,
                                         tidal_windows(events, end_s))
             t = (volume.timestamp_ns - start) / 1e9
-            flow_values = analyse_volume(t, volume.volume_l, events, age)
+            flow_values = without_gapped_manoeuvres(analyse_volume(t, volume.volume_l, events, age),
+                                                    gaps_in_manoeuvres(flow_gaps(stamps), s.events(), start))
             flow_volume = (t, volume.volume_l)
         truth_values = None
         if s.has_truth:
@@ -92,4 +125,4 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
             except ReferenceUnavailable as exc:
                 problem = str(exc)
     return SessionReport(flow_values, truth_values, references, problem, flow_volume, optical_values,
-                         optical_curve)
+                         optical_curve, flow_refused)

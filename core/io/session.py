@@ -798,6 +798,29 @@ def _check_truth(c: _Checker, f: h5py.File, heads: dict[str, tuple[int, int, int
                 c.add(f"dataset {ds.name} holds {ds.shape[0]} maps, map_frame_index {k}")
 
 
+def session_plausibility(path: str | os.PathLike) -> list[str]:
+    """What in a session that follows the format no instrument could have recorded (core/io/plausibility.py):
+    each problem refuses the values it touches, not the session. Call on a file validate_session passes."""
+    from core.io.plausibility import flow_gaps, flow_refusal, gaps_in_manoeuvres, head_intrinsics_problems
+
+    problems = []
+    with SessionFile(path, check=False) as s:
+        for name, head in s.rig.heads.items():
+            problems += [f"/rig/{name}: {p} (no optical value)" for p in head_intrinsics_problems(head)]
+        if s.flow is not None and s.flow.n_samples:
+            adc, stamps = s.flow_samples()
+            spans = [s.timestamp_ns(h) for h in s.heads if s.n_frames(h)]
+            span = (min(int(t[0]) for t in spans), max(int(t[-1]) for t in spans)) if spans else None
+            refused = flow_refusal(adc, stamps, s.flow.adc_bits, s.flow.sample_rate_hz, s.flow.gain_lps,
+                                   s.flow.offset_lps, span)
+            if refused:
+                problems.append(f"/flow: {refused} (no flow sensor value)")
+            else:
+                problems += [f"/flow: {g.reason} (its values refused)"
+                             for g in gaps_in_manoeuvres(flow_gaps(stamps), s.events(), s.start_ns())]
+    return problems
+
+
 def validate_session(path: str | os.PathLike) -> list[str]:
     """Every way the file departs from the spec, each naming the item; empty when it conforms."""
     from core.io.hdf5_probe import probe

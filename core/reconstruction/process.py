@@ -23,6 +23,7 @@ from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolu
 from core.reconstruction.photometric import CycleWindow, complete_cycles
 from core.rig import DARK
 from core.io.outputs import atomic_output, stop_if_requested
+from core.io.plausibility import head_intrinsics_problems
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.reconstruction.reflectance import RedundancyFit
 from core.calibration.rig_profile import ProfileError, RigCalibration
@@ -390,6 +391,9 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
         for name in names:
             if name not in rig.heads:
                 raise SessionError(f"{session_path} has no head {name!r} (heads: {', '.join(session.heads)})")
+            if impossible := head_intrinsics_problems(rig.heads[name]):
+                raise SessionError(f"{session_path}: the {name} head's intrinsics are impossible ({impossible[0]}): "
+                                   "no map can be made from them (the flow sensor's values: `photopft analyze`)")
         if not any(session.n_frames(name) for name in names):
             raise SessionError(f"{session_path} holds no camera frame: nothing to reconstruct")
         if binning is not None and binning < 1:
@@ -903,7 +907,9 @@ def _write_parameters(session_path: str | os.PathLike, results: ResultsWriter) -
     elif report.optical is not None:
         results.parameters(f"optical: {results.out['volume'].attrs['method']}", report.optical.parameters())
     else:
-        results.parameters("none: no flow sensor and no optical volume in litres", {})
+        results.parameters("none: " + (f"the flow sensor's values refused ({report.flow_refused})"
+                                       if report.flow_refused else "no flow sensor")
+                           + " and no optical volume in litres", {})
 
 
 METRIC_METHOD = "metric: footprint-weighted displacement in the body frame, scale from the "

@@ -22,6 +22,7 @@ def _patient(records):
 
 
 def _session(records, patient, tmp_path, name, hours=0):
+    (tmp_path / name).write_bytes(f"the recording {name}".encode())  # what a signature binds
     return records.add_session(patient.id, tmp_path / name, datetime(2026, 11, 1, 9, tzinfo=timezone.utc)
                                + timedelta(hours=hours))
 

@@ -74,7 +74,9 @@ def test_migration_from_version_1_keeps_the_rows(tmp_path):
     db.commit()
     db.close()
     with Records(path) as records:
-        assert records.schema_version == SCHEMA_VERSION == 3
+        assert records.schema_version == SCHEMA_VERSION == 4
+        assert [e.action for e in records.audit_trail()] == ["records sealed"]  # the old rows enter the trail
+        assert records.audit_problems() == []
         p = records.patient_by_pseudonym("P-OLD")
         sid = records.add_session(p.id, tmp_path / "s.h5", datetime.now(timezone.utc))
         records.set_results(sid, None, {"optical": {"TV_l": 0.5}})

@@ -9,7 +9,7 @@ import sqlite3
 import stat
 import subprocess
 import sys
-from datetime import date
+from datetime import date, datetime, timezone
 
 import pytest
 
@@ -133,3 +133,258 @@ def test_a_byte_flipped_in_a_frame_is_found_by_validate(tmp_path, capsys):
     capsys.readouterr()
     assert main(["validate", str(path)]) == 1
     assert "/heads/back/frames: frame 5 fails its checksum" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ plausibility before any value
+
+@pytest.fixture(scope="module")
+def breathing(tmp_path_factory):
+    """12 s of quiet breathing with the flow sensor (enough breaths for TV and RR)."""
+    path = tmp_path_factory.mktemp("breathing") / "tidal.h5"
+    simulate(path, SimConfig(protocol="tidal", seconds=12.0, scale=0.05, seed=4))
+    return path
+
+
+def _rewrite_flow(path, adc=None, stamps=None, **attrs):
+    import h5py
+    import numpy as np
+
+    with h5py.File(path, "r+") as f:
+        g = f["flow"]
+        for key, value in (("adc", adc), ("timestamp_ns", stamps)):
+            if value is not None:
+                del g[key]
+                g.create_dataset(key, data=np.asarray(value, dtype=np.int32 if key == "adc" else np.int64),
+                                 maxshape=(None,), chunks=True)
+        for key, value in attrs.items():
+            g.attrs[key] = value
+
+
+def _flow(path):
+    from core.io.session import SessionFile
+
+    with SessionFile(path) as s:
+        return s.flow_samples()
+
+
+def _saturated(path):
+    adc, _ = _flow(path)
+    adc[len(adc) // 2] = 2 ** 31 - 1
+    _rewrite_flow(path, adc=adc)
+
+
+def _negative_gain(path):
+    _rewrite_flow(path, flow_gain_lps=-0.0075)
+
+
+def _gap(path):
+    adc, stamps = _flow(path)
+    keep = slice(None, len(adc) // 2), slice(len(adc) // 2 + 300, None)  # 300 ms lost inside the breathing
+    import numpy as np
+
+    _rewrite_flow(path, adc=np.concatenate([adc[k] for k in keep]), stamps=np.concatenate([stamps[k] for k in keep]))
+
+
+def _shifted(path):
+    adc, stamps = _flow(path)
+    _rewrite_flow(path, stamps=stamps + 5_000_000_000)
+
+
+@pytest.mark.parametrize("damage, validate_says, refusal", [
+    (_saturated, "outside what a 12-bit converter gives (-2048 to 4095), the first 2147483647",
+     "flow sensor values refused"),
+    (_negative_gain, "gain is -0.0075 L/s per count: it must be positive", "flow sensor values refused"),
+    (_gap, "301 ms of flow samples missing inside the tidal manoeuvre", "the tidal values not given"),
+    (_shifted, "its clock is not the cameras'", "flow sensor values refused"),
+])
+def test_impossible_flow_data_refuses_its_values_not_the_session(breathing, tmp_path, capsys, damage,
+                                                                 validate_says, refusal):
+    path = tmp_path / "s.h5"
+    path.write_bytes(breathing.read_bytes())
+    assert main(["analyze", "--json", str(path)]) == 0
+    assert "TV_l" in json.loads(capsys.readouterr().out)["values"]["flow sensor"]
+    damage(path)
+    assert main(["validate", str(path)]) == 1
+    assert validate_says in capsys.readouterr().out
+    assert main(["analyze", str(path)]) == 0  # the simulation's truth is still analysed
+    out = capsys.readouterr().out
+    assert refusal in out
+    assert main(["analyze", "--json", str(path)]) == 0
+    values = json.loads(capsys.readouterr().out)["values"]
+    assert "TV_l" not in values.get("flow sensor", {})
+    fhir = tmp_path / "s.json"
+    assert main(["export", str(path), "--fhir", str(fhir)]) == 0
+    kinds = [e["resource"]["resourceType"] for e in json.loads(fhir.read_text())["entry"]]
+    assert "Observation" not in kinds  # the only values were the flow sensor's
+
+
+def test_impossible_intrinsics_are_named_and_process_refuses_in_one_line(small_session, tmp_path, capsys):
+    import h5py
+
+    path = tmp_path / "s.h5"
+    path.write_bytes(small_session.read_bytes())
+    with h5py.File(path, "r+") as f:
+        f["rig/back"].attrs["fy"] = 1e-300
+    assert main(["validate", str(path)]) == 1
+    assert "/rig/back: fy = 1e-300 px gives a field of view of 180 deg" in capsys.readouterr().out
+    assert main(["process", str(path), "-o", str(tmp_path / "r.h5")]) == 2
+    err = capsys.readouterr().err
+    assert "the back head's intrinsics are impossible" in err and "Traceback" not in err
+    assert not (tmp_path / "r.h5").exists()
+
+
+# ------------------------------------------------------------------ signatures bind their data
+
+def test_a_signature_is_void_once_its_data_changed(signed_visit, breathing, tmp_path, capsys):
+    records = tmp_path / "records.sqlite3"
+    session = tmp_path / "visit.h5"
+    session.write_bytes(signed_visit[1].read_bytes())
+    with Records(records, user="otto") as r:
+        r.add_patient("Muster", "Erika", "female", date(1970, 3, 1), 166.0, 60.0, pseudonym="P-TRUST")
+    rec = ["--records", str(records)]
+    assert main(["patients"] + rec + ["register", str(session)]) == 0
+    assert main(["review", str(session), "--sign", "--user", "dr.keller"] + rec) == 0
+    capsys.readouterr()
+    assert main(["review", str(session)] + rec) == 0
+    assert "signed by dr.keller" in capsys.readouterr().out
+    session.write_bytes(breathing.read_bytes())  # another recording copied over the signed one
+    assert main(["review", str(session)] + rec) == 0
+    out = capsys.readouterr().out
+    assert "the signed data has changed since it was signed (by dr.keller," in out
+    assert "the session file differs" in out and "signed by dr.keller on" not in out
+    fhir = tmp_path / "x.json"
+    assert main(["export", str(session), "--fhir", str(fhir)] + rec) == 0
+    report = next(e["resource"] for e in json.loads(fhir.read_text())["entry"]
+                  if e["resource"]["resourceType"] == "DiagnosticReport")
+    assert report["status"] == "preliminary" and "resultsInterpreter" not in report
+    assert "Not signed: the signed data has changed since it was signed" in report["conclusion"]
+    with Records(records, read_only=True) as r:
+        state = r.report_state(r.session_by_path(session).id)
+    assert state.signed and not state.signature_valid
+
+
+# ------------------------------------------------------------------ tampering with the records
+
+@pytest.fixture()
+def kept_records(tmp_path):
+    """A records database as a clinic leaves it: users, a patient, a session with stored values, a
+    signed and amended report; the audit trail and its head beside it."""
+    path = tmp_path / "records.sqlite3"
+    session = tmp_path / "s.h5"
+    session.write_bytes(b"a recording")
+    with Records(path, user="ed") as r:
+        r.add_user("ed", "engineer")
+        r.add_user("anna", "clinician")
+        r.add_user("otto", "operator")
+    with Records(path, user="otto") as r:
+        p = r.add_patient("Muster", "Max", "male", date(1966, 5, 1), 175.0, 80.0, pseudonym="P-KEPT")
+        sid = r.add_session(p.id, session, datetime(2026, 11, 1, 9, tzinfo=timezone.utc))
+        r.set_results(sid, None, {"flow sensor": {"FEV1_l": 3.1, "FVC_l": 4.0}})
+    with Records(path, user="anna") as r:
+        r.set_comment(sid, "Normal spirometry.")
+        r.sign_report(sid)
+        r.amend_report(sid, "Reviewed again.")
+        assert r.audit_problems() == []
+    return path
+
+
+def _sql(path, *statements):
+    db = sqlite3.connect(path)
+    for statement in statements:
+        db.execute(statement)
+    db.commit()
+    db.close()
+
+
+def _rechain(path, first_id):
+    """Recompute every hash from `first_id` on, as a forger who knows the scheme would."""
+    from app.audit import entry_hash
+
+    db = sqlite3.connect(path)
+    db.execute("DROP TRIGGER IF EXISTS audit_log_no_update")
+    rows = db.execute("SELECT id, time, user, role, action, target, details, previous_hash FROM audit_log "
+                      "ORDER BY id").fetchall()
+    previous = next(r[7] for r in rows if r[0] == first_id)
+    for r in rows:
+        if r[0] < first_id:
+            continue
+        digest = entry_hash(previous, *r[1:7])
+        db.execute("UPDATE audit_log SET previous_hash = ?, hash = ? WHERE id = ?", (previous, digest, r[0]))
+        previous = digest
+    db.commit()
+    db.close()
+
+
+def _edit_and_rechain(path):
+    _sql(path, "DROP TRIGGER audit_log_no_update", "UPDATE audit_log SET user = 'mallory' WHERE id = 4")
+    _rechain(path, 4)
+
+
+def _append_forged_entry(path):
+    from app.audit import entry_hash
+
+    db = sqlite3.connect(path)
+    last = db.execute("SELECT hash FROM audit_log ORDER BY id DESC LIMIT 1").fetchone()[0]
+    digest = entry_hash(last, "2026-12-01T00:00:00+00:00", "mallory", "clinician", "report signed", "x", "{}")
+    db.execute("INSERT INTO audit_log (time, user, role, action, target, details, previous_hash, hash) VALUES "
+               "('2026-12-01T00:00:00+00:00', 'mallory', 'clinician', 'report signed', 'x', '{}', ?, ?)",
+               (last, digest))
+    db.commit()
+    db.close()
+
+
+# (what was done, how, what `audit --verify` says)
+TAMPERINGS = [
+    ("an audit entry edited", lambda p: _sql(p, "DROP TRIGGER audit_log_no_update",
+                                             "UPDATE audit_log SET user = 'mallory' WHERE id = 3"),
+     "audit entry 3 (user added"),
+    ("an audit entry deleted", lambda p: _sql(p, "DROP TRIGGER audit_log_no_delete", "DELETE FROM audit_log WHERE id = 3"),
+     "audit entry 4 does not follow"),
+    ("the whole audit log deleted", lambda p: _sql(p, "DROP TRIGGER audit_log_no_delete", "DELETE FROM audit_log"),
+     "the log was deleted, cut short or rebuilt"),
+    ("an entry edited and the chain recomputed", _edit_and_rechain, "the log was deleted, cut short or rebuilt"),
+    ("the trail's last entries cut off", lambda p: _sql(p, "DROP TRIGGER audit_log_no_delete",
+                                                        "DELETE FROM audit_log WHERE id > 5"),
+     "the log was deleted, cut short or rebuilt"),
+    ("an entry appended by another program", _append_forged_entry, "1 entry after the anchored head"),
+    ("a stored FEV1 edited", lambda p: _sql(p, "UPDATE session_values SET value = 9.9 WHERE name = 'FEV1_l'"),
+     "FEV1_l: changed outside photopft"),
+    ("a session's stored summary edited", lambda p: _sql(p, "UPDATE sessions SET summary = '{}'"),
+     "session /"),
+    ("a patient edited", lambda p: _sql(p, "UPDATE patients SET birth_date = '1990-05-01'"),
+     "patient P-KEPT: changed outside photopft"),
+    ("a signed comment edited", lambda p: _sql(p, "UPDATE reports SET comment = 'Severe obstruction.'"),
+     "report /"),
+    ("a report unsigned", lambda p: _sql(p, "UPDATE reports SET signed_by = NULL, signed_at = NULL"), "report /"),
+    ("an amendment deleted", lambda p: _sql(p, "DELETE FROM report_amendments"), "amendment 1: removed outside"),
+    ("a user inserted", lambda p: _sql(p, "INSERT INTO users (name, role, created) VALUES ('mallory', 'clinician', "
+                                          "'2026-12-01T00:00:00+00:00')"), "user mallory: added outside photopft"),
+    ("a user deactivated", lambda p: _sql(p, "UPDATE users SET active = 0 WHERE name = 'anna'"),
+     "user anna: changed outside photopft"),
+    ("a user's role changed", lambda p: _sql(p, "UPDATE users SET role = 'engineer' WHERE name = 'otto'"),
+     "user otto: changed outside photopft"),
+    ("the head file replaced by a forged one", lambda p: p.with_name(p.name + ".audit-head").write_text(
+        '{"last_id": 1, "hash": "00", "mac": "00"}'), "its HMAC does not match"),
+]
+
+
+@pytest.mark.parametrize("what, tamper, says", TAMPERINGS, ids=[t[0] for t in TAMPERINGS])
+def test_audit_verify_catches_each_tampering(kept_records, capsys, what, tamper, says):
+    tamper(kept_records)
+    assert main(["audit", "--verify", "--records", str(kept_records)]) == 1
+    out = capsys.readouterr().out
+    assert says in out, out
+    assert "every record matches" not in out
+
+
+def test_what_the_trail_cannot_see_an_older_copy_restored_whole(kept_records, tmp_path, capsys):
+    """Undetectable (docs/trust.md): the database and its head file put back together from an older
+    backup agree with each other; only a copy of the head kept elsewhere would show it."""
+    head = kept_records.with_name(kept_records.name + ".audit-head")
+    older, older_head = tmp_path / "older.sqlite3", head.read_bytes()
+    older.write_bytes(kept_records.read_bytes())
+    with Records(kept_records, user="anna") as r:
+        r.amend_report(1, "A later amendment.")
+    kept_records.write_bytes(older.read_bytes())
+    head.write_bytes(older_head)
+    assert main(["audit", "--verify", "--records", str(kept_records)]) == 0
