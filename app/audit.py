@@ -32,6 +32,8 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
+from app.auth import proven_user
+
 ROLES = ("operator", "clinician", "engineer")
 UNREGISTERED = "unregistered"
 GENESIS = "0" * 64
@@ -50,6 +52,8 @@ PERMISSIONS: dict[str, tuple[str, ...]] = {
     "syringe check": ("operator", "engineer"),
     "export": ("clinician",),
     "user added": ("engineer",),
+    "password set": ROLES,  # one's own; others' by an engineer (Records.set_password)
+    "export identified": ("clinician",),
 }
 
 
@@ -77,7 +81,10 @@ class AuditEntry:
 
 
 def login_name() -> str:
-    """Who acts: $PHOTOPFT_USER, or the computer account."""
+    """Who acts: the user this process has proven (app/auth.py), else $PHOTOPFT_USER, else the computer account."""
+    proven = proven_user()
+    if proven:
+        return proven
     name = os.environ.get("PHOTOPFT_USER", "").strip()
     if name:
         return name

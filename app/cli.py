@@ -93,6 +93,8 @@ def _one_line_naming_the_input(exc: Exception, args: argparse.Namespace) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from app.auth import forget
+
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
@@ -103,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = {sig: signal.signal(sig, _stop) for sig in (signal.SIGTERM, signal.SIGINT)} if in_main_thread else {}
     clear_stop()
+    forget()  # who acts is named by this command (--user, $PHOTOPFT_USER) and proven by it
     sys.unraisablehook = _quiet_stop_in_callbacks
     try:
         return int(args.run(args) or 0)
@@ -116,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"photopft {args.verb}: error: {_one_line_naming_the_input(exc, args)}", file=sys.stderr)
         return 2
     finally:
+        forget()  # a password given to this command proves nothing to the next
         _restore_handlers(previous)
         clear_stop()  # answered: a caller in the same process (a test, a script) goes on unstopped
         sys.unraisablehook = sys.__unraisablehook__

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 from datetime import date, datetime, timezone
 from pathlib import Path
 
-from app import audit
-from app.paths import config_dir, data_dir
+from app import audit, auth, paths
+from app.paths import SiteConfigError, config_dir, configured_records, data_dir
 
 SEXES = ("male", "female")
 
@@ -202,15 +202,23 @@ def existing_records(path: Path | None = None, user: str | None = None, may: str
     with `may`, refused (RecordsError, nothing opened) when the acting user's role does not allow
     that action: checked before the work it logs starts."""
     path = path or default_path()
+    try:
+        configured = configured_records()
+    except SiteConfigError as exc:
+        raise RecordsError(str(exc)) from exc
     if not path.exists():
+        if may is not None and configured is not None:
+            raise RecordsError(f"{may}: no records database at {configured}, the location {paths.SITE_CONFIG} "
+                               f"configures: role-bound actions need it")
         return None
     records = Records(path, user=user)
     if may is not None:
         try:
             records.check_permitted(may)
-        except RecordsError:
+            records.require_password(may)
+        except (RecordsError, auth.AuthenticationError) as exc:
             records.close()
-            raise
+            raise RecordsError(str(exc)) from exc
     return records
 
 
@@ -266,7 +274,12 @@ def _create_private(path: Path) -> None:
 
 
 def default_path() -> Path:
-    return data_dir() / "records.sqlite3"
+    """The site configuration's records database where there is one, else the user's."""
+    try:
+        configured = configured_records()
+    except SiteConfigError as exc:
+        raise RecordsError(str(exc)) from exc
+    return configured or data_dir() / "records.sqlite3"
 
 
 def make_data_dir(folder: Path) -> None:
@@ -570,6 +583,9 @@ class Records:
             audit.check_permitted(self._db, self.actor, action)
         except audit.NotPermitted as exc:
             raise RecordsError(str(exc)) from exc
+        if self._needs_password(action) and auth.proven_user() != self.actor.name:
+            raise RecordsError(f"{action}: {self.actor.name} has not given their password: a role-bound action "
+                               f"is done only after it")
         self._pending.append((action, target, details))
 
     def log(self, action: str, target: str, details: dict | None = None) -> None:
@@ -584,6 +600,55 @@ class Records:
         except audit.NotPermitted as exc:
             raise RecordsError(str(exc)) from exc
 
+    # Authentication (app/auth.py)
+    def _needs_password(self, action: str) -> bool:
+        """Role-bound, once users are registered and passwords introduced (a database from before
+        them has none until an engineer sets the first: `photopft users password NAME`)."""
+        return action in auth.NEEDS_PASSWORD and self.roles_enforced and self.passwords_in_use
+
+    @property
+    def passwords_in_use(self) -> bool:
+        return self._db.execute("SELECT 1 FROM users WHERE active = 1 AND password_hash IS NOT NULL "
+                                "LIMIT 1").fetchone() is not None
+
+    def _check_location(self, action: str) -> None:
+        """Role-bound actions only against the records the site configures, where it configures any."""
+        try:
+            configured = configured_records()
+        except SiteConfigError as exc:
+            raise RecordsError(str(exc)) from exc
+        if configured is not None and self.path.resolve() != configured.resolve():
+            raise RecordsError(f"{action}: {self.path} is not the records database {paths.SITE_CONFIG} configures "
+                               f"({configured}): it cannot authorise role-bound actions")
+
+    def require_password(self, action: str, ask=None) -> None:
+        """Ask the acting user's password (auth.ask_password by default) unless this process has
+        proven who they are; refused in one line when it is wrong."""
+        if action in auth.NEEDS_PASSWORD:
+            self._check_location(action)
+        if not self._needs_password(action) or auth.proven_user() == self.actor.name:
+            return
+        try:
+            password = (ask or auth.asker())(self.actor.name)
+        except auth.AuthenticationError as exc:
+            raise RecordsError(f"{action}: {exc}") from exc
+        self.authenticate(password)
+
+    def authenticate(self, password: str) -> None:
+        """Prove the acting user for this process; a wrong password is refused and audited."""
+        who = self.actor
+        row = self._db.execute("SELECT password_hash FROM users WHERE name = ? AND active = 1",
+                               (who.name,)).fetchone()
+        if row is not None and auth.password_matches(password, row[0]):
+            auth.prove(who.name, time.time())
+            return
+        reason = "not a registered user" if row is None else \
+            "has no password yet (an engineer sets it: photopft users password NAME)" if not row[0] else \
+            "wrong password"
+        with _Transaction(self._db, self.path, None, self._write_head):
+            audit.append(self._db, who, "authentication failed", f"user {who.name}", {"reason": reason}, checked=True)
+        raise RecordsError(f"{who.name}: {reason}; nothing was done (the attempt is in the audit trail)")
+
     def audit_trail(self, target: str | None = None, limit: int | None = None) -> list[audit.AuditEntry]:
         return audit.entries(self._db, target, limit)
 
@@ -596,9 +661,14 @@ class Records:
         return None if not problems else problems[0] + (f" (and {len(problems) - 1} more)" if len(problems) > 1
                                                          else "")
 
-    def add_user(self, name: str, role: str) -> None:
-        """A user with a role. The first user added must be an engineer (who then adds the others)."""
+    def add_user(self, name: str, role: str, password: str) -> None:
+        """A user with a role and a password. The first user added must be an engineer (who then adds
+        the others, after giving their own password)."""
         name = name.strip()
+        try:
+            password_hash = auth.hash_password(password)
+        except ValueError as exc:
+            raise RecordsError(f"user {name}: {exc}") from exc
         if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.@ -]{0,63}", name):
             raise RecordsError(f"user name: 1-64 letters, digits, ' ', '.', '_', '@' or '-', got {name!r}")
         if role not in audit.ROLES:
@@ -609,7 +679,24 @@ class Records:
             if self._db.execute("SELECT 1 FROM users WHERE name = ?", (name,)).fetchone():
                 raise RecordsError(f"user {name} is already on record")
             self._log("user added", f"user {name}", {"role": role})
-            self._db.execute("INSERT INTO users (name, role, created) VALUES (?, ?, ?)", (name, role, _now()))
+            self._db.execute("INSERT INTO users (name, role, created, password_hash) VALUES (?, ?, ?, ?)",
+                             (name, role, _now(), password_hash))
+
+    def set_password(self, name: str, password: str) -> None:
+        """A user's new password: their own (once they have proven the old one), or anyone's by an engineer."""
+        row = self._db.execute("SELECT 1 FROM users WHERE name = ? AND active = 1", (name,)).fetchone()
+        if row is None:
+            raise RecordsError(f"no active user {name}")
+        actor = self.actor
+        if actor.name != name and actor.role != "engineer":
+            raise RecordsError(f"password set: {actor.name} may set only their own password; an engineer sets others'")
+        try:
+            password_hash = auth.hash_password(password)
+        except ValueError as exc:
+            raise RecordsError(f"user {name}: {exc}") from exc
+        with self.transaction():
+            self._log("password set", f"user {name}")
+            self._db.execute("UPDATE users SET password_hash = ? WHERE name = ?", (password_hash, name))
 
     def users(self) -> list[tuple[str, str]]:
         return [(r[0], r[1]) for r in self._db.execute("SELECT name, role FROM users WHERE active = 1 ORDER BY name")]

@@ -111,3 +111,25 @@ def processed_full_session(tmp_path_factory) -> tuple[Path, Path]:
 
     folder = _built_once(tmp_path_factory, "processed-full", build)
     return folder / "full.h5", folder / "results.h5"
+
+
+@pytest.fixture(autouse=True)
+def _nobody_proven():
+    """Each test starts with no user proven by a password (app/auth.py keeps it per process)."""
+    from app.auth import forget
+
+    forget()
+    yield
+    forget()
+
+
+@pytest.fixture()
+def typed(monkeypatch):
+    """typed(*lines): what a script gives on standard input (passwords, one a line)."""
+    import io
+    import sys
+
+    def give(*lines: str) -> None:
+        monkeypatch.setattr(sys, "stdin", io.StringIO("".join(f"{line}\n" for line in lines)))
+
+    return give

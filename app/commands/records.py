@@ -115,8 +115,9 @@ def _exporting(args: argparse.Namespace, output: Path):
 
     if args.records is not None and not args.records.exists():
         raise UserError(f"--records {args.records}: no records database there")
+    identified = args.identified or args.gdt is not None  # a GDT record names the patient from the records
     try:
-        return existing_records(args.records, args.user, may="export")
+        return existing_records(args.records, args.user, may="export identified" if identified else "export")
     except RecordsError as exc:
         raise UserError(str(exc)) from exc
 

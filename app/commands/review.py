@@ -4,14 +4,18 @@ and who did what."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from app.errors import UserError
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--records", type=Path, help="patient records database (default: the user's data folder)")
-    p.add_argument("--user", help="who acts (default: $PHOTOPFT_USER or the computer account)")
+    p.add_argument("--records", type=Path, help="patient records database (default: the site's, else the user's "
+                                                  "data folder)")
+    p.add_argument("--user", help="who acts (default: $PHOTOPFT_USER or the computer account); once users are "
+                                  "registered, a role-bound action asks their password (at the terminal, or the "
+                                  "first line of standard input)")
 
 
 def add_review_verbs(sub: argparse._SubParsersAction) -> None:
@@ -30,9 +34,12 @@ def add_review_verbs(sub: argparse._SubParsersAction) -> None:
     u = sub.add_parser("users", help="users and their roles (operator, clinician, engineer)",
                        description="Roles are enforced from the first user on; the first user is an engineer.")
     verbs = u.add_subparsers(dest="users_verb", metavar="ACTION", required=True)
-    add = verbs.add_parser("add", help="a user with a role")
+    add = verbs.add_parser("add", help="a user with a role; asks the new user's password (twice at a terminal, "
+                                       "else the next line of standard input)")
     add.add_argument("name")
     add.add_argument("--role", choices=("operator", "clinician", "engineer"), required=True)
+    password = verbs.add_parser("password", help="set a user's password (one's own, or anyone's by an engineer)")
+    password.add_argument("name")
     verbs.add_parser("list", help="the users and their roles")
     _common(u)  # before the action, as for `photopft patients`
     u.set_defaults(run=run_users)
@@ -71,6 +78,11 @@ def run_review(args: argparse.Namespace) -> int:
     with _records(args, read_only=not changes) as records:
         try:
             sid = _session_id(records, args.session)
+            for wanted, action in ((args.comment is not None, "comment edited"), (args.sign, "report signed"),
+                                   (args.amend, "report amended")):
+                if wanted:
+                    records.check_permitted(action)
+                    records.require_password(action)
             if args.post_bronchodilator_of is not None:
                 records.link_bronchodilator(_session_id(records, args.post_bronchodilator_of), sid)
             if args.comment is not None:
@@ -94,14 +106,35 @@ def run_review(args: argparse.Namespace) -> int:
     return 0
 
 
+def _new_password(name: str) -> str:
+    """The new password, typed twice at a terminal; else the next line of standard input."""
+    from app.auth import AuthenticationError, ask_password
+
+    try:
+        first = ask_password(name, f"new password of {name}: ")
+        if sys.stdin is not None and sys.stdin.isatty() and ask_password(name, "again: ") != first:
+            raise UserError(f"the two passwords for {name} differ: nothing was changed")
+    except AuthenticationError as exc:
+        raise UserError(f"{name}: a new password is needed ({exc})") from exc
+    return first
+
+
 def run_users(args: argparse.Namespace) -> int:
     from app.records import RecordsError
 
     with _records(args, read_only=args.users_verb == "list") as records:
         try:
             if args.users_verb == "add":
-                records.add_user(args.name, args.role)
+                if records.roles_enforced:
+                    records.check_permitted("user added")
+                    records.require_password("user added")
+                records.add_user(args.name, args.role, _new_password(args.name))
                 print(f"added {args.name} ({args.role})")
+                return 0
+            if args.users_verb == "password":
+                records.require_password("password set")
+                records.set_password(args.name, _new_password(args.name))
+                print(f"password of {args.name} set")
                 return 0
             users = records.users()
         except RecordsError as exc:

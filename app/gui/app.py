@@ -24,6 +24,30 @@ def add_gui(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run_gui)
 
 
+def signed_in() -> bool:
+    """True when nobody need sign in (no users with passwords in the records) or someone did."""
+    from PySide6.QtWidgets import QDialog
+
+    from app.audit import login_name
+    from app.auth import use_asker
+    from app.gui.login import LoginDialog, ask_in_dialog, login_needed
+
+    use_asker(ask_in_dialog)
+    return not login_needed() or LoginDialog(None, login_name()).exec() == QDialog.DialogCode.Accepted
+
+
+def lock_when_idle(window) -> None:
+    """Where someone signed in: the lock after the settings' security/idle_minutes without input."""
+    from PySide6.QtCore import QSettings
+
+    from app.auth import proven_user
+    from app.gui.login import IDLE_MINUTES, IdleLock
+
+    if proven_user():
+        minutes = float(QSettings().value("security/idle_minutes", IDLE_MINUTES))
+        window.idle_lock = IdleLock(window, minutes, window.close)
+
+
 def run_gui(args: argparse.Namespace) -> int:
     from PySide6.QtWidgets import QApplication
 
@@ -37,6 +61,8 @@ def run_gui(args: argparse.Namespace) -> int:
     app = QApplication.instance() or QApplication(sys.argv[:1])
     app.setApplicationName("photopft")
     app.setOrganizationName("photopft")
+    if args.smoke_test is None and not signed_in():
+        return 0
     rig = args.rig or settings_rig()
     opener = partial(replay_source, args.session, args.speed) if args.session else \
         partial(rig_source, rig, args.scale)
@@ -54,6 +80,7 @@ def run_gui(args: argparse.Namespace) -> int:
     install_excepthook(lambda: window, give_up if args.smoke_test is not None else None)
     window.show()
     if args.smoke_test is None:
+        lock_when_idle(window)
         return app.exec()
     if window.engine is None:
         raise UserError(f"cannot start: {window.diagnostics.problem.text()}")

@@ -71,16 +71,20 @@ def test_roles_decide_who_may_do_what(tmp_path):
     path = tmp_path / "r.sqlite3"
     with Records(path, user="anna") as records:
         with pytest.raises(RecordsError, match="first user must be an engineer"):
-            records.add_user("anna", "clinician")
-        records.add_user("ed", "engineer")
+            records.add_user("anna", "clinician", "anna-secret")
+        records.add_user("ed", "engineer", "ed-secret")
         with pytest.raises(RecordsError, match="user added: anna is not a registered user; this needs the role "
                                                "engineer"):
-            records.add_user("anna", "clinician")
+            records.add_user("anna", "clinician", "anna-secret")
     with Records(path, user="ed") as records:
-        records.add_user("anna", "clinician")
-        records.add_user("otto", "operator")
+        with pytest.raises(RecordsError, match="user added: ed has not given their password"):
+            records.add_user("anna", "clinician", "anna-secret")
+        records.authenticate("ed-secret")
+        records.add_user("anna", "clinician", "anna-secret")
+        records.add_user("otto", "operator", "otto-secret")
         records.log("calibration saved", "sphere.json")
     with Records(path, user="otto") as records:
+        records.authenticate("otto-secret")
         p = _patient(records)
         sid = _session(records, p, tmp_path, "s.h5")
         with pytest.raises(RecordsError, match="report signed: otto is an operator; this needs the role clinician"):
@@ -89,6 +93,9 @@ def test_roles_decide_who_may_do_what(tmp_path):
             records.log("calibration saved", "sphere.json")
         assert not records.report_state(sid).signed  # refused: nothing written
     with Records(path, user="anna") as records:
+        with pytest.raises(RecordsError, match="report signed: anna has not given their password"):
+            records.sign_report(sid)
+        records.authenticate("anna-secret")
         state = records.sign_report(sid)
         assert state.signed_by == "anna" and state.signed_at is not None
         with pytest.raises(RecordsError, match="signed by anna .* read-only; add an amendment"):
@@ -117,7 +124,7 @@ def test_bronchodilator_pair(tmp_path):
         assert records.pre_bronchodilator(pre) is None
 
 
-def test_calibrations_are_logged_and_need_an_engineer(tmp_path, monkeypatch, capsys):
+def test_calibrations_are_logged_and_need_an_engineer(tmp_path, monkeypatch, capsys, typed):
     """`photopft calibrate flow` against the records in the user's data folder: refused for an operator
     before anything is written, logged for the engineer."""
     from app.cli import main
@@ -129,14 +136,19 @@ def test_calibrations_are_logged_and_need_an_engineer(tmp_path, monkeypatch, cap
     path = default_path()
     path.parent.mkdir(parents=True, exist_ok=True)
     with Records(path, user="ed") as records:
-        records.add_user("ed", "engineer")
-        records.add_user("otto", "operator")
+        records.add_user("ed", "engineer", "ed-secret")
+        records.authenticate("ed-secret")
+        records.add_user("otto", "operator", "otto-secret")
     monkeypatch.setenv("PHOTOPFT_USER", "otto")
     out = tmp_path / "flow.json"
     assert main(["calibrate", "flow", str(csv), "-o", str(out)]) == 2
     assert "calibration saved: otto is an operator; this needs the role engineer" in capsys.readouterr().err
     assert not out.exists()
     monkeypatch.setenv("PHOTOPFT_USER", "ed")
+    typed("not-eds-password")
+    assert main(["calibrate", "flow", str(csv), "-o", str(out)]) == 2
+    assert "ed: wrong password; nothing was done" in capsys.readouterr().err and not out.exists()
+    typed("ed-secret")
     assert main(["calibrate", "flow", str(csv), "-o", str(out)]) == 0
     with Records(path, read_only=True) as records:
         entry = records.audit_trail()[-1]

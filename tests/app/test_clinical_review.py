@@ -41,18 +41,27 @@ def visits(tmp_path_factory):
     return records, sessions["pre"], sessions["post"]
 
 
-def test_review_sign_and_report(visits, tmp_path, capsys, monkeypatch):
+def test_review_sign_and_report(visits, tmp_path, capsys, monkeypatch, typed):
     records, pre, post = visits
     monkeypatch.setenv("PHOTOPFT_USER", "dr-lee")
     rec = ["--records", str(records)]
+    typed("ed-secret")  # the first user's own password
     assert main(["users", "--user", "ed"] + rec + ["add", "ed", "--role", "engineer"]) == 0
+    typed("ed-secret", "lee-secret")  # the engineer's password, then the new user's
     assert main(["users", "--user", "ed"] + rec + ["add", "dr-lee", "--role", "clinician"]) == 0
+    typed("lee-secret")
     assert main(["review", str(post), "--comment", "Reversible obstruction; asthma likely."] + rec) == 0
     assert main(["review", str(post), "--sign", "--user", "otto"] + rec) == 2
     assert "report signed: otto is not a registered user; this needs the role clinician" in capsys.readouterr().err
+    typed("otto-guessed")
+    assert main(["review", str(post), "--sign"] + rec) == 2
+    assert "dr-lee: wrong password; nothing was done" in capsys.readouterr().err
+    typed("lee-secret")
     assert main(["review", str(post), "--sign"] + rec) == 0
+    typed("lee-secret")
     assert main(["review", str(post), "--comment", "changed"] + rec) == 2
     assert "read-only; add an amendment" in capsys.readouterr().err
+    typed("lee-secret")
     assert main(["review", str(post), "--amend", "Repeat in 3 months."] + rec) == 0
     pdf = tmp_path / "post.pdf"
     assert main(["report", str(post), "-o", str(pdf)] + rec) == 0
@@ -68,12 +77,12 @@ def test_review_sign_and_report(visits, tmp_path, capsys, monkeypatch):
     assert main(["audit", "--verify"] + rec) == 0
     out = capsys.readouterr().out
     for action in ("patient registered", "session recorded", "values stored", "user added", "sessions linked",
-                   "comment edited", "report signed", "report amended"):
+                   "comment edited", "report signed", "report amended", "authentication failed"):
         assert action in out, action
     assert "the hash chain is whole" in out
 
 
-def test_fhir_gdt_and_json_exports(visits, tmp_path, capsys, monkeypatch):
+def test_fhir_gdt_and_json_exports(visits, tmp_path, capsys, monkeypatch, typed):
     from fhir.resources.R4B.bundle import Bundle
     from fhir.resources.R4B.diagnosticreport import DiagnosticReport
     from fhir.resources.R4B.observation import Observation
@@ -113,11 +122,13 @@ def test_fhir_gdt_and_json_exports(visits, tmp_path, capsys, monkeypatch):
     assert report["code"]["coding"][0]["code"] == "18759-1" and report["status"] == "preliminary"
     assert len(report["result"]) == len(observations) - 1  # FEV1 carries two codings
     identified = tmp_path / "identified.json"
+    typed("lee-secret")  # identified data: the clinician's password, where users are registered
     assert main(["export", str(pre), "--fhir", str(identified), "--identified"] + rec) == 0
     person = json.loads(identified.read_text())["entry"][0]["resource"]
     assert person["name"][0]["family"] == "Muster" and person["birthDate"] == "1966-05-01"
 
     gdt = tmp_path / "post.gdt"
+    typed("lee-secret")
     assert main(["export", str(post), "--gdt", str(gdt)] + rec) == 0
     fields = read_gdt(gdt)
     assert fields[0] == ("8000", "6310") and ("9218", "03.00") in fields

@@ -16,6 +16,7 @@ def _visits(path, user="dr-lee"):
     records = Records(path, user=user)
     p = records.add_patient("Muster", "Max", "male", date(1966, 5, 1), 175.0, 80.0, patient_number="H-9")
     for day, fev1, fvc in ((1, 2.0, 4.0), (2, 2.6, 4.05)):
+        (path.parent / f"s{day}.h5").write_bytes(f"recording {day}".encode())  # what a signature binds
         sid = records.add_session(p.id, path.parent / f"s{day}.h5", datetime(2026, 11, day, 9, tzinfo=timezone.utc))
         records.set_results(sid, None, {"flow sensor": {"FEV1_l": fev1, "FVC_l": fvc, "FEV1_FVC": fev1 / fvc,
                                                         "grade": "A"}})
@@ -52,8 +53,9 @@ def test_a_refused_change_is_one_line_in_a_dialog(qtbot, tmp_path):
     path = tmp_path / "r.sqlite3"
     _visits(path).close()
     with Records(path, user="ed") as records:
-        records.add_user("ed", "engineer")
-        records.add_user("otto", "operator")
+        records.add_user("ed", "engineer", "ed-secret")
+        records.authenticate("ed-secret")
+        records.add_user("otto", "operator", "otto-secret")
     records = Records(path, user="otto")
     window = RecordsWindow(None, records)
     qtbot.addWidget(window)

@@ -273,14 +273,16 @@ def kept_records(tmp_path):
     session = tmp_path / "s.h5"
     session.write_bytes(b"a recording")
     with Records(path, user="ed") as r:
-        r.add_user("ed", "engineer")
-        r.add_user("anna", "clinician")
-        r.add_user("otto", "operator")
+        r.add_user("ed", "engineer", "ed-secret")
+        r.authenticate("ed-secret")
+        r.add_user("anna", "clinician", "anna-secret")
+        r.add_user("otto", "operator", "otto-secret")
     with Records(path, user="otto") as r:
         p = r.add_patient("Muster", "Max", "male", date(1966, 5, 1), 175.0, 80.0, pseudonym="P-KEPT")
         sid = r.add_session(p.id, session, datetime(2026, 11, 1, 9, tzinfo=timezone.utc))
         r.set_results(sid, None, {"flow sensor": {"FEV1_l": 3.1, "FVC_l": 4.0}})
     with Records(path, user="anna") as r:
+        r.authenticate("anna-secret")
         r.set_comment(sid, "Normal spirometry.")
         r.sign_report(sid)
         r.amend_report(sid, "Reviewed again.")
@@ -384,7 +386,77 @@ def test_what_the_trail_cannot_see_an_older_copy_restored_whole(kept_records, tm
     older, older_head = tmp_path / "older.sqlite3", head.read_bytes()
     older.write_bytes(kept_records.read_bytes())
     with Records(kept_records, user="anna") as r:
+        r.authenticate("anna-secret")
         r.amend_report(1, "A later amendment.")
     kept_records.write_bytes(older.read_bytes())
     head.write_bytes(older_head)
     assert main(["audit", "--verify", "--records", str(kept_records)]) == 0
+
+
+
+# ------------------------------------------------------------------ identity is authenticated
+
+def test_a_claimed_name_proves_nothing(kept_records, tmp_path, capsys, typed):
+    rec = ["--records", str(kept_records)]
+    second = tmp_path / "s2.h5"
+    second.write_bytes(b"a second recording")
+    with Records(kept_records, user="otto") as r:
+        r.authenticate("otto-secret")
+        sid = r.add_session(r.patient_by_pseudonym("P-KEPT").id, second, datetime(2026, 11, 2, 9, tzinfo=timezone.utc))
+    typed()  # the operator at a script, no password for dr. anna
+    assert main(["review", str(second), "--sign", "--user", "anna"] + rec) == 2
+    assert "this needs the password of anna" in capsys.readouterr().err
+    typed("otto-secret")  # the operator's own password is not the clinician's
+    assert main(["review", str(second), "--sign", "--user", "anna"] + rec) == 2
+    assert "anna: wrong password; nothing was done (the attempt is in the audit trail)" in capsys.readouterr().err
+    typed("otto-secret")
+    assert main(["review", str(second), "--sign", "--user", "otto"] + rec) == 2
+    assert "report signed: otto is an operator; this needs the role clinician" in capsys.readouterr().err
+    typed("anything", "mallory-secret")
+    assert main(["users", "--user", "admin"] + rec + ["add", "mallory", "--role", "engineer"]) == 2
+    assert "user added: admin is not a registered user" in capsys.readouterr().err
+    typed("otto-secret", "mallory-secret")
+    assert main(["users", "--user", "ed"] + rec + ["add", "mallory", "--role", "engineer"]) == 2
+    assert "ed: wrong password" in capsys.readouterr().err
+    with Records(kept_records, read_only=True) as r:
+        assert not r.report_state(sid).signed
+        assert [u for u, _ in r.users()] == ["anna", "ed", "otto"]
+        failed = [e for e in r.audit_trail() if e.action == "authentication failed"]
+        assert [(e.user, e.details["reason"]) for e in failed] == [("anna", "wrong password"), ("ed", "wrong password")]
+    typed("anna-secret")
+    assert main(["review", str(second), "--sign", "--user", "anna"] + rec) == 0
+    assert main(["audit", "--verify"] + rec) == 0
+
+
+def test_passwords_are_kept_as_scrypt_hashes(kept_records):
+    db = sqlite3.connect(kept_records)
+    stored = dict(db.execute("SELECT name, password_hash FROM users"))
+    db.close()
+    assert all(h.startswith("scrypt$32768$8$1$") for h in stored.values())
+    assert not any(pw.encode() in kept_records.read_bytes() for pw in ("ed-secret", "anna-secret", "otto-secret"))
+
+
+def test_role_bound_actions_need_the_records_the_site_configures(kept_records, tmp_path, monkeypatch, capsys, typed):
+    import app.paths
+
+    site = tmp_path / "site.toml"
+    site.write_text(f'[records]\npath = "{kept_records}"\n')
+    monkeypatch.setattr(app.paths, "SITE_CONFIG", site)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "empty"))  # an empty data folder moves nothing
+    monkeypatch.setenv("PHOTOPFT_USER", "otto")
+    csv = tmp_path / "steps.csv"
+    csv.write_text("reference_lps,adc_mean\n-4,1500\n0,2048\n2,2315\n6,2848\n")
+    out = tmp_path / "flow.json"
+    typed("otto-secret")
+    assert main(["calibrate", "flow", str(csv), "-o", str(out)]) == 2
+    assert "calibration saved: otto is an operator" in capsys.readouterr().err and not out.exists()
+    mine = tmp_path / "mine.sqlite3"  # records of one's own, where nobody is registered
+    with Records(mine, user="mallory") as r:
+        p = r.add_patient("Doe", "", "female", date(1980, 1, 1), 165.0, 60.0)
+        r.add_session(p.id, tmp_path / "s.h5", datetime(2026, 11, 3, 9, tzinfo=timezone.utc))
+    assert main(["review", str(tmp_path / "s.h5"), "--sign", "--user", "mallory", "--records", str(mine)]) == 2
+    assert f"is not the records database {site} configures" in capsys.readouterr().err
+    site.write_text(f'[records]\npath = "{tmp_path / "gone.sqlite3"}"\n')
+    monkeypatch.setenv("PHOTOPFT_USER", "ed")
+    assert main(["calibrate", "flow", str(csv), "-o", str(out)]) == 2
+    assert "no records database at" in capsys.readouterr().err and not out.exists()
