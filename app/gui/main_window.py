@@ -182,6 +182,12 @@ class MainWindow(QMainWindow):
         self.statusBar().addPermanentWidget(self.status_label)
         self.user_label = QLabel(acting_user_text())
         self.statusBar().addPermanentWidget(self.user_label)
+        from app.gui.processing import ProcessingPanel
+
+        self.processing = ProcessingPanel(self)  # a visit processed after its recording (app/session_processing.py)
+        self.processing.finished.connect(lambda _: self.statusBar().showMessage(self.processing.last_message, 15000))
+        self.processing.problem.connect(lambda message: self.statusBar().showMessage(message, 15000))
+        self.statusBar().addPermanentWidget(self.processing)
         self.stalls = StallMonitor(self)
         self.timer = QTimer(self)
         self.timer.setInterval(DISPLAY_INTERVAL_MS)
@@ -326,7 +332,8 @@ class MainWindow(QMainWindow):
         if self.info.replay:
             self.back_to_rig()
         wizard = PatientSessionWizard(self, self.engine)
-        wizard.exec()
+        if wizard.exec() == PatientSessionWizard.DialogCode.Accepted and wizard.session_id is not None:
+            self.processing.start(wizard.session_id, wizard.session_path.name)
 
     def open_session(self) -> None:
         path, _ = QFileDialog.getOpenFileName(self, "Open a recorded session", str(Path.home()),
@@ -478,7 +485,8 @@ class MainWindow(QMainWindow):
             show_error(self, "The patient records cannot be opened.", str(exc))
             return
         with records:
-            RecordsWindow(self, records, str(self.settings.value("reference/equations", "gli-global"))).exec()
+            RecordsWindow(self, records, str(self.settings.value("reference/equations", "gli-global")),
+                          processing=self.processing).exec()
 
     def open_audit(self) -> None:
         from app.gui.records_view import AuditWindow

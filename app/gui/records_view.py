@@ -65,8 +65,36 @@ class TrendPlot(QWidget):
         self.z.setYRange(min(-3.0, min(zs, default=0.0) - 0.5), max(3.0, max(zs, default=0.0) + 0.5), padding=0)
 
 
+# The values shown per source for a visit, as the report names them
+VISIT_VALUES = (("FEV1_l", "FEV1", "L"), ("FVC_l", "FVC", "L"), ("FEV1_FVC", "FEV1/FVC", ""), ("VC_l", "VC", "L"),
+                ("TV_l", "TV", "L"), ("RR_bpm", "RR", "/min"))
+SOURCE_LABELS = {"flow sensor": "flow sensor", "optical": "optical (not calibrated on the subject)"}
+
+
+def values_by_source_html(summary: dict) -> str:
+    """The visit's stored values, one row per source, the optical beside the flow sensor's; an
+    optical volume refused says why."""
+    rows = []
+    for source, values in summary.items():
+        if not isinstance(values, dict):
+            continue
+        label = SOURCE_LABELS.get(source, source)
+        if "refused" in values and not any(k in values for k, _, _ in VISIT_VALUES):
+            rows.append(f"<tr><td><b>{label}</b></td><td colspan=6>no values: {values['refused']}</td></tr>")
+            continue
+        cells = "".join(f"<td>{name} {float(values[key]):.2f}{' ' + unit if unit else ''}</td>"
+                        for key, name, unit in VISIT_VALUES if isinstance(values.get(key), (int, float)))
+        rows.append(f"<tr><td><b>{label}</b></td>{cells or '<td>no values</td>'}</tr>")
+    if not rows:
+        return "No values stored for this visit: process it (Process again)."
+    return "<table cellspacing=0 cellpadding=2>" + "".join(rows) + "</table>"
+
+
 class RecordsWindow(QDialog):
-    def __init__(self, parent=None, records: Records | None = None, equations: str = "gli-global") -> None:
+    def __init__(self, parent=None, records: Records | None = None, equations: str = "gli-global",
+                 processing=None) -> None:
+        """`processing`: the main window's ProcessingPanel, which "Process again" hands a visit to (a
+        panel of this window's own where none is given)."""
         super().__init__(parent)
         self.setWindowTitle("Patient records")
         self.records = records or Records()
@@ -106,14 +134,24 @@ class RecordsWindow(QDialog):
         self.amend = QPushButton("Add amendment", clicked=self._amend)
         self.pre = QComboBox()
         self.link = QPushButton("Link as post-bronchodilator", clicked=self._link)
+        from app.gui.processing import ProcessingPanel
+
+        self.processing = processing or ProcessingPanel(self)
+        self.processing.finished.connect(self._processed)
+        self.processing.problem.connect(self._processing_problem)
+        self.process_again = QPushButton("Process again", clicked=self._process_again)
+        self.values = QLabel(wordWrap=True)
+        self.values.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         review = QGroupBox("Review of the selected visit")
         box = QVBoxLayout(review)
+        box.addWidget(self.values)
         box.addWidget(self.interpretation)
         box.addWidget(self.comment)
         row = QHBoxLayout()
         for w in (self.save_comment, self.sign):
             row.addWidget(w)
         row.addStretch(1)
+        row.addWidget(self.process_again)
         box.addLayout(row)
         box.addWidget(self.signed)
         row = QHBoxLayout()
@@ -144,6 +182,8 @@ class RecordsWindow(QDialog):
         bottom = QHBoxLayout()
         bottom.addWidget(self.user)
         bottom.addStretch(1)
+        if processing is None:
+            bottom.addWidget(self.processing)
         bottom.addWidget(buttons)
         layout.addLayout(bottom)
         self.resize(1200, 820)
@@ -187,12 +227,15 @@ class RecordsWindow(QDialog):
 
     def _choose_visit(self) -> None:
         visit = self._visit()
-        for w in (self.comment, self.save_comment, self.sign, self.amendment, self.amend, self.pre, self.link):
+        for w in (self.comment, self.save_comment, self.sign, self.amendment, self.amend, self.pre, self.link,
+                  self.process_again):
             w.setEnabled(visit is not None)
         if visit is None:
             self.interpretation.setText("Choose a visit.")
             self.signed.setText("")
+            self.values.setText("")
             return
+        self.values.setText(values_by_source_html(visit.summary))
         source, values = source_values(visit.summary)
         verdict = stored_interpretation(self.patient, values, visit.recorded, source, self.equations)
         self.interpretation.setText(f"<b>{verdict.summary}</b> (ERS/ATS 2022)<br>" + "<br>".join(verdict.statements))
@@ -230,6 +273,18 @@ class RecordsWindow(QDialog):
             show_error(self, "The change was not made.", str(exc))
             return
         self._show_visits(keep=row)
+
+    def _process_again(self) -> None:
+        visit = self._visit()
+        if visit is not None:
+            self.processing.start(visit.id, visit.session_path.name, self.records.path)
+
+    def _processed(self, outcome) -> None:
+        visit = self._visit()
+        self._show_visits(keep=self.visits.index(visit) if visit in self.visits else None)
+
+    def _processing_problem(self, message: str) -> None:
+        self.values.setText(f"<span style='color:#b00020'>{message}</span>")
 
     def _save_comment(self) -> None:
         self._act(lambda sid: self.records.set_comment(sid, self.comment.toPlainText().strip()))
