@@ -795,6 +795,8 @@ class Records:
                                f"after the pre one ({pre.recorded:%Y-%m-%d %H:%M})")
         if pre_session_id == post_session_id:
             raise RecordsError("a session cannot be its own post-bronchodilator session")
+        if pre.status in ("recording", "discarded"):
+            raise RecordsError(f"{pre.session_path.name} is {pre.status}: recover it first, or choose another visit")
         with self.transaction():
             self._log("sessions linked", str(post.session_path), {"pre_session": str(pre.session_path)})
             self._db.execute("UPDATE sessions SET pre_session_id = ? WHERE id = ?", (pre_session_id, post_session_id))

@@ -65,3 +65,43 @@ def process_visit(records: Records, session_id: int, progress: Callable[[float],
         stored[OPTICAL] = {"refused": refused}
     records.set_results(session_id, results, stored, status="processed")
     return ProcessedVisit(results, sources, refused)
+
+
+# A visit whose recording was cut off (the application or the machine died) stays "recording" until
+# it is recovered or discarded; neither kind is offered as a bronchodilator pair's "pre" visit.
+CUT_OFF = "recording"
+NOT_A_VISIT = ("recording", "cancelled", "discarded")
+
+
+def cut_off_visits(records: Records) -> list:
+    """The visits left "recording" by a recording that never ended, oldest first."""
+    return [v for p in records.find_patients("") for v in records.history(p.id) if v.status == CUT_OFF]
+
+
+def recover_visit(records: Records, session_id: int) -> str:
+    """`photopft recover` on the visit's file (the original kept as NAME.crashed.h5), the visit then
+    marked recovered; a file that needs no recovery (it was closed, the application died after) is
+    marked recorded. Returns what was done, in words."""
+    from core.io.recovery import recover_session
+    from core.io.session import SessionError
+
+    visit = records.session(session_id)
+    if not visit.session_path.exists():
+        raise RecordsError(f"{visit.session_path}: the visit's session file is missing: discard the visit")
+    try:
+        recovery = recover_session(visit.session_path)
+    except SessionError as exc:
+        if "complete, valid session" not in str(exc):
+            raise RecordsError(str(exc)) from exc
+        records.set_results(session_id, None, visit.summary, status="recorded")
+        return f"{visit.session_path.name} was complete: marked recorded"
+    records.set_results(session_id, None, visit.summary, status="recovered")
+    kept = ", ".join(f"{k} {v}" for k, v in recovery.kept.items())
+    return f"{visit.session_path.name} recovered ({kept}); the original is kept as {recovery.original.name}"
+
+
+def discard_visit(records: Records, session_id: int) -> str:
+    """The visit marked discarded: its file stays where it is (a recording is never deleted)."""
+    visit = records.session(session_id)
+    records.set_results(session_id, None, visit.summary, status="discarded")
+    return f"{visit.session_path.name} discarded from the visits (the file is kept)"

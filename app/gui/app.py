@@ -51,17 +51,42 @@ def lock_when_idle(window) -> None:
 def run_gui(args: argparse.Namespace) -> int:
     from PySide6.QtWidgets import QApplication
 
-    from app.errors import UserError
-    from app.gui.errors import ENGINE_LOG, install_excepthook, setup_logging
-    from app.gui.main_window import MainWindow
-    from app.live import replay_source, rig_source
-    from app.logs import log_file
+    from app.gui.errors import setup_logging
+    from app.gui.shutdown import ShutdownSignals
 
     setup_logging()
     app = QApplication.instance() or QApplication(sys.argv[:1])
     app.setApplicationName("photopft")
     app.setOrganizationName("photopft")
-    if args.smoke_test is None and not signed_in():
+    # from here on SIGTERM and SIGINT end the application with 0 (a signal before the window is
+    # made is acted on once it is)
+    shutdown = ShutdownSignals(app, _close_dialogs) if args.smoke_test is None else None
+    try:
+        return _run_window(app, args, shutdown)
+    finally:
+        if shutdown is not None:
+            shutdown.restore()
+
+
+def _close_dialogs(signum: int) -> None:
+    """A signal before the window is made: the sign-in dialog, if up, goes."""
+    from PySide6.QtWidgets import QApplication
+
+    dialog = QApplication.activeModalWidget()
+    if dialog is not None:
+        dialog.reject()
+
+
+def _run_window(app, args: argparse.Namespace, shutdown) -> int:
+    from PySide6.QtCore import QTimer
+
+    from app.errors import UserError
+    from app.gui.errors import ENGINE_LOG, install_excepthook
+    from app.gui.main_window import MainWindow
+    from app.live import replay_source, rig_source
+    from app.logs import log_file
+
+    if args.smoke_test is None and (not signed_in() or shutdown.received):
         return 0
     rig = args.rig or settings_rig()
     opener = partial(replay_source, args.session, args.speed) if args.session else \
@@ -81,6 +106,13 @@ def run_gui(args: argparse.Namespace) -> int:
     window.show()
     if args.smoke_test is None:
         lock_when_idle(window)
+        QTimer.singleShot(0, window.offer_cut_off_visits)
+        shutdown.on_signal = window.shut_down
+        app.processEvents()  # a signal that came while the window was made is read here
+        if shutdown.received:
+            if not getattr(window, "_shutting_down", False):
+                window.shut_down(shutdown.received[0])
+            return 0
         return app.exec()
     if window.engine is None:
         raise UserError(f"cannot start: {window.diagnostics.problem.text()}")

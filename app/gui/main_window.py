@@ -332,7 +332,8 @@ class MainWindow(QMainWindow):
         if self.info.replay:
             self.back_to_rig()
         wizard = PatientSessionWizard(self, self.engine)
-        if wizard.exec() == PatientSessionWizard.DialogCode.Accepted and wizard.session_id is not None:
+        if wizard.exec() == PatientSessionWizard.DialogCode.Accepted and wizard.session_id is not None \
+                and not getattr(self, "_shutting_down", False):
             self.processing.start(wizard.session_id, wizard.session_path.name)
 
     def open_session(self) -> None:
@@ -517,8 +518,46 @@ class MainWindow(QMainWindow):
                 elif not self.info.replay and not self.engine.recording:
                     self.back_to_rig()
 
+    def offer_cut_off_visits(self) -> None:
+        """At start-up: visits whose recording never ended, with Recover and Discard."""
+        from app.gui.cut_off import CutOffVisitsDialog
+        from app.records import Records, RecordsError, default_path
+        from app.session_processing import cut_off_visits
+
+        try:
+            if not default_path().exists():
+                return
+            with Records() as records:
+                visits = cut_off_visits(records)
+                if visits:
+                    CutOffVisitsDialog(self, records, visits).exec()
+        except RecordsError as exc:
+            show_error(self, "The patient records cannot be opened.", str(exc))
+
+    def shut_down(self, signum: int | None = None) -> None:
+        """SIGTERM or SIGINT (app/gui/shutdown.py): every dialog closed (a recording in the patient
+        session finished and its visit marked cancelled), the processing cancelled, the engine
+        stopped, and the application quits with 0, asking nothing."""
+        from PySide6.QtWidgets import QDialog
+
+        from app.gui.wizards.patient_session import PatientSessionWizard
+
+        log.warning("signal %s: shutting down", signum)
+        self._shutting_down = True
+        for widget in QApplication.topLevelWidgets():
+            if isinstance(widget, PatientSessionWizard) and widget.isVisible():
+                widget.end_without_asking("cancelled")
+            elif isinstance(widget, QDialog) and widget.isVisible():
+                widget.reject()
+        if self.processing.busy:
+            self.processing.cancel()
+        self.close()
+        QApplication.instance().exit(0)
+
     def closeEvent(self, event) -> None:  # noqa: N802 - Qt naming
-        if self.engine is not None and self.engine.recording:
+        if getattr(self, "_shutting_down", False) and self.engine is not None and self.engine.recording:
+            self.engine.stop_recording()
+        elif self.engine is not None and self.engine.recording:
             answer = QMessageBox.question(self, "photopft", "A recording is running. Stop it and quit? "
                                           "Everything recorded so far is kept.")
             if answer != QMessageBox.StandardButton.Yes:

@@ -255,8 +255,10 @@ class RecordsWindow(QDialog):
             lines.append(f"Post-bronchodilator visit of {pre.recorded:%Y-%m-%d %H:%M}.")
         self.signed.setText("\n".join(lines))
         self.pre.clear()
+        from app.session_processing import NOT_A_VISIT
+
         for earlier in self.visits:
-            if earlier.recorded < visit.recorded:
+            if earlier.recorded < visit.recorded and earlier.status not in NOT_A_VISIT:
                 self.pre.addItem(f"{earlier.recorded:%Y-%m-%d %H:%M}", earlier.id)
         self.link.setEnabled(self.pre.count() > 0 and pre is None)
 

@@ -9,6 +9,8 @@ subject follows the prompts.
 
 from __future__ import annotations
 
+import logging
+
 import time
 from datetime import date, datetime, timezone
 from pathlib import Path
@@ -502,7 +504,7 @@ class PatientSessionWizard(QWizard):
             return False
         return True
 
-    def _stop(self, status: str) -> None:
+    def _stop(self, status: str, quiet: bool = False) -> None:
         if not self.engine.recording:
             return
         try:
@@ -513,7 +515,9 @@ class PatientSessionWizard(QWizard):
         if self.session_id is not None:
             self.records.set_results(self.session_id, None, {"flow sensor": values.parameters()} if values else {},
                                      status=status)
-        if summary.problems:
+        if summary.problems and quiet:
+            logging.getLogger(__name__).error("the recording stopped with a problem: %s", "; ".join(summary.problems))
+        elif summary.problems:
             show_error(self, "The recording stopped with a problem.", "; ".join(summary.problems))
 
     def accept(self) -> None:
@@ -524,6 +528,11 @@ class PatientSessionWizard(QWizard):
         if self.engine.recording and not self._confirm_cancel():
             return
         self._stop("cancelled")
+        super().reject()
+
+    def end_without_asking(self, status: str) -> None:
+        """The application is shutting down: the recording finished, the visit marked, no question."""
+        self._stop(status, quiet=True)
         super().reject()
 
     def _confirm_cancel(self) -> bool:
