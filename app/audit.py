@@ -54,6 +54,7 @@ PERMISSIONS: dict[str, tuple[str, ...]] = {
     "user added": ("engineer",),
     "password set": ROLES,  # one's own; others' by an engineer (Records.set_password)
     "export identified": ("clinician",),
+    "report written": ROLES,  # a PDF; it names the patient only for a clinician (app/report_access.py)
 }
 
 

@@ -24,6 +24,8 @@ def add_records_verbs(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--page-size", choices=("a4", "letter"), default="a4")
     r.add_argument("--equations", choices=("gli-global", "gli-2012"), default="gli-global")
     _records_arg(r)
+    r.add_argument("--user", help="who asks for the report: a clinician's names the patient (their password is "
+                                  "asked), anyone else's is pseudonymous")
     add_force(r)
     r.set_defaults(run=run_report)
 
@@ -89,20 +91,28 @@ def _open_records(path: Path | None, create: bool, read_only: bool = False):
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from app.report_data import build_report
+    from app.records import RecordsError, existing_records
+    from app.report_access import log_report, report_for
     from app.report_pdf import write_report
     from core.io.outputs import check_output
 
     check_output(args.output, [p for p in (args.input, args.records) if p is not None], force=args.force)
-    records = _open_records(args.records, create=False, read_only=True)
+    if args.records is not None and not args.records.exists():
+        raise UserError(f"--records {args.records}: no records database there")
     try:
-        data = build_report(args.input, records=records, equations=args.equations)
+        records = existing_records(args.records, args.user)
+    except RecordsError as exc:
+        raise UserError(str(exc)) from exc
+    try:
+        data, withheld = report_for(args.input, records, args.equations)
+        write_report(data, args.output, args.page_size)
+        log_report(records, args.input, args.output, data.patient is not None)
     finally:
         if records is not None:
             records.close()
-    write_report(data, args.output, args.page_size)
     print(f"wrote {args.output}: {data.main_source or 'no'} values"
-          + (f", {len(data.maps)} head(s) mapped" if data.maps else ", no height maps"))
+          + (f", {len(data.maps)} head(s) mapped" if data.maps else ", no height maps")
+          + ("" if withheld is None else "; pseudonymous"))
     for note in data.notes:
         print(f"  note: {note}")
     return 0

@@ -370,13 +370,15 @@ class MainWindow(QMainWindow):
     def run_report(self, path: Path, output: Path) -> Job:
         def work() -> Path:
             from app.records import Records
-            from app.report_data import build_report
+            from app.report_access import log_report, never_ask, report_for
             from app.report_pdf import write_report
 
             with Records() as records:
-                data = build_report(path, records=records,
-                                    equations=str(self.settings.value("reference/equations", "gli-global")))
-            return write_report(data, output, str(self.settings.value("report/page_size", "a4")))
+                data, _ = report_for(path, records, str(self.settings.value("reference/equations", "gli-global")),
+                                     ask=never_ask)
+                written = write_report(data, output, str(self.settings.value("report/page_size", "a4")))
+                log_report(records, path, written, data.patient is not None)
+            return written
 
         return self.start_job(work, f"The report of {path.name}",
                               lambda out: self.statusBar().showMessage(f"Report written: {out}", 10000))

@@ -8,12 +8,13 @@ entry in the same transaction; a refusal is shown as the one line it is.
 from __future__ import annotations
 
 from datetime import datetime
+from pathlib import Path
 
 import pyqtgraph as pg
 from PySide6.QtCore import Qt
-from PySide6.QtWidgets import (QAbstractItemView, QComboBox, QDialog, QDialogButtonBox, QGroupBox, QHBoxLayout,
-                               QLabel, QLineEdit, QListWidget, QListWidgetItem, QPlainTextEdit, QPushButton,
-                               QSplitter, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QAbstractItemView, QComboBox, QDialog, QDialogButtonBox, QFileDialog, QGroupBox,
+                               QHBoxLayout, QLabel, QLineEdit, QListWidget, QListWidgetItem, QMenu, QPlainTextEdit,
+                               QPushButton, QSplitter, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from app.records import Patient, Records, RecordsError, SessionRecord
 from app.report_data import TREND_VALUES, source_values, stored_interpretation, trend_points
@@ -90,6 +91,44 @@ def values_by_source_html(summary: dict) -> str:
     return "<table cellspacing=0 cellpadding=2>" + "".join(rows) + "</table>"
 
 
+EXPORTS = {"pdf": "Report (PDF)", "fhir": "FHIR bundle (pseudonymous)", "fhir-identified": "FHIR bundle, identified",
+           "gdt": "GDT record", "csv": "CSV: values and curves"}
+
+
+def export_visit(records: Records, visit: SessionRecord, kind: str, output: Path, equations: str) -> str:
+    """One visit's export as the command line's `report` and `export` make it: who may, asked and
+    logged alike (app/report_access.py; FHIR and CSV a clinician's, identified ones with the password)."""
+    from app.export import values_csv, volume_csv
+    from app.fhir_export import write_fhir
+    from app.gdt_export import write_gdt
+    from app.report_access import log_report, never_ask, report_for
+    from app.report_data import build_report
+    from app.report_pdf import write_report
+    from core.io.outputs import check_output
+
+    source = visit.results_path if visit.results_path and visit.results_path.exists() else visit.session_path
+    if kind == "pdf":
+        check_output(output, [source, visit.session_path, records.path], force=True)
+        data, withheld = report_for(source, records, equations, ask=never_ask)
+        written = write_report(data, output)
+        log_report(records, source, written, data.patient is not None)
+        return f"Report written: {written}" + ("" if withheld is None else " (pseudonymous)")
+    action = "export identified" if kind in ("fhir-identified", "gdt") else "export"
+    records.check_permitted(action)
+    records.require_password(action, never_ask)
+    if kind == "csv":
+        output.mkdir(parents=True, exist_ok=True)
+        data = build_report(source, with_maps=False)
+        written = [volume_csv(data, output / "volume.csv"), values_csv(data, output / "values.csv")]
+    else:
+        check_output(output, [source, visit.session_path, records.path], force=True)
+        data = build_report(source, records=records, equations=equations, with_maps=False)
+        written = [write_fhir(data, output, identified=kind == "fhir-identified") if kind.startswith("fhir")
+                   else write_gdt(data, output)[0]]
+    records.log("export", str(source.resolve()), {kind: ", ".join(str(p) for p in written)})
+    return f"{EXPORTS[kind]} written: {', '.join(str(p) for p in written)}"
+
+
 class RecordsWindow(QDialog):
     def __init__(self, parent=None, records: Records | None = None, equations: str = "gli-global",
                  processing=None) -> None:
@@ -140,6 +179,11 @@ class RecordsWindow(QDialog):
         self.processing.finished.connect(self._processed)
         self.processing.problem.connect(self._processing_problem)
         self.process_again = QPushButton("Process again", clicked=self._process_again)
+        self.export = QPushButton("Export")
+        menu = QMenu(self.export)
+        for kind, label in EXPORTS.items():
+            menu.addAction(label, lambda kind=kind: self._export(kind))
+        self.export.setMenu(menu)
         self.values = QLabel(wordWrap=True)
         self.values.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         review = QGroupBox("Review of the selected visit")
@@ -151,6 +195,7 @@ class RecordsWindow(QDialog):
         for w in (self.save_comment, self.sign):
             row.addWidget(w)
         row.addStretch(1)
+        row.addWidget(self.export)
         row.addWidget(self.process_again)
         box.addLayout(row)
         box.addWidget(self.signed)
@@ -228,7 +273,7 @@ class RecordsWindow(QDialog):
     def _choose_visit(self) -> None:
         visit = self._visit()
         for w in (self.comment, self.save_comment, self.sign, self.amendment, self.amend, self.pre, self.link,
-                  self.process_again):
+                  self.process_again, self.export):
             w.setEnabled(visit is not None)
         if visit is None:
             self.interpretation.setText("Choose a visit.")
@@ -275,6 +320,37 @@ class RecordsWindow(QDialog):
             show_error(self, "The change was not made.", str(exc))
             return
         self._show_visits(keep=row)
+
+    def _export(self, kind: str) -> None:
+        visit = self._visit()
+        if visit is None:
+            return
+        suffix = {"pdf": ".pdf", "fhir": ".json", "fhir-identified": ".json", "gdt": ".gdt", "csv": ""}[kind]
+        source = visit.results_path or visit.session_path
+        suggested = str(source.with_name(source.stem + ("-csv" if kind == "csv" else "") + suffix))
+        if kind == "csv":
+            chosen = QFileDialog.getExistingDirectory(self, "CSV into which folder?", str(source.parent))
+        else:
+            chosen, _ = QFileDialog.getSaveFileName(self, f"{EXPORTS[kind]}: save as", suggested)
+        if chosen:
+            self.export_to(kind, Path(chosen))
+
+    def export_to(self, kind: str, output: Path) -> str | None:
+        """The chosen visit exported (EXPORTS), logged in the audit trail; what was written, in words,
+        also shown under the values (None and a dialog where it was refused)."""
+        from app.gui.errors import show_error
+        from core.io.outputs import OutputError
+
+        visit = self._visit()
+        if visit is None:
+            return None
+        try:
+            said = export_visit(self.records, visit, kind, output, self.equations)
+        except (RecordsError, ValueError, OSError, OutputError) as exc:
+            show_error(self, "Nothing was exported.", str(exc))
+            return None
+        self.values.setText(self.values.text() + f"<p>{said}</p>")
+        return said
 
     def _process_again(self) -> None:
         visit = self._visit()

@@ -60,3 +60,39 @@ def test_process_again_in_the_records_window_stores_both_sources(visit, qtbot):
     assert "flow sensor" in text and "optical (not calibrated on the subject)" in text
     assert window.processing.isHidden()
     records.close()
+
+
+def test_every_export_from_the_records_window_is_audited_and_refused_to_an_operator(visit, qtbot, tmp_path):
+    import json
+
+    from app import auth
+    from app.gui.records_view import RecordsWindow
+
+    shared, sid, session = visit
+    path = tmp_path / "records.sqlite3"  # a copy: the users added below stay out of the other tests' records
+    path.write_bytes(shared.read_bytes())
+    records = Records(path, user="otto")
+    window = RecordsWindow(None, records)
+    qtbot.addWidget(window)
+    outputs = {"pdf": tmp_path / "r.pdf", "fhir": tmp_path / "b.json", "fhir-identified": tmp_path / "i.json",
+               "gdt": tmp_path / "x.gdt", "csv": tmp_path / "csv"}
+    said = {kind: window.export_to(kind, out) for kind, out in outputs.items()}  # roles not enforced yet
+    assert all(said.values()), said
+    assert json.loads(outputs["fhir-identified"].read_text())["entry"][0]["resource"]["name"][0]["family"] == "Doe"
+    assert (outputs["csv"] / "values.csv").exists()
+    trail = [(e.action, e.details) for e in records.audit_trail()]
+    assert sum(action == "export" for action, _ in trail) == 4
+    assert [d["identified"] for a, d in trail if a == "report written"] == [True]
+    with Records(path, user="ed") as admin:
+        admin.add_user("ed", "engineer", "ed-secret")
+        admin.authenticate("ed-secret")
+        admin.add_user("otto", "operator", "otto-secret")
+    auth.prove("otto", 0.0)
+    seen: list[str] = []
+    from tests.app.test_gui import _close_when_shown
+
+    _close_when_shown(qtbot, seen)
+    assert window.export_to("gdt", tmp_path / "y.gdt") is None
+    qtbot.waitUntil(lambda: bool(seen))
+    assert "export identified: otto is an operator" in seen[0] and not (tmp_path / "y.gdt").exists()
+    records.close()

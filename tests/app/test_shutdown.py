@@ -84,5 +84,14 @@ def test_the_application_exits_0_on_a_signal(tmp_path, sig):
             gui.kill()
     assert gui.returncode == 0, err
     assert "Something went wrong" not in err and "Traceback" not in err
-    assert not any(Path(f"/proc/{pid}").exists() and "zombie" not in Path(f"/proc/{pid}/status").read_text().lower()
-                   for pid in engine)
+
+    def alive(pid: int) -> bool:
+        try:
+            return "zombie" not in Path(f"/proc/{pid}/status").read_text().lower()
+        except OSError:
+            return False
+
+    deadline = time.monotonic() + 15  # the engine and multiprocessing's helper end with the application
+    while any(alive(pid) for pid in engine) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(alive(pid) for pid in engine)

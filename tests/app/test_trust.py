@@ -460,3 +460,39 @@ def test_role_bound_actions_need_the_records_the_site_configures(kept_records, t
     monkeypatch.setenv("PHOTOPFT_USER", "ed")
     assert main(["calibrate", "flow", str(csv), "-o", str(out)]) == 2
     assert "no records database at" in capsys.readouterr().err and not out.exists()
+
+
+def test_the_identified_report_is_a_clinicians_and_every_report_is_audited(breathing, tmp_path, capsys, typed):
+    from pypdf import PdfReader
+
+    records = tmp_path / "records.sqlite3"
+    session = tmp_path / "visit.h5"
+    session.write_bytes(breathing.read_bytes())
+    with Records(records, user="ed") as r:
+        r.add_user("ed", "engineer", "ed-secret")
+        r.authenticate("ed-secret")
+        r.add_user("anna", "clinician", "anna-secret")
+        r.add_user("otto", "operator", "otto-secret")
+    with Records(records, user="otto") as r:
+        r.authenticate("otto-secret")
+        from core.io.session import SessionFile
+
+        with SessionFile(session) as s:
+            pseudonym = s.subject.id
+        p = r.add_patient("Musterfrau", "Erika", "female", date(1980, 1, 1), 166.0, 60.0, patient_number="H-42",
+                          pseudonym=pseudonym)
+        r.add_session(p.id, session, datetime(2026, 12, 4, 9, tzinfo=timezone.utc))
+    rec = ["--records", str(records)]
+    by_operator, by_clinician = tmp_path / "operator.pdf", tmp_path / "clinician.pdf"
+    assert main(["report", str(session), "-o", str(by_operator), "--user", "otto"] + rec) == 0
+    assert "; pseudonymous" in capsys.readouterr().out
+    text = " ".join(page.extract_text() for page in PdfReader(by_operator).pages)
+    assert "Musterfrau" not in text and "H-42" not in text and pseudonym in text
+    typed("anna-secret")
+    assert main(["report", str(session), "-o", str(by_clinician), "--user", "anna"] + rec) == 0
+    text = " ".join(page.extract_text() for page in PdfReader(by_clinician).pages)
+    assert "Musterfrau" in text and "H-42" in text
+    assert stat.S_IMODE(by_clinician.stat().st_mode) == 0o600
+    with Records(records, read_only=True) as r:
+        exports = [(e.user, e.details["identified"]) for e in r.audit_trail() if e.action == "report written"]
+    assert exports == [("otto", False), ("anna", True)]
