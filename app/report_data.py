@@ -482,7 +482,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             maps = _head_maps(session_path, s, breath, start, settings or ReconstructionSettings(), results_path)
         elif with_maps:
             notes.append("Height maps: no tidal breath found to place end inspiration and end expiration.")
-        calibration = [f"lights of the {h} head calibrated {s.rig.heads[h].calibrated}" for h in s.heads]
+        calibration = [f"lights of the {h} head calibrated {s.rig.heads[h].calibrated}" if s.rig.heads[h].calibrated
+                       else f"lights of the {h} head not calibrated (as built or drawn)" for h in s.heads]
         if s.flow is not None and s.flow.gain_lps is not None:
             calibration.append(f"flow sensor: {s.flow.gain_lps:.6g} L/s per count, offset "
                                f"{s.flow.offset_lps:+.4g} L/s ({s.flow.conditions})")

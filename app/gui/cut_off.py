@@ -25,6 +25,7 @@ class CutOffVisitsDialog(QDialog):
         self.table.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.horizontalHeader().setStretchLastSection(True)
+        self.table.verticalHeader().hide()
         layout.addWidget(self.table)
         self.outcome = QLabel(wordWrap=True)
         layout.addWidget(self.outcome)
@@ -46,6 +47,7 @@ class CutOffVisitsDialog(QDialog):
             for j, text in enumerate((f"{patient.display_name} ({patient.pseudonym})",
                                       f"{visit.recorded:%Y-%m-%d %H:%M}", str(visit.session_path))):
                 self.table.setItem(k, j, QTableWidgetItem(text))
+        self.table.resizeColumnsToContents()
         if self.visits:
             self.table.selectRow(0)
         for button in (self.recover, self.discard):

@@ -96,7 +96,10 @@ def _write_head_attrs(group: h5py.Group, head: Head) -> None:
         group.attrs["light_axis"] = np.asarray(head.light_axis, dtype=np.float64)
     if head.light_mu is not None:
         group.attrs["light_mu"] = np.asarray(head.light_mu, dtype=np.float64)
+    # the spec asks a time; lights never calibrated (as built, as drawn) say so in lights_calibrated = 0
     group.attrs["calibrated"] = head.calibrated or now_iso()
+    if not head.calibrated:
+        group.attrs["lights_calibrated"] = np.int8(0)
 
 
 def write_rig(parent: h5py.Group, rig: Rig) -> None:
@@ -354,7 +357,7 @@ def read_head(name: str, attrs: h5py.AttributeManager) -> Head:
         light_intensity=np.asarray(attrs["light_intensity"], dtype=float),
         dist_coeffs=np.asarray(attrs["dist_coeffs"], dtype=float),
         vignetting=float(attrs.get("vignetting", 0.0)),
-        calibrated=_str(attrs.get("calibrated", "")),
+        calibrated="" if int(attrs.get("lights_calibrated", 1)) == 0 else _str(attrs.get("calibrated", "")),
         **optional,
     )
 

@@ -265,6 +265,15 @@ def test_a_signature_is_void_once_its_data_changed(signed_visit, breathing, tmp_
 
 # ------------------------------------------------------------------ tampering with the records
 
+def _clinic_users(path) -> None:
+    """An engineer (ed), a clinician (anna) and an operator (otto), each with a password NAME-secret."""
+    with Records(path, user="ed") as r:
+        r.add_user("ed", "engineer", "ed-secret")
+        r.authenticate("ed-secret")
+        r.add_user("anna", "clinician", "anna-secret")
+        r.add_user("otto", "operator", "otto-secret")
+
+
 @pytest.fixture()
 def kept_records(tmp_path):
     """A records database as a clinic leaves it: users, a patient, a session with stored values, a
@@ -272,11 +281,7 @@ def kept_records(tmp_path):
     path = tmp_path / "records.sqlite3"
     session = tmp_path / "s.h5"
     session.write_bytes(b"a recording")
-    with Records(path, user="ed") as r:
-        r.add_user("ed", "engineer", "ed-secret")
-        r.authenticate("ed-secret")
-        r.add_user("anna", "clinician", "anna-secret")
-        r.add_user("otto", "operator", "otto-secret")
+    _clinic_users(path)
     with Records(path, user="otto") as r:
         p = r.add_patient("Muster", "Max", "male", date(1966, 5, 1), 175.0, 80.0, pseudonym="P-KEPT")
         sid = r.add_session(p.id, session, datetime(2026, 11, 1, 9, tzinfo=timezone.utc))
@@ -468,11 +473,7 @@ def test_the_identified_report_is_a_clinicians_and_every_report_is_audited(breat
     records = tmp_path / "records.sqlite3"
     session = tmp_path / "visit.h5"
     session.write_bytes(breathing.read_bytes())
-    with Records(records, user="ed") as r:
-        r.add_user("ed", "engineer", "ed-secret")
-        r.authenticate("ed-secret")
-        r.add_user("anna", "clinician", "anna-secret")
-        r.add_user("otto", "operator", "otto-secret")
+    _clinic_users(records)
     with Records(records, user="otto") as r:
         r.authenticate("otto-secret")
         from core.io.session import SessionFile

@@ -163,3 +163,21 @@ def test_writer_rejects_wrong_frames(tmp_path):
             w.append_frames("front", np.zeros((1, 3, 3), np.uint16), [0], [0], [0])
         with pytest.raises(SessionError, match="head 'side'"):
             w.append_frames("side", np.zeros((1, 3, 3), np.uint16), [0], [0], [0])
+
+
+def test_lights_never_calibrated_read_as_not_calibrated_everywhere(small_session):
+    """The simulated rig's lights are as built: the spec's @calibrated holds the recording's time, and
+    every reader says "not calibrated" (issue 77, requirement 8)."""
+    from datetime import datetime
+
+    import h5py
+
+    from app.report_data import build_report
+
+    with h5py.File(small_session) as f:
+        assert int(f["rig/front"].attrs["lights_calibrated"]) == 0
+        datetime.fromisoformat(str(f["rig/front"].attrs["calibrated"]))  # still the time the spec asks
+    with SessionFile(small_session) as s:
+        assert {h.calibrated for h in s.rig.heads.values()} == {""}
+    report = build_report(small_session, with_maps=False)
+    assert "lights of the front head not calibrated (as built or drawn)" in report.calibration
