@@ -334,7 +334,10 @@ class MainWindow(QMainWindow):
         wizard = PatientSessionWizard(self, self.engine)
         if wizard.exec() == PatientSessionWizard.DialogCode.Accepted and wizard.session_id is not None \
                 and not getattr(self, "_shutting_down", False):
-            self.processing.start(wizard.session_id, wizard.session_path.name)
+            patient = wizard.patient_page.patient()
+            who = f"{patient.display_name}'s session" if patient else "the session"
+            self.statusBar().showMessage(f"Saved {who} on record as {wizard.session_path}; processing it", 15000)
+            self.processing.start(wizard.session_id, f"{who} ({wizard.session_path.name})")
 
     def open_session(self) -> None:
         path, _ = QFileDialog.getOpenFileName(self, "Open a recorded session", str(Path.home()),

@@ -12,7 +12,7 @@ from core.analysis.values import SessionValues, analyse_volume, tidal_windows
 from core.volume.flow_sensor import btps_factor, flow_sensor_volume
 from core.volume.metric import withheld_for_flanks
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
-from core.io.plausibility import flow_gaps, flow_refusal, gaps_in_manoeuvres
+from core.io.plausibility import flow_gaps, flow_refusal, frame_gaps_in_manoeuvres, gaps_in_manoeuvres
 from core.io.session import SessionError, SessionFile
 
 
@@ -37,7 +37,7 @@ def frame_span_ns(session: SessionFile) -> tuple[int, int] | None:
 
 
 def without_gapped_manoeuvres(values: SessionValues, gaps) -> SessionValues:
-    """The values less those of every kind of manoeuvre whose flow samples have a gap."""
+    """The values less those of every kind of manoeuvre whose signal (flow samples, frames) has a gap."""
     if not gaps:
         return values
     kinds = {g.kind for g in gaps}
@@ -111,6 +111,9 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
                 (np.asarray(optical_peak_flow[0], dtype=np.int64) - start) / 1e9, np.asarray(optical_peak_flow[1], float))
             optical_values = withheld_for_flanks(analyse_volume(t, volume, events, age, fitted=True,
                                                                 peak_flow_volume=dense), optical_flank)
+            frame_times = {h: s.timestamp_ns(h) for h in s.heads if s.n_frames(h)}
+            optical_values = without_gapped_manoeuvres(optical_values,
+                                                       frame_gaps_in_manoeuvres(frame_times, s.events(), start))
             optical_curve = (t, volume)
         references: dict[str, Reference] = {}
         problem = None

@@ -21,6 +21,9 @@ MAX_FLOW_LPS = 20.0
 # A gap in the flow samples longer than this inside a manoeuvre refuses that manoeuvre's values:
 # 20 ms is a fifth of the rise to a forced blow's peak flow.
 MAX_FLOW_GAP_S = 0.020
+# A gap in a head's frames longer than this inside a manoeuvre refuses that manoeuvre's optical values:
+# about ten light cycles, where the motion compensation and the maps' smoothing no longer bridge.
+MAX_FRAME_GAP_S = 0.100
 # The flow sensor's samples lie within the cameras' recording, give or take this.
 FLOW_CLOCK_SLACK_S = 1.0
 # A camera's horizontal or vertical field of view between these (degrees).
@@ -119,15 +122,17 @@ class ManoeuvreGap:
     kind: str  # tidal, vc or forced
     start_s: float  # the manoeuvre's start, seconds from the session's start
     gap_s: float
+    what: str = "flow samples"
+    limit_s: float = MAX_FLOW_GAP_S
 
     @property
     def reason(self) -> str:
-        return (f"{self.gap_s * 1000:.0f} ms of flow samples missing inside the {self.kind} manoeuvre at "
-                f"{self.start_s:.1f} s (at most {MAX_FLOW_GAP_S * 1000:.0f} ms)")
+        return (f"{self.gap_s * 1000:.0f} ms of {self.what} missing inside the {self.kind} manoeuvre at "
+                f"{self.start_s:.1f} s (at most {self.limit_s * 1000:.0f} ms)")
 
 
-def gaps_in_manoeuvres(gaps: list[tuple[int, int]], events: list[tuple[int, str]],
-                       start_ns: int) -> list[ManoeuvreGap]:
+def gaps_in_manoeuvres(gaps: list[tuple[int, int]], events: list[tuple[int, str]], start_ns: int,
+                       what: str = "flow samples", limit_s: float = MAX_FLOW_GAP_S) -> list[ManoeuvreGap]:
     """The gaps that fall inside a manoeuvre: from its start event to the next `maneuver-end`, the
     next manoeuvre's start, or the end of the recording."""
     spans, opened = [], None
@@ -143,5 +148,15 @@ def gaps_in_manoeuvres(gaps: list[tuple[int, int]], events: list[tuple[int, str]
     for begin, end, kind in spans:
         for before, after in gaps:
             if before < end and after > begin:
-                out.append(ManoeuvreGap(kind, (begin - start_ns) / 1e9, (after - before) / 1e9))
+                out.append(ManoeuvreGap(kind, (begin - start_ns) / 1e9, (after - before) / 1e9, what, limit_s))
+    return out
+
+
+def frame_gaps_in_manoeuvres(frame_times: dict[str, np.ndarray], events: list[tuple[int, str]],
+                             start_ns: int) -> list[ManoeuvreGap]:
+    """Each head's gaps over MAX_FRAME_GAP_S inside a manoeuvre (a camera that stalled, frames lost)."""
+    out = []
+    for head, times in frame_times.items():
+        out += gaps_in_manoeuvres(flow_gaps(times, MAX_FRAME_GAP_S), events, start_ns, f"the {head} head's frames",
+                                  MAX_FRAME_GAP_S)
     return out

@@ -804,12 +804,17 @@ def _check_truth(c: _Checker, f: h5py.File, heads: dict[str, tuple[int, int, int
 def session_plausibility(path: str | os.PathLike) -> list[str]:
     """What in a session that follows the format no instrument could have recorded (core/io/plausibility.py):
     each problem refuses the values it touches, not the session. Call on a file validate_session passes."""
-    from core.io.plausibility import flow_gaps, flow_refusal, gaps_in_manoeuvres, head_intrinsics_problems
+    from core.io.plausibility import (flow_gaps, flow_refusal, frame_gaps_in_manoeuvres, gaps_in_manoeuvres,
+                                      head_intrinsics_problems)
 
     problems = []
     with SessionFile(path, check=False) as s:
         for name, head in s.rig.heads.items():
             problems += [f"/rig/{name}: {p} (no optical value)" for p in head_intrinsics_problems(head)]
+        if any(s.n_frames(h) for h in s.heads):
+            times = {h: s.timestamp_ns(h) for h in s.heads if s.n_frames(h)}
+            problems += [f"/heads: {g.reason} (its optical values refused)"
+                         for g in frame_gaps_in_manoeuvres(times, s.events(), s.start_ns())]
         if s.flow is not None and s.flow.n_samples:
             adc, stamps = s.flow_samples()
             spans = [s.timestamp_ns(h) for h in s.heads if s.n_frames(h)]

@@ -497,3 +497,32 @@ def test_the_identified_report_is_a_clinicians_and_every_report_is_audited(breat
     with Records(records, read_only=True) as r:
         exports = [(e.user, e.details["identified"]) for e in r.audit_trail() if e.action == "report written"]
     assert exports == [("otto", False), ("anna", True)]
+
+
+def test_frames_missing_inside_a_manoeuvre_refuse_its_optical_values(breathing, tmp_path, capsys):
+    import h5py
+    import numpy as np
+
+    from core.analysis.session_analysis import analyse_session
+    from core.io.session import SessionFile
+
+    path = tmp_path / "s.h5"
+    path.write_bytes(breathing.read_bytes())
+    with SessionFile(path) as s:
+        truth = s.truth()
+        curve = (np.asarray(truth["timestamp_ns"]), np.asarray(truth["volume_l"]))  # an optical curve that holds
+    assert analyse_session(path, optical_volume=curve).optical.tidal is not None
+    with h5py.File(path, "r+") as f:
+        g = f["heads/front"]
+        n = g["frames"].shape[0]
+        keep = np.r_[0:n // 2, n // 2 + 33:n]  # 300 ms of the front camera's frames lost
+        for key in ("frames", "light_index", "timestamp_ns", "frame_id"):
+            data = g[key][:][keep]
+            del g[key]
+            g.create_dataset(key, data=data, maxshape=(None,) + data.shape[1:], chunks=(1,) + data.shape[1:]
+                             if key == "frames" else True)
+    assert main(["validate", str(path)]) == 1
+    assert "of the front head's frames missing inside the tidal manoeuvre" in capsys.readouterr().out
+    analysed = analyse_session(path, optical_volume=curve)
+    assert analysed.optical.tidal is None and analysed.flow_sensor.tidal is not None
+    assert any("the tidal values not given" in p for p in analysed.optical.problems)
