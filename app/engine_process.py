@@ -280,8 +280,8 @@ class EngineProcess:
     def replay_control(self, action: str, position_s: float | None = None) -> None:
         self._call("replay_control", action, position_s)
 
-    def blow_trace(self, mark_ns: int):
-        return self._call("blow_trace", mark_ns)
+    def blow_trace(self, mark_ns: int, before_s: float = 2.5):
+        return self._call("blow_trace", mark_ns, before_s)
 
     def flow_adc_mean(self, seconds: float = 2.0) -> float:
         return self._call("flow_adc_mean", seconds)

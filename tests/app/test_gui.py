@@ -260,6 +260,9 @@ def test_a_whole_patient_session(qtbot, tmp_path):
         tidal.start.click()
         qtbot.waitUntil(tidal.isComplete, timeout=90000)
         assert tidal.extended_s >= 15.0 and tidal.remaining.text() == "done"
+        breathing = tidal.trace.curves["flow sensor"]  # the operator saw the breaths, counted
+        assert breathing.xData is not None and np.ptp(breathing.yData) > 0.2
+        assert "breaths so far; TV" in tidal.trace.status.text()
         _press(qtbot, wizard)
         rejected: list[int] = []
         for kind in ("vc", "forced"):
@@ -278,6 +281,9 @@ def test_a_whole_patient_session(qtbot, tmp_path):
                     assert "FET" in page.screen.status.text()
                 else:
                     qtbot.wait(int(1000 * (duration + 0.8)))
+                    vc = page.trace.curves["flow sensor"]  # the slow VC drawn as it happens
+                    assert vc.xData is not None and np.ptp(vc.yData) > 1.5
+                    assert "plateau" in page.trace.status.text()
                 page.end.click()
                 qtbot.waitUntil(lambda: page.assessed == page.count, timeout=15000)
                 if kind == "vc" and not rejected:  # the operator saw it go wrong: left out, done again

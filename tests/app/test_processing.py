@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from datetime import date, datetime, timezone
 
+import numpy as np
 import pytest
 
 from app.records import Records
@@ -96,3 +97,15 @@ def test_every_export_from_the_records_window_is_audited_and_refused_to_an_opera
     qtbot.waitUntil(lambda: bool(seen))
     assert "export identified: otto is an operator" in seen[0] and not (tmp_path / "y.gdt").exists()
     records.close()
+
+
+def test_the_slow_vc_plateau_is_the_lowest_second_that_holds():
+    from app.gui.volume_trace import plateau
+
+    t = np.arange(0.0, 14.0, 0.01)
+    v = np.interp(t, [0, 2, 4, 9, 11, 14], [0.0, 0.0, 3.0, -1.5, -1.5, 0.5])  # in, out to a plateau, back
+    reached_s, _ = plateau(t, v)
+    assert reached_s == pytest.approx(10.0, abs=0.05)  # one second into the bottom
+    assert plateau(t[t < 9.5], v[t < 9.5])[0] is None  # still breathing out
+    quiet = 0.25 * np.sin(2 * np.pi * t / 4)
+    assert plateau(t, quiet)[0] is None  # quiet breathing's pauses are no plateau

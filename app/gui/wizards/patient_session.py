@@ -22,6 +22,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDateEdit, QDoubleSpinBox, 
                                QVBoxLayout, QWizard, QWizardPage)
 
 from app.gui.errors import show_error
+from app.gui.volume_trace import SHOWN_S, VolumeTrace, plateau
 from core.reconstruction.process import WORKING_RANGE_MM
 from app.engine_process import Engine
 from app.paths import data_dir
@@ -213,20 +214,43 @@ class TimedPage(QWizardPage):
         form.addRow("Duration", self.seconds)
         form.addRow(self.start)
         form.addRow("Remaining", self.remaining)
+        self.trace = VolumeTrace(self, window_s=SHOWN_S)
+        form.addRow(self.trace)
         self.done = False
+        self._mark_ns = 0
+        self._ticks = 0
         self.extended_s = 0.0
         self.timer = QTimer(self)
         self.timer.timeout.connect(self._tick)
 
     def _start(self) -> None:
-        self.engine.mark("tidal-start")
+        self._mark_ns = self.engine.mark("tidal-start")
         self.ends_at = time.monotonic() + self.seconds.value()
         self.extended_s = 0.0
         self.start.setEnabled(False)
         self.seconds.setEnabled(False)
         self.timer.start(200)
 
+    def _show_breathing(self) -> None:
+        """The curve five times a second; breaths, TV and RR so far every 2 s (they analyse the
+        whole recording)."""
+        try:
+            self.trace.show_traces(self.engine.blow_trace(self._mark_ns, before_s=0.0))
+        except Exception as exc:  # the curve is feedback; the recording goes on without it
+            self.trace.status.setText(f"live curve stopped: {exc}")
+            return
+        self._ticks += 1
+        if self._ticks % 10 == 1:
+            values = self.engine.recorded_values(self.wizard().age_years())
+            tidal = values.tidal if values is not None else None
+            self.trace.status.setText(
+                "breaths are counted when the session is processed (no flow sensor)" if values is None else
+                "no breath counted yet" if tidal is None else
+                f"{tidal.breaths} breaths so far; TV {tidal.tidal_volume_l:.2f} L, RR "
+                f"{tidal.respiratory_rate_bpm:.0f}/min")
+
     def _tick(self) -> None:
+        self._show_breathing()
         left = self.ends_at - time.monotonic()
         if left > 0:
             extra = f" (extended: {self._note})" if self.extended_s else ""
@@ -283,12 +307,16 @@ class ManoeuvrePage(QWizardPage):
         self.reject.setEnabled(False)
         self.reject.clicked.connect(self._reject_last)
         self.feedback = QTextEdit(readOnly=True)
+        self.trace = None if forced else VolumeTrace(self)
         buttons = QHBoxLayout()
         buttons.addWidget(self.begin)
         buttons.addWidget(self.end)
         buttons.addWidget(self.reject)
         self.layout_ = QVBoxLayout(self)
         self.layout_.addLayout(buttons)
+        if self.trace is not None:
+            self.layout_.addWidget(self.trace, 1)
+            self.feedback.setMaximumHeight(110)
         self.layout_.addWidget(self.feedback)
         self.count = 0
         self.assessed = 0
@@ -318,18 +346,30 @@ class ManoeuvrePage(QWizardPage):
         self.begin.setEnabled(False)
         self.reject.setEnabled(False)
         self.end.setEnabled(True)
-        if self.screen is not None:
-            self.trace_timer.start()
+        self.trace_timer.start()
 
     def _trace(self) -> None:
-        """The blow so far on the forced-blow screen (ten times a second)."""
+        """The blow so far on the forced-blow screen, the slow VC's curve and plateau on its page (ten
+        times a second)."""
         try:
             traces = self.engine.blow_trace(self._mark_ns)
         except Exception as exc:  # the screen is feedback; the recording goes on without it
             self.trace_timer.stop()
-            self.screen.status.setText(f"live curves stopped: {exc}")
+            (self.screen.status if self.screen is not None else self.trace.status).setText(
+                f"live curves stopped: {exc}")
             return
-        self.screen.show_live(traces)
+        if self.screen is not None:
+            self.screen.show_live(traces)
+            return
+        self.trace.show_traces(traces)
+        main = self.trace.main_trace(traces)
+        if main is not None:
+            reached_s, change = plateau(*main)
+            self.trace.status.setText(
+                f"plateau reached at {reached_s:.1f} s (under 25 mL over a second at the lowest volume)"
+                if reached_s is not None else
+                f"no plateau yet ({change * 1000:.0f} mL in the last second; under 25 mL at the bottom needed)"
+                if change == change else "no plateau yet")
 
     def _end(self) -> None:
         self._end_ns = self.engine.mark("maneuver-end")
@@ -348,8 +388,7 @@ class ManoeuvrePage(QWizardPage):
             QTimer.singleShot(100, self._when_flow_arrives)
             return
         self.trace_timer.stop()
-        if self.screen is not None:
-            self._trace()
+        self._trace()  # the whole manoeuvre, to its end
         self._lines.append(self._assess())
         self.feedback.setPlainText("\n".join(self._lines))
         self.assessed = self.count
