@@ -490,6 +490,9 @@ class LiveRig:
                             compression=self.source.compression)
         for key, value in (root_attrs or {}).items():
             recorder.writer.set_root_attr(key, value)
+        if self.source.simulated is not None and subject is not None:  # the simulated subject is the patient
+            self.source.simulated.follow(subject.sex, subject.age_years, subject.height_cm, subject.weight_kg,
+                                         subject.id)
         recorder.begin()
         with self._lock:
             self._recorder = recorder

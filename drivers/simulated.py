@@ -46,6 +46,31 @@ class SimulatedRigState:
     def now_s(self) -> float:
         return (time.monotonic_ns() - self.start_ns) / 1e9
 
+    def follow(self, sex: str, age_years: float, height_cm: float, weight_kg: float, subject_id: str = "") -> None:
+        """The simulated subject becomes the registered patient: sex, age, height and weight, and lung
+        volumes at the GLI Global predicted values the report uses, so a demonstration reads near
+        100 % of predicted; the quiet breathing is theirs from half a second on. The body's shape
+        stays the one the scene was built with."""
+        from dataclasses import replace
+
+        from core.analysis.reference import ReferenceUnavailable, reference
+        from core.sim.breathing import Subject, tidal
+
+        age = min(max(float(age_years), 3.0), 100.0)
+        height = min(max(float(height_cm), 90.0), 230.0)
+        try:
+            fvc = reference("FVC", sex, age, height).predicted
+            fev1 = reference("FEV1", sex, age, height).predicted
+        except ReferenceUnavailable:  # outside the equations' range: the simulator's own predictions
+            fvc = fev1 = None
+        subject = Subject(id=subject_id or self.config.subject.id, sex=sex, age_years=age, height_cm=height,
+                          weight_kg=float(weight_kg), fvc_l=fvc, fev1_l=fev1)
+        self.config = replace(self.config, subject=subject)
+        if self.waveform is not None:
+            rng = np.random.default_rng(self.config.seed + int(self.now_s() * 1000))
+            quiet = tidal(subject, 600.0, rng)
+            self.waveform.splice(self.now_s() + 0.5, quiet[:1], quiet[1:])
+
     def perform(self, manoeuvre: str, blow=None) -> float:
         """The simulated subject does what the operator asks, from now: "vc" (slow vital capacity)
         or "forced" (a forced expiration, `blow` a core.sim.breathing.ForcedBlow), then breathes quietly.
