@@ -338,7 +338,10 @@ class ManoeuvrePage(QWizardPage):
         self.layout_.insertWidget(1, self.screen, 1)
         self.feedback.setMaximumHeight(90)
         wizard = self.wizard()
-        wizard.resize(max(wizard.width(), 1150), max(wizard.height(), 860))
+        room = wizard.screen().availableGeometry()  # a 1366 x 768 screen: the buttons stay on it
+        wizard.resize(min(max(wizard.width(), 1150), room.width() - 20), min(max(wizard.height(), 860), room.height() - 40))
+        if wizard.y() + wizard.height() > room.bottom() or wizard.x() + wizard.width() > room.right():
+            wizard.move(room.left() + max(0, (room.width() - wizard.width()) // 2), room.top())
 
     def _begin(self) -> None:
         self._mark_ns = self.engine.mark("forced-start" if self.kind == "forced" else "vc-start")
