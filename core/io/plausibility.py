@@ -22,8 +22,8 @@ MAX_FLOW_LPS = 20.0
 # 20 ms is a fifth of the rise to a forced blow's peak flow.
 MAX_FLOW_GAP_S = 0.020
 # A gap in a head's frames longer than this inside a manoeuvre refuses that manoeuvre's optical values:
-# about ten light cycles, where the motion compensation and the maps' smoothing no longer bridge.
-MAX_FRAME_GAP_S = 0.100
+# five light cycles, a camera that stalled (docs/trust.md).
+MAX_FRAME_GAP_S = 0.250
 # The flow sensor's samples lie within the cameras' recording, give or take this.
 FLOW_CLOCK_SLACK_S = 1.0
 # A camera's horizontal or vertical field of view between these (degrees).
