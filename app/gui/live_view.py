@@ -149,6 +149,52 @@ class VolumeView(pg.GraphicsLayoutWidget):
                 self.optical_curve.setData(s.optical_t_s[keep] - end, np.clip(centred / scale, -1.05, 1.05))
 
 
+# A status line turns red, or back, only once its verdict has held this long: a value at its
+# threshold (115.2 % against 115 %) would otherwise flicker between the two at every update.
+VERDICT_HOLD_S = 1.5
+
+
+class Settled:
+    """Each line's verdict (warn or not) with hysteresis in time: a new verdict is shown once it has
+    held VERDICT_HOLD_S; meanwhile the line keeps the verdict it shows, with its latest text."""
+
+    def __init__(self, hold_s: float = VERDICT_HOLD_S) -> None:
+        self.hold_s = hold_s
+        self._shown: dict[str, tuple[str, bool, str]] = {}
+        self._since: dict[str, float] = {}
+
+    def choose(self, key: str, text: str, warn: bool, detail: str, now_s: float,
+               text_follows: bool = False) -> tuple[str, bool, str]:
+        """What the line shows now. `text_follows`: a measurement, whose text is always the latest and
+        whose colour alone waits (a distance); otherwise the text is the verdict and waits with it."""
+        shown = self._shown.get(key)
+        if shown is None or shown[1] == warn:
+            self._since.pop(key, None)
+            self._shown[key] = (text, warn, detail)
+            return self._shown[key]
+        started = self._since.setdefault(key, now_s)
+        if now_s - started >= self.hold_s:
+            self._since.pop(key, None)
+            self._shown[key] = (text, warn, detail)
+        elif text_follows:
+            self._shown[key] = (text, shown[1], detail)
+        return self._shown[key]
+
+
+def operator_action(reason: str) -> str:
+    """What the operator can do about a refusal of the optical volume, in their words."""
+    words = reason.lower()
+    if "arm" in words:
+        return "hold the arms away from the body"
+    if "no subject" in words or "not seen" in words or "trunk" in words and "see" in words:
+        return "the patient stands between the heads, facing the front camera"
+    if "range" in words or "too far" in words or "too near" in words or "distance" in words:
+        return "the patient stands on the floor marks"
+    if "jump" in words or "moves" in words or "sway" in words or "step" in words:
+        return "ask the patient to stand still"
+    return "ask the patient to stand still, arms away from the body"
+
+
 class StatusPanel(QGroupBox):
     def __init__(self, heads: list[str], parent=None) -> None:
         super().__init__("Status", parent)
@@ -166,15 +212,17 @@ class StatusPanel(QGroupBox):
             grid.addWidget(label, k, 1)
             self.labels[key] = label
         grid.setRowStretch(len(rows), 1)
-        self._shown: dict[str, tuple[str, bool]] = {}
+        self._shown: dict[str, tuple[str, bool, str]] = {}
 
-    def set(self, key: str, text: str, warn: bool = False) -> None:
-        """Change a line; an unchanged one is left alone (a style sheet re-polishes the label)."""
-        if self._shown.get(key) == (text, warn):
+    def set(self, key: str, text: str, warn: bool = False, detail: str = "") -> None:
+        """Change a line (the details in its tooltip); an unchanged one is left alone (a style sheet
+        re-polishes the label)."""
+        if self._shown.get(key) == (text, warn, detail):
             return
-        self._shown[key] = (text, warn)
+        self._shown[key] = (text, warn, detail)
         label = self.labels[key]
         label.setText(text)
+        label.setToolTip(detail)
         label.setStyleSheet("color: #b00020; font-weight: bold" if warn else "")
 
 
@@ -255,6 +303,7 @@ class LiveView(QWidget):
         self.heads = heads
         self.simulated = simulated
         self.lost = {h: LostFrames() for h in heads}
+        self.settled = Settled()
         self.maps = {h: HeadMapView(h) for h in heads}
         self.volume = VolumeView()
         self.status = StatusPanel(heads)
@@ -296,16 +345,18 @@ class LiveView(QWidget):
                         "from: arms away from the body")
             elif arm:
                 text += "; an arm against the trunk hides its side: arms away from the body"
-            self.status.set(f"{h}_distance", text, warn=not ok or bool(arms) or arm)
+            self.status.set(f"{h}_distance", *self.settled.choose(f"{h}_distance", text, not ok or bool(arms) or arm,
+                                                                   "", s.elapsed_s, text_follows=True))
         if s.optical_refused is not None:
-            self.status.set("optical", f"not valid now: {s.optical_refused}", warn=True)
+            line = (f"not valid now: {operator_action(s.optical_refused)}", True, s.optical_refused)
         elif s.optical_withheld is not None:
-            self.status.set("optical", f"tidal volume and rate valid; {s.optical_withheld}", warn=True)
+            line = ("tidal volume and rate valid; the other volumes not now", True, s.optical_withheld)
         else:
-            self.status.set("optical", "the skin's shading, the maps' sides, the volume's two references and the "
-                            "trunk's silhouettes pass the checks" if s.optical_checked
-                            else "not checked yet: both heads must see the trunk" if len(self.heads) == 2
-                            else "not checked: the checks take two heads")
+            line = ("valid" if s.optical_checked else "not checked yet: both heads must see the trunk"
+                    if len(self.heads) == 2 else "not checked: the checks take two heads", False,
+                    "the skin's shading, the maps' sides, the volume's two references and the trunk's silhouettes "
+                    "pass the checks" if s.optical_checked else "")
+        self.status.set("optical", *self.settled.choose("optical", *line, s.elapsed_s))
         if s.recording is not None:
             frames = ", ".join(f"{h} {n}" for h, n in s.recorded_frames.items())
             self.status.set("recording", f"{s.recording.name}: {frames} frames written, {s.dropped} dropped",

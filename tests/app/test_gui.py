@@ -59,7 +59,8 @@ def test_live_view_draws_both_heads_and_the_curves(window, qtbot):
     assert window.view.maps["front"].image.levels.tolist() == [-40.0, 40.0]  # the fixed scale
     assert "frames/s" in window.view.status.labels["front_rate"].text()
     assert "mm" in window.view.status.labels["front_distance"].text()
-    qtbot.waitUntil(lambda: "pass the checks" in window.view.status.labels["optical"].text(), timeout=30000)
+    optical = window.view.status.labels["optical"]
+    qtbot.waitUntil(lambda: optical.text() == "valid" and "pass the checks" in optical.toolTip(), timeout=30000)
 
 
 def test_a_head_view_says_it_waits_in_its_middle_and_fits_the_first_map(qtbot):
@@ -111,7 +112,7 @@ def test_the_live_view_marks_an_optical_volume_process_would_refuse(tmp_path, qt
     w.show()
     label = w.view.status.labels["optical"]
     qtbot.waitUntil(lambda: "not valid now" in label.text(), timeout=60000)
-    assert "a sheen on the skin" in label.text() and "b00020" in label.styleSheet()
+    assert "a sheen on the skin" in label.toolTip() and "b00020" in label.styleSheet()  # the details on hover
     assert w.view.volume.metric_curve.opts["pen"].style() == Qt.PenStyle.DashLine == REFUSED_METRIC_PEN.style()
     assert "not valid" in w.view.volume.litres.titleLabel.text
     w.close()
@@ -680,7 +681,10 @@ def test_an_arm_in_one_view_marks_both_heads_distances(qtbot):
     snapshot.heads["front"] = HeadView(distance_mm=2195.0, occluded_side_share=0.0)
     snapshot.heads["back"] = HeadView(distance_mm=2139.0, occluded_side_share=0.0)
     view.show(snapshot, "simulated", "simulated")
-    assert back.text().startswith("2139 mm") and back.styleSheet() == ""
+    assert back.text().startswith("2139 mm") and "b00020" in back.styleSheet()  # the measurement at once
+    snapshot.elapsed_s += 1.6
+    view.show(snapshot, "simulated", "simulated")
+    assert back.styleSheet() == ""  # the verdict once it has held (VERDICT_HOLD_S)
 
 
 def test_unseen_flanks_withhold_the_spirometry_in_the_live_view_and_keep_the_tidal_curve(qtbot):
@@ -700,11 +704,41 @@ def test_unseen_flanks_withhold_the_spirometry_in_the_live_view_and_keep_the_tid
     snapshot.optical_withheld = "VC, FVC, FEV1 and PEF would not be given: the trunk's silhouette widens by 0.7 %"
     view.show(snapshot, "simulated", "simulated")
     line = view.status.labels["optical"]
-    assert line.text().startswith("tidal volume and rate valid; VC, FVC, FEV1 and PEF would not be given")
+    assert line.text() == "tidal volume and rate valid; the other volumes not now"
+    assert line.toolTip().startswith("VC, FVC, FEV1 and PEF would not be given")
     assert "b00020" in line.styleSheet()
     assert view.volume.metric_curve.opts["pen"].style() == METRIC_PEN.style() == Qt.PenStyle.SolidLine
     snapshot.optical_withheld = None
     snapshot.optical_refused = "no tidal volume, rate, VC, FVC, FEV1 or PEF would be given"
     view.show(snapshot, "simulated", "simulated")
-    assert line.text().startswith("not valid now: no tidal volume")
+    assert line.text().startswith("not valid now: ") and line.toolTip().startswith("no tidal volume")
     assert view.volume.metric_curve.opts["pen"].style() == Qt.PenStyle.DashLine
+
+
+def test_a_verdict_at_its_threshold_does_not_flicker(qtbot):
+    """Issue 77, requirement 11: a line turns red, or back, only once its verdict has held 1.5 s,
+    in words the operator acts on, the details on hover."""
+    from app.gui.live_view import VERDICT_HOLD_S, LiveView
+    from app.live import Snapshot
+
+    view = LiveView(["front", "back"])
+    qtbot.addWidget(view)
+    snapshot = Snapshot.empty(["front", "back"])
+    snapshot.optical_checked = True
+    line = view.status.labels["optical"]
+    shown = []
+    for k in range(41):  # a value that crosses its limit every other update, 30 updates a second
+        snapshot.elapsed_s = k / 30
+        snapshot.optical_refused = "the top reads 115.2 % of the reference (at most 115 %)" if k % 2 else None
+        view.show(snapshot, "simulated", "simulated")
+        shown.append(line.text())
+    assert set(shown) == {"valid"} and "b00020" not in line.styleSheet()
+    snapshot.optical_refused = "an arm against the trunk hides its side"
+    for k in range(60):
+        snapshot.elapsed_s = 2.0 + k / 30
+        view.show(snapshot, "simulated", "simulated")
+        if line.text() != "valid":
+            break
+    assert k / 30 >= VERDICT_HOLD_S - 0.05
+    assert line.text() == "not valid now: hold the arms away from the body" and "b00020" in line.styleSheet()
+    assert line.toolTip() == "an arm against the trunk hides its side"
