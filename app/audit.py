@@ -218,24 +218,24 @@ def audited_states(db: sqlite3.Connection) -> dict[str, str]:
     return states
 
 
-def changed_rows(db: sqlite3.Connection) -> dict[str, str | None]:
-    """The rows whose state differs from the trail's ({key: new digest, or None where removed})."""
-    now, audited = row_states(db), audited_states(db)
+def _differing(now: dict[str, str], audited: dict[str, str]) -> dict[str, str | None]:
     changed: dict[str, str | None] = {k: v for k, v in now.items() if audited.get(k) != v}
     changed.update({k: None for k in audited if k not in now})
     return changed
 
 
+def changed_rows(db: sqlite3.Connection) -> dict[str, str | None]:
+    """The rows whose state differs from the trail's ({key: new digest, or None where removed})."""
+    return _differing(row_states(db), audited_states(db))
+
+
 def row_differences(db: sqlite3.Connection) -> list[tuple[str, str]]:
-    now, audited = row_states(db), audited_states(db)
-    out = []
-    for key, digest in now.items():
-        if key not in audited:
-            out.append((key, "added outside photopft (no audited change made it)"))
-        elif audited[key] != digest:
-            out.append((key, "changed outside photopft since its last audited change"))
-    out += [(key, "removed outside photopft") for key in audited if key not in now]
-    return out
+    """changed_rows, each said: added, changed or removed outside photopft."""
+    audited = audited_states(db)
+    return [(key, "removed outside photopft" if digest is None else
+             "added outside photopft (no audited change made it)" if key not in audited else
+             "changed outside photopft since its last audited change")
+            for key, digest in _differing(row_states(db), audited).items()]
 
 
 # ------------------------------------------------------------------ the head, anchored outside the database

@@ -202,10 +202,7 @@ def existing_records(path: Path | None = None, user: str | None = None, may: str
     with `may`, refused (RecordsError, nothing opened) when the acting user's role does not allow
     that action: checked before the work it logs starts."""
     path = path or default_path()
-    try:
-        configured = configured_records()
-    except SiteConfigError as exc:
-        raise RecordsError(str(exc)) from exc
+    configured = _configured_records()
     if not path.exists():
         if may is not None and configured is not None:
             raise RecordsError(f"{may}: no records database at {configured}, the location {paths.SITE_CONFIG} "
@@ -273,13 +270,17 @@ def _create_private(path: Path) -> None:
     os.close(fd)
 
 
-def default_path() -> Path:
-    """The site configuration's records database where there is one, else the user's."""
+def _configured_records() -> Path | None:
+    """paths.configured_records, its problem as a RecordsError."""
     try:
-        configured = configured_records()
+        return configured_records()
     except SiteConfigError as exc:
         raise RecordsError(str(exc)) from exc
-    return configured or data_dir() / "records.sqlite3"
+
+
+def default_path() -> Path:
+    """The site configuration's records database where there is one, else the user's."""
+    return _configured_records() or data_dir() / "records.sqlite3"
 
 
 def make_data_dir(folder: Path) -> None:
@@ -613,10 +614,7 @@ class Records:
 
     def _check_location(self, action: str) -> None:
         """Role-bound actions only against the records the site configures, where it configures any."""
-        try:
-            configured = configured_records()
-        except SiteConfigError as exc:
-            raise RecordsError(str(exc)) from exc
+        configured = _configured_records()
         if configured is not None and self.path.resolve() != configured.resolve():
             raise RecordsError(f"{action}: {self.path} is not the records database {paths.SITE_CONFIG} configures "
                                f"({configured}): it cannot authorise role-bound actions")
@@ -708,8 +706,9 @@ class Records:
             raise RecordsError(f"no session with record id {session_id}")
         return str(row[0])
 
-    def report_state(self, session_id: int) -> ReportState:
-        """The review, with what changed since signing where anything did (the files are read again)."""
+    def report_state(self, session_id: int, verify: bool = True) -> ReportState:
+        """The review, with what changed since signing where anything did (the files are read again,
+        unless `verify` is False: a signature just given)."""
         path = self._session_path(session_id)
         row = self._db.execute("SELECT comment, signed_by, signed_at, signed_content FROM reports "
                                "WHERE session_id = ?", (session_id,)).fetchone()
@@ -719,7 +718,7 @@ class Records:
             return ReportState(session_id, Path(path), "", None, None, amendments)
         signed_at = datetime.fromisoformat(row[2]) if row[2] else None
         broken = None
-        if row[1] is not None:
+        if row[1] is not None and verify:
             changed = self._changed_since_signing(session_id, row[3])
             if changed:
                 broken = (f"the signed data has changed since it was signed (by {row[1]}, "
@@ -771,7 +770,7 @@ class Records:
                              "excluded.signed_by, signed_at = excluded.signed_at, signed_content = "
                              "excluded.signed_content",
                              (session_id, state.comment, who, _now(), json.dumps(content, sort_keys=True)))
-        return self.report_state(session_id)
+        return self.report_state(session_id, verify=False)  # its files were hashed just now
 
     def amend_report(self, session_id: int, text: str) -> None:
         state = self.report_state(session_id)

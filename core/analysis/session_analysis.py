@@ -28,13 +28,6 @@ class SessionReport:
     flow_refused: str | None = None  # why none of the flow sensor's values are given (core/io/plausibility.py)
 
 
-def frame_span_ns(session: SessionFile) -> tuple[int, int] | None:
-    """(first, last) frame time over the heads, None where no head recorded a frame."""
-    spans = [session.timestamp_ns(h) for h in session.heads if session.n_frames(h)]
-    if not spans:
-        return None
-    return min(int(t[0]) for t in spans), max(int(t[-1]) for t in spans)
-
 
 def without_gapped_manoeuvres(values: SessionValues, gaps) -> SessionValues:
     """The values less those of every kind of manoeuvre whose signal (flow samples, frames) has a gap."""
@@ -80,7 +73,7 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
                 raise SessionError(f"{path}: the flow sensor has no calibration in force (flow_gain_lps)")
             adc, stamps = s.flow_samples()
             flow_refused = flow_refusal(adc, stamps, info.adc_bits, info.sample_rate_hz, info.gain_lps,
-                                        info.offset_lps, frame_span_ns(s))
+                                        info.offset_lps, s.frame_span_ns())
         if s.flow is not None and flow_refused is None:
             factor = 1.0
             if info.conditions == "ATPS":

@@ -442,6 +442,13 @@ class SessionFile(_OwnsFile):
             raise SessionError(f"{self.path} holds no camera frame and no flow sample: nothing was recorded")
         return min(firsts)
 
+    def frame_span_ns(self) -> tuple[int, int] | None:
+        """(first, last) frame time over the heads, None where no head recorded a frame."""
+        spans = [self.timestamp_ns(h) for h in self.heads if self.n_frames(h)]
+        if not spans:
+            return None
+        return min(int(t[0]) for t in spans), max(int(t[-1]) for t in spans)
+
     def lost_frames(self, head: str) -> int:
         ids = self.frame_id(head).astype(np.int64)
         return int(np.sum(np.diff(ids) - 1)) if len(ids) > 1 else 0
@@ -817,10 +824,8 @@ def session_plausibility(path: str | os.PathLike) -> list[str]:
                          for g in frame_gaps_in_manoeuvres(times, s.events(), s.start_ns())]
         if s.flow is not None and s.flow.n_samples:
             adc, stamps = s.flow_samples()
-            spans = [s.timestamp_ns(h) for h in s.heads if s.n_frames(h)]
-            span = (min(int(t[0]) for t in spans), max(int(t[-1]) for t in spans)) if spans else None
             refused = flow_refusal(adc, stamps, s.flow.adc_bits, s.flow.sample_rate_hz, s.flow.gain_lps,
-                                   s.flow.offset_lps, span)
+                                   s.flow.offset_lps, s.frame_span_ns())
             if refused:
                 problems.append(f"/flow: {refused} (no flow sensor value)")
             else:
