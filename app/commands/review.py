@@ -132,6 +132,8 @@ def run_users(args: argparse.Namespace) -> int:
                 print(f"added {args.name} ({args.role})")
                 return 0
             if args.users_verb == "password":
+                if args.name not in dict(records.users()):
+                    raise UserError(f"no active user {args.name}: nothing was changed")
                 records.require_password("password set")
                 records.set_password(args.name, _new_password(args.name))
                 print(f"password of {args.name} set")

@@ -526,3 +526,13 @@ def test_frames_missing_inside_a_manoeuvre_refuse_its_optical_values(breathing, 
     analysed = analyse_session(path, optical_volume=curve)
     assert analysed.optical.tidal is None and analysed.flow_sensor.tidal is not None
     assert any("the tidal values not given" in p for p in analysed.optical.problems)
+
+
+def test_a_password_for_nobody_is_refused_before_any_is_asked(kept_records, capsys, typed):
+    typed("ed-secret", "new-secret")
+    assert main(["users", "--user", "ed", "--records", str(kept_records), "password", "nobody"]) == 2
+    assert "no active user nobody: nothing was changed" in capsys.readouterr().err
+    typed("ed-secret", "anna-new-secret")
+    assert main(["users", "--user", "ed", "--records", str(kept_records), "password", "anna"]) == 0
+    with Records(kept_records, user="anna") as r:
+        r.authenticate("anna-new-secret")
