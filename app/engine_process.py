@@ -286,6 +286,9 @@ class EngineProcess:
     def flow_adc_mean(self, seconds: float = 2.0) -> float:
         return self._call("flow_adc_mean", seconds)
 
+    def calibrate_on_subject(self, start_ns: int):
+        return self._call("calibrate_on_subject", start_ns)
+
     @property
     def replay_finished(self) -> bool:
         return self.snapshot().replay_finished

@@ -25,7 +25,9 @@ from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.reconstruction.live_checks import LiveOpticalChecks
 from core.volume.flow_sensor import btps_factor
+from core.analysis.optical_litres import POPULATION_GAIN
 from core.volume.metric import LiveMetricVolume
+from core.volume.subject_calibration import MOUTHPIECE_OFF, regional_signals
 from core.volume.sides import side_profile_mm
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.reconstruction.process import MAX_OCCLUDED_SIDE_SHARE, use_threads
@@ -39,6 +41,7 @@ from drivers.recorder import Recorder, RecordSummary
 log = logging.getLogger(__name__)
 
 WINDOW_S = 30.0  # what the volume curve shows
+CALIBRATION_WINDOW_S = 180.0  # the longest calibration through the flow sensor the live view can fit
 WORKER_NICENESS = 10
 SIMULATED_CAMERA_NICENESS = 14
 NO_LIMIT_NS = 2**63 - 1
@@ -313,9 +316,6 @@ class Snapshot:
     # why `process` would refuse the optical volume of what the heads see now (skin, bent maps), or None
     optical_refused: str | None = None
     optical_checked: bool = False  # whether the heads' last seconds gave those checks anything to judge by
-    # which optical values `process` would withhold while it gives the tidal volume and rate (the
-    # unseen flanks, core/volume/metric.py withheld_for_flanks), and why, or None
-    optical_withheld: str | None = None
     replay_position_s: float = float("nan")  # a replay's position and length in its recording, and pause
     replay_length_s: float = float("nan")
     replay_paused: bool = False
@@ -380,6 +380,12 @@ class LiveRig:
         self._metric = LiveMetricVolume(self._live_heads, self.rig.baseline_mm)
         self._checks = LiveOpticalChecks(list(source.cameras))
         self._metric_curve = collections.deque(maxlen=n)
+        # each map's regional signals (core/volume/subject_calibration.py) over the last CALIBRATION_WINDOW_S,
+        # for the subject's calibration through the flow sensor; the calibration once it is made
+        self._regional_curve: collections.deque = collections.deque(
+            maxlen=int(CALIBRATION_WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length) + 10)
+        self._calibration = None
+        self._mouthpiece_off = False
         self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
         self._recent_flow: collections.deque = collections.deque(maxlen=9000)  # (arrival ns, block), ~90 s
         self._blow_drift: tuple[int, float] | None = None  # (a blow's mark, the flow sensor's drift there, L/s)
@@ -498,6 +504,9 @@ class LiveRig:
             self._recorder = recorder
             self._recorded_flow = FlowRecord()
             self._recorded_events: list[tuple[int, str]] = []
+            self._calibration = None  # a new recording is a new subject's
+            self._mouthpiece_off = False
+            self._recorded_optical: list[tuple[int, float]] = []  # (stamp, calibrated litres) once calibrated
 
     def mark(self, label: str, stamp_ns: int | None = None) -> int:
         """A protocol event now (or at `stamp_ns`), on the session clock: the system's monotonic clock,
@@ -510,7 +519,34 @@ class LiveRig:
             recorder.submit_event(stamp, label)
             with self._lock:
                 self._recorded_events.append((stamp, label))
+                if label == MOUTHPIECE_OFF:  # the flow sensor's samples end here
+                    self._mouthpiece_off = True
         return stamp
+
+    def calibrate_on_subject(self, start_ns: int):
+        """The subject's calibration (core/volume/subject_calibration.py) on the recording's flow sensor
+        volume and the live regional signals from `start_ns` (a mark) to now; the live volume takes it
+        when it is not refused. Returns the SubjectCalibration, refused or not."""
+        from core.volume.subject_calibration import SubjectCalibration, fit_subject_calibration
+
+        recorded = self._recorded_volume()
+        with self._lock:
+            curve = list(self._regional_curve)
+            t0 = self._t0
+        if recorded is None or t0 is None or not curve:
+            return SubjectCalibration({}, (0.0, 0.0), float("nan"), float("nan"), float("nan"),
+                                      refused="no flow sensor volume or no optical signal recorded to calibrate on")
+        volume, start, _ = recorded
+        map_t = (t0 + np.array([t for t, _ in curve]) * 1e9 - start) / 1e9
+        names = list(curve[-1][1])
+        signals = {n: np.array([sig.get(n, np.nan) for _, sig in curve], dtype=float) for n in names}
+        flow_t = (volume.timestamp_ns - start) / 1e9
+        calibration = fit_subject_calibration(map_t, signals, flow_t, volume.volume_l,
+                                              ((start_ns - start) / 1e9, float(flow_t[-1])))
+        with self._lock:
+            if calibration.refused is None:
+                self._calibration = calibration
+        return calibration
 
     def flow_reaches(self, timestamp_ns: int) -> bool:
         """Whether the recording's flow samples reach `timestamp_ns` (always, without a flow sensor)."""
@@ -518,7 +554,7 @@ class LiveRig:
             return self._flow_until_ns() >= timestamp_ns
 
     def _flow_until_ns(self) -> int:
-        if self.source.flow is None or self._recorder is None:
+        if self.source.flow is None or self._recorder is None or self._mouthpiece_off:
             return NO_LIMIT_NS
         return self._recorded_flow.last_ns
 
@@ -528,6 +564,15 @@ class LiveRig:
         calibrated flow sensor."""
         from core.analysis.values import analyse_volume
 
+        if self._mouthpiece_off:  # the cameras alone, through the subject's calibration
+            with self._lock:
+                optical = np.array(self._recorded_optical, dtype=float).reshape(-1, 2)
+                events = list(self._recorded_events)
+            if len(optical) < 10:
+                return None
+            start = int(optical[0, 0])
+            marks = sorted(((t - start) / 1e9, label) for t, label in events)
+            return analyse_volume((optical[:, 0] - start) / 1e9, optical[:, 1], marks, age_years, fitted=True)
         recorded = self._recorded_volume()
         if recorded is None:
             return None
@@ -637,7 +682,7 @@ class LiveRig:
                 if len(block.adc):
                     self._recent_flow.append((time.monotonic_ns(), block))
                     recorder = self._recorder
-                    if recorder is not None:
+                    if recorder is not None and not self._mouthpiece_off:
                         recorder.submit_flow(block)
                         with self._lock:
                             self._recorded_flow.append(block)
@@ -765,10 +810,18 @@ class LiveRig:
                 self._gradient[head] = float(result.gradient_volume)
                 if head == next(iter(self.source.cameras)) and t_s is not None:  # one clock for the curves
                     self._optical.append((t_s, sum(self._gradient.values())))
+                    regions = self._metric.head_regions()
+                    if regions:
+                        signals = regional_signals(regions)
+                        self._regional_curve.append((t_s, signals))
+                        if self._calibration is not None:
+                            litres = float(self._calibration.volume_l(signals))
+                    if self._calibration is None:
+                        litres *= POPULATION_GAIN
                     if np.isfinite(litres):
                         self._metric_curve.append((t_s, litres))
-                        self._checks.add_volumes(t_s, litres, self._metric.top_referred_l(),
-                                                 self._metric.silhouette_sample())
+                        if self._recorder is not None and self._calibration is not None:
+                            self._recorded_optical.append((stamp, litres))
 
     def _look(self, head: str, t_s: float, result: HeadMap, reconstructor: HeadReconstructor, cycle: tuple) -> None:
         """What `process` checks on a map made at the geometric distance: its sides along the height
@@ -808,8 +861,7 @@ class LiveRig:
                             recorder.frames_written() if recorder is not None else {},
                             recorder.dropped if recorder is not None else 0, problems,
                             time.monotonic() - self._started, metric[:, 0], metric[:, 1], flow_until,
-                            self.replay_finished, self._checks.refusal(), self._checks.checked,
-                            self._checks.withheld())
+                            self.replay_finished, self._checks.refusal(), self._checks.checked)
         clock = self.source.replay_clock
         if clock is not None:
             snapshot.replay_position_s = (min(clock.now_ns(), clock.last_ns) - clock.first_ns) / 1e9

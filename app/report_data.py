@@ -25,7 +25,6 @@ from core.analysis.reference import Reference, ReferenceUnavailable, reference
 from core.io.session import SessionError, SessionFile
 from core.analysis.session_analysis import analyse_session
 from core.volume.maps import body_aligned_displacement, normalised_gradient_volume, torso_rows, trunk_regions
-from core.volume.metric import TIDAL_WITHHELD, withheld_for_flanks
 
 OPTICAL = "optical"
 FLOW_SENSOR = "flow sensor"
@@ -148,6 +147,8 @@ class ReportData:
     bronchodilator: Bronchodilator | None = None
     post_bronchodilator_session: Path | None = None  # where this is the pre-bronchodilator session of a pair
     trend: list[TrendPoint] = field(default_factory=list)
+    # what the optical litres are: calibrated on the subject (residual) or an estimate (uncertainty)
+    optical_label: str | None = None
 
     def parameters(self, source: str) -> dict[str, float | str | int]:
         return self.sources[source].parameters() if source in self.sources else {}
@@ -193,8 +194,8 @@ def _gradient_correlation(results: Path, start_ns: int, t_flow: np.ndarray, v_fl
 
 def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tuple[float, str]],
              results: Path | None, start_ns: int, optical: SessionValues | None = None) -> Comparison | None:
-    """optical: the optical values as given; where they withhold the tidal volume (withheld_for_flanks),
-    its breaths are not paired with the flow sensor's either."""
+    """optical: the optical values as given; where they have no tidal volume its breaths are not paired
+    with the flow sensor's either."""
     if FLOW_SENSOR not in curves:
         return None
     t_flow, v_flow = curves[FLOW_SENSOR]
@@ -212,7 +213,7 @@ def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tupl
     on_grid = np.interp(grid, t_opt, v_opt)
     measured = np.isfinite(on_grid)  # not in a gap of maps left out (an arm against the trunk)
     r = float(np.corrcoef(on_grid[measured], np.interp(grid[measured], t_flow, v_flow))[0, 1])
-    withheld = next((p for p in (optical.problems if optical is not None else []) if p.startswith(TIDAL_WITHHELD)), "")
+    withheld = "" if optical is None or optical.tidal is not None else "tidal values not given"
     breaths = [] if withheld else tidal_breaths(tidal_stretches(t_opt, v_opt, events))
     flow = tidal_breaths(tidal_stretches(t_flow, v_flow, events))
     pairs = []
@@ -330,7 +331,12 @@ def stored_interpretation(patient: Patient, values: dict, recorded, source: str,
 
 
 def source_values(summary: dict) -> tuple[str, dict]:
-    """(source, values) of a stored session: the flow sensor's where it was recorded, else the optical ones."""
+    """(source, values) of a stored session: the flow sensor's where it has the forced values, else the
+    optical ones where they have them (the mouthpiece came off after the subject's calibration), else the
+    flow sensor's, else the optical ones."""
+    for source in (FLOW_SENSOR, OPTICAL):
+        if isinstance(summary.get(source), dict) and "FEV1_l" in summary[source]:
+            return source, summary[source]
     if summary.get(FLOW_SENSOR):
         return FLOW_SENSOR, summary[FLOW_SENSOR]
     return OPTICAL, summary.get(OPTICAL) or {}
@@ -432,7 +438,7 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             curves[OPTICAL] = optical
             analysed_optical = analyse_volume(*optical, events, subject.age_years if subject else None, fitted=True,
                                               peak_flow_volume=_in_seconds(inputs["optical_peak_flow"], start))
-            sources[OPTICAL] = withheld_for_flanks(analysed_optical, inputs["optical_flank"])
+            sources[OPTICAL] = analysed_optical
         elif results_path is not None and (refused := optical_refusal(results_path)):
             if analysed.flow_sensor is None:  # with one, the comparison with it says why (_compare), once
                 notes.append(f"Optical volume in litres: refused when the session was processed: {refused}.")
@@ -502,6 +508,7 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             comparison=_compare(curves, events, results_path, start, sources.get(OPTICAL)), maps=maps,
             breath_times_s=breath, notes=notes,
             interpretation=_interpretation(main, sources, analysed.references),
-            optical_manoeuvres=_manoeuvres(sources[OPTICAL]) if OPTICAL in sources and main != OPTICAL else [])
+            optical_manoeuvres=_manoeuvres(sources[OPTICAL]) if OPTICAL in sources and main != OPTICAL else [],
+            optical_label=inputs.get("optical_label") if OPTICAL in sources else None)
     _on_record(data, records, analysed.references)
     return data

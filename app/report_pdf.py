@@ -162,15 +162,13 @@ def _quality_lines(data: ReportData) -> list[str]:
         else:
             lines.append(f"<b>{source.capitalize()}</b>: no forced expiration graded.")
     if OPTICAL in data.sources:
-        lines.append(OPTICAL_LIMITS)
+        lines.append(optical_kind(data.optical_label))
     return lines
 
 
-# What the optical values are not yet (docs/volume.md, "A trunk that widens"; issue 27)
-OPTICAL_LIMITS = ("<b>Optical</b> VC, FVC and FEV1 are not validated within spirometry's tolerance (3 %): the "
-                  "trunk's flanks, which neither camera sees, are not in the optical volume, and a rib cage that "
-                  "widens as it breathes moves them. Read the optical values beside the flow sensor's, not in "
-                  "place of them.")
+def optical_kind(label: str | None) -> str:
+    """The line that says what the optical litres are (core/analysis/optical_litres.py)."""
+    return f"<b>Optical</b> litres: {_escape(label or 'made before their kind was recorded: process the session again')}."
 
 
 def _plot(width: float, height: float, series: list[list[tuple[float, float]]], x_label: str, y_label: str,

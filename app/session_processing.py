@@ -61,6 +61,8 @@ def process_visit(records: Records, session_id: int, progress: Callable[[float],
     sources = {source: data.parameters(source) for source in data.sources}
     refused = optical_refusal(results)
     stored = dict(sources)
+    if OPTICAL in stored and data.optical_label:  # what its litres are, wherever they are shown
+        stored[OPTICAL] = {**stored[OPTICAL], "label": data.optical_label}
     if OPTICAL not in stored and refused:
         stored[OPTICAL] = {"refused": refused}
     records.set_results(session_id, results, stored, status="processed")

@@ -28,6 +28,10 @@ VALUES = (("TV_l", "TV", "L", 0.050, 0.0), ("RR_bpm", "RR", "/min", 0.5, 0.0), (
           ("FEV1_FVC", "FEV1/FVC", "", 0.03, 0.0), ("PEF_lps", "PEF", "L/s", 0.30, 0.10),
           ("distance_mm", "distance", "mm", 5.0, 0.0))
 STANDARD_SETS = ("ISO26782", "ATS24")  # the standard blows the subjects' forced expirations follow
+# a row's sources: the optical values calibrated on the subject, the uncalibrated optical estimate of the
+# same session (the population's gain), the flow sensor (the calibration's part of the session only)
+SOURCES = {"calibrated": "optical, calibrated", "estimate": "optical estimate", "flow": "flow sensor"}
+COLOURS = {"calibrated": "tab:blue", "estimate": "tab:green", "flow": "tab:orange"}
 
 
 @dataclass(frozen=True)
@@ -209,6 +213,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     from core.sim.simulate import simulate
     from core.analysis.spirometry import read_waveform
     from core.calibration.rig_profile import ProfileError, load_profile
+    from core.analysis.optical_litres import CALIBRATED
 
     started = time.perf_counter()
     work = Path(folder)
@@ -277,11 +282,19 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     out["truth"] = _numbers(report.truth.parameters())
     out["flow"] = _numbers(report.flow_sensor.parameters()) if report.flow_sensor is not None else {}
     out["optical"] = _numbers(report.optical.parameters()) if report.optical is not None else {}
+    out["optical_label"] = report.optical_label
+    calibrated = bool(report.optical_label and report.optical_label.startswith(CALIBRATED))
+    out["calibrated"] = out["optical"] if calibrated else {}
+    out["estimate"] = out["optical"] if report.optical is not None and not calibrated else {}
     out["optical_problems"] = list(report.optical.problems) if report.optical is not None else []
     out["optical_refused"] = optical_refusal(results)
     with ResultsFile(results) as r:
         out["distance_refused"] = r.distance_refused
-        out["volume_checks"] = r.volume_checks()
+        out["subject_calibration"] = {k: (v.tolist() if hasattr(v, "tolist") else v)
+                                      for k, v in r.subject_calibration().items()}
+        metric = r.metric_volume()
+    if calibrated and metric is not None:  # the same session read as if it had no calibration
+        out["estimate"] = _numbers(estimate_values(session, metric).parameters())
     out["distance_errors_mm"] = [] if out["distance_refused"] else _distance_errors(session, results, after_cycles=10)
     stages["analyse"] = time.perf_counter() - started - sum(stages.values())
     out["seconds"] = sum(stages.values())
@@ -291,6 +304,22 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
         stages_done.clear()
         work.rmdir()
     return out
+
+
+def estimate_values(session: Path, metric: tuple[np.ndarray, np.ndarray]):
+    """The optical values of a session's plain optical volume (/metric_volume) with the population's gain,
+    as `process` gives them without a calibration on the subject (its PEF from the maps of every light
+    cycle: the maps at every frame through the blows are the calibrated volume's)."""
+    from core.analysis.optical_litres import POPULATION_GAIN
+    from core.analysis.values import analyse_volume
+    from core.io.session import SessionFile
+
+    with SessionFile(session) as s:
+        start = s.start_ns()
+        events = sorted(((t - start) / 1e9, label) for t, label in s.events())
+        age = s.subject.age_years if s.subject is not None else None
+    t = (np.asarray(metric[0], dtype=np.int64) - start) / 1e9
+    return analyse_volume(t, POPULATION_GAIN * np.asarray(metric[1], dtype=float), events, age, fitted=True)
 
 
 class SubjectStages:
@@ -353,7 +382,7 @@ def _pairs(rows: list[dict], source: str, key: str) -> tuple[np.ndarray, np.ndar
     measured, truth, missing = [], [], 0
     for row in rows:
         if key == "distance_mm":
-            if source != "optical":
+            if source != "calibrated":
                 continue
             errors = row.get("distance_errors_mm") or []
             if errors:  # the subject's median depth as measured, at its worst map, and as it was
@@ -384,7 +413,7 @@ def agreement(rows: list[dict]) -> list[tuple]:
     """Per value and source: n, refused, bias, 95 % limits of agreement, share within tolerance."""
     table = []
     for key, label, unit, absolute, relative in VALUES:
-        for source in ("optical", "flow"):
+        for source in SOURCES:
             measured, truth, missing = _pairs(rows, source, key)
             if len(measured) == 0 and missing == 0:
                 continue
@@ -411,17 +440,17 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
         fig, ax = plt.subplots(figsize=(5.0, 3.6), dpi=110)
         plotted = False
         refused_note = []
-        for source, colour in (("optical", "tab:blue"), ("flow", "tab:orange")):
+        for source, colour in COLOURS.items():
             measured, truth, missing = _pairs(rows, source, key)
-            if missing:
-                refused_note.append(f"{'optical' if source == 'optical' else 'flow sensor'}: no value for "
+            if missing and source != "flow":  # the flow sensor stops at the mouthpiece's removal
+                refused_note.append(f"{SOURCES[source]}: no value for "
                                     f"{missing} of {len(measured) + missing} subjects")
             if len(measured) == 0:
                 continue
             plotted = True
             mean = truth if key == "distance_mm" else 0.5 * (measured + truth)
             difference = measured - truth
-            name = "optical" if source == "optical" else "flow sensor"
+            name = SOURCES[source]
             ax.scatter(mean, difference, s=14, color=colour, label=name)
             if len(difference) > 1:
                 bias, sd = difference.mean(), difference.std(ddof=1)
@@ -485,7 +514,7 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
     started = time.perf_counter()
     blows = standard_blows(standards)
     population = draw_subjects(subjects, seed, blows, quick, max_sheen)
-    protocol, seconds = ("short", 8.0) if quick else ("short", None)
+    protocol, seconds = ("short", 8.0) if quick else ("clinical", None)
     calibration_scale = scale if quick else max(scale, CALIBRATION_SCALE)
     done: dict[int, dict] = {}
     for s in population:
@@ -568,11 +597,7 @@ REFUSAL_KINDS = (("an arm lies against the trunk", "an arm against the trunk"),
                  ("the maps are bent", "bent maps"),
                  ("jumps away and back", "jumps"),
                  ("noise from map to map", "a noisy curve"),
-                 ("referred to the top of the view", "the two references"),
                  ("and its depth in this head's maps", "a head's scale"))
-
-
-FLANKS_WITHHELD = "not given: the trunk's silhouette widens"  # core/volume/metric.py, withheld_for_flanks
 
 
 def refusal_kind(reason: str) -> str:
@@ -598,7 +623,7 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
     sphere = thesis_head(scale=calibration_scale or scale)
     refused = [r for r in rows if "refused" in r]
     lines = [f"{len(rows)} simulated subjects (seed {seed}{', quick' if quick else ''}), two heads of {head.width} x "
-             f"{head.height} pixels; protocol: {'its first 8 s' if quick else '20 s tidal (irregular, sighs), one slow VC, two forced blows'}; "
+             f"{head.height} pixels; protocol: {'its first 8 s' if quick else 'the clinical one: 20 s tidal (irregular, sighs) and one slow VC through the flow sensor (the subject calibration), then with the mouthpiece off 10 s tidal, one slow VC, three forced blows'}; "
              f"blows following {'the standard waveforms (' + ', '.join(STANDARD_SETS) + f', {len(blows)} files)' if blows else 'the simulator own model (no standard waveforms found)'}, "
              "scaled to each subject's predicted FVC. The world: random bodies (core/sim/bodies.py), distance 1700-2300 mm, "
              f"Fitzpatrick I-VI, skin sheen 0-{max_sheen:g}, LEDs 0-15 mm off the drawing, and the clinic's "
@@ -606,7 +631,9 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
              + (" (crossed polarisers on the LEDs and lenses; the sphere sessions without)" if world.get("polarisers") else "")
              + f". Lights calibrated from each rig's simulated sphere sessions (specular and matte, {sphere.width} x "
              f"{sphere.height} pixels); processed with "
-             "`photopft process` defaults; no calibration on the subject. Truth read only to compare.", "",
+             "`photopft process` defaults. Optical, calibrated: the subject's own calibration; optical estimate: the same "
+             "session's plain optical volume with the population's gain (core/analysis/optical_litres.py). "
+             "Truth read only to compare.", "",
              "| value | source | n | refused | bias | 95 % limits of agreement | within tolerance |",
              "|---|---|---|---|---|---|---|"]
     for label, unit, source, n, missing, bias, low, high, share, absolute, relative in agreement(rows):
@@ -614,13 +641,13 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
         limits = f"{low:+.3f} to {high:+.3f}" if n > 1 else "one value: no limits"
         given = (f"{bias:+.3f} | {limits} | {share:.0%} (±{tolerance})" if n
                  else f"no value given | | (±{tolerance})")
-        lines.append(f"| {label}{f' ({unit})' if unit else ''} | {'optical' if source == 'optical' else 'flow sensor'} | "
+        lines.append(f"| {label}{f' ({unit})' if unit else ''} | {SOURCES[source]} | "
                      f"{n} | {missing} | {given} |")
     lines += ["", "Distance: the worst median depth error on the subject over the truth's maps after 10 cycles, per subject; "
               "refused where `process` gives no distance (`/@distance_refused`).",
               "", "| # | body | sex, age, height, BMI | arms | distance (mm) | skin | sheen | blow | LED error (mm, worst) | "
-              "optical TV / truth (L) | optical FVC / truth (L) | distance error (mm) |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "optical TV / truth (L) | optical FVC / truth (L) | calibration: residual (mL), expected error | distance error (mm) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         s = row["subject"]
         body = row.get("body", {})
@@ -629,6 +656,7 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
         errors = row.get("distance_errors_mm") or []
         cells = [(f"{optical[k]:.3f}" if k in optical else "none") + (f" / {truth[k]:.3f}" if k in truth else "")
                  for k in ("TV_l", "FVC_l")]
+        cells.append(calibration_cell(row.get("subject_calibration") or {}))
         lines.append(f"| {s['index']} | {body.get('name', s['body'])} | {body.get('sex', '?')}, "
                      f"{body.get('age_years', float('nan')):.0f} y, {body.get('height_cm', float('nan')):.0f} cm, "
                      f"{body.get('bmi', float('nan')):.1f} | {body.get('arms', '?')} | {s['distance_mm']:.0f} | "
@@ -642,11 +670,10 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
                         and not row.get("optical_refused") else ""))
     subject_seconds = [r["seconds"] for r in rows if "seconds" in r]
     tally = refusal_tally(rows)
-    flanks = sum(any(FLANKS_WITHHELD in p for p in r.get("optical_problems", [])) for r in rows)
     lines += ["", f"{len(refused)} of {len(rows)} subjects refused before analysis"
               + (f"; optical values refused {tally}" if tally else "")
-              + (f"; optical VC, FVC, FEV1 and PEF withheld for the flanks neither head sees on {flanks}"
-                 if flanks else "") + f". Run time {elapsed:.0f} s with "
+              + f"; calibrated on the subject: {sum(bool(r.get('calibrated')) for r in rows)}"
+              + f". Run time {elapsed:.0f} s with "
               f"{workers} subject(s) at once on {os.cpu_count()} cores"
               + (f" ({resumed} subjects kept from an earlier run of the same bench)" if resumed else "")
               + (f"; subjects run at commit(s) {', '.join(sorted({r.get('commit', 'unknown') for r in rows}))}")
@@ -654,6 +681,13 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
     if pngs:
         lines += ["", "Bland-Altman plots: " + ", ".join(f"![{p.stem}](images/{p.name})" for p in pngs)]
     return "\n".join(lines)
+
+
+def calibration_cell(calibration: dict) -> str:
+    """A subject's calibration in the table: its residual and expected error, or why there is none."""
+    if "residual_l" in calibration and "refused" not in calibration:
+        return f"{1000 * calibration['residual_l']:.0f}, {100 * calibration.get('expected_error', float('nan')):.1f} %"
+    return str(calibration.get("refused") or calibration.get("not_calibrated") or "none")
 
 
 def describe_bodies(rows: list[dict]) -> None:

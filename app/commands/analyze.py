@@ -81,11 +81,14 @@ def _as_json(session: Path, results: Path | None, equations: str, report, named,
         ref = report.references.get(name)
         if ref is not None:
             references[name] = {"predicted": ref.predicted, "lln": ref.lln}
-            if key in main:
-                references[name].update(z=ref.zscore(float(main[key])), percent_predicted=ref.percent(float(main[key])))
-    grade = main.get("grade")
-    verdict = interpret({k: float(v) for k, v in main.items() if k in ("FEV1_l", "FVC_l", "FEV1_FVC")},
-                        report.references, str(grade) if grade is not None else None, main_name)
+            source = next((n for n, values in sources if key in values), None)  # a flow sensor that stopped
+            if source is not None:  # at the mouthpiece's removal leaves FVC and FEV1 to the optical values
+                value = float(dict(sources)[source][key])
+                references[name].update(z=ref.zscore(value), percent_predicted=ref.percent(value), source=source)
+    spirometry = next(((n, values) for n, values in sources if "FVC_l" in values), (main_name, main))
+    grade = spirometry[1].get("grade")
+    verdict = interpret({k: float(v) for k, v in spirometry[1].items() if k in ("FEV1_l", "FVC_l", "FEV1_FVC")},
+                        report.references, str(grade) if grade is not None else None, spirometry[0])
     problems = {}
     for name, values in named:
         if values is not None:
@@ -101,6 +104,7 @@ def _as_json(session: Path, results: Path | None, equations: str, report, named,
             "interpretation": {"pattern": verdict.pattern, "severity": verdict.severity, "summary": verdict.summary,
                                "z": verdict.z, "statements": verdict.statements},
             "optical_refused": optical_refusal(results) if results is not None else None,
+            "optical_label": report.optical_label,
             "flow_refused": report.flow_refused, "problems": problems}
 
 
@@ -123,14 +127,14 @@ def run_analyze_session(args: argparse.Namespace) -> int:
     if not sources:
         raise UserError(f"{args.session} has neither a flow sensor recording nor a simulation truth to analyse; "
                         "the optical volume comes with `photopft process` (analyse its results file)")
-    main = sources[0][1]
     if args.json:
         print(json.dumps(_as_json(session, results, args.equations, report, named, sources), indent=2,
                          ensure_ascii=False))
         return 0
     header = f"  {'value':<9} {'unit':<6}" + "".join(f"{name:>20}" for name, _ in sources)
     header += f"{'predicted':>11}{'LLN':>8}{'z':>7}{'% pred':>8}"
-    print(f"{session}: values from the {sources[0][0]}; reference {args.equations}")
+    print(f"{session}: values from the {sources[0][0]}; reference {args.equations} (z and % predicted of the "
+          "first source that gives the value)")
     print(header)
     for key, label, unit in ROWS:
         if not any(key in values for _, values in sources):
@@ -138,8 +142,9 @@ def run_analyze_session(args: argparse.Namespace) -> int:
         cells = "".join(f"{values[key]:>20.3f}" if key in values else f"{'':>20}" for _, values in sources)
         ref = report.references.get(REFERENCE_OF.get(key, ""))
         extra = ""
-        if ref is not None and key in main:
-            extra = f"{ref.predicted:>11.3f}{ref.lln:>8.3f}{ref.zscore(main[key]):>7.2f}{ref.percent(main[key]):>8.0f}"
+        first = next((values[key] for _, values in sources if key in values), None)
+        if ref is not None and first is not None:
+            extra = f"{ref.predicted:>11.3f}{ref.lln:>8.3f}{ref.zscore(first):>7.2f}{ref.percent(first):>8.0f}"
         print(f"  {label:<9} {unit:<6}{cells}{extra}")
     for name, values in sources:
         if "grade" in values:
@@ -148,6 +153,8 @@ def run_analyze_session(args: argparse.Namespace) -> int:
                   f"{values['manoeuvres']} blows")
     if report.reference_problem:
         print(f"  no predicted values: {report.reference_problem}")
+    if report.optical_label:
+        print(f"  optical: {report.optical_label}")
     if results is not None and (refused := optical_refusal(results)):
         print(f"  optical values refused: {refused}")
     if report.flow_refused:

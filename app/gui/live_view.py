@@ -349,13 +349,10 @@ class LiveView(QWidget):
                                                                    "", s.elapsed_s, text_follows=True))
         if s.optical_refused is not None:
             line = (f"not valid now: {operator_action(s.optical_refused)}", True, s.optical_refused)
-        elif s.optical_withheld is not None:
-            line = ("tidal volume and rate valid; the other volumes not now", True, s.optical_withheld)
         else:
             line = ("valid" if s.optical_checked else "not checked yet: both heads must see the trunk"
                     if len(self.heads) == 2 else "not checked: the checks take two heads", False,
-                    "the skin's shading, the maps' sides, the volume's two references and the trunk's silhouettes "
-                    "pass the checks" if s.optical_checked else "")
+                    "the skin's shading and the maps' sides pass the checks" if s.optical_checked else "")
         self.status.set("optical", *self.settled.choose("optical", *line, s.elapsed_s))
         if s.recording is not None:
             frames = ", ".join(f"{h} {n}" for h, n in s.recorded_frames.items())

@@ -69,7 +69,7 @@ class TrendPlot(QWidget):
 # The values shown per source for a visit, as the report names them
 VISIT_VALUES = (("FEV1_l", "FEV1", "L"), ("FVC_l", "FVC", "L"), ("FEV1_FVC", "FEV1/FVC", ""), ("VC_l", "VC", "L"),
                 ("TV_l", "TV", "L"), ("RR_bpm", "RR", "/min"))
-SOURCE_LABELS = {"flow sensor": "flow sensor", "optical": "optical (not calibrated on the subject)"}
+SOURCE_LABELS = {"flow sensor": "flow sensor", "optical": "optical (made before its kind was recorded)"}
 
 
 def values_by_source_html(summary: dict) -> str:
@@ -79,7 +79,7 @@ def values_by_source_html(summary: dict) -> str:
     for source, values in summary.items():
         if not isinstance(values, dict):
             continue
-        label = SOURCE_LABELS.get(source, source)
+        label = str(values.get("label") or SOURCE_LABELS.get(source, source))
         if "refused" in values and not any(k in values for k, _, _ in VISIT_VALUES):
             rows.append(f"<tr><td><b>{label}</b></td><td colspan=6>no values: {values['refused']}</td></tr>")
             continue

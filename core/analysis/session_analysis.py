@@ -10,7 +10,6 @@ import numpy as np
 
 from core.analysis.values import SessionValues, analyse_volume, tidal_windows
 from core.volume.flow_sensor import btps_factor, flow_sensor_volume
-from core.volume.metric import withheld_for_flanks
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
 from core.io.plausibility import flow_gaps, flow_refusal, frame_gaps_in_manoeuvres, gaps_in_manoeuvres
 from core.io.session import SessionError, SessionFile
@@ -26,6 +25,7 @@ class SessionReport:
     optical: SessionValues | None = None
     optical_volume: tuple[np.ndarray, np.ndarray] | None = None  # (seconds from the first frame, litres)
     flow_refused: str | None = None  # why none of the flow sensor's values are given (core/io/plausibility.py)
+    optical_label: str | None = None  # what the optical litres are (core/analysis/optical_litres.py)
 
 
 
@@ -40,11 +40,47 @@ def without_gapped_manoeuvres(values: SessionValues, gaps) -> SessionValues:
                    vital_capacity=None if "vc" in kinds else values.vital_capacity,
                    vc_manoeuvres=[] if "vc" in kinds else values.vc_manoeuvres,
                    forced=None if "forced" in kinds else values.forced,
-                   forced_curves=[] if "forced" in kinds else values.forced_curves,
-                   forced_kept={} if "forced" in kinds else values.forced_kept)
+                   forced_curves=[] if "forced" in kinds else values.forced_curves)
 
 
 _KIND_VALUES = {"tidal": "the tidal values", "vc": "VC and its volumes", "forced": "the forced values"}
+
+
+@dataclass
+class SessionFlow:
+    """A session's flow-sensor volume: BTPS, drift removed, on seconds from the first frame; or why
+    its samples cannot be used (core/io/plausibility.py), in `refused`."""
+    t_s: np.ndarray
+    volume_l: np.ndarray
+    stamps_ns: np.ndarray
+    refused: str | None = None
+
+
+def session_flow_volume(s: SessionFile, events: list[tuple[float, str]] | None = None) -> SessionFlow | None:
+    """The flow sensor's volume of an open session, or None without a flow sensor."""
+    if s.flow is None:
+        return None
+    start = s.start_ns()
+    events = _events(s, start) if events is None else events
+    info = s.flow
+    if info.gain_lps is None:
+        raise SessionError(f"{s.path}: the flow sensor has no calibration in force (flow_gain_lps)")
+    adc, stamps = s.flow_samples()
+    refused = flow_refusal(adc, stamps, info.adc_bits, info.sample_rate_hz, info.gain_lps, info.offset_lps,
+                           s.frame_span_ns())
+    if refused is not None:
+        return SessionFlow(np.zeros(0), np.zeros(0), stamps, refused)
+    factor = 1.0
+    if info.conditions == "ATPS":
+        a = info.attrs
+        try:
+            factor = btps_factor(float(a.get("room_temperature_c", 23.0)), float(a.get("room_pressure_hpa", 1013.0)),
+                                 float(a.get("room_humidity_pct", 50.0)))
+        except ValueError as exc:
+            raise SessionError(f"{s.path}: /flow room conditions: {exc}") from exc
+    end_s = (int(stamps[-1]) - start) / 1e9
+    volume = flow_sensor_volume(adc, stamps, info.gain_lps, info.offset_lps, factor, tidal_windows(events, end_s))
+    return SessionFlow((volume.timestamp_ns - start) / 1e9, volume.volume_l, stamps)
 
 
 def _events(session: SessionFile, start_ns: int) -> list[tuple[float, str]]:
@@ -53,44 +89,26 @@ def _events(session: SessionFile, start_ns: int) -> list[tuple[float, str]]:
 
 def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
                     optical_volume: tuple[np.ndarray, np.ndarray] | None = None,
-                    optical_flank: tuple[float, float] | None = None,
+                    optical_label: str | None = None,
                     optical_peak_flow: tuple[np.ndarray, np.ndarray] | None = None) -> SessionReport:
     """optical_volume: (timestamp_ns, litres) on the session's clock, e.g. a results file's /volume;
-    optical_flank: its (widening_per_l, flank_share) (core/io/results.py, optical_flank), which may
-    withhold some of its values (core/volume/metric.py, withheld_for_flanks); optical_peak_flow:
+    optical_label: what its litres are (core/analysis/optical_litres.py: calibrated on the subject, or
+    an estimate with its uncertainty), kept in the report; optical_peak_flow:
     (timestamp_ns, litres), its volume at every frame through the forced blows' peak flows (/peak_flow_volume),
     which its PEF is read from (analyse_volume). core.io.results.optical_inputs gives all three."""
     with SessionFile(path) as s:
         start = s.start_ns()
         events = _events(s, start)
         age = s.subject.age_years if s.subject is not None else None
-        flow_values = None
-        flow_volume = None
-        flow_refused = None
-        if s.flow is not None:
-            info = s.flow
-            if info.gain_lps is None:
-                raise SessionError(f"{path}: the flow sensor has no calibration in force (flow_gain_lps)")
-            adc, stamps = s.flow_samples()
-            flow_refused = flow_refusal(adc, stamps, info.adc_bits, info.sample_rate_hz, info.gain_lps,
-                                        info.offset_lps, s.frame_span_ns())
-        if s.flow is not None and flow_refused is None:
-            factor = 1.0
-            if info.conditions == "ATPS":
-                a = info.attrs
-                try:
-                    factor = btps_factor(float(a.get("room_temperature_c", 23.0)),
-                                         float(a.get("room_pressure_hpa", 1013.0)),
-                                         float(a.get("room_humidity_pct", 50.0)))
-                except ValueError as exc:
-                    raise SessionError(f"{path}: /flow room conditions: {exc}") from exc
-            end_s = (int(stamps[-1]) - start) / 1e9
-            volume = flow_sensor_volume(adc, stamps, info.gain_lps, info.offset_lps, factor,
-                                        tidal_windows(events, end_s))
-            t = (volume.timestamp_ns - start) / 1e9
-            flow_values = without_gapped_manoeuvres(analyse_volume(t, volume.volume_l, events, age),
-                                                    gaps_in_manoeuvres(flow_gaps(stamps), s.events(), start))
-            flow_volume = (t, volume.volume_l)
+        flow_values, flow_volume, flow_refused = None, None, None
+        flow = session_flow_volume(s, events)
+        if flow is not None:
+            flow_refused = flow.refused
+        if flow is not None and flow.refused is None:
+            covered = [(t, label) for t, label in events if t <= flow.t_s[-1]]  # the mouthpiece may come off
+            flow_values = without_gapped_manoeuvres(analyse_volume(flow.t_s, flow.volume_l, covered, age),
+                                                    gaps_in_manoeuvres(flow_gaps(flow.stamps_ns), s.events(), start))
+            flow_volume = (flow.t_s, flow.volume_l)
         truth_values = None
         if s.has_truth:
             truth = s.truth()
@@ -102,8 +120,7 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
             volume = np.asarray(optical_volume[1], dtype=float)
             dense = None if optical_peak_flow is None else (
                 (np.asarray(optical_peak_flow[0], dtype=np.int64) - start) / 1e9, np.asarray(optical_peak_flow[1], float))
-            optical_values = withheld_for_flanks(analyse_volume(t, volume, events, age, fitted=True,
-                                                                peak_flow_volume=dense), optical_flank)
+            optical_values = analyse_volume(t, volume, events, age, fitted=True, peak_flow_volume=dense)
             frame_times = {h: s.timestamp_ns(h) for h in s.heads if s.n_frames(h)}
             optical_values = without_gapped_manoeuvres(optical_values,
                                                        frame_gaps_in_manoeuvres(frame_times, s.events(), start))
@@ -121,4 +138,4 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
             except ReferenceUnavailable as exc:
                 problem = str(exc)
     return SessionReport(flow_values, truth_values, references, problem, flow_volume, optical_values,
-                         optical_curve, flow_refused)
+                         optical_curve, flow_refused, optical_label if optical_values is not None else None)

@@ -111,9 +111,6 @@ class SessionValues:
     forced_curves: list[np.ndarray] = field(default_factory=list)
     # why the curve's samples are too far apart for a peak flow (MAX_PEF_SAMPLE_INTERVAL_S), else None
     pef_refused: str | None = None
-    # where `forced` is withheld for a loss its volumes share in proportion (core/volume/metric.py,
-    # withheld_for_flanks): what that leaves, FEV1/FVC and the blows' grades, as parameters() names them
-    forced_kept: dict[str, float | str | int] = field(default_factory=dict)
 
     def parameters(self) -> dict[str, float | str | int]:
         """Flat values for the results file's /parameters attributes."""
@@ -139,14 +136,11 @@ class SessionValues:
             fev6 = [m.fev6_l for m in usable]
             out.update(FEV6_l=max(fev6), FEV075_l=max(m.fev075_l for m in usable),
                        FET_s=float(max(m.fet_s for m in usable)))
-        else:
-            out.update(self.forced_kept)
         return out
 
 
 def forced_proportions(f: SessionGrade) -> dict[str, float | str | int]:
-    """The forced values a loss of every volume in the same proportion leaves: FEV1/FVC, and the blows'
-    grades (their repeatability in mL moves by the same few per cent)."""
+    """FEV1/FVC and the blows' grades."""
     return dict(FEV1_FVC=f.fev1_fvc, grade=f.grade, grade_FEV1=f.fev1_grade, grade_FVC=f.fvc_grade,
                 acceptable_FEV1=f.acceptable_fev1, acceptable_FVC=f.acceptable_fvc, manoeuvres=len(f.manoeuvres))
 

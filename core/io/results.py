@@ -89,13 +89,6 @@ def _check_parameters(path: Path, f: h5py.File) -> None:
             raise SessionError(f"{path}: /parameters {key} must be a finite number, found {value!r}")
 
 
-def _check_volume_checks(path: Path, f: h5py.File) -> None:
-    for key in VOLUME_CHECKS:
-        value = np.asarray(f.attrs.get(key, 0.0))
-        if value.shape != () or value.dtype.kind not in "fiu" or not np.isfinite(value):
-            raise SessionError(f"{path}: the attribute {key} must be a finite number, found {f.attrs[key]!r}")
-
-
 def check_results(path: str | os.PathLike) -> None:
     """Refuses a results file that any reader would stumble on (see the module doc)."""
     from core.io.hdf5_probe import probe
@@ -115,7 +108,6 @@ def check_results(path: str | os.PathLike) -> None:
                 _check_head(path, heads[name])
             _check_volume(path, f)
             _check_parameters(path, f)
-            _check_volume_checks(path, f)
             if not isinstance(f.attrs.get("session", ""), str):
                 raise SessionError(f"{path}: its session attribute is not a file name")
     except SessionError:
@@ -138,7 +130,6 @@ def is_results_file(path: str | os.PathLike) -> bool:
 
 
 # The figures `process` stores with the metric volume for its refusal (MetricVolume.refusal)
-VOLUME_CHECKS = ("top_referred_slope", "widening_per_l", "flank_share")
 
 
 class ResultsFile:
@@ -208,10 +199,16 @@ class ResultsFile:
         reason = self._f.attrs.get("distance_refused")
         return None if reason is None else str(reason)
 
-    def volume_checks(self) -> dict[str, float]:
-        """The figures the metric volume's refusal weighed (top_referred_slope, widening_per_l,
-        flank_share; core/volume/metric.py), those the file has."""
-        return {k: float(self._f.attrs[k]) for k in VOLUME_CHECKS if k in self._f.attrs}
+    def optical_label(self) -> str | None:
+        """What /volume's litres are: "optical, calibrated on the subject (residual N mL)" or "optical
+        estimate, not calibrated (±N %)" (core/analysis/optical_litres.py); None without a label."""
+        label = self.volume_attrs().get("label")
+        return None if label is None else str(label)
+
+    def subject_calibration(self) -> dict:
+        """/subject_calibration's attributes (ResultsWriter.subject_calibration), {} without one."""
+        g = self._f.get("subject_calibration")
+        return {} if g is None else dict(g.attrs)
 
     def parameters(self) -> dict:
         """The stored pulmonary function values (/parameters), with their `source`."""
@@ -238,26 +235,12 @@ def optical_volume(results: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] 
 
 def optical_inputs(results: str | os.PathLike | None) -> dict:
     """What a results file gives the session's analysis (core.analysis.session_analysis.analyse_session's
-    optical_volume, optical_flank and optical_peak_flow), as its keywords; none for no results file."""
+    optical_volume, optical_label and optical_peak_flow), as its keywords; none for no results file."""
     if results is None:
         return {}
     with ResultsFile(results) as r:
-        return {"optical_volume": r.volume(), "optical_flank": flank_figures(r.volume_checks()),
+        return {"optical_volume": r.volume(), "optical_label": r.optical_label(),
                 "optical_peak_flow": r.peak_flow_volume()}
-
-
-def optical_flank(results: str | os.PathLike) -> tuple[float, float] | None:
-    """A results file's (widening_per_l, flank_share), the figures of the flanks neither head sees
-    (core/volume/metric.py, withheld_for_flanks), or None where `process` stored none."""
-    with ResultsFile(results) as r:
-        return flank_figures(r.volume_checks())
-
-
-def flank_figures(checks) -> tuple[float, float] | None:
-    """(widening_per_l, flank_share) from a results file's attributes or volume_checks, or None unless
-    both are there and finite."""
-    figures = (float(checks.get("widening_per_l", np.nan)), float(checks.get("flank_share", np.nan)))
-    return figures if np.all(np.isfinite(figures)) else None
 
 
 def optical_refusal(results: str | os.PathLike) -> str | None:
@@ -354,6 +337,25 @@ class ResultsWriter:
         m.create_dataset("depth_mm", data=np.stack(depth_mm) if depth_mm else np.zeros(empty, np.float32),
                          compression="gzip")
 
+    def subject_calibration(self, calibration, not_calibrated: str | None) -> None:
+        """/subject_calibration: the subject's calibration through the flow sensor
+        (core/volume/subject_calibration.py, SubjectCalibration) with its gains, residual, expected error
+        and, where refused, why; or only `not_calibrated`, why there is none."""
+        g = self.out.create_group("subject_calibration")
+        if not_calibrated:
+            g.attrs["not_calibrated"] = not_calibrated
+        if calibration is None:
+            return
+        g.attrs["segment_s"] = np.asarray(calibration.segment_s, dtype=float)
+        g.attrs["residual_l"] = calibration.residual_l
+        g.attrs["range_l"] = calibration.range_l
+        g.attrs["expected_error"] = calibration.expected_error
+        g.attrs["maps"] = np.int64(calibration.samples)
+        g.attrs["signals"] = list(calibration.gains)
+        g.attrs["gains"] = np.array(list(calibration.gains.values()), dtype=float)
+        if calibration.refused:
+            g.attrs["refused"] = calibration.refused
+
     def volume(self, timestamp_ns: np.ndarray, volume_l: np.ndarray, method: str, **attrs) -> None:
         """/volume: the optical volume in litres, from its first sample, and how it was made."""
         g = self.out.create_group("volume")
@@ -380,7 +382,8 @@ class ResultsWriter:
 
     def metric_volume(self, timestamp_ns: np.ndarray, volume_l: np.ndarray, scale_from: str,
                       heads: dict[str, np.ndarray], side_distance_mm: dict[str, np.ndarray],
-                      regions: dict[str, np.ndarray], attrs: dict) -> None:
+                      regions: dict[str, np.ndarray], attrs: dict,
+                      head_regions: dict[str, dict[str, np.ndarray]] | None = None) -> None:
         """/metric_volume: the metric volume in total, per head and per trunk quadrant (each from its
         first sample), the distance each head's sides were scaled to, and `attrs` (compartments)."""
         g = self.out.create_group("metric_volume")
@@ -394,6 +397,9 @@ class ResultsWriter:
             g.create_dataset(f"heads/{name}/side_distance_mm", data=side_distance_mm[name])
         for name, values in regions.items():
             g.create_dataset(f"regions/{name}/volume_l", data=from_first(values))
+        for name, quadrants in (head_regions or {}).items():
+            for region, values in quadrants.items():
+                g.create_dataset(f"heads/{name}/regions/{region}/volume_l", data=from_first(values))
 
     def parameters(self, source: str, values: dict, flow_curve: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """/parameters: the pulmonary function values and their `source`; with the flow sensor's

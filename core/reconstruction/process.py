@@ -17,6 +17,7 @@ from core.reconstruction.ambient import FlickerCorrection
 from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.reconstruction.drift import light_gains_over_time
+from core.analysis.optical_litres import OpticalLitres, subject_litres
 from core.analysis.values import PEAK_FLOW_REACH_S, peak_flow_spans_s
 from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, on_maps_shown,
                                 side_targets, tidal_compartments)
@@ -28,7 +29,7 @@ from core.reconstruction.pipeline import HeadMap, HeadReconstructor, Reconstruct
 from core.reconstruction.reflectance import RedundancyFit
 from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
-from core.io.results import VOLUME_CHECKS, ResultsFile, ResultsWriter, flank_figures
+from core.io.results import ResultsFile, ResultsWriter
 from core.limits import past_limit
 from core.volume.maps import DisplacementSums, DisplacementTracker, smooth_in_time
 from core.volume.sides import bend_refusal, paired_tilts, side_profile_mm
@@ -514,33 +515,36 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             shown = {name: sides_shown(occluded[name]) for name in displacements}
             metric = (metric_volume({n: d.of_maps(shown[n]) for n, d in displacements.items()}, rig.baseline_mm)
                       if all(counts.values()) and refused is None and all(m.any() for m in shown.values()) else None)
-            for check in VOLUME_CHECKS:  # the figures MetricVolume.refusal weighs
-                if metric is not None and np.isfinite(getattr(metric, check)):
-                    results.attr(check, getattr(metric, check))
             for name, level in (metric.levels.items() if metric is not None else ()):
                 results.attr(f"level_{name}", level)  # the session's or each map's own (core/volume/metric.py)
             if metric is not None and (refused := metric.refusal()) is not None:
                 metric = None
                 results.refuse_optical(refused)
             in_view = metric is not None and np.isfinite(metric.volume_l).all()  # a trunk in every head's view
+            litres = None
+            if in_view:
+                first = next(iter(displacements))
+                gapped = metric.with_gaps(displacements[first].timestamp_ns,
+                                          {n: (d.timestamp_ns, shown[n]) for n, d in displacements.items()})
+                litres = subject_litres(session, gapped)
+                results.subject_calibration(litres.calibration, litres.not_calibrated)
             if in_view and dense_peak_flow:
                 _peak_flow_pass(results, session, {job.name: job for job in jobs}, made, complete, metric, pool,
-                                lambda f: overall(f, peak_flow_windows))
+                                lambda f: overall(f, peak_flow_windows), litres)
             if in_view:
                 compartments = tidal_compartments(session, metric)
-                first = next(iter(displacements))
-                metric = metric.with_gaps(displacements[first].timestamp_ns,
-                                          {n: (d.timestamp_ns, shown[n]) for n, d in displacements.items()})
+                metric = gapped
                 if any(not m.all() for m in shown.values()):
                     results.attr("maps_left_out", "an arm against the trunk hid its sides: "
                                  + ", ".join(f"head {n} {100 * float(np.mean(~m)):.1f} % of its maps"
                                              for n, m in shown.items()))
                 results.metric_volume(metric.timestamp_ns, metric.volume_l, metric.scale_from, metric.heads,
-                                      metric.side_distance_mm, metric.regions, compartments)
+                                      metric.side_distance_mm, metric.regions, compartments, metric.head_regions)
             if volume_calibration is not None:
                 _write_regression_volume(results, out, names, volume_calibration)
             elif in_view:
-                results.volume(metric.timestamp_ns, metric.volume_l, METRIC_METHOD + metric.scale_from)
+                results.volume(metric.timestamp_ns, litres.volume_l(metric), litres.method,
+                               metric_scale_from=metric.scale_from, **litres.attrs())
             _write_parameters(session_path, results)
     if progress is not None:
         progress(1.0)
@@ -558,7 +562,7 @@ PEAK_FLOW_SMOOTHING_S = 0.0
 
 def _peak_flow_pass(results: ResultsWriter, session: SessionFile, jobs: dict[str, "_HeadJob"],
                     made: dict[str, "_HeadResult"], complete: dict[str, list[CycleWindow]], metric: MetricVolume,
-                    workers: "_HeadWorkers", progress: Callable[[float], None]) -> None:
+                    workers: "_HeadWorkers", progress: Callable[[float], None], litres: "OpticalLitres") -> None:
     """/peak_flow_volume: maps at every frame through each forced blow's peak flow (peak_flow_spans_s on
     the session's volume), beside the session's maps, and the metric volume of the two together there,
     unsmoothed (PEAK_FLOW_SMOOTHING_S). Error-free, one map a light cycle reads PEF within 10 % on 78 %
@@ -610,7 +614,7 @@ def _peak_flow_pass(results: ResultsWriter, session: SessionFile, jobs: dict[str
     inside = np.zeros(len(dense.timestamp_ns), dtype=bool)
     for a, b in spans_ns:
         inside |= (dense.timestamp_ns >= a) & (dense.timestamp_ns <= b)
-    results.peak_flow_volume(dense.timestamp_ns[inside], dense.volume_l[inside], spans_ns,
+    results.peak_flow_volume(dense.timestamp_ns[inside], litres.volume_l(dense)[inside], spans_ns,
                              {n: len(j.windows) - 1 for n, j in new_jobs.items()})
 
 
@@ -897,8 +901,9 @@ def _write_parameters(session_path: str | os.PathLike, results: ResultsWriter) -
     which. The optical values are also kept as attributes of /volume, beside the flow sensor's."""
     from core.analysis.session_analysis import analyse_session
 
+    label = results.out["volume"].attrs.get("label") if results.has_volume() else None
     report = analyse_session(session_path, optical_volume=results.written_volume(),
-                             optical_flank=flank_figures(results.out.attrs),
+                             optical_label=None if label is None else str(label),
                              optical_peak_flow=results.written_peak_flow_volume())
     if report.optical is not None:
         results.volume_parameters(report.optical.parameters())
@@ -911,8 +916,6 @@ def _write_parameters(session_path: str | os.PathLike, results: ResultsWriter) -
                                        if report.flow_refused else "no flow sensor")
                            + " and no optical volume in litres", {})
 
-
-METRIC_METHOD = "metric: footprint-weighted displacement in the body frame, scale from the "
 
 
 def _write_regression_volume(results: ResultsWriter, out: h5py.File, heads: list[str], calibration) -> None:

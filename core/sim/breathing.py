@@ -297,8 +297,10 @@ def standard_curve(volume_l: np.ndarray, rate_hz: float) -> np.ndarray:
     return np.concatenate([out, np.full(max(0, int(6 * RATE_HZ) - len(out)), out[-1])])
 
 
-PROTOCOLS = ("tidal", "vc", "forced", "full", "short", "static")
-TIDAL_SECONDS = {"full": 8.0, "short": 20.0}  # the tidal part that opens a whole protocol
+PROTOCOLS = ("tidal", "vc", "forced", "full", "short", "clinical", "static")
+TIDAL_SECONDS = {"full": 8.0, "short": 20.0, "clinical": 20.0}  # the tidal part that opens a whole protocol
+MOUTHPIECE_OFF = "mouthpiece-off"  # the event that ends the subject's calibration through the flow sensor
+CLINICAL_TIDAL_AFTER_S = 10.0  # the clinical protocol's quiet breathing once the mouthpiece is off
 
 
 def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, seed: int,
@@ -306,7 +308,10 @@ def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, se
     """The lung volume of a whole protocol; `seconds` trims or pads (with tidal breathing) the end.
 
     full (57 s): 8 s tidal breathing, a slow VC, then forced expirations (three good blows by default).
-    short (about 55 s, the population benchmark's): 20 s tidal breathing, a slow VC, the first two blows.
+    short (about 55 s): 20 s tidal breathing, a slow VC, the first two blows.
+    clinical (about 100 s, the population benchmark's): the subject's calibration through the flow sensor
+    (20 s tidal breathing, a slow VC), `mouthpiece-off`, then 10 s tidal breathing, a slow VC and the
+    forced expirations, seen by the cameras alone.
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"unknown protocol {protocol!r}: one of {', '.join(PROTOCOLS)}")
@@ -331,6 +336,11 @@ def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, se
             events.append((len(parts[-1]) / RATE_HZ, "maneuver-end"))
     if protocol == "vc" or whole:
         add(*slow_vc(subject, rng, lead_count=0 if whole else 1))
+    if protocol == "clinical":
+        events.append((sum(len(p) for p in parts) / RATE_HZ, MOUTHPIECE_OFF))
+        add(tidal(subject, CLINICAL_TIDAL_AFTER_S, rng), [(0.0, "tidal-start")])
+        events.append((sum(len(p) for p in parts) / RATE_HZ, "maneuver-end"))
+        add(*slow_vc(subject, rng, lead_count=0))
     if protocol == "forced" or whole:
         for k, blow in enumerate(blows[:2] if protocol == "short" else blows):
             add(*forced(subject, blow, rng, lead_count=0 if k == 0 and whole else 1))

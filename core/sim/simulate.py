@@ -18,7 +18,7 @@ from core.io.session import SessionWriter, SubjectRecord
 from core.sim import shapes
 from core.sim.bodies import Body, body_surfaces
 from core.sim.textures import fitzpatrick_albedo
-from core.sim.breathing import RATE_HZ, ForcedBlow, Subject, Sway, Waveform, protocol_waveform
+from core.sim.breathing import MOUTHPIECE_OFF, RATE_HZ, ForcedBlow, Subject, Sway, Waveform, protocol_waveform
 from core.sim.flowsensor import FlowSensorModel
 from core.sim.render import CameraModel
 from core.sim.surfaces import HeightField, mode_volumes_mm3, stretched_volume_mm3
@@ -510,7 +510,9 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
         flow_samples = 0
         if config.flow_sensor is not None and scene.kind == "simulation" and waveform is not None:
             sensor = config.flow_sensor
-            t = np.arange(0.0, duration, 1.0 / sensor.sample_rate_hz)
+            # the mouthpiece comes off: the flow sensor records the subject's calibration only
+            flow_end_s = min([duration] + [t for t, label in scene.events if label == MOUTHPIECE_OFF])
+            t = np.arange(0.0, flow_end_s, 1.0 / sensor.sample_rate_hz)
             adc = sensor.adc_counts(scene.truth_flow_lps(t), t, config.seed)
             writer.configure_flow(sample_rate_hz=sensor.sample_rate_hz, adc_bits=sensor.adc_bits, sensor=sensor.sensor,
                                   conditions="ATPS", gain_lps=sensor.gain_lps, offset_lps=sensor.offset_lps,

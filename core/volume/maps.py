@@ -147,15 +147,13 @@ class BodySilhouette:
 
     def __init__(self, valid: np.ndarray, widths_px: np.ndarray, head: Head,
                  silhouette: np.ndarray | None = None) -> None:
-        """valid: the reference map's valid pixels; widths_px: its row_widths_px; silhouette: its
-        HeadMap.silhouette (valid where not given), for silhouette_ratio."""
+        """valid: the reference map's valid pixels; widths_px: its row_widths_px."""
         self.head = head
         rows = torso_rows(valid)
         if len(rows) > 2 * FRAME_TRIM_ROWS + MIN_SIDE_ROWS:
             rows = rows[FRAME_TRIM_ROWS:-FRAME_TRIM_ROWS]
         self._rows = rows.astype(float)
         self._widths = widths_px[rows]
-        self._silhouette_widths = (valid if silhouette is None else silhouette)[rows].sum(axis=1).astype(float)
         self._centre = _silhouette_centre_px(valid)
         blurred = _blurred(valid)
         band = (blurred > 0.01) & (blurred < 0.99)
@@ -182,28 +180,6 @@ class BodySilhouette:
                 break
             frame = self._shifted(BodyFrame(ratio, frame.shift_u_px, frame.shift_v_px), blurred, gradient, iterations=2)
         return frame
-
-    def silhouette_ratio(self, silhouette: np.ndarray, frame: BodyFrame) -> float:
-        """The other map's silhouette widths (every pixel of the trunk's, those without depth included)
-        on the reference's rows, carried through the frame, over the reference's: summed over the rows
-        whose ratio lies within SILHOUETTE_ROW_OUTLIER of the rows' median (an arm that joins the
-        silhouette on some rows is no part of it). The sum, not the median: each row's width is whole
-        pixels, and their sum over the rows follows a change of a tenth of a pixel. Where the trunk
-        widens as it breathes this grows with the volume in both heads, where sway grows it in one
-        head and shrinks it in the other (widening_per_l)."""
-        rows = self.head.cy + (self._rows - self.head.cy) * frame.scale + frame.shift_v_px
-        widths = silhouette.sum(axis=1).astype(float)
-        if len(rows) == 0 or len(widths) < 2:
-            return float("nan")
-        below = np.clip(np.floor(rows).astype(int), 0, len(widths) - 2)
-        after = rows - below
-        carried = (1.0 - after) * widths[below] + after * widths[below + 1]
-        inside = (after >= 0) & (after <= 1) & (carried > 0) & (self._silhouette_widths > 0)
-        if inside.sum() < MIN_SIDE_ROWS:
-            return float("nan")
-        ratio = carried[inside] / self._silhouette_widths[inside]
-        kept = np.abs(ratio / np.median(ratio) - 1.0) < SILHOUETTE_ROW_OUTLIER
-        return float(carried[inside][kept].sum() / self._silhouette_widths[inside][kept].sum())
 
     def width_ratio(self, widths_px: np.ndarray, frame: BodyFrame) -> float:
         """The other map's trunk widths on the reference's rows, carried through the frame, over the
@@ -305,8 +281,7 @@ class DisplacementSums:
     """One map against the reference map of its head, in footprint-weighted sums (mm^3) over the
     pixels both show, per region ("all" is every such pixel, the neck and shoulders included):
     reference = sum fp (Z_ref - level_ref), current = sum fp (z - level) with z the current map
-    resampled into the reference's body frame and level each map's RimModel.level; TOP_REFERRED is
-    "all" with the level instead the mean depth of the top of the view (top_band).
+    resampled into the reference's body frame and level each map's RimModel.level.
     Kept apart so the two maps' scales can be set afterwards (metric_head_volume_l)."""
 
     side_mm: float  # depth of the trunk's sides (RimModel.side_depth_mm, followed by rim_depths), at the map's own scale
@@ -323,8 +298,6 @@ class DisplacementSums:
     # the trunk's widths over the reference's on the same body rows (BodySilhouette.width_ratio; 1 on
     # the reference): what the width follows where an arm joins the trunk on some rows
     width_ratio: float = float("nan")
-    # the trunk's silhouette widths over the reference's on the same body rows (BodySilhouette.silhouette_ratio)
-    silhouette_ratio: float = float("nan")
 
 
 def _row_edges(mask: np.ndarray, width: int):
@@ -392,9 +365,6 @@ SIDE_FIT_PX = 6
 SIDE_MAX_GAP_PX = 4
 # Trunk rows that must give both sides for the trunk's width to come from them (trunk_width_px)
 MIN_SIDE_ROWS = 10
-# A row whose silhouette width lies this far from the rows' median ratio (an arm joined to the trunk) is
-# left out of the silhouette's width (BodySilhouette.silhouette_ratio)
-SILHOUETTE_ROW_OUTLIER = 0.05
 CONTOUR_MIN_VIEW_ANGLE_DEG = 60.0
 
 
@@ -654,28 +624,6 @@ def row_widths_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> np.nda
     return np.diff(side_columns(depth_mm, valid, head, np.arange(valid.shape[0])), axis=1)[:, 0]
 
 
-# The sums of every pixel referred to the top of the view instead of the trunk's sides (DisplacementSums)
-TOP_REFERRED = "all, referred to the top of the view"
-TOP_BAND_SHARE = 0.1  # of the rows in view, from the top
-TOP_BAND_MAX_SLOPE = 0.5  # depth change per mm across the image: the flat parts (base of the neck, shoulders' tops)
-
-
-def top_band(depth_mm: np.ndarray, valid: np.ndarray, head: Head) -> np.ndarray:
-    """The flat pixels (surface slope under TOP_BAND_MAX_SLOPE, a pixel in from any edge) of the top
-    TOP_BAND_SHARE of the rows in view: the base of the neck and the shoulders' tops, which breathing
-    moves little (docs/volume.md, "A reference that breathing does not move")."""
-    rows = np.flatnonzero(valid.any(axis=1))
-    band = np.zeros(valid.shape, dtype=bool)
-    if not len(rows):
-        return band
-    band[rows[0]:rows[0] + max(2, int(TOP_BAND_SHARE * (rows[-1] - rows[0] + 1)))] = True
-    z = np.where(valid, depth_mm, np.nan)
-    gy, gx = np.gradient(z)
-    with np.errstate(invalid="ignore"):
-        flat = np.hypot(gx / (z / head.fx), gy / (z / head.fy)) < TOP_BAND_MAX_SLOPE
-    return band & ndimage.binary_erosion(valid & flat, np.ones((3, 3)))
-
-
 def rim_band_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head, rim_band_mm: float = RIM_BAND_MM) -> int:
     """The rim's band (rim_model, rim_depths) in pixels on a map: rim_band_mm at its median depth."""
     return max(4, int(round(rim_band_mm * head.fx / np.median(depth_mm[valid]))))
@@ -774,7 +722,6 @@ class DisplacementTracker:
             contour = contour_depth_mm(depth_mm, valid, silhouette, self.head) if silhouette is not None else float("nan")
             side = contour if np.isfinite(contour) else self._rim.side_depth_mm
             self._side_per_rim = side / rim_of_reference
-            self._top = top_band(depth_mm, valid, self.head)
         ref_depth, ref_mask, footprint, regions = self._reference
         if known and np.isfinite(self._reference_distance):
             frame = self._silhouette.frame(valid, row_widths, self._reference_distance / distance_mm,
@@ -783,7 +730,6 @@ class DisplacementTracker:
             frame, width = self._gated(self._silhouette.frame(valid, row_widths, width / self._reference_width),
                                        valid, row_widths, width)
         width_ratio = self._silhouette.width_ratio(row_widths, frame)
-        silhouette_ratio = self._silhouette.silhouette_ratio(valid if silhouette is None else silhouette, frame)
         z = frame.resampled(depth_mm, valid, ref_mask.shape, self.head)
         both = ref_mask & np.isfinite(z)
         _, rim = rim_depths(ref_depth, z, both, self._band_px, self._skip_px)
@@ -797,13 +743,7 @@ class DisplacementTracker:
                                 {k: float(current[m].sum()) for k, m in parts.items()},
                                 {k: float(area[m].sum()) for k, m in parts.items()},
                                 {k: float(displaced[m].sum()) for k, m in parts.items()},
-                                (level_ref, level), self._rim.edge_statistics(z - ref_depth, both), width_ratio,
-                                silhouette_ratio)
-        top = self._top & both
-        if top.any():  # sum fp (z - top) = sum fp (z - level) + (level - top) sum fp
-            whole = sums.areas["all"]
-            sums.reference[TOP_REFERRED] = sums.reference["all"] + (level_ref - float(ref_depth[top].mean())) * whole
-            sums.current[TOP_REFERRED] = sums.current["all"] + (level - float(z[top].mean())) * whole
+                                (level_ref, level), self._rim.edge_statistics(z - ref_depth, both), width_ratio)
         return sums
 
 

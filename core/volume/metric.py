@@ -29,12 +29,11 @@ from functools import cached_property
 import numpy as np
 from scipy import ndimage
 
-from core.analysis.values import (SessionValues, curve_noise_l, forced_proportions, tidal_stretches, tidal_values,
-                                  tidal_windows)
+from core.analysis.values import curve_noise_l, tidal_stretches, tidal_values, tidal_windows
 from core.limits import past_limit
 from core.volume.compartments import compartment_shares, phase_angle_deg
 from core.rig import Head
-from core.volume.maps import (REGIONS, TOP_REFERRED, DisplacementSums, DisplacementTracker, head_volume_l,
+from core.volume.maps import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l,
                               metric_head_volume_l, row_widths_px, smooth_in_time, trunk_width_px,
                               two_head_distances)
 
@@ -63,36 +62,6 @@ MAX_MAP_NOISE_L = 0.05
 JUMP_WINDOW_S = 0.4
 JUMP_L = 0.1
 MAX_JUMP_SHARE = 0.01
-# The volume is referred to the trunk's sides (RimModel). Referred instead to the top of the view
-# (the base of the neck, the shoulders' tops: on true depth maps of nine bodies it kept 0.92-0.99 of
-# the breath) it may read at most this share more (the slope of the one on the other over the
-# session): on bodies whose sides move out as they breathe the sides' level follows them and the
-# volume loses that part (simulated slow VCs at scale 0.25: the rim read 0.35-0.41 of the truth and
-# the top 1.7-1.9 times the rim; our own torso 0.93-1.03 times; docs/volume.md, "Two references").
-# Reading less, the top of the view moved with the breathing or is too few pixels to follow it
-# (0.29-0.72 at scale 0.1), which says nothing against the sides; a negative slope is refused too.
-MAX_REFERENCE_DISAGREEMENT = 0.15
-MIN_REFERENCE_SWING_L = 0.2  # a session whose volume swings less tells too little to compare them
-# The trunk's flanks between the two heads' occluding contours, which neither camera sees, span up to
-# this depth along the axis (45-62 mm on the simulator's bodies; docs/volume.md, "A trunk that widens").
-# Where the silhouettes widen as the trunk breathes, those flanks move out and the volume misses about
-# widening x the trunk's area in view x this (flank_share), and no reference of the visible surface
-# gives it back: at most MAX_FLANK_SHARE of it, VC's and FVC's tolerance, or the values held to that
-# tolerance are not given (withheld_for_flanks).
-# Population subjects at scale 0.25 (docs/volume.md, "Silhouettes that widen"): shares of 4.2-5.8 % where
-# the optical FVC or TV read 5-10 % low, 13-28 % where it read 24 % low; our own torso's demo 0.12 %.
-FLANK_DEPTH_MM = 60.0
-MAX_FLANK_SHARE = 0.03
-TIDAL_TOLERANCE_L = 0.05  # the tidal volume's: a flank share that costs it more withholds it too
-TIDAL_WITHHELD = "tidal volume and rate not given"  # how withheld_for_flanks's problem line starts
-# A widening within this many standard errors of none is the silhouettes' whole-pixel noise (1 s of quiet
-# breathing at scale 0.1 read 0.23 % a litre), not a measurement; the maps' errors are not independent
-# from map to map, so the standard error is optimistic and the bar high
-WIDENING_MIN_T = 5.0
-# Over a single breath sway that drifts in step with it (0.03-0.25 Hz) is no noise the standard error sees:
-# 1 s of our own torso's inhalation at scale 0.1 read 0.25 % a litre with the drift, against 0.008 % on the
-# demo's 4-minute session; a session shorter than this (several breaths) is not weighed
-MIN_WIDENING_SPAN_S = 10.0
 
 
 def maps_within(seconds: np.ndarray, window_s: float) -> int:
@@ -181,15 +150,11 @@ class MetricVolume:
     side_distance_mm: dict[str, np.ndarray]  # the distance each head's sides were scaled to
     scale_from: str
     scale_mismatch: dict[str, float] = field(default_factory=dict)  # median |k - 1| of each head's maps
-    # both heads' volume with each map referred to the top of its view instead of the trunk's sides
-    # (maps.TOP_REFERRED), on timestamp_ns: the cross-check in `refusal` (MAX_REFERENCE_DISAGREEMENT)
-    top_referred_l: np.ndarray | None = None
     # each head's level: "the session's" (session_shifts) or "each map's own" (RimModel.level)
     levels: dict[str, str] = field(default_factory=dict)
-    # the two heads' silhouettes' widening per litre of volume (widening_per_l) and the share of the
-    # volume the unseen flanks would then move (flank_share)
-    widening_per_l: float = float("nan")
-    flank_share: float = float("nan")
+    # each head's trunk quadrants (REGIONS), on timestamp_ns: the regional signals the subject's
+    # calibration weighs (core/volume/subject_calibration.py)
+    head_regions: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
     def refusal(self) -> str | None:
         """Why this volume cannot be reported, or None: a head whose maps had to be rescaled by more
@@ -212,7 +177,7 @@ class MetricVolume:
                 return (f"head {name}: the trunk's width in the two heads' views and its depth in this head's maps "
                         f"disagree by {100 * mismatch:.0f} % (arms against the trunk's sides, or the trunk not "
                         "wholly in view)")
-        return reference_refusal(self.top_referred_slope)
+        return None
 
     def with_gaps(self, timestamp_ns: np.ndarray, maps_shown: dict[str, tuple[np.ndarray, np.ndarray]],
                   ) -> "MetricVolume":
@@ -237,17 +202,9 @@ class MetricVolume:
         return replace(self, timestamp_ns=t, volume_l=spread(self.volume_l),
                        heads={n: spread(v) for n, v in self.heads.items()},
                        regions={r: spread(v) for r, v in self.regions.items()},
+                       head_regions={n: {r: spread(v) for r, v in rs.items()} for n, rs in self.head_regions.items()},
                        side_distance_mm={n: on_maps_shown(v, maps_shown[n][1])
-                                         for n, v in self.side_distance_mm.items()},
-                       top_referred_l=None if self.top_referred_l is None else spread(self.top_referred_l))
-
-    @cached_property
-    def top_referred_slope(self) -> float:
-        """The slope of the volume referred to the top of the view on the volume referred to the trunk's
-        sides, over the session (reference_slope)."""
-        if self.top_referred_l is None:
-            return float("nan")
-        return reference_slope(self.volume_l, self.top_referred_l)
+                                         for n, v in self.side_distance_mm.items()})
 
 
 def on_maps_shown(values: np.ndarray, shown: np.ndarray) -> np.ndarray:
@@ -255,119 +212,6 @@ def on_maps_shown(values: np.ndarray, shown: np.ndarray) -> np.ndarray:
     out = np.full(len(shown), np.nan)
     out[np.asarray(shown, dtype=bool)] = values
     return out
-
-
-def reference_slope(side_referred_l: np.ndarray, top_referred_l: np.ndarray) -> float:
-    """The slope of the volume referred to the top of the view on the same volume referred to the
-    trunk's sides; NaN where the volume swings less than MIN_REFERENCE_SWING_L."""
-    side, top = np.asarray(side_referred_l, dtype=float), np.asarray(top_referred_l, dtype=float)
-    both = np.isfinite(side) & np.isfinite(top)
-    if both.sum() < 10 or np.ptp(side[both]) < MIN_REFERENCE_SWING_L:
-        return float("nan")
-    return float(np.polyfit(side[both], top[both], 1)[0])
-
-
-def reference_refusal(slope: float) -> str | None:
-    """Why a volume whose two references disagree this much (reference_slope) cannot be reported, or None."""
-    if np.isfinite(slope) and (slope > 1.0 + MAX_REFERENCE_DISAGREEMENT or slope < 0.0):
-        limit = 100 * (1 + MAX_REFERENCE_DISAGREEMENT)
-        reads = past_limit(100 * slope, limit if slope > 0 else 0.0)
-        return (f"referred to the top of the view the optical volume reads {reads} % of what it reads "
-                f"referred to the trunk's sides (at most {limit:.0f} %): the "
-                "trunk's sides move with the breathing on this body, and the volume referred to them would miss "
-                "what they move")
-    return None
-
-
-def widening_per_l(heads: dict[str, HeadDisplacements], distances_mm: dict[str, np.ndarray],
-                   timestamp_ns: np.ndarray, volume_l: np.ndarray) -> float:
-    """How much wider the trunk's silhouette grows per litre of volume in both heads at once
-    (silhouette_widening of sway_free_log_ratio). NaN without two heads or over less than
-    MIN_WIDENING_SPAN_S."""
-    t = np.asarray(timestamp_ns, dtype=float)
-    if len(heads) != 2 or len(t) < 2 or np.ptp(t) < MIN_WIDENING_SPAN_S * 1e9:
-        return float("nan")
-    logs, distances = [], []
-    for name, h in heads.items():
-        with np.errstate(invalid="ignore", divide="ignore"):
-            logs.append(np.interp(t, h.timestamp_ns.astype(float), _bridged(np.log(h.series_of("silhouette_ratio")))))
-        distances.append(float(np.nanmedian(distances_mm[name])) if np.isfinite(distances_mm[name]).any() else np.nan)
-    return silhouette_widening(sway_free_log_ratio(logs, distances), volume_l)
-
-
-def sway_free_log_ratio(log_ratios: list, distances_mm: list[float]):
-    """The two heads' log silhouette ratios, each weighed by its distance: axial sway s widens one view
-    by s / D_front and narrows the other by s / D_back, which this mean leaves out, and a trunk that
-    widens by a share e widens both by e, which it keeps."""
-    (front, back), (d_front, d_back) = log_ratios, distances_mm
-    return (d_front * front + d_back * back) / (d_front + d_back)
-
-
-def silhouette_widening(mean_log_ratio: np.ndarray, volume_l: np.ndarray) -> float:
-    """The slope of the heads' mean log silhouette ratio on the volume (per litre); 0 where it lies
-    within WIDENING_MIN_T standard errors of none, NaN where the volume swings less than
-    MIN_REFERENCE_SWING_L."""
-    mean, volume = np.asarray(mean_log_ratio, dtype=float), np.asarray(volume_l, dtype=float)
-    both = np.isfinite(mean) & np.isfinite(volume)
-    if both.sum() < 10 or np.ptp(volume[both]) < MIN_REFERENCE_SWING_L:
-        return float("nan")
-    (slope, _), covariance = np.polyfit(volume[both], mean[both], 1, cov=True)
-    return float(slope) if abs(slope) > WIDENING_MIN_T * np.sqrt(covariance[0, 0]) else 0.0
-
-
-def trunk_area_mm2(sums: DisplacementSums) -> float:
-    """The trunk's area in a map's view: its quadrants' footprint over the trunk rows (mm^2)."""
-    return float(sum(sums.areas.get(r, np.nan) for r in REGIONS)) if sums.areas else float("nan")
-
-
-def flank_share(widening: float, trunk_area: float) -> float:
-    """The share of the volume the unseen flanks move on a trunk that widens this much per litre
-    (widening_per_l) with this area in view (trunk_area_mm2): widening x area x FLANK_DEPTH_MM."""
-    return abs(widening) * trunk_area * FLANK_DEPTH_MM / 1e6
-
-
-def flank_refusal(widening: float, share: float) -> str | None:
-    """Why the values held to MAX_FLANK_SHARE cannot be given from a volume whose trunk widens this much
-    (widening_per_l, flank_share), or None."""
-    if np.isfinite(share) and share > MAX_FLANK_SHARE:
-        return (f"the trunk's silhouette widens by {100 * widening:.1f} % per litre in both views: its flanks, "
-                f"which neither camera sees, move out as it breathes, and the optical volume would miss about "
-                f"{past_limit(100 * share, 100 * MAX_FLANK_SHARE, 1)} % of the breath with a flank "
-                f"{FLANK_DEPTH_MM:.0f} mm deep (at most {100 * MAX_FLANK_SHARE:.0f} %)")
-    return None
-
-
-def tidal_flank_loss(share: float, tidal_volume_l: float) -> str | None:
-    """What a breath of tidal_volume_l would lose to the unseen flanks (flank_share), where that is more
-    than TIDAL_TOLERANCE_L, or None."""
-    loss_l = share * tidal_volume_l
-    if not loss_l > TIDAL_TOLERANCE_L:
-        return None
-    return (f"{1000 * loss_l:.0f} mL of its {1000 * tidal_volume_l:.0f} mL would be missing (at most "
-            f"{1000 * TIDAL_TOLERANCE_L:.0f} mL)")
-
-
-def withheld_for_flanks(values: SessionValues, flank: tuple[float, float] | None) -> SessionValues:
-    """The optical values without those the unseen flanks' motion (flank: widening_per_l, flank_share)
-    puts outside their tolerance: VC, FVC, FEV1, PEF and the forced values over MAX_FLANK_SHARE, the tidal
-    ones too where the tidal volume would lose more than TIDAL_TOLERANCE_L. The flanks take a share of
-    every volume alike, which leaves the rate, the times and the shape of the curve, and FEV1/FVC: it
-    stays (population subject 4 at scale 0.25 read 0.660 for 0.658 with FEV1 and FVC 5 % low;
-    docs/volume.md, "Silhouettes that widen")."""
-    reason = flank_refusal(*flank) if flank is not None else None
-    if reason is None:
-        return values
-    forced = values.forced
-    kept = forced_proportions(forced) if forced is not None and np.isfinite(forced.fev1_fvc) else {}
-    ratio = "; FEV1/FVC is given: the flanks take the same share of FEV1 and of FVC" if kept else ""
-    problems = [*values.problems, f"VC, FVC, FEV1 and PEF not given: {reason}{ratio}"]
-    tidal = values.tidal
-    tidal_problem = tidal_flank_loss(flank[1], tidal.tidal_volume_l) if tidal is not None else None
-    if tidal_problem:
-        problems.append(f"{TIDAL_WITHHELD}: {tidal_problem}")
-        tidal = None
-    return replace(values, tidal=tidal, vital_capacity=None, vc_manoeuvres=[], forced=None, forced_curves=[],
-                   problems=problems, forced_kept=kept)
 
 
 def side_targets(heads: dict[str, HeadDisplacements], baseline_mm: float | None) -> tuple[dict[str, np.ndarray], str]:
@@ -536,7 +380,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
     choosing here. smoothing_s: the sigma each head's volume is smoothed over in time (0: none)."""
     targets, scale_from = side_targets(heads, baseline_mm)
     t = next(iter(heads.values())).timestamp_ns
-    per_head, regions, top_referred = {}, {r: np.zeros(len(t)) for r in REGIONS}, {}
+    per_head, head_regions = {}, {}
     mismatch, levels = {}, {}
     for name, h in heads.items():
         side, target = h.side_mm, targets[name]
@@ -565,9 +409,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
             whole = session_whole
         levels[name] = "the session's" if session else "each map's own"
         per_head[name] = on_t(whole)
-        for r in REGIONS:
-            regions[r] += on_t(volume(r, session))
-        top_referred[name] = on_t(volume(TOP_REFERRED, False))
+        head_regions[name] = {r: on_t(volume(r, session)) for r in REGIONS}
     seconds = t.astype(float) / 1e9
 
     def smooth(values: np.ndarray) -> np.ndarray:
@@ -575,12 +417,9 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
 
     per_head = {name: smooth(v) for name, v in per_head.items()}
     volume = sum(per_head.values())
-    widening = widening_per_l(heads, targets, t, volume)
-    areas = [np.nanmedian(a) for h in heads.values() if np.isfinite(a := [trunk_area_mm2(x) for x in h.sums]).any()]
-    area = float(np.mean(areas)) if areas else float("nan")
-    return MetricVolume(t, volume, per_head, {r: smooth(v) for r, v in regions.items()},
-                        targets, scale_from, mismatch, smooth(sum(top_referred.values())), levels,
-                        widening, flank_share(widening, area))
+    head_regions = {n: {r: smooth(v) for r, v in rs.items()} for n, rs in head_regions.items()}
+    regions = {r: sum(rs[r] for rs in head_regions.values()) for r in REGIONS}
+    return MetricVolume(t, volume, per_head, regions, targets, scale_from, mismatch, levels, head_regions)
 
 
 def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
@@ -622,10 +461,8 @@ class LiveMetricVolume:
         self._k_reference: dict[str, float] = {}
         self._reference_side: dict[str, float] = {}
         self._volume = {name: 0.0 for name in heads}
-        self._top_referred = {name: float("nan") for name in heads}  # each head's, referred to the top of its view
+        self._regions: dict[str, dict[str, float]] = {}  # each head's quadrants as its last map gave them
         self._geometric: dict[str, float] = {}  # each head's subject distance from the two heads' geometry
-        # each head's last map: its log silhouette_ratio and trunk area (silhouette_sample)
-        self._silhouette: dict[str, tuple[float, float]] = {}
 
     def _smoothed(self, name: str, t_s: float, value: float, time_constant_s: float) -> float:
         if name in self._target:
@@ -675,8 +512,6 @@ class LiveMetricVolume:
                 self._robust_width[name] = sums.width_ratio * float(np.median(self._reference_widths[name]))
             if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
                 return float("nan")
-            with np.errstate(invalid="ignore", divide="ignore"):
-                self._silhouette[name] = (float(np.log(sums.silhouette_ratio)), trunk_area_mm2(sums))
             reference_side = self._reference_side.setdefault(name, sums.side_mm)  # the first is the reference
             if target is None:
                 target = self._smoothed(name, t_s, sums.side_mm, SIDE_SMOOTHING_S)
@@ -685,26 +520,14 @@ class LiveMetricVolume:
                 self._geometric[name] = float(distance_mm * k)
             k_reference = self._k_reference.setdefault(name, target / reference_side)
             self._volume[name] = float(head_volume_l(sums.reference["all"], sums.current["all"], k_reference, k))
-            if TOP_REFERRED in sums.reference and TOP_REFERRED in sums.current:
-                self._top_referred[name] = float(head_volume_l(sums.reference[TOP_REFERRED],
-                                                               sums.current[TOP_REFERRED], k_reference, k))
+            self._regions[name] = {r: float(head_volume_l(sums.reference[r], sums.current[r], k_reference, k))
+                                   for r in REGIONS if r in sums.reference and r in sums.current}
             return sum(self._volume.values()) if len(self._k_reference) == len(self._names) else float("nan")
 
-    def silhouette_sample(self) -> tuple[float, float]:
-        """The two heads' last maps' log silhouette ratios weighed by their distances (sway_free_log_ratio)
-        and their mean trunk area (mm^2); NaN with one head or before both have one."""
+    def head_regions(self) -> dict[str, dict[str, float]]:
+        """Each head's trunk quadrants (L) as its last map gave them, once every head has one: what the
+        subject's calibration weighs (core/volume/subject_calibration.py, regional_signals); {} before."""
         with self._lock:
-            if not self._two_heads or len(self._silhouette) < 2:
-                return float("nan"), float("nan")
-            logs, areas = zip(*(self._silhouette[n] for n in self._names))
-            distances = [self._target[n][1] if n in self._target else np.nan for n in self._names]
-            return float(sway_free_log_ratio(list(logs), distances)), float(np.mean(areas))
-
-    def top_referred_l(self) -> float:
-        """The volume (L) as `add` last gave it, with each head's maps referred to the top of its view
-        instead of the trunk's sides (maps.TOP_REFERRED): the cross-check of reference_slope. NaN until
-        every head has such a map."""
-        with self._lock:
-            if len(self._k_reference) < len(self._names):
-                return float("nan")
-            return float(sum(self._top_referred.values()))
+            if len(self._regions) < len(self._names):
+                return {}
+            return {name: dict(quadrants) for name, quadrants in self._regions.items()}

@@ -246,21 +246,6 @@ def test_a_damaged_results_file(tiny_session, tiny_results, tmp_path_factory, da
     run(["report", str(path), "-o", str(path.with_name("r.pdf"))], [path, session])
 
 
-@pytest.mark.parametrize("value", ["abc", float("nan"), np.array([0.1, 0.2])])
-def test_a_results_file_whose_flank_figures_are_not_numbers(tiny_session, tiny_results, tmp_path_factory, value):
-    """The figures that withhold optical values (core/volume/metric.py, withheld_for_flanks), damaged:
-    one line naming the file and the attribute, from the commands that read them."""
-    path = scratch(tmp_path_factory, tiny_results)
-    session = path.with_name(tiny_session.name)
-    shutil.copyfile(tiny_session, session)
-    with h5py.File(path, "r+") as f:
-        f.attrs["session"] = str(session)
-        f.attrs["widening_per_l"], f.attrs["flank_share"] = 0.01, value
-    for args in (["analyze", str(path)], ["report", str(path), "-o", str(path.with_name("r.pdf"))]):
-        code, text = run(args, [path, session])
-        assert code == 2 and "the attribute flank_share must be a finite number" in text, text
-
-
 @fuzz(20)
 @given(damage=st.one_of(byte_damage(), text_damage()))
 def test_a_damaged_light_calibration_profile(tiny_session, rig_profile, tmp_path_factory, damage):

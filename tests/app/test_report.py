@@ -234,50 +234,28 @@ def test_no_subject_distance_is_printed_where_process_refused_the_optical_values
     assert not re.search(r"head \(subject at \d+ mm", page2)
 
 
-def test_a_trunk_whose_flanks_move_unseen_keeps_its_tidal_values_and_not_its_spirometry(processed_full_session,
-                                                                                        tmp_path):
-    """`process` found both silhouettes widening with the volume (core/volume/metric.py,
-    withheld_for_flanks): with 6 % of the volume in the unseen flanks the optical VC, FVC, FEV1 and PEF
-    are not given and say why, the tidal volume (30 mL off of 0.5 L, within 50 mL) is; with 20 % the tidal
-    volume goes too, and its breaths are not paired with the flow sensor's."""
-    import shutil
+def test_every_optical_value_says_what_its_litres_are(processed_full_session, tmp_path, capsys):
+    """The full protocol's flow sensor covers the whole session: the subject is calibrated on its first
+    quiet breathing and slow VC (core/volume/subject_calibration.py), and the report, `analyze` and its
+    JSON say "optical, calibrated on the subject (residual N mL)"."""
+    import json
 
-    from app.report_data import OPTICAL, build_report
-    from core.analysis.session_analysis import analyse_session
-    from core.io.results import optical_flank, optical_volume
+    from app.report_data import build_report
+    from core.io.results import ResultsFile
 
-    widening = tmp_path / "widening.h5"
-    shutil.copy(processed_full_session[1], widening)
-    unwithheld = analyse_session(processed_full_session[0],
-                                 optical_volume=optical_volume(widening)).optical.parameters()
-    for share, tidal_kept in ((0.06, True), (0.20, False)):
-        with h5py.File(widening, "r+") as r:
-            r.attrs["widening_per_l"], r.attrs["flank_share"] = 0.012, share
-            r.attrs["session"] = str(processed_full_session[0])
-        # the optical values `process` stores with these figures (as its _write_parameters)
-        given = analyse_session(processed_full_session[0], optical_volume=optical_volume(widening),
-                                optical_flank=optical_flank(widening)).optical.parameters()
-        with h5py.File(widening, "r+") as r:
-            for key in [k for k in r["volume"].attrs if k.startswith("parameter_")]:
-                del r["volume"].attrs[key]
-            for key, value in given.items():
-                r["volume"].attrs[f"parameter_{key}"] = value
-        data = build_report(widening, with_maps=False)
-        optical = data.sources[OPTICAL]
-        assert optical.vital_capacity is None and optical.forced is None
-        assert any(n.startswith("optical: VC, FVC, FEV1 and PEF not given: the trunk's silhouette widens by 1.2 %")
-                   for n in data.notes), data.notes
-        assert (optical.tidal is not None) == tidal_kept
-        assert (len(data.comparison.tidal_pairs) > 0) == tidal_kept
-        pdf = tmp_path / f"report-{share}.pdf"
-        assert main(["report", str(widening), "-o", str(pdf)]) == 0
-        page1, _ = _parts(pdf)
-        assert _row(page1, "FVC", "L")[0] == "–" and _row(page1, "FEV1", "L")[0] == "–"
-        assert (_row(page1, "Tidal volume", "L")[0] != "–") == tidal_kept
-        assert "VC, FVC, FEV1 and PEF not given" in " ".join(page1.split())
-        # FEV1/FVC and the blows' grades stay: the flanks take the same share of FEV1 and of FVC
-        kept = data.parameters(OPTICAL)
-        assert not {"FVC_l", "FEV1_l", "PEF_lps", "FEF2575_lps", "FEV6_l"} & set(kept), kept
-        assert kept["FEV1_FVC"] == pytest.approx(unwithheld["FEV1_FVC"]) and kept["grade"] == unwithheld["grade"]
-        assert _row(page1, "FEV1/FVC", "")[0] == f"{unwithheld['FEV1_FVC']:.2f}"
-        assert "FEV1/FVC is given" in " ".join(page1.split())
+    session, results = processed_full_session
+    with ResultsFile(results) as r:
+        label = r.optical_label()
+        calibration = r.subject_calibration()
+    assert label.startswith("optical, calibrated on the subject (residual "), (label, calibration)
+    assert calibration["segment_s"][1] > 20.0 and "refused" not in calibration
+    assert build_report(results, with_maps=False).optical_label == label
+    pdf = tmp_path / "report.pdf"
+    assert main(["report", str(results), "-o", str(pdf)]) == 0
+    page1, _ = _parts(pdf)
+    assert f"Optical litres: {label}." in " ".join(page1.split())
+    capsys.readouterr()
+    assert main(["analyze", str(results)]) == 0
+    assert f"optical: {label}" in capsys.readouterr().out
+    assert main(["analyze", str(results), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["optical_label"] == label

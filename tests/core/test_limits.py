@@ -1,13 +1,10 @@
 """A refusal never writes the refused value as its own limit."""
 
-import re
-
 import numpy as np
 
 from core.limits import past_limit
 from core.reconstruction.process import (MAX_HIDDEN_MAPS, WORKING_RANGE_MM, distance_refusal, occlusion_refusal,
                                          reflectance_refusal)
-from core.volume.metric import MAX_REFERENCE_DISAGREEMENT, reference_refusal
 
 
 def test_a_value_past_its_limit_gets_the_decimals_that_tell_them_apart():
@@ -18,16 +15,8 @@ def test_a_value_past_its_limit_gets_the_decimals_that_tell_them_apart():
     assert past_limit(-3.0, 0.0) == "-3"
 
 
-def _numbers(text: str) -> list[float]:
-    return [float(n) for n in re.findall(r"-?\d+(?:\.\d+)?", text)]
-
-
 def test_refusals_just_past_their_limits_read_past_them():
-    """The population's subject 11 was refused with "reads 115 % ... (at most 115 %)", and a
-    subject with an arm against the trunk in 5.3 % of its maps read "in 5 % of the maps"."""
-    top = reference_refusal(1.0 + MAX_REFERENCE_DISAGREEMENT + 0.0004)
-    value, limit = _numbers(top.split("(at most")[0])[-1], _numbers(top.split("(at most")[1])[0]
-    assert value > limit
+    """A subject with an arm against the trunk in 5.3 % of its maps read "in 5 % of the maps"."""
     hidden = np.zeros(1000)
     hidden[: int(1000 * MAX_HIDDEN_MAPS) + 3] = 0.5
     arm = occlusion_refusal({"front": hidden})

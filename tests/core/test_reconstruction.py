@@ -549,9 +549,6 @@ def test_matte_skin_passes_the_checks_of_its_reflectance_and_of_its_maps_sides(t
     assert all(abs(sheen) < 0.25 * MAX_SHEEN for sheen in summary.sheen.values()), summary.sheen
     with h5py.File(tmp_path / "m.h5", "r") as r:
         assert abs(r.attrs["sides_tilt"]) < 0.4 * MAX_SIDES_TILT and "metric_volume" in r
-        # the cross-check of the volume's reference (core/volume/metric.py): measured here 0.72, at this
-        # scale's 140 px the top of the view follows less of the breath than the sides
-        assert 0.0 < r.attrs["top_referred_slope"] < 1.15
 
 
 def test_a_binned_stream_keeps_full_resolution_maps(small_session, tmp_path):

@@ -1,10 +1,11 @@
-"""The patient session (operator): patient, positioning, tidal breathing, slow VC, forced
-expirations with ATS/ERS feedback after each blow, review, save.
+"""The patient session (operator): patient, positioning, the subject's calibration through the flow
+sensor, then with the mouthpiece off tidal breathing, slow VC, forced expirations with ATS/ERS
+feedback after each blow, review, save.
 
 Recording starts when positioning passes and runs to the end; every manoeuvre is marked with the
-protocol's events (tidal-start, vc-start, forced-start, maneuver-end) so `photopft process` and
-the report cut the curve exactly where the operator did. On the simulated rig the simulated
-subject follows the prompts.
+protocol's events (tidal-start, vc-start, forced-start, maneuver-end, mouthpiece-off) so `photopft
+process` and the report cut the curve exactly where the operator did. On the simulated rig the
+simulated subject follows the prompts.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from app.paths import data_dir
 from app.records import Patient, Records, RecordsError
 from core.io.outputs import next_free_path
 from core.io.session import SubjectRecord
+from core.volume.subject_calibration import MOUTHPIECE_OFF
 from core.analysis.protocol_feedback import (MAX_BLOWS, MAX_VC, MIN_TIDAL_BREATHS, forced_feedback, tidal_extension_s,
                                     vc_feedback)
 
@@ -197,6 +199,136 @@ class PositioningPage(QWizardPage):
         return self.wizard().start_recording()
 
 
+CALIBRATION_QUIET_S = 20.0  # the calibration's quiet breathing before its slow VC (issue 75)
+
+
+class CalibrationPage(QWizardPage):
+    """The subject's calibration: quiet breathing and one slow VC through the flow sensor while both heads
+    run; the optical signals are fitted to the flow sensor's volume (core/volume/subject_calibration.py)
+    and the operator sees the fit, its residual and expected error, and repeats it where it is refused.
+    Next marks `mouthpiece-off`: from there the cameras alone give the litres. A patient who cannot use
+    a mouthpiece skips it: the optical litres are then an estimate with the population's uncertainty."""
+
+    def __init__(self, engine: Engine) -> None:
+        super().__init__()
+        self.engine = engine
+        self.setTitle("Calibration through the flow sensor")
+        self.setSubTitle(f"Mouthpiece in and nose clip on. The patient breathes quietly for "
+                         f"{CALIBRATION_QUIET_S:.0f} s, then does one slow vital capacity: slowly all the way in, "
+                         "slowly all the way out until nothing more comes out, back to normal breathing.")
+        self.start = QPushButton("Start calibration")
+        self.start.clicked.connect(self._start)
+        self.vc = QPushButton("Start slow VC")
+        self.vc.setEnabled(False)
+        self.vc.clicked.connect(self._begin_vc)
+        self.end = QPushButton("End slow VC")
+        self.end.setEnabled(False)
+        self.end.clicked.connect(self._end_vc)
+        self.skip = QCheckBox("The patient cannot use a mouthpiece: no calibration (the litres are estimates)")
+        self.skip.toggled.connect(self._skipped)
+        self.result = QLabel("not started")
+        self.result.setWordWrap(True)
+        self.trace = VolumeTrace(self)
+        buttons = QHBoxLayout()
+        for button in (self.start, self.vc, self.end):
+            buttons.addWidget(button)
+        layout = QVBoxLayout(self)
+        layout.addLayout(buttons)
+        layout.addWidget(self.trace, 1)
+        layout.addWidget(self.result)
+        layout.addWidget(self.skip)
+        self.calibration = None
+        self.mouthpiece_off = False  # marked: the flow sensor's samples end there
+        self._start_ns = 0
+        self._quiet_until = 0.0
+        self.timer = QTimer(self)
+        self.timer.setInterval(200)
+        self.timer.timeout.connect(self._tick)
+
+    def _start(self) -> None:
+        self.calibration = None
+        self._start_ns = self.engine.mark("tidal-start")
+        self._quiet_until = time.monotonic() + CALIBRATION_QUIET_S
+        self.start.setEnabled(False)
+        self.vc.setEnabled(False)
+        self.result.setText(f"quiet breathing: {CALIBRATION_QUIET_S:.0f} s")
+        self.result.setStyleSheet("")
+        self.timer.start()
+        self.completeChanged.emit()
+
+    def _tick(self) -> None:
+        try:
+            self.trace.show_traces(self.engine.blow_trace(self._start_ns, before_s=0.0))
+        except Exception as exc:  # the curve is feedback; the recording goes on without it
+            self.trace.status.setText(f"live curve stopped: {exc}")
+        left = self._quiet_until - time.monotonic()
+        if left > 0:
+            self.result.setText(f"quiet breathing: {left:.0f} s left")
+        elif not self.vc.isEnabled() and not self.end.isEnabled() and self._quiet_until:
+            self.result.setText("now the slow VC: press Start slow VC as the patient begins")
+            self.vc.setEnabled(True)
+
+    def _begin_vc(self) -> None:
+        self.engine.mark("vc-start")
+        self.last_duration_s = self.engine.perform("vc")
+        self.vc.setEnabled(False)
+        self.end.setEnabled(True)
+        self.result.setText("slow VC: press End slow VC once the patient is back to normal breathing")
+
+    def _end_vc(self) -> None:
+        self._end_ns = self.engine.mark("maneuver-end")
+        self._asked = time.monotonic()
+        self.end.setEnabled(False)
+        self.result.setText("fitting the optical signals to the flow sensor …")
+        self._when_flow_arrives()
+
+    def _when_flow_arrives(self) -> None:
+        if not self.engine.flow_reaches(self._end_ns) and time.monotonic() - self._asked < 10.0:
+            QTimer.singleShot(100, self._when_flow_arrives)
+            return
+        self.timer.stop()
+        self._quiet_until = 0.0
+        try:
+            calibration = self.engine.calibrate_on_subject(self._start_ns)
+        except Exception as exc:  # said; the operator may repeat it or go on without
+            calibration = None
+            refused = f"the calibration failed: {exc}"
+        else:
+            refused = calibration.refused
+        self.start.setText("Repeat calibration")
+        self.start.setEnabled(True)
+        if refused is None:
+            self.calibration = calibration
+            self.result.setText(
+                f"Calibrated: the optical signals follow the flow sensor within {1000 * calibration.residual_l:.0f} mL "
+                f"({100 * calibration.residual_l / calibration.range_l:.1f} % of its {calibration.range_l:.2f} L); "
+                f"expected error {100 * calibration.expected_error:.1f} %. Take the mouthpiece out and the nose clip "
+                "off, then Next.")
+            self.result.setStyleSheet("color: #006400")
+        else:
+            self.result.setText(f"Not calibrated: {refused}")
+            self.result.setStyleSheet("color: #b00020")
+        self.completeChanged.emit()
+
+    def _skipped(self, skipped: bool) -> None:
+        for button in (self.start, self.vc, self.end):
+            button.setEnabled(not skipped and button is self.start)
+        if skipped:
+            self.timer.stop()
+        self.completeChanged.emit()
+
+    def isComplete(self) -> bool:  # noqa: N802
+        return self.calibration is not None or self.skip.isChecked()
+
+    def validatePage(self) -> bool:  # noqa: N802
+        if not self.mouthpiece_off:  # once: Back and Next again does not take it off twice
+            self.engine.mark(MOUTHPIECE_OFF)
+            self.mouthpiece_off = True
+            self.start.setEnabled(False)
+            self.skip.setEnabled(False)
+        return True
+
+
 class TimedPage(QWizardPage):
     """Tidal breathing: a set time of quiet breathing, counted down."""
 
@@ -204,8 +336,7 @@ class TimedPage(QWizardPage):
         super().__init__()
         self.engine = engine
         self.setTitle("Tidal breathing")
-        self.setSubTitle("Ask the patient to breathe quietly and normally, mouth closed (or through the "
-                         "mouthpiece when a flow sensor is fitted).")
+        self.setSubTitle("Mouthpiece out: ask the patient to breathe quietly and normally, mouth closed.")
         self.seconds = QSpinBox(minimum=10, maximum=600, value=60, suffix=" s")
         self.start = QPushButton("Start tidal breathing")
         self.start.clicked.connect(self._start)
@@ -487,9 +618,12 @@ class ReviewPage(QWizardPage):
     def initializePage(self) -> None:  # noqa: N802
         values = self.engine.recorded_values(self.wizard().age_years())
         if values is None:
-            self.summary.setPlainText("No flow sensor: the values come with processing and the report.")
+            self.summary.setPlainText("No calibration on the subject: the values come with processing and the "
+                                      "report (optical estimates).")
             return
-        self.summary.setHtml(review_html(values.parameters(), values.problems, self.wizard().patient_page.patient()))
+        self.summary.setHtml("<p>From the live optical volume, calibrated on the subject; the report's values come "
+                             "from processing the recording.</p>"
+                             + review_html(values.parameters(), values.problems, self.wizard().patient_page.patient()))
 
 
 class PatientSessionWizard(QWizard):
@@ -505,6 +639,8 @@ class PatientSessionWizard(QWizard):
         self.patient_page = PatientPage(self.records, operator)
         self.addPage(self.patient_page)
         self.addPage(PositioningPage(engine))
+        self.calibration_page = CalibrationPage(engine)
+        self.addPage(self.calibration_page)
         self.addPage(TimedPage(engine))
         self.addPage(ManoeuvrePage(engine, "vc"))
         self.addPage(ManoeuvrePage(engine, "forced"))
@@ -549,8 +685,8 @@ class PatientSessionWizard(QWizard):
     def _stop(self, status: str, quiet: bool = False) -> None:
         if not self.engine.recording:
             return
-        try:
-            values = self.engine.recorded_values(self.age_years())
+        try:  # the flow sensor's values while it was on; after the mouthpiece came off they come with processing
+            values = None if self.calibration_page.mouthpiece_off else self.engine.recorded_values(self.age_years())
         except Exception:  # values are a convenience here; the recording is what matters
             values = None
         summary = self.engine.stop_recording()

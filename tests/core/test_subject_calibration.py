@@ -1,0 +1,73 @@
+"""The subject's own calibration through the flow sensor (issue 75): the least squares of the flow
+sensor's volume on the regional optical signals, its refusals, and what it gives back on true maps of
+a body whose flanks, which neither head sees, move out as it breathes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.volume.subject_calibration import (MAX_RESIDUAL_SHARE, MOUTHPIECE_OFF, calibration_segment,
+                                             fit_subject_calibration, regional_signals)
+
+RATE_HZ = 22.0
+
+
+def _breathing(seconds: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Map times, chest and abdomen volumes (L): 20 s quiet breathing with the abdomen late, then a slow VC
+    led by the chest."""
+    t = np.arange(0.0, seconds, 1.0 / RATE_HZ)
+    quiet = 0.25 * (1 - np.cos(2 * np.pi * t / 4.0))
+    vc = np.where(t > 22.0, 2.2 * np.sin(np.pi * np.clip((t - 22.0) / 12.0, 0, 1)) ** 2, 0.0)
+    chest = 0.4 * quiet + 0.7 * vc
+    abdomen = 0.6 * 0.25 * (1 - np.cos(2 * np.pi * (t - 0.3) / 4.0)) + 0.3 * vc
+    return t, chest, abdomen
+
+
+def test_the_fit_finds_each_region_s_gain_and_ignores_an_offset_and_a_drift():
+    t, chest, abdomen = _breathing(36.0)
+    rng = np.random.default_rng(3)
+    seen = {"front chest": chest / 1.6 + 0.004 * rng.standard_normal(len(t)),
+            "front abdomen": abdomen / 1.1 + 0.004 * rng.standard_normal(len(t))}
+    flow_t = np.arange(0.0, 36.0, 0.001)
+    flow = np.interp(flow_t, t, chest + abdomen) + 0.3 + 0.002 * flow_t  # its zero and a slow drift
+    c = fit_subject_calibration(t, seen, flow_t, flow, (0.0, 36.0))
+    assert c.refused is None
+    assert c.gains["front chest"] == pytest.approx(1.6, rel=0.03)
+    assert c.gains["front abdomen"] == pytest.approx(1.1, rel=0.05)
+    assert c.residual_l < 0.01 and c.range_l == pytest.approx(2.2 + 0.0, abs=0.35)
+    assert c.expected_error < 0.05
+    assert np.ptp(c.volume_l(seen)) == pytest.approx(np.ptp(chest + abdomen), rel=0.02)
+    assert "calibrated on the subject (residual" in c.label()
+
+
+def test_a_signal_that_does_not_follow_the_flow_sensor_is_refused_with_what_to_do():
+    t, chest, abdomen = _breathing(36.0)
+    rng = np.random.default_rng(4)
+    flow_t = np.arange(0.0, 36.0, 0.001)
+    flow = np.interp(flow_t, t, chest + abdomen)
+    noisy = {"front chest": chest + 0.4 * rng.standard_normal(len(t))}
+    c = fit_subject_calibration(t, noisy, flow_t, flow, (0.0, 36.0))
+    assert c.residual_l / c.range_l > MAX_RESIDUAL_SHARE
+    assert "follow the flow sensor within" in c.refused and "repeat the calibration" in c.refused
+    quiet_only = fit_subject_calibration(t, {"front chest": chest}, flow_t, flow, (0.0, 20.0))
+    assert "swings" in quiet_only.refused and "slow VC" in quiet_only.refused
+    nothing = fit_subject_calibration(t, {"front chest": np.full(len(t), np.nan)}, flow_t, flow, (0.0, 36.0))
+    assert "maps with every region in view" in nothing.refused
+
+
+def test_the_calibration_segment_ends_where_the_mouthpiece_comes_off_or_after_the_first_slow_vc():
+    events = [(0.0, "tidal-start"), (20.0, "vc-start"), (34.0, "maneuver-end"), (36.0, MOUTHPIECE_OFF),
+              (40.0, "vc-start"), (52.0, "maneuver-end")]
+    assert calibration_segment(events, 36.2) == (0.0, 36.0)
+    assert calibration_segment(events[:3] + events[4:], 90.0) == (0.0, 34.0)  # the flow sensor throughout
+    assert calibration_segment(events, 15.0) is None  # the flow sensor stopped before a VC's worth
+    assert calibration_segment([(0.0, "tidal-start")], 90.0) is None  # no slow VC to calibrate on
+
+
+def test_regional_signals_are_each_head_s_chest_and_abdomen():
+    quadrants = {"upper left": np.ones(3), "upper right": 2 * np.ones(3), "lower left": 3 * np.ones(3),
+                 "lower right": 4 * np.ones(3)}
+    signals = regional_signals({"front": quadrants, "back": quadrants})
+    assert set(signals) == {"front chest", "front abdomen", "back chest", "back abdomen"}
+    assert signals["front chest"].tolist() == [3.0] * 3 and signals["back abdomen"].tolist() == [7.0] * 3
