@@ -25,7 +25,7 @@ from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.reconstruction.live_checks import LiveOpticalChecks
 from core.volume.flow_sensor import btps_factor
-from core.analysis.optical_litres import POPULATION_GAIN
+from core.analysis.optical_litres import ESTIMATE, ESTIMATE_UNCERTAINTY, POPULATION_GAIN, estimate_label
 from core.volume.metric import LiveMetricVolume
 from core.volume.subject_calibration import MOUTHPIECE_OFF, regional_signals
 from core.volume.sides import side_profile_mm
@@ -316,6 +316,8 @@ class Snapshot:
     # why `process` would refuse the optical volume of what the heads see now (skin, bent maps), or None
     optical_refused: str | None = None
     optical_checked: bool = False  # whether the heads' last seconds gave those checks anything to judge by
+    # what the optical litres are now: calibrated on the subject (its residual) or an estimate
+    optical_litres: str = ESTIMATE
     replay_position_s: float = float("nan")  # a replay's position and length in its recording, and pause
     replay_length_s: float = float("nan")
     replay_paused: bool = False
@@ -386,6 +388,7 @@ class LiveRig:
             maxlen=int(CALIBRATION_WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length) + 10)
         self._calibration = None
         self._mouthpiece_off = False
+        self._mouthpiece_off_ns: int | None = None
         self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
         self._recent_flow: collections.deque = collections.deque(maxlen=9000)  # (arrival ns, block), ~90 s
         self._blow_drift: tuple[int, float] | None = None  # (a blow's mark, the flow sensor's drift there, L/s)
@@ -506,6 +509,7 @@ class LiveRig:
             self._recorded_events: list[tuple[int, str]] = []
             self._calibration = None  # a new recording is a new subject's
             self._mouthpiece_off = False
+            self._mouthpiece_off_ns: int | None = None
             self._recorded_optical: list[tuple[int, float]] = []  # (stamp, calibrated litres) once calibrated
 
     def mark(self, label: str, stamp_ns: int | None = None) -> int:
@@ -521,6 +525,7 @@ class LiveRig:
                 self._recorded_events.append((stamp, label))
                 if label == MOUTHPIECE_OFF:  # the flow sensor's samples end here
                     self._mouthpiece_off = True
+                    self._mouthpiece_off_ns = stamp
         return stamp
 
     def calibrate_on_subject(self, start_ns: int):
@@ -549,11 +554,16 @@ class LiveRig:
         return calibration
 
     def flow_reaches(self, timestamp_ns: int) -> bool:
-        """Whether the recording's flow samples reach `timestamp_ns` (always, without a flow sensor)."""
+        """Whether the volume the recording's values come from reaches `timestamp_ns` (_flow_until_ns)."""
         with self._lock:
             return self._flow_until_ns() >= timestamp_ns
 
     def _flow_until_ns(self) -> int:
+        """How far the volume the recording's values come from reaches: the flow sensor's samples, or
+        after `mouthpiece-off` the calibrated optical volume's maps (which lag the frames that stamp
+        the events by their reconstruction)."""
+        if self._mouthpiece_off and self._recorder is not None and self._calibration is not None:
+            return int(self._recorded_optical[-1][0]) if self._recorded_optical else 0
         if self.source.flow is None or self._recorder is None or self._mouthpiece_off:
             return NO_LIMIT_NS
         return self._recorded_flow.last_ns
@@ -682,7 +692,12 @@ class LiveRig:
                 if len(block.adc):
                     self._recent_flow.append((time.monotonic_ns(), block))
                     recorder = self._recorder
-                    if recorder is not None and not self._mouthpiece_off:
+                    off_ns = self._mouthpiece_off_ns
+                    if recorder is not None and off_ns is not None:  # what came before the mouthpiece came off
+                        before = block.timestamp_ns <= off_ns
+                        block = FlowBlock(block.adc[before], block.counter[before], block.timestamp_ns[before],
+                                          block.lost if before.any() else 0)
+                    if recorder is not None and len(block.adc):
                         recorder.submit_flow(block)
                         with self._lock:
                             self._recorded_flow.append(block)
@@ -856,12 +871,14 @@ class LiveRig:
             recorder = self._recorder
             problems = list(self._problems) + (recorder.problems if recorder is not None else [])
             flow_until = self._flow_until_ns()
+            calibration = self._calibration
         snapshot = Snapshot(heads, optical[:, 0], optical[:, 1], flow[:, 0], flow[:, 1],
                             recorder.path if recorder is not None else None,
                             recorder.frames_written() if recorder is not None else {},
                             recorder.dropped if recorder is not None else 0, problems,
                             time.monotonic() - self._started, metric[:, 0], metric[:, 1], flow_until,
-                            self.replay_finished, self._checks.refusal(), self._checks.checked)
+                            self.replay_finished, self._checks.refusal(), self._checks.checked,
+                            calibration.label() if calibration is not None else estimate_label(ESTIMATE_UNCERTAINTY))
         clock = self.source.replay_clock
         if clock is not None:
             snapshot.replay_position_s = (min(clock.now_ns(), clock.last_ns) - clock.first_ns) / 1e9

@@ -466,9 +466,9 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                     help="the standard test waveforms the blows follow (default ../shared/data/spirometry-waveforms)")
     po.add_argument("--max-sheen", type=finite, default=None,
                     help="skin sheen drawn from 0 to this (default 0.3; 0: matte skin)")
-    po.add_argument("--world", choices=tuple(w for w in WORLD_NAMES if w != "ideal"), default="clinic",
+    po.add_argument("--world", choices=tuple(w for w in WORLD_NAMES if w != "ideal"), default="clinic-widening",
                     help="the clinic's rig, or the same behind crossed polarisers on the LEDs and lenses, or that "
-                         "with bodies whose trunk widens as they breathe (clinic-widening)")
+                         "with bodies whose trunk widens as they breathe (clinic-widening, the default)")
     po.add_argument("--keep", type=Path, default=None,
                     help="keep each finished subject here and, run again, go on from them (long runs)")
     po.add_argument("--no-write", action="store_true", help="print only")

@@ -75,13 +75,21 @@ WORLD = "clinic"  # the population's world (core/sim/simulate.py, WORLDS); clini
 
 
 def _config(subject: VirtualSubject, scale: float, world: str = WORLD, **changes):
-    from core.sim.bodies import body_named
     from core.sim.simulate import SimConfig, in_world
 
     config = in_world(SimConfig(scale=scale, seed=subject.seed, rig_seed=subject.seed), world)
     return replace(config, led_offset_mm=subject.led_offset_mm, specular=subject.specular,
-                   skin_type=subject.skin_type, body=body_named(subject.body, subject.seed), clothing="skin",
+                   skin_type=subject.skin_type, body=population_body(subject.body, subject.seed), clothing="skin",
                    **changes)
+
+
+def population_body(name: str, seed: int):
+    """A subject's body: a preset as it is, a random body with its arms held away from the trunk, as the
+    guided session's positioning tells every patient (issue 74)."""
+    from core.sim.bodies import body_named
+
+    body = body_named(name, seed)
+    return replace(body, arms="away") if name == "random" else body
 
 
 def _distance_errors(session: Path, results: Path, after_cycles: int) -> list[float]:
@@ -692,9 +700,7 @@ def calibration_cell(calibration: dict) -> str:
 
 def describe_bodies(rows: list[dict]) -> None:
     """Fill each row's body description (done in the parent: the body is a pure function of the seed)."""
-    from core.sim.bodies import body_named
-
     for row in rows:
         s = row["subject"]
-        b = body_named(s["body"], s["seed"])
+        b = population_body(s["body"], s["seed"])
         row["body"] = {**json.loads(b.as_json()), "bmi": b.bmi}

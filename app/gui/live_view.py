@@ -10,6 +10,7 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QGridLayout, QGroupBox, QHBoxLayout, QLabel, QPushButton, QSlider, QVBoxLayout, QWidget
 
 from app.live import WINDOW_S, Snapshot
+from core.analysis.optical_litres import ESTIMATE
 from core.reconstruction.process import WORKING_RANGE_MM
 
 
@@ -68,10 +69,15 @@ VOLUME_STEPS_L = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0)  # half-ranges of the volum
 METRIC_PEN = pg.mkPen((200, 80, 20), width=2)
 REFUSED_METRIC_PEN = pg.mkPen((150, 150, 150), width=2, style=Qt.PenStyle.DashLine)
 # the legend in the title: inside the plot it covered the newest data
-LITRES_TITLE = ("Volume (L, BTPS), last 30 s: <span style='color:#141414'>━ flow sensor</span> &nbsp; "
-                "<span style='color:#c85014'>━ optical (metric)</span>")
-REFUSED_LITRES_TITLE = ("Volume (L, BTPS), last 30 s: <span style='color:#141414'>━ flow sensor</span> &nbsp; "
-                        "<span style='color:#969696'>- - optical (metric): not valid, see Status</span>")
+def litres_title(optical_litres: str, refused: bool = False) -> str:
+    """The volume plot's title: the flow sensor, and what the optical litres are (calibrated on the
+    subject, or an estimate), grey and dashed while `process` would refuse them."""
+    optical = (f"<span style='color:#969696'>- - {optical_litres}: not valid, see Status</span>" if refused
+               else f"<span style='color:#c85014'>━ {optical_litres}</span>")
+    return f"Volume (L, BTPS), last 30 s: <span style='color:#141414'>━ flow sensor</span> &nbsp; {optical}"
+
+
+LITRES_TITLE = litres_title(ESTIMATE)
 
 
 class VolumeView(pg.GraphicsLayoutWidget):
@@ -91,7 +97,7 @@ class VolumeView(pg.GraphicsLayoutWidget):
         self.flow_curve.setDownsampling(auto=True, method="peak")
         self.flow_curve.setClipToView(True)
         self.metric_curve = self.litres.plot(pen=METRIC_PEN)
-        self._metric_refused = False
+        self._metric_refused: tuple[bool, str] = (False, ESTIMATE)
         self.nextRow()
         self.relative = self.addPlot(title="Optical: gradient volume (thesis eq. 3.27, relative)")
         # a fixed time axis, now at the right: the curves move, the axes and the grid are drawn once
@@ -117,10 +123,10 @@ class VolumeView(pg.GraphicsLayoutWidget):
 
     def show_curves(self, s: Snapshot) -> None:
         refused = s.optical_refused is not None
-        if refused != self._metric_refused:  # drawn grey and dashed while `process` would refuse it
-            self._metric_refused = refused
+        if (refused, s.optical_litres) != self._metric_refused:  # grey and dashed while `process` would refuse it
+            self._metric_refused = (refused, s.optical_litres)
             self.metric_curve.setPen(REFUSED_METRIC_PEN if refused else METRIC_PEN)
-            self.litres.setTitle(REFUSED_LITRES_TITLE if refused else LITRES_TITLE)
+            self.litres.setTitle(litres_title(s.optical_litres, refused))
         end = max(s.flow_t_s[-1] if len(s.flow_t_s) else 0.0, s.optical_t_s[-1] if len(s.optical_t_s) else 0.0)
         start = end - WINDOW_S
         largest_l = 0.0
