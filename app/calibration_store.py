@@ -75,6 +75,19 @@ def restore(rig_name: str, kept: Path, records: Records | None = None) -> Path:
     return target
 
 
+def to_factory(rig_name: str, profile: str, records: Records | None = None) -> Path | None:
+    """No profile of this kind in force: the rig opens with its own (the rig file's calibration, or its
+    lights and flow line as built); the one in force goes to the history, from which it can be put back.
+    Returns where it went, or None where none was in force. Logged as a calibration saved."""
+    if profile not in PROFILES:
+        raise ValueError(f"{profile} is not a kind of calibration profile ({', '.join(PROFILES)})")
+    previous = keep_previous(calibration_dir(rig_name) / profile)
+    if records is not None and previous is not None:
+        records.log("calibration saved", str((calibration_dir(rig_name) / profile).resolve()),
+                    {"kind": PROFILES[profile], "factory": True, "previous": str(previous)})
+    return previous
+
+
 def keep_previous(path: Path) -> Path | None:
     """Move the profile in force aside (name-YYYYmmdd-HHMMSS.json); returns where, or None."""
     if not path.exists():

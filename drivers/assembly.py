@@ -27,18 +27,43 @@ class AssembledRig:
     flow_from: str = ""
 
 
+# The simulated rig's LEDs as built: each this far from the drawing (a random direction) and its intensity
+# 1 +- the spread, as the population bench's rigs are; a sphere calibration finds them
+SIMULATED_LED_OFFSET_MM = 8.0
+SIMULATED_LED_INTENSITY_SPREAD = 0.1
+
+
+def simulated_rig_config(heads: tuple[str, ...] = ("front", "back"), scale: float = 0.25, seed: int = 1,
+                         protocol: str = "tidal", seconds: float = 1800.0, frame_rate_hz: float = 110.0):
+    """The simulated rig's scene (core.sim.simulate.SimConfig): the subject, and the heads and LEDs as built,
+    which the sphere wizard's simulated captures share (simulated_sphere_config)."""
+    from core.sim.breathing import Subject, Sway
+    from core.sim.simulate import SimConfig
+
+    return SimConfig(scene="torso", protocol=protocol, seconds=seconds, scale=scale, seed=seed, heads=heads,
+                     frame_rate_hz=frame_rate_hz, sway=Sway(seed=seed), subject=Subject(),
+                     led_offset_mm=SIMULATED_LED_OFFSET_MM, led_intensity_spread=SIMULATED_LED_INTENSITY_SPREAD)
+
+
+def simulated_sphere_config(rig_config, index: int, radius_mm: float, finish: str = "specular"):
+    """One placement of the sphere wizard's simulated sphere (index 0: the centre of the view) on the
+    simulated rig whose scene is `rig_config` (simulated_rig_config): the same heads and LEDs as built,
+    so the lights it calibrates are the lights that then run."""
+    from dataclasses import replace
+
+    return replace(rig_config, scene=f"{finish}-sphere", protocol="static", seconds=None, sway=None,
+                   placement_only=index, sphere_radius_mm=radius_mm)
+
+
 def simulated_rig(heads: tuple[str, ...] = ("front", "back"), scale: float = 0.25, seed: int = 1,
                   protocol: str = "tidal", seconds: float = 1800.0, frame_rate_hz: float = 110.0,
                   loop_cycles: int = 0, with_flow: bool = True) -> AssembledRig:
     """The simulated rig breathing a simulated subject; its lights and flow sensor as built (the
     truth), until a calibration is applied. `loop_cycles`: that many light cycles rendered once and
     delivered over and over (drivers/simulated.py)."""
-    from core.sim.breathing import Subject, Sway
-    from core.sim.simulate import SimConfig
     from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
 
-    config = SimConfig(scene="torso", protocol=protocol, seconds=seconds, scale=scale, seed=seed, heads=heads,
-                       frame_rate_hz=frame_rate_hz, sway=Sway(seed=seed), subject=Subject())
+    config = simulated_rig_config(heads, scale, seed, protocol, seconds, frame_rate_hz)
     state = SimulatedRigState.build(config)
     cameras = {h: SimCamera(state, h, loop_cycles=loop_cycles) for h in heads}
     model = config.flow_sensor

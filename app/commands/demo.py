@@ -90,7 +90,7 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
                     measured = np.isfinite(optical[1])  # not a map left out for an arm against the trunk
                     true_at = np.interp(optical[0], t_truth, volume)[measured]
                     slope = np.polyfit(true_at - true_at[0], optical[1][measured], 1)[0]
-                    lines.append(f"  metric optical volume (litres, no calibration) against the true volume: "
+                    lines.append(f"  optical volume in litres against the true volume: "
                                  f"r = {np.corrcoef(optical[1][measured], true_at)[0, 1]:.4f}, slope {slope:.3f}")
     report = analyse_session(path, **optical_inputs(results))
     if report.flow_volume is not None:
@@ -104,7 +104,7 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
                          f"difference {np.max(np.abs(v - volume)):.3f} L")
         values = report.flow_sensor.parameters()
         optical_values = report.optical.parameters() if report.optical is not None else {}
-        lines.append("key values: flow sensor" + (", optical (metric volume)" if optical_values else "") + ":")
+        lines.append("key values: flow sensor" + (f", {report.optical_label}" if optical_values else "") + ":")
         shown = [("TV", "TV_l", "L"), ("RR", "RR_bpm", "/min"), ("VC", "VC_l", "L"), ("FVC", "FVC_l", "L"),
                  ("FEV1", "FEV1_l", "L"), ("FEV1/FVC", "FEV1_FVC", ""), ("PEF", "PEF_lps", "L/s")]
         for label, key, unit in shown:

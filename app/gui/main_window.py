@@ -479,7 +479,7 @@ class MainWindow(QMainWindow):
         window = ProfilesWindow(self, self.info.rig.name, self.info.calibration if not self.info.replay else "")
         window.exec()
         if window.restored is not None:
-            self.calibration_changed(f"Calibration profile restored and in force: {window.restored.name}")
+            self.calibration_changed(window.outcome)
 
     def open_records(self) -> None:
         from app.gui.records_view import RecordsWindow

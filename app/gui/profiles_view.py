@@ -10,7 +10,7 @@ from pathlib import Path
 from PySide6.QtWidgets import (QDialog, QDialogButtonBox, QHBoxLayout, QLabel, QListWidget, QListWidgetItem,
                                QPushButton, QVBoxLayout)
 
-from app.calibration_store import PROFILES, calibration_audit, calibration_dir, history, restore
+from app.calibration_store import PROFILES, calibration_audit, calibration_dir, history, restore, to_factory
 from app.gui.errors import show_error
 from app.records import RecordsError
 
@@ -29,6 +29,7 @@ class ProfilesWindow(QDialog):
         super().__init__(parent)
         self.rig_name = rig_name
         self.restored: Path | None = None
+        self.outcome = ""  # what changed, for the status bar
         self.setWindowTitle(f"Calibration profiles of the rig {rig_name!r}")
         layout = QVBoxLayout(self)
         heading = QLabel(f"<b>In force now:</b> {in_force_text or 'as recorded in the file being replayed'}<br>"
@@ -36,6 +37,7 @@ class ProfilesWindow(QDialog):
         heading.setWordWrap(True)
         layout.addWidget(heading)
         self.lists: dict[str, QListWidget] = {}
+        self.factory_buttons: dict[str, QPushButton] = {}
         for name, kind in PROFILES.items():
             current = calibration_dir(rig_name) / name
             label = QLabel(f"<b>{kind[0].upper() + kind[1:]}</b>: "
@@ -54,13 +56,38 @@ class ProfilesWindow(QDialog):
             button = QPushButton("Put back in force")
             button.setEnabled(bool(history(rig_name, name)))
             button.clicked.connect(lambda _=False, w=earlier: self._restore(w))
-            row.addWidget(button)
+            factory = QPushButton("The rig's own (as built)")
+            factory.setToolTip("No profile of this kind in force: the rig's file, or its parts as built; the "
+                               "profile in force now joins the list above and can be put back")
+            factory.setEnabled(current.is_file())
+            factory.clicked.connect(lambda _=False, n=name: self._factory(n))
+            buttons_column = QVBoxLayout()
+            buttons_column.addWidget(button)
+            buttons_column.addWidget(factory)
+            row.addLayout(buttons_column)
             layout.addLayout(row)
             self.lists[name] = earlier
+            self.factory_buttons[name] = factory
         buttons = QDialogButtonBox(QDialogButtonBox.StandardButton.Close)
         buttons.rejected.connect(self.reject)
         layout.addWidget(buttons)
         self.resize(720, 480)
+
+    def _factory(self, profile: str) -> None:
+        try:
+            records = calibration_audit()
+        except RecordsError as exc:
+            show_error(self, "You may not change the rig's calibration.", str(exc))
+            return
+        try:
+            with records or nullcontext():
+                to_factory(self.rig_name, profile, records)
+        except (OSError, ValueError) as exc:
+            show_error(self, "The rig's own calibration cannot be put in force.", str(exc))
+            return
+        self.restored = calibration_dir(self.rig_name) / profile
+        self.outcome = f"No {PROFILES[profile]} profile in force: the rig's own, as built"
+        self.accept()
 
     def _restore(self, earlier: QListWidget) -> None:
         item = earlier.currentItem()
@@ -75,6 +102,7 @@ class ProfilesWindow(QDialog):
         try:
             with records or nullcontext():
                 self.restored = restore(self.rig_name, Path(item.data(256)), records)
+                self.outcome = f"Calibration profile restored and in force: {self.restored.name}"
         except (OSError, ValueError) as exc:
             show_error(self, "That profile cannot be put back.", str(exc))
             return

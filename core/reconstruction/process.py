@@ -891,7 +891,10 @@ def with_true_lights(session: SessionFile) -> RigCalibration:
         positions = np.asarray(truth[f"{name}/light_positions_mm"])
         intensity = (np.asarray(truth[f"{name}/light_intensity"]) if f"{name}/light_intensity" in truth
                      else np.ones(4))
-        heads[name] = HeadCalibration(positions, intensity, np.zeros((4, 3)), np.zeros(4), np.zeros((4, 3)))
+        anisotropic = f"{name}/light_axis" in truth and f"{name}/light_mu" in truth  # the LEDs' falloff too
+        heads[name] = HeadCalibration(positions, intensity, np.zeros((4, 3)), np.zeros(4), np.zeros((4, 3)),
+                                      light_axis=np.asarray(truth[f"{name}/light_axis"]) if anisotropic else None,
+                                      light_mu=np.asarray(truth[f"{name}/light_mu"]) if anisotropic else None)
     return RigCalibration("truth", [session.path.name], heads)
 
 

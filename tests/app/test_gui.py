@@ -4,6 +4,7 @@ rig: the live view, replay, each wizard page by page, a whole patient session, e
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from functools import partial
 
 import numpy as np
@@ -483,6 +484,45 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
             assert np.allclose(recorded.rig.heads[head].light_positions_mm,
                                profile.heads[head].light_positions_mm, atol=1e-3)
             assert recorded.rig.heads[head].calibrated == profile.created
+    before, after = _normal_errors_deg(tmp_path, {h: drawing[h] for h in drawing}, profile.heads)
+    for head in ("front", "back"):  # the simulated sphere is the running rig's: its maps get better, not worse
+        assert after[head] < before[head], (before, after)
+
+
+def _normal_errors_deg(folder, before: dict, after: dict) -> tuple[dict, dict]:
+    """The median angle (deg) between the true normals and those reconstructed from a map of the simulated
+    rig's subject (its LEDs as built) with each head's lights `before` and `after` (HeadCalibrations), at
+    the true distance."""
+    import shutil
+
+    import h5py
+
+    from core.reconstruction.process import maps_at
+    from core.sim.simulate import simulate
+    from drivers.assembly import simulated_rig_config
+
+    session = folder / "rig-subject.h5"
+    frame = 25
+    simulate(session, replace(simulated_rig_config(scale=0.25), seconds=0.3, truth_maps_at=[frame]))
+    errors = ({}, {})
+    for k, lights in enumerate((before, after)):
+        copy = folder / f"lights-{k}.h5"
+        shutil.copyfile(session, copy)
+        with h5py.File(copy, "r+") as f:
+            for head, calibration in lights.items():
+                f[f"rig/{head}"].attrs["light_positions_mm"] = np.asarray(calibration.light_positions_mm, float)
+                f[f"rig/{head}"].attrs["light_intensity"] = np.asarray(calibration.light_intensity, float)
+        with SessionFile(copy) as s:
+            for head in lights:
+                truth = s.truth()
+                true_normals = truth[f"{head}/normals"][0]
+                true_depth = truth[f"{head}/depth_mm"][0]
+                distance = float(np.nanmedian(true_depth))
+                made = maps_at(copy, head, [frame], distances_mm=[distance])[0]
+                both = made.mask & np.isfinite(true_depth) & np.isfinite(true_normals).all(axis=-1)
+                cosine = np.clip(np.sum(made.normals[both] * true_normals[both], axis=-1), -1.0, 1.0)
+                errors[k][head] = float(np.degrees(np.median(np.arccos(cosine))))
+    return errors
 
 
 def test_cancelling_the_sphere_wizard_during_a_capture_leaves_no_error_and_no_files(qtbot, tmp_path):
@@ -675,6 +715,15 @@ def test_an_earlier_profile_is_put_back_in_force_from_the_profiles_window(qtbot,
     assert window.restored == folder / RIG_PROFILE
     assert json.loads((folder / RIG_PROFILE).read_text())["created"].startswith("2026-10-01")
     assert len(history("simulated", RIG_PROFILE)) == 2  # the one it replaced is kept
+    factory = ProfilesWindow(None, "simulated", "lights: rig-calibration.json of 2026-10-01 08:00")
+    qtbot.addWidget(factory)
+    assert factory.factory_buttons[RIG_PROFILE].isEnabled()
+    factory.factory_buttons[RIG_PROFILE].click()  # the LEDs as built, one click away
+    assert not (folder / RIG_PROFILE).exists() and len(history("simulated", RIG_PROFILE)) == 3
+    assert factory.outcome.startswith("No lights (sphere calibration) profile in force: the rig's own")
+    again = ProfilesWindow(None, "simulated", "lights: the simulated rig's lights as built")
+    qtbot.addWidget(again)
+    assert not again.factory_buttons[RIG_PROFILE].isEnabled() and again.lists[RIG_PROFILE].count() == 3
 
 
 def test_an_arm_in_one_view_marks_both_heads_distances(qtbot):

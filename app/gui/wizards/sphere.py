@@ -36,13 +36,14 @@ MIN_MATTE_CAPTURES = 7
 
 
 def capture_simulated(folder: Path, index: int, scale: float, heads: tuple[str, ...], radius_mm: float,
-                      finish: str = "specular") -> Path:
-    """One placement of the simulated specular or matte sphere (index 0: the centre of the view)."""
-    from core.sim.simulate import SimConfig, simulate
+                      finish: str = "specular", seed: int = 1) -> Path:
+    """One placement of the simulated specular or matte sphere (index 0: the centre of the view), on the
+    simulated rig that runs (its LEDs as built: drivers/assembly.py, simulated_sphere_config)."""
+    from core.sim.simulate import simulate
+    from drivers.assembly import simulated_rig_config, simulated_sphere_config
 
     path = next_free_path(folder / f"{finish}-{index + 1:02d}.h5")
-    simulate(path, SimConfig(scene=f"{finish}-sphere", scale=scale, heads=heads, seed=1, placement_only=index,
-                             sphere_radius_mm=radius_mm, led_offset_mm=8.0, led_intensity_spread=0.1))
+    simulate(path, simulated_sphere_config(simulated_rig_config(heads, scale, seed), index, radius_mm, finish))
     return path
 
 
