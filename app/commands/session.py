@@ -46,7 +46,9 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, help="session file to write (.h5); required unless --list-bodies")
     p.add_argument("--scene", choices=SCENES, default="torso", help="what stands between the heads (default torso)")
     p.add_argument("--protocol", choices=PROTOCOLS, default="full",
-                   help="torso manoeuvres: tidal, vc (slow vital capacity), forced, full (all three), static")
+                   help="torso manoeuvres: tidal, vc (slow vital capacity), forced, full (all three), short, "
+                        "clinical (quiet breathing and a slow VC through the flow sensor, mouthpiece-off, then "
+                        "tidal, slow VC and forced blows without it), static")
     p.add_argument("--seconds", type=_positive(float), help="length (default: the protocol's own length)")
     p.add_argument("--scale", type=_positive(float), default=0.25, help="sensor resolution scale, 1.0 = 1400 x 1024")
     p.add_argument("--seed", type=int, default=1)

@@ -74,26 +74,24 @@ class ProfilesWindow(QDialog):
         self.resize(720, 480)
 
     def _factory(self, profile: str) -> None:
-        try:
-            records = calibration_audit()
-        except RecordsError as exc:
-            show_error(self, "You may not change the rig's calibration.", str(exc))
-            return
-        try:
-            with records or nullcontext():
-                to_factory(self.rig_name, profile, records)
-        except (OSError, ValueError) as exc:
-            show_error(self, "The rig's own calibration cannot be put in force.", str(exc))
-            return
-        self.restored = calibration_dir(self.rig_name) / profile
-        self.outcome = f"No {PROFILES[profile]} profile in force: the rig's own, as built"
-        self.accept()
+        def change(records) -> Path:
+            to_factory(self.rig_name, profile, records)
+            return calibration_dir(self.rig_name) / profile
+
+        self._change(change, f"No {PROFILES[profile]} profile in force: the rig's own, as built",
+                     "The rig's own calibration cannot be put in force.")
 
     def _restore(self, earlier: QListWidget) -> None:
         item = earlier.currentItem()
         if item is None or not item.data(256):
             show_error(self, "Choose the earlier profile to put back.", "Click one in the list first.")
             return
+        self._change(lambda records: restore(self.rig_name, Path(item.data(256)), records),
+                     "Calibration profile restored and in force: {name}", "That profile cannot be put back.")
+
+    def _change(self, change, outcome: str, failed: str) -> None:
+        """A change of the profiles in force by an engineer (calibration_audit), logged; `change(records)`
+        returns the profile's path in force, `outcome` says what changed ({name}: its file's)."""
         try:
             records = calibration_audit()
         except RecordsError as exc:
@@ -101,9 +99,9 @@ class ProfilesWindow(QDialog):
             return
         try:
             with records or nullcontext():
-                self.restored = restore(self.rig_name, Path(item.data(256)), records)
-                self.outcome = f"Calibration profile restored and in force: {self.restored.name}"
+                self.restored = change(records)
         except (OSError, ValueError) as exc:
-            show_error(self, "That profile cannot be put back.", str(exc))
+            show_error(self, failed, str(exc))
             return
+        self.outcome = outcome.format(name=self.restored.name)
         self.accept()

@@ -73,7 +73,7 @@ def test_every_verb_has_help(capsys):
 def test_demo_runs_end_to_end(tmp_path, capsys):
     assert main(["demo", "-o", str(tmp_path), "--seconds", "12", "--scale", "0.05"]) == 0
     out = capsys.readouterr().out
-    for text in ("valid", "reconstructed", "volume summary", "gradient volume", "metric optical volume",
+    for text in ("valid", "reconstructed", "volume summary", "gradient volume", "optical volume in litres",
                  "key values", "TV"):
         assert text in out, text
     assert (tmp_path / "session.h5").exists() and (tmp_path / "results.h5").exists()

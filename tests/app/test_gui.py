@@ -231,6 +231,11 @@ def _press(qtbot, wizard: QWizard) -> None:
     wizard.next()
 
 
+# a mark is stamped in the window's process and acted on in the engine's a little later: the flow samples the
+# engine read meanwhile are recorded
+MARK_SLACK_S = 0.25
+
+
 def test_a_whole_patient_session(qtbot, tmp_path):
     """Positioning, the subject's calibration through the flow sensor (its fit shown), then with the
     mouthpiece off tidal breathing, slow VCs and forced blows on the calibrated live optical volume."""
@@ -278,7 +283,8 @@ def test_a_whole_patient_session(qtbot, tmp_path):
         qtbot.waitUntil(tidal.isComplete, timeout=90000)
         assert tidal.extended_s >= 15.0 and tidal.remaining.text() == "done"
         breathing = tidal.trace.curves["optical"]  # the operator saw the breaths, counted, on the cameras
-        assert tidal.trace.curves["flow sensor"].xData is None or not len(tidal.trace.curves["flow sensor"].xData)
+        flow = tidal.trace.curves["flow sensor"].xData  # the mark reaches the engine through its pipe: a few ms
+        assert flow is None or not len(flow) or float(np.max(flow)) < MARK_SLACK_S
         assert breathing.xData is not None and np.ptp(breathing.yData) > 0.2
         assert "breaths so far; TV" in tidal.trace.status.text()
         _press(qtbot, wizard)
@@ -337,7 +343,7 @@ def test_a_whole_patient_session(qtbot, tmp_path):
         assert labels[0] == "tidal-start" and labels.count("vc-start") >= 5 and labels.count("forced-start") >= 3
         assert labels.count("maneuver-rejected") == 1 and labels.count("mouthpiece-off") == 1
         off = next(t for t, label in s.events() if label == "mouthpiece-off")
-        assert s.flow_samples()[1][-1] <= off  # the flow sensor's samples end with the calibration
+        assert s.flow_samples()[1][-1] <= off + MARK_SLACK_S * 1e9  # the flow sensor's samples end with the calibration
         assert s.subject.id.startswith("P-") and s.attrs["operator"] == "op1"
         assert "Nowak" not in json.dumps({k: str(v) for k, v in s.attrs.items()})
     (patient,) = records.find_patients("Nowak")

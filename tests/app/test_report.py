@@ -63,8 +63,8 @@ def test_report_numbers_equal_the_results_file(processed_full_session, tmp_path)
     assert _row(page1, "FEV1/FVC", "")[1] == fmt(float(p["FEV1_FVC"]), "", 2)
     assert f"Flow sensor: ATS/ERS 2019 grade {p['grade']}" in page1
     assert f"{p['acceptable_FVC']} for FVC, of {p['manoeuvres']}" in page1
-    # the optical column comes with what it is not validated for
-    assert "Optical VC, FVC and FEV1 are not validated within spirometry's tolerance (3 %)" in " ".join(page1.split())
+    # the optical column comes with what its litres are
+    assert "Optical litres: optical, calibrated on the subject (residual" in " ".join(page1.split())
     assert re.search(r"Volume curves \(litres\): r = (0\.\d{3}|1\.000)", page1)  # 1.000 where r rounds up
     assert "Height maps" in page2 and "Front head" in page2 and "Back head" in page2
     # the maps are made at the distance `process` measured (the two heads' geometry), not the photometric fit's
