@@ -91,7 +91,8 @@ def _observations(data: ReportData, status: str, patient_ref: str, effective: st
     values = data.parameters(data.main_source) if data.main_source else {}
     references = {row.reference.parameter: row.reference for row in data.rows if row.reference is not None}
     method = {"text": "flow sensor (pneumotachometer)" if data.main_source == "flow sensor" else
-              "optical (near-light photometric stereo, photopft)"}
+              "optical (near-light photometric stereo, photopft): "
+              + (data.optical_label or "made before its kind was recorded")}
     out = []
     for key, ref_name, (code, display), predicted_code, percent_code, unit in VALUES:
         if key not in values:

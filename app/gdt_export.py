@@ -129,7 +129,8 @@ def gdt_record(data: ReportData, receiver: str = "PRAXIS") -> tuple[bytes, list[
                       _line("8480", f"predicted {_number(ref.predicted, unit)}, z {ref.zscore(value):+.2f}, "
                                     f"{ref.percent(value):.0f} % predicted")]
     if data.main_source:
-        lines += _lines("6220", f"Values from the {data.main_source}.")
+        kind = f" ({data.optical_label})" if data.main_source == "optical" and data.optical_label else ""
+        lines += _lines("6220", f"Values from the {data.main_source}{kind}.")
     if data.interpretation is not None:
         lines += _lines("6220", f"{data.interpretation.summary} (ERS/ATS 2022).")
         for statement in data.interpretation.statements:

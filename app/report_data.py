@@ -330,6 +330,17 @@ def stored_interpretation(patient: Patient, values: dict, recorded, source: str,
     return interpret(numbers, references, str(grade) if grade is not None else None, source)
 
 
+def main_source(sources: dict[str, SessionValues]) -> str | None:
+    """The source the predicted values, the grade and the interpretation are read from: the flow sensor
+    where it recorded the forced blows (the reference instrument; the optical values stand beside it),
+    else the optical values where they hold them (the mouthpiece came off after the subject's
+    calibration), else whichever there is."""
+    for source in (FLOW_SENSOR, OPTICAL):
+        if source in sources and sources[source].forced is not None:
+            return source
+    return FLOW_SENSOR if FLOW_SENSOR in sources else (OPTICAL if OPTICAL in sources else None)
+
+
 def source_values(summary: dict) -> tuple[str, dict]:
     """(source, values) of a stored session: the flow sensor's where it has the forced values, else the
     optical ones where they have them (the mouthpiece came off after the subject's calibration), else the
@@ -453,8 +464,7 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             notes.append(f"Flow sensor: no values, its signal is impossible: {analysed.flow_refused}.")
         else:
             notes.append("No flow sensor was recorded in this session.")
-        # The flow sensor is the reference where one was recorded; the optical method stands beside it.
-        main = FLOW_SENSOR if FLOW_SENSOR in sources else (OPTICAL if OPTICAL in sources else None)
+        main = main_source(sources)
         if main is None:
             notes.append("No volume curve in litres: no pulmonary function values can be reported.")
         if subject is None:

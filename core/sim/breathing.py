@@ -301,6 +301,7 @@ PROTOCOLS = ("tidal", "vc", "forced", "full", "short", "clinical", "static")
 TIDAL_SECONDS = {"full": 8.0, "short": 20.0, "clinical": 20.0}  # the tidal part that opens a whole protocol
 MOUTHPIECE_OFF = "mouthpiece-off"  # the event that ends the subject's calibration through the flow sensor
 CLINICAL_TIDAL_AFTER_S = 10.0  # the clinical protocol's quiet breathing once the mouthpiece is off
+CLINICAL_OFF_AFTER_S = 3.0  # and before, from the calibration's slow VC to the mouthpiece's removal
 
 
 def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, seed: int,
@@ -336,7 +337,8 @@ def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, se
             events.append((len(parts[-1]) / RATE_HZ, "maneuver-end"))
     if protocol == "vc" or whole:
         add(*slow_vc(subject, rng, lead_count=0 if whole else 1))
-    if protocol == "clinical":
+    if protocol == "clinical":  # a few quiet breaths through the mouthpiece still, while the operator
+        add(tidal(subject, CLINICAL_OFF_AFTER_S, rng))  # sees the calibration's fit, then it comes off
         events.append((sum(len(p) for p in parts) / RATE_HZ, MOUTHPIECE_OFF))
         add(tidal(subject, CLINICAL_TIDAL_AFTER_S, rng), [(0.0, "tidal-start")])
         events.append((sum(len(p) for p in parts) / RATE_HZ, "maneuver-end"))
