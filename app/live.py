@@ -877,7 +877,9 @@ class LiveRig:
                             recorder.frames_written() if recorder is not None else {},
                             recorder.dropped if recorder is not None else 0, problems,
                             time.monotonic() - self._started, metric[:, 0], metric[:, 1], flow_until,
-                            self.replay_finished, self._checks.refusal(), self._checks.checked,
+                            # a bend changes the volume's scale, which the subject's calibration takes
+                            self.replay_finished, self._checks.refusal() if calibration is None else None,
+                            self._checks.checked,
                             calibration.label() if calibration is not None else estimate_label(ESTIMATE_UNCERTAINTY))
         clock = self.source.replay_clock
         if clock is not None:

@@ -205,14 +205,20 @@ def coverage_refusal(areas_m2: dict[str, np.ndarray]) -> str | None:
 
 
 def session_refusal(distances_mm: dict[str, float], areas_m2: dict[str, np.ndarray],
-                    occluded_share: dict[str, np.ndarray], out_of_view_share: dict[str, np.ndarray],
-                    sheen_by_head: dict[str, float], tilts: np.ndarray) -> str | None:
-    """The first reason the session's optical volume cannot be reported, or None. An arm against the
+                    occluded_share: dict[str, np.ndarray], out_of_view_share: dict[str, np.ndarray]) -> str | None:
+    """The first reason the session's optical signal itself is lost, or None. An arm against the
     trunk comes first: with two heads it also moves both distances, by hundreds of mm (population
     subject 2 of seed 1 was refused as 2658 mm away, out of the working range, at 2255 mm with its
     arms close; docs/volume.md), and the trunk's area with them."""
     return (occlusion_refusal(occluded_share, out_of_view_share) or distance_refusal(distances_mm)
-            or coverage_refusal(areas_m2) or reflectance_refusal(sheen_by_head) or bend_refusal(tilts))
+            or coverage_refusal(areas_m2))
+
+
+def shading_refusal(sheen_by_head: dict[str, float], tilts: np.ndarray) -> str | None:
+    """Why maps bent by a sheen on the skin or against each other cannot give litres without the subject's
+    calibration, or None: the bend changes the volume's scale, which a calibration on the subject takes
+    and a population's gain does not."""
+    return reflectance_refusal(sheen_by_head) or bend_refusal(tilts)
 
 
 def _first_hidden(shares_by_head: dict[str, np.ndarray], limit: float) -> tuple[str, float] | None:
@@ -509,9 +515,10 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             distance_refused = geometric_distance_refusal(occluded) if geometry else None
             if distance_refused is not None:
                 results.attr("distance_refused", distance_refused)
-            refused = session_refusal(distances, areas, occluded, out_of_view, sheen, tilts)
+            refused = session_refusal(distances, areas, occluded, out_of_view)
             if refused is not None:
                 results.refuse_optical(refused)
+            bent = shading_refusal(sheen, tilts)
             shown = {name: sides_shown(occluded[name]) for name in displacements}
             metric = (metric_volume({n: d.of_maps(shown[n]) for n, d in displacements.items()}, rig.baseline_mm)
                       if all(counts.values()) and refused is None and all(m.any() for m in shown.values()) else None)
@@ -528,6 +535,13 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                                           {n: (d.timestamp_ns, shown[n]) for n, d in displacements.items()})
                 litres = subject_litres(session, gapped)
                 results.subject_calibration(litres.calibration, litres.not_calibrated)
+            if bent is not None and litres is not None and litres.calibrated:  # a scale the calibration takes
+                results.attr("shading_note", f"{bent}; the subject's calibration takes the scale this changes")
+            elif bent is not None:
+                in_view, metric = False, None
+                if refused is None:
+                    refused = bent
+                    results.refuse_optical(bent)
             if in_view and dense_peak_flow:
                 _peak_flow_pass(results, session, {job.name: job for job in jobs}, made, complete, metric, pool,
                                 lambda f: overall(f, peak_flow_windows), litres)

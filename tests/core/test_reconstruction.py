@@ -491,7 +491,7 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     from core.reconstruction.process import session_refusal
 
     arm = session_refusal({"front": 1842.0, "back": 2658.0}, {"front": np.full(40, 0.3), "back": np.full(40, 0.3)},
-                          {"front": np.full(40, 0.67), "back": np.zeros(40)}, {}, {}, np.zeros(0))
+                          {"front": np.full(40, 0.67), "back": np.zeros(40)}, {})
     assert arm.startswith("head front: an arm lies against the trunk")
     session, results = tmp_path / "far.h5", tmp_path / "far-r.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=0.5, scale=0.1, distance_mm=3300.0,
