@@ -548,6 +548,8 @@ class LiveRig:
         flow_t = (volume.timestamp_ns - start) / 1e9
         calibration = fit_subject_calibration(map_t, signals, flow_t, volume.volume_l,
                                               ((start_ns - start) / 1e9, float(flow_t[-1])))
+        if "fit_t_s" in calibration.extra:  # the fitted curve on seconds from the mark, as blow_trace has them
+            calibration.extra["fit_t_s"] = calibration.extra["fit_t_s"] - (start_ns - start) / 1e9
         with self._lock:
             if calibration.refused is None:
                 self._calibration = calibration

@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import Qt
-from PySide6.QtWidgets import QGridLayout, QGroupBox, QHBoxLayout, QLabel, QPushButton, QSlider, QVBoxLayout, QWidget
+from PySide6.QtWidgets import (QGridLayout, QGroupBox, QHBoxLayout, QLabel, QPushButton, QScrollArea, QSlider,
+                               QVBoxLayout, QWidget)
 
 from app.live import WINDOW_S, Snapshot
 from core.analysis.optical_litres import ESTIMATE
@@ -303,6 +304,9 @@ def camera_status(fps: float, maps: int, recent_frames: int, recent_lost: int, l
             f"{maps} maps"), share > LOST_SHARE_WARN
 
 
+MIN_VOLUME_HEIGHT_PX = 220  # the volume curves' plot, whatever the screen: the operator reads breaths off it
+
+
 class LiveView(QWidget):
     def __init__(self, heads: list[str], parent=None, simulated: bool = False) -> None:
         super().__init__(parent)
@@ -314,10 +318,18 @@ class LiveView(QWidget):
         self.volume = VolumeView()
         self.status = StatusPanel(heads)
         self.status.setMinimumWidth(260)
+        # on a small screen (1366 x 768) the status scrolls and the maps shrink: the volume curve keeps its height
+        status_scroll = QScrollArea()
+        status_scroll.setWidget(self.status)
+        status_scroll.setWidgetResizable(True)
+        status_scroll.setFrameShape(QScrollArea.Shape.NoFrame)
+        status_scroll.setMinimumWidth(280)
+        status_scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.volume.setMinimumHeight(MIN_VOLUME_HEIGHT_PX)
         top = QHBoxLayout()
         for h in heads:
             top.addWidget(self.maps[h], 1)
-        top.addWidget(self.status)
+        top.addWidget(status_scroll)
         self.replay_bar = ReplayBar()
         self.replay_bar.setVisible(False)
         layout = QVBoxLayout(self)

@@ -73,7 +73,7 @@ class SubjectCalibration:
     expected_error: float
     refused: str | None = None
     samples: int = 0
-    extra: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)  # fit_t_s, fit_l: the fitted curve over the segment, to show
 
     def volume_l(self, signals: dict[str, np.ndarray]) -> np.ndarray:
         return sum(g * np.asarray(signals[name], dtype=float) for name, g in self.gains.items())
@@ -118,7 +118,8 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
     coefficients = _fit(t, x, y)
     residual = float(np.sqrt(np.mean((y - _design(t, x) @ coefficients) ** 2)))
     gains = {n: float(g) for n, g in zip(names, coefficients[:len(names)])}
-    calibration = SubjectCalibration(gains, segment_s, residual, range_l, _expected_error(t, x, y), samples=len(t))
+    calibration = SubjectCalibration(gains, segment_s, residual, range_l, _expected_error(t, x, y), samples=len(t),
+                                     extra={"fit_t_s": t, "fit_l": _design(t, x) @ coefficients})
     calibration.refused = calibration_refusal(calibration)
     return calibration
 

@@ -202,6 +202,20 @@ class PositioningPage(QWizardPage):
 CALIBRATION_QUIET_S = 20.0  # the calibration's quiet breathing before its slow VC (issue 75)
 
 
+def on_the_flow_sensor(traces: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The optical curve moved to the flow sensor's level (its mean over their common times), for drawing
+    the two together: each has its own zero."""
+    if "optical" not in traces or "flow sensor" not in traces:
+        return traces
+    (t_opt, v_opt), (t_flow, v_flow) = traces["optical"], traces["flow sensor"]
+    t_opt, v_opt = np.asarray(t_opt, float), np.asarray(v_opt, float)
+    common = (t_opt >= t_flow[0]) & (t_opt <= t_flow[-1]) & np.isfinite(v_opt) if len(t_flow) else np.zeros(0, bool)
+    if not common.any():
+        return traces
+    shift = float(np.mean(np.interp(t_opt[common], t_flow, v_flow) - v_opt[common]))
+    return {**traces, "optical": (t_opt, v_opt + shift)}
+
+
 class CalibrationPage(QWizardPage):
     """The subject's calibration: quiet breathing and one slow VC through the flow sensor while both heads
     run; the optical signals are fitted to the flow sensor's volume (core/volume/subject_calibration.py)
@@ -239,6 +253,7 @@ class CalibrationPage(QWizardPage):
         layout.addWidget(self.skip)
         self.calibration = None
         self.mouthpiece_off = False  # marked: the flow sensor's samples end there
+        self._vc_started = False
         self._start_ns = 0
         self._quiet_until = 0.0
         self.timer = QTimer(self)
@@ -247,6 +262,8 @@ class CalibrationPage(QWizardPage):
 
     def _start(self) -> None:
         self.calibration = None
+        self._vc_started = False
+        self.trace.status.setText("the flow sensor's volume and the optical one (not calibrated yet), since the start")
         self._start_ns = self.engine.mark("tidal-start")
         self._quiet_until = time.monotonic() + CALIBRATION_QUIET_S
         self.start.setEnabled(False)
@@ -258,17 +275,18 @@ class CalibrationPage(QWizardPage):
 
     def _tick(self) -> None:
         try:
-            self.trace.show_traces(self.engine.blow_trace(self._start_ns, before_s=0.0))
+            self.trace.show_traces(on_the_flow_sensor(self.engine.blow_trace(self._start_ns, before_s=0.0)))
         except Exception as exc:  # the curve is feedback; the recording goes on without it
             self.trace.status.setText(f"live curve stopped: {exc}")
         left = self._quiet_until - time.monotonic()
         if left > 0:
             self.result.setText(f"quiet breathing: {left:.0f} s left")
-        elif not self.vc.isEnabled() and not self.end.isEnabled() and self._quiet_until:
+        elif not self._vc_started and self._quiet_until:
             self.result.setText("now the slow VC: press Start slow VC as the patient begins")
             self.vc.setEnabled(True)
 
     def _begin_vc(self) -> None:
+        self._vc_started = True
         self.engine.mark("vc-start")
         self.last_duration_s = self.engine.perform("vc")
         self.vc.setEnabled(False)
@@ -297,6 +315,12 @@ class CalibrationPage(QWizardPage):
             refused = calibration.refused
         self.start.setText("Repeat calibration")
         self.start.setEnabled(True)
+        self.vc.setEnabled(False)
+        if calibration is not None and "fit_t_s" in calibration.extra:  # the fit over the flow sensor's curve
+            traces = self.engine.blow_trace(self._start_ns, before_s=0.0)
+            traces["optical"] = (calibration.extra["fit_t_s"], calibration.extra["fit_l"])
+            self.trace.show_traces(on_the_flow_sensor(traces))
+            self.trace.status.setText("the flow sensor's volume and the optical signals fitted to it")
         if refused is None:
             self.calibration = calibration
             self.result.setText(
