@@ -69,14 +69,15 @@ class Source:
 
 def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "back"), seed: int = 1,
                      protocol: str = "tidal", seconds: float = 1800.0, loop_cycles: int = 0) -> Source:
-    """The simulated rig, breathing quietly, with its lights and flow sensor as built (benches and
-    tests; the application opens it through rig_source, with the calibrations in force).
+    """The simulated rig, breathing quietly, its LEDs as built known (a perfect sphere calibration) and
+    its flow sensor as built (benches and tests; the application opens it through rig_source, with the
+    calibrations in force).
     `loop_cycles`: that many light cycles rendered once and delivered over and over
     (drivers/simulated.py), for measuring the live view at a rate the renderer cannot reach on the
     same cores."""
     from drivers.assembly import simulated_rig
 
-    return _source(simulated_rig(heads, scale, seed, protocol, seconds, loop_cycles=loop_cycles),
+    return _source(simulated_rig(heads, scale, seed, protocol, seconds, loop_cycles=loop_cycles, lights_known=True),
                    f"simulated rig (scale {scale:g})")
 
 

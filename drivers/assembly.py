@@ -57,19 +57,29 @@ def simulated_sphere_config(rig_config, index: int, radius_mm: float, finish: st
 
 def simulated_rig(heads: tuple[str, ...] = ("front", "back"), scale: float = 0.25, seed: int = 1,
                   protocol: str = "tidal", seconds: float = 1800.0, frame_rate_hz: float = 110.0,
-                  loop_cycles: int = 0, with_flow: bool = True) -> AssembledRig:
-    """The simulated rig breathing a simulated subject; its lights and flow sensor as built (the
-    truth), until a calibration is applied. `loop_cycles`: that many light cycles rendered once and
-    delivered over and over (drivers/simulated.py)."""
+                  loop_cycles: int = 0, with_flow: bool = True, lights_known: bool = False) -> AssembledRig:
+    """The simulated rig breathing a simulated subject; the reconstruction's lights those of the drawing
+    (its LEDs as built lie SIMULATED_LED_OFFSET_MM off them) until a calibration is applied, or with
+    `lights_known` the LEDs as built (a perfect sphere calibration: benches and tests of what comes
+    after it). `loop_cycles`: that many light cycles rendered once and delivered over and over
+    (drivers/simulated.py)."""
+    from dataclasses import replace
+
     from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
 
     config = simulated_rig_config(heads, scale, seed, protocol, seconds, frame_rate_hz)
     state = SimulatedRigState.build(config)
     cameras = {h: SimCamera(state, h, loop_cycles=loop_cycles) for h in heads}
     model = config.flow_sensor
-    return AssembledRig(state.rig, cameras, SimFlowSensor(state) if with_flow else None,
-                        (model.gain_lps, model.offset_lps), LightPhase(state.rig), simulated=state,
-                        lights_from="the simulated rig's lights as built (not calibrated)",
+    rig = state.rig
+    if lights_known:
+        rig = replace(rig, heads={n: replace(h, light_positions_mm=state.heads[n].light_positions_mm,
+                                             light_intensity=state.heads[n].light_intensity)
+                                  for n, h in rig.heads.items()})
+    return AssembledRig(rig, cameras, SimFlowSensor(state) if with_flow else None,
+                        (model.gain_lps, model.offset_lps), LightPhase(rig), simulated=state,
+                        lights_from="the simulated rig's LEDs as built (known, as a perfect calibration)"
+                        if lights_known else "the simulated rig's drawing (not calibrated: LEDs as built lie off it)",
                         flow_from="the simulated flow sensor's own line (not calibrated)")
 
 

@@ -29,6 +29,9 @@ MAX_REGION_GAIN = 6.0
 MIN_SEGMENT_S = 20.0  # quiet breathing and a slow VC take longer; less tells too little
 MIN_RANGE_L = 1.0  # the segment must swing this much (a slow VC does; quiet breathing alone does not)
 LEAVE_OUT_PARTS = 5  # the segment's parts each predicted from a fit on the others
+# the fewest maps a fit takes (at most four gains, an offset and a trend): a rig at 110 frames/s makes 22
+# a second, the simulated rig on a busy machine one or two
+MIN_FIT_MAPS = 30
 CHEST = ("upper left", "upper right")
 ABDOMEN = ("lower left", "lower right")
 
@@ -62,9 +65,10 @@ def calibration_segment(events: list[tuple[float, str]], flow_end_s: float) -> t
 
 @dataclass
 class SubjectCalibration:
-    """Litres = sum of gains x regional signals. residual_l: rms of the fit over the segment;
-    range_l: the flow sensor's over it; expected_error: the rms of the parts' relative excursion errors
-    predicted from fits on the other parts (a share, 0.02 = 2 %)."""
+    """Litres = sum of gains x regional signals (signals of one group share a gain: GROUPINGS).
+    residual_l: rms of the fit over the segment; range_l: the flow sensor's over it; expected_error: the
+    rms of the segment's parts' excursion errors predicted from fits on the other parts, as a share of
+    range_l (0.02 = 2 %)."""
 
     gains: dict[str, float]
     segment_s: tuple[float, float]
@@ -73,7 +77,8 @@ class SubjectCalibration:
     expected_error: float
     refused: str | None = None
     samples: int = 0
-    extra: dict = field(default_factory=dict)  # fit_t_s, fit_l: the fitted curve over the segment, to show
+    # fit_t_s, fit_l: the fitted curve over the segment, to show; grouping: the GROUPINGS key chosen
+    extra: dict = field(default_factory=dict)
 
     def volume_l(self, signals: dict[str, np.ndarray]) -> np.ndarray:
         return sum(g * np.asarray(signals[name], dtype=float) for name, g in self.gains.items())
@@ -95,10 +100,21 @@ def _fit(t_s: np.ndarray, signals: np.ndarray, flow_l: np.ndarray) -> np.ndarray
     return lsq_linear(_design(t_s, signals), flow_l, bounds=(lower, upper), method="bvls").x
 
 
+# The regional signals' groupings the calibration chooses between, simplest first: each signal's group
+# (its name: "<head> chest" ...) has one gain. A grouping with more gains is taken only where its error
+# on the parts of the segment left out of the fit is under SELECTION_MARGIN of the simpler one's: gains
+# of signals that move together (quiet breathing and a slow VC move chest and abdomen, front and back
+# alike) are otherwise fitted to the noise (docs/volume.md, "Calibrated litres").
+GROUPINGS = {"one gain": lambda name: "all", "chest and abdomen": lambda name: name.split()[-1],
+             "each head": lambda name: name.split()[0], "each region": lambda name: name}
+SELECTION_MARGIN = 0.9
+
+
 def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray], flow_t_s: np.ndarray,
                             flow_volume_l: np.ndarray, segment_s: tuple[float, float]) -> SubjectCalibration:
-    """The least squares of the flow sensor's volume on the regional signals over `segment_s`
-    (times in seconds on one clock). Refused (the reason in `refused`) where the fit is poor."""
+    """The least squares of the flow sensor's volume on the regional signals over `segment_s` (times in
+    seconds on one clock), in the grouping (GROUPINGS) that predicts the segment's parts left out of the
+    fit best. Refused (the reason in `refused`) where the fit is poor."""
     names = list(signals)
     t = np.asarray(map_t_s, dtype=float)
     x = np.column_stack([np.asarray(signals[n], dtype=float) for n in names]) if names else np.zeros((len(t), 0))
@@ -109,36 +125,51 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
     if not names:
         empty.refused = "no regional optical signal to calibrate"
         return empty
-    if inside.sum() < 10 * (len(names) + 2):
+    if inside.sum() < MIN_FIT_MAPS:
         empty.refused = f"only {int(inside.sum())} maps with every region in view during the calibration"
         return empty
     t, x = t[inside], x[inside]
     y = np.interp(t, flow_t, np.asarray(flow_volume_l, dtype=float))
     range_l = float(np.ptp(y))
-    coefficients = _fit(t, x, y)
-    residual = float(np.sqrt(np.mean((y - _design(t, x) @ coefficients) ** 2)))
-    gains = {n: float(g) for n, g in zip(names, coefficients[:len(names)])}
-    calibration = SubjectCalibration(gains, segment_s, residual, range_l, _expected_error(t, x, y), samples=len(t),
-                                     extra={"fit_t_s": t, "fit_l": _design(t, x) @ coefficients})
+    chosen, tried = None, set()
+    for grouping, group_of in GROUPINGS.items():
+        groups = sorted({group_of(n) for n in names})
+        members = np.array([[group_of(n) == g for g in groups] for n in names], dtype=float)  # names x groups
+        if members.tobytes() in tried:  # one head: its chest and abdomen are its regions
+            continue
+        tried.add(members.tobytes())
+        held_out, expected = _held_out(t, x @ members, y, range_l)
+        if chosen is None or held_out < SELECTION_MARGIN * chosen[3]:
+            chosen = (grouping, members, groups, held_out, expected)
+    grouping, members, groups, _, expected = chosen
+    grouped = x @ members
+    coefficients = _fit(t, grouped, y)
+    fitted = _design(t, grouped) @ coefficients
+    residual = float(np.sqrt(np.mean((y - fitted) ** 2)))
+    gains = {n: float(members[k] @ coefficients[:len(groups)]) for k, n in enumerate(names)}
+    calibration = SubjectCalibration(gains, segment_s, residual, range_l, expected, samples=len(t),
+                                     extra={"fit_t_s": t, "fit_l": fitted, "grouping": grouping})
     calibration.refused = calibration_refusal(calibration)
     return calibration
 
 
-def _expected_error(t: np.ndarray, x: np.ndarray, y: np.ndarray) -> float:
-    """The rms over LEAVE_OUT_PARTS contiguous parts of the segment of each part's excursion predicted
-    from a fit on the others, relative to the flow sensor's excursion over that part."""
+def _held_out(t: np.ndarray, x: np.ndarray, y: np.ndarray, range_l: float) -> tuple[float, float]:
+    """Each of LEAVE_OUT_PARTS contiguous parts of the segment predicted from a fit on the others: (the rms
+    of the predictions' errors about each part's own level, L; the rms of the parts' excursion errors as a
+    share of the flow sensor's range over the segment, the expected error of a slow VC's worth)."""
     edges = np.linspace(t[0], t[-1], LEAVE_OUT_PARTS + 1)
-    errors = []
+    residuals, excursions = [], []
     for a, b in zip(edges[:-1], edges[1:]):
         held = (t >= a) & (t <= b)
-        if held.sum() < 10 or (~held).sum() < 10 * (x.shape[1] + 2):
+        if held.sum() < 10 or (~held).sum() < MIN_FIT_MAPS:
             continue
-        gains = _fit(t[~held], x[~held], y[~held])[:x.shape[1]]
-        predicted = x[held] @ gains
-        swing = float(np.ptp(y[held]))
-        if swing > 0:
-            errors.append(np.ptp(predicted) / swing - 1.0)
-    return float(np.sqrt(np.mean(np.square(errors)))) if errors else float("nan")
+        predicted = x[held] @ _fit(t[~held], x[~held], y[~held])[:x.shape[1]]
+        error = predicted - y[held]
+        residuals.append(error - error.mean())
+        excursions.append((np.ptp(predicted) - np.ptp(y[held])) / range_l)
+    if not residuals:
+        return float("nan"), float("nan")
+    return float(np.sqrt(np.mean(np.square(np.concatenate(residuals))))), float(np.sqrt(np.mean(np.square(excursions))))
 
 
 def calibration_refusal(calibration: SubjectCalibration) -> str | None:
