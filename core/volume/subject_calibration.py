@@ -126,7 +126,8 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
         empty.refused = "no regional optical signal to calibrate"
         return empty
     if inside.sum() < MIN_FIT_MAPS:
-        empty.refused = f"only {int(inside.sum())} maps with every region in view during the calibration"
+        empty.refused = (f"only {int(inside.sum())} maps with every region in view during the calibration (at least "
+                         f"{MIN_FIT_MAPS}): the trunk hidden or the maps too few; repeat the calibration")
         return empty
     t, x = t[inside], x[inside]
     y = np.interp(t, flow_t, np.asarray(flow_volume_l, dtype=float))
