@@ -321,8 +321,9 @@ def test_a_whole_patient_session(qtbot, tmp_path):
                 assert page.count >= 3 and all(f"Slow VC {k}: VC " in text for k in range(1, page.count + 1)), text
             if kind == "forced":
                 screen = page.screen
-                assert screen.table.rowCount() == page.count and len(screen.earlier) == page.count
-                best = [screen.table.item(r, 7).text() for r in range(page.count)]
+                # the calibrated live optical volume: a blow its few maps cannot grade gets no row
+                assert 3 <= screen.table.rowCount() <= page.count and 3 <= len(screen.earlier) <= page.count
+                best = [screen.table.item(r, 7).text() for r in range(screen.table.rowCount())]
                 assert best.count("★ best") == 1
                 assert screen.repeatability.text().startswith("Repeatability (grade ")
                 assert "END OF TEST" in screen.end_of_test.text() or "not yet" in screen.end_of_test.text()
