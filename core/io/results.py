@@ -203,7 +203,7 @@ class ResultsFile:
         """What /volume's litres are: "optical, calibrated on the subject (residual N mL)" or "optical
         estimate, not calibrated (±N %)" (core/analysis/optical_litres.py); None without a label."""
         label = self.volume_attrs().get("label")
-        return None if label is None else str(label)
+        return label if isinstance(label, str) else None  # a damaged label is no label
 
     def subject_calibration(self) -> dict:
         """/subject_calibration's attributes (ResultsWriter.subject_calibration), {} without one."""

@@ -13,6 +13,8 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 from scipy.optimize import brentq
 
+from core.volume.subject_calibration import MOUTHPIECE_OFF
+
 RATE_HZ = 1000.0  # sampling of the generated waveforms
 
 
@@ -299,7 +301,6 @@ def standard_curve(volume_l: np.ndarray, rate_hz: float) -> np.ndarray:
 
 PROTOCOLS = ("tidal", "vc", "forced", "full", "short", "clinical", "static")
 TIDAL_SECONDS = {"full": 8.0, "short": 20.0, "clinical": 20.0}  # the tidal part that opens a whole protocol
-MOUTHPIECE_OFF = "mouthpiece-off"  # the event that ends the subject's calibration through the flow sensor
 CLINICAL_TIDAL_AFTER_S = 10.0  # the clinical protocol's quiet breathing once the mouthpiece is off
 CLINICAL_OFF_AFTER_S = 3.0  # and before, from the calibration's slow VC to the mouthpiece's removal
 

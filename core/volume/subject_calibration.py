@@ -21,7 +21,7 @@ from scipy.optimize import lsq_linear
 
 from core.volume.maps import REGIONS
 
-MOUTHPIECE_OFF = "mouthpiece-off"
+MOUTHPIECE_OFF = "mouthpiece-off"  # the event that ends the subject's calibration through the flow sensor
 # a calibration whose residual is over this share of the flow sensor's range over the segment is refused
 MAX_RESIDUAL_SHARE = 0.05
 # a regional gain over this is no surface the cameras see moving with the breath: the fit leans on noise
