@@ -646,6 +646,7 @@ class LiveRig:
     def stop_recording(self) -> RecordSummary:
         with self._lock:
             recorder, self._recorder = self._recorder, None
+            self._calibration = None  # the subject's: whoever stands in the rig next is not calibrated
         if recorder is None:
             raise ValueError("not recording")
         return recorder.end({h: c.stats for h, c in recorder.cameras.items()},

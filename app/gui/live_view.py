@@ -100,7 +100,7 @@ class VolumeView(pg.GraphicsLayoutWidget):
         self.metric_curve = self.litres.plot(pen=METRIC_PEN)
         self._metric_refused: tuple[bool, str] = (False, ESTIMATE)
         self.nextRow()
-        self.relative = self.addPlot(title="Optical: gradient volume (thesis eq. 3.27, relative)")
+        self.relative = self.addPlot(title="Optical, relative: the breathing's shape without litres")
         # a fixed time axis, now at the right: the curves move, the axes and the grid are drawn once
         # (a scrolling range rebuilt both axes' ticks and labels at every update)
         self.relative.setLabel("bottom", "time before now (s)")
@@ -111,8 +111,10 @@ class VolumeView(pg.GraphicsLayoutWidget):
         self._set_litres_range(0.0)
         self.relative.setYRange(-1.05, 1.05)
         self.optical_curve = self.relative.plot(pen=pg.mkPen((40, 90, 200), width=2))
+        self.relative.setToolTip("The gradient volume (thesis eq. 3.27), centred and scaled to ±1: "
+                                 "the optical signal before any scale is put on it")
         self.ci.layout.setRowStretchFactor(0, 3)
-        self.ci.layout.setRowStretchFactor(1, 2)
+        self.ci.layout.setRowStretchFactor(1, 1)
 
     def _set_litres_range(self, largest_l: float) -> None:
         """The volume axis in steps (VOLUME_STEPS_L), changed only when the curves need another step:
@@ -333,8 +335,8 @@ class LiveView(QWidget):
         self.replay_bar = ReplayBar()
         self.replay_bar.setVisible(False)
         layout = QVBoxLayout(self)
-        layout.addLayout(top, 3)
-        layout.addWidget(self.volume, 2)
+        layout.addLayout(top, 1)  # the maps scale down; the litres are what the operator reads
+        layout.addWidget(self.volume, 1)
         layout.addWidget(self.replay_bar)
         self.updates = 0
 

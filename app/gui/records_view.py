@@ -79,10 +79,10 @@ def values_by_source_html(summary: dict) -> str:
     for source, values in summary.items():
         if not isinstance(values, dict):
             continue
-        label = str(values.get("label") or SOURCE_LABELS.get(source, source))
         if "refused" in values and not any(k in values for k, _, _ in VISIT_VALUES):
-            rows.append(f"<tr><td><b>{label}</b></td><td colspan=6>no values: {values['refused']}</td></tr>")
+            rows.append(f"<tr><td><b>{source}</b></td><td colspan=6>no values: {values['refused']}</td></tr>")
             continue
+        label = str(values.get("label") or SOURCE_LABELS.get(source, source))
         cells = "".join(f"<td>{name} {float(values[key]):.2f}{' ' + unit if unit else ''}</td>"
                         for key, name, unit in VISIT_VALUES if isinstance(values.get(key), (int, float)))
         rows.append(f"<tr><td><b>{label}</b></td>{cells or '<td>no values</td>'}</tr>")

@@ -1,5 +1,7 @@
-"""Screenshots of the main window and every wizard page on the simulated rig, for the user guide:
-`xvfb-run -a python -m app.gui.screenshots docs/images` (a real X server, the xcb platform)."""
+"""Screenshots of the main window, every wizard page and every dialog on the simulated rig, as the
+operator sees the screen: `xvfb-run -a -s "-screen 0 1366x768x24" python -m app.gui.screenshots DIR`
+(a real X server, the xcb platform). Each picture is the whole screen, so a window larger than the
+screen shows cut off, as it would be; the main window fills the screen."""
 
 from __future__ import annotations
 
@@ -23,8 +25,19 @@ def _wait(app: QApplication, seconds: float, until=None) -> None:
 
 
 def _grab(widget: QWidget, path: Path) -> None:
-    widget.grab().save(str(path))
+    """The whole screen with `widget` raised on it."""
+    widget.raise_()
+    widget.activateWindow()
+    QApplication.processEvents()
+    QApplication.primaryScreen().grabWindow(0).save(str(path))
     print(f"wrote {path}")
+
+
+def _fill_screen(window: QWidget) -> None:
+    """What a window manager's maximise does (Xvfb has none)."""
+    area = QApplication.primaryScreen().availableGeometry()
+    window.move(area.topLeft())
+    window.resize(area.size())
 
 
 def _records_windows(app, records, folder: Path, out: Path) -> None:
@@ -65,7 +78,7 @@ def main(out: Path) -> int:
     out.mkdir(parents=True, exist_ok=True)
     app = QApplication.instance() or QApplication(sys.argv[:1])
     window = MainWindow(partial(simulated_source, scale=0.25))
-    window.resize(1400, 860)
+    _fill_screen(window)
     window.show()
     _wait(app, 60, lambda: all(v.reconstructed > 3 for v in window.engine.snapshot().heads.values()))
     _wait(app, 8)  # the volume curve fills
@@ -123,8 +136,15 @@ def main(out: Path) -> int:
     _wait(app, 0.5)
     _grab(wizard, out / "patient-6-review.png")
     wizard.accept()
+    # processed in the background as after Finish, the progress in the main window
+    window.processing.start(wizard.session_id, "Ewa Nowak's session", records.path)
+    _wait(app, 3)
+    _grab(window, out / "main-window-processing.png")
+    _wait(app, 1800, lambda: not window.processing.busy)
+    print(window.processing.last_message)
 
     _records_windows(app, records, folder, out)
+    _dialogs(app, window, records, folder, out)
 
     sphere = SphereCalibrationWizard(window, ("front", "back"), 0.25, profile_dir=folder / "cal")
     sphere.show()
@@ -174,6 +194,51 @@ def main(out: Path) -> int:
     return 0
 
 
+def _dialogs(app, window, records, folder: Path, out: Path) -> None:
+    """Sign-in, settings, profiles, the syringe check and the cut-off recordings offered at start-up."""
+    from datetime import datetime, timezone
+
+    from app.gui.cut_off import CutOffVisitsDialog
+    from app.gui.login import LoginDialog
+    from app.gui.profiles_view import ProfilesWindow
+    from app.gui.settings_dialog import SettingsDialog
+    from app.gui.syringe_check import SimulatedSyringe, SyringeCheckDialog
+    from app.session_processing import CUT_OFF, cut_off_visits
+
+    login = LoginDialog(window, "dr.keller", "Signing a report needs a clinician's password.")
+    login.show()
+    _wait(app, 0.3)
+    _grab(login, out / "sign-in.png")
+    login.reject()
+    settings = SettingsDialog(window.settings, window)
+    settings.show()
+    _wait(app, 0.3)
+    _grab(settings, out / "settings.png")
+    settings.reject()
+    profiles = ProfilesWindow(window, window.info.rig.name, window.calibration_text)
+    profiles.show()
+    _wait(app, 0.3)
+    _grab(profiles, out / "profiles.png")
+    profiles.reject()
+    syringe = SyringeCheckDialog(window, SimulatedSyringe(), window.info.flow_calibration, window.info.rig.name,
+                                 window.info.flow_from)
+    syringe.show()
+    syringe.start.click()
+    _wait(app, 12)
+    syringe.stop.click()
+    _wait(app, 0.5)
+    _grab(syringe, out / "syringe-check.png")
+    syringe.reject()
+    patient = records.find_patients("Nowak")[0]
+    records.add_session(patient.id, folder / "cut-off.h5", datetime(2026, 11, 30, 9, 5, tzinfo=timezone.utc),
+                        operator="example", status=CUT_OFF)
+    cut_off = CutOffVisitsDialog(window, records, cut_off_visits(records))
+    cut_off.show()
+    _wait(app, 0.3)
+    _grab(cut_off, out / "cut-off-recordings.png")
+    cut_off.reject()
+
+
 def _diagnostics(app, folder: Path, out: Path) -> None:
     """The window on a rig whose front camera and sequencer are not connected."""
     from app.gui.main_window import MainWindow
@@ -183,7 +248,7 @@ def _diagnostics(app, folder: Path, out: Path) -> None:
     rig.write_text('name = "clinic"\n[camera]\n[heads.front]\ncamera = "192.168.10.21"\n[heads.back]\n'
                    'camera = "192.168.10.22"\n[sequencer]\nport = "/dev/ttyACM0"\n[flowsensor]\nport = "emulator"\n')
     window = MainWindow(partial(rig_source, rig), rig)
-    window.resize(1100, 560)
+    _fill_screen(window)
     window.show()
     _wait(app, 0.5)
     _grab(window, out / "diagnostics.png")

@@ -334,6 +334,7 @@ def test_a_whole_patient_session(qtbot, tmp_path):
         review = wizard.currentPage()
         text = review.summary.toPlainText()
         assert "FVC\nL\n" in text and "Predicted" in text and "(ERS/ATS 2022)" in text  # labels, not keys
+        assert "(live optical, calibrated on the subject)" in text and "(flow sensor)" not in text
         wizard.accept()
     finally:
         engine.stop()

@@ -398,11 +398,12 @@ class TimedPage(QWizardPage):
         if self._ticks % 10 == 1:
             values = self.engine.recorded_values(self.wizard().age_years())
             tidal = values.tidal if values is not None else None
+            calibrated = self.wizard().calibration_page.calibration is not None
             self.trace.status.setText(
-                "breaths are counted when the session is processed (no flow sensor)" if values is None else
-                "no breath counted yet" if tidal is None else
                 f"{tidal.breaths} breaths so far; TV {tidal.tidal_volume_l:.2f} L, RR "
-                f"{tidal.respiratory_rate_bpm:.0f}/min")
+                f"{tidal.respiratory_rate_bpm:.0f}/min" if tidal is not None else
+                "no breath counted yet" if values is not None or calibrated else
+                "breaths are counted when the session is processed (no calibration on the subject)")
 
     def _tick(self) -> None:
         self._show_breathing()
@@ -602,9 +603,9 @@ class ManoeuvrePage(QWizardPage):
         return self.finished
 
 
-def review_html(parameters: dict, problems: list[str], patient: Patient | None) -> str:
-    """The flow sensor's values as the report names them, with predicted values, z-scores and the
-    ERS/ATS 2022 interpretation."""
+def review_html(parameters: dict, problems: list[str], patient: Patient | None, source: str) -> str:
+    """The values of `source` as the report names them, with predicted values, z-scores and the
+    ERS/ATS 2022 interpretation, which names the source."""
     from app.report_data import MAIN_ROWS, references_on, stored_interpretation
 
     now = datetime.now(timezone.utc)
@@ -623,7 +624,7 @@ def review_html(parameters: dict, problems: list[str], patient: Patient | None) 
         html += (f"<p>ATS/ERS 2019 grade <b>{parameters['grade']}</b>: {parameters['acceptable_FEV1']} acceptable "
                  f"FEV1 and {parameters['acceptable_FVC']} acceptable FVC of {parameters['manoeuvres']} blows.</p>")
     if patient is not None:
-        verdict = stored_interpretation(patient, parameters, now, "flow sensor")
+        verdict = stored_interpretation(patient, parameters, now, source)
         html += f"<p><b>{verdict.summary}</b> (ERS/ATS 2022)<br>" + "<br>".join(verdict.statements) + "</p>"
     html += "".join(f"<p>Note: {p}</p>" for p in problems)
     return html
@@ -647,7 +648,8 @@ class ReviewPage(QWizardPage):
             return
         self.summary.setHtml("<p>From the live optical volume, calibrated on the subject; the report's values come "
                              "from processing the recording.</p>"
-                             + review_html(values.parameters(), values.problems, self.wizard().patient_page.patient()))
+                             + review_html(values.parameters(), values.problems, self.wizard().patient_page.patient(),
+                                           "live optical, calibrated on the subject"))
 
 
 class PatientSessionWizard(QWizard):
