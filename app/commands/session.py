@@ -60,8 +60,10 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
                    help="peak postural sway along the optical axis (torso default 50; other scenes 0)")
     p.add_argument("--lateral-sway-mm", type=finite, default=15.0)
     s = p.add_argument_group("subject")
-    s.add_argument("--body", help="the trunk: 'random' (drawn with --seed), a preset (photopft simulate --list-bodies) "
-                   "or a body .toml file; its sex, age, height and weight replace those below (default: our own torso)")
+    s.add_argument("--body", help="the trunk: 'random' (drawn with --seed), a preset (photopft simulate --list-bodies), "
+                   "a body .toml file, or 'mesh:N': the test population's human body mesh N (MakeHuman, read from "
+                   "../shared/data/makehuman, ray-cast); its sex, age, height and weight replace those below "
+                   "(default: our own torso)")
     s.add_argument("--list-bodies", action="store_true", help="list the body presets and exit")
     s.add_argument("--subject-id", default="SIM-0001")
     s.add_argument("--sex", choices=("male", "female"), default="male")

@@ -196,15 +196,24 @@ def body_from_toml(path: str | Path) -> Body:
         raise ValueError(f"{path}: {exc}") from exc
 
 
-def body_named(spec: str, seed: int = 1) -> Body:
-    """`random` (drawn with `seed`), a preset's name, or a body TOML file."""
+def body_named(spec: str, seed: int = 1):
+    """`random` (drawn with `seed`), a preset's name, a body TOML file, or `mesh:N`: the mesh
+    population's subject N (core/sim/makehuman.py)."""
     if spec == "random":
         return random_body(seed)
+    if spec.startswith("mesh:"):
+        from core.sim.makehuman import mesh_body
+
+        try:
+            number = int(spec[len("mesh:"):])
+        except ValueError:
+            raise ValueError(f"unknown body {spec!r}: mesh:N takes a whole number N") from None
+        return mesh_body(number)
     if spec in PRESETS:
         return PRESETS[spec]
     if spec.endswith(".toml"):
         return body_from_toml(spec)
-    raise ValueError(f"unknown body {spec!r}: random, a .toml file or one of {', '.join(PRESETS)}")
+    raise ValueError(f"unknown body {spec!r}: random, mesh:N, a .toml file or one of {', '.join(PRESETS)}")
 
 
 def _smoothstep(edge0: float, edge1: float, x: np.ndarray) -> np.ndarray:

@@ -20,6 +20,8 @@ from core.sim.bodies import Body, body_surfaces
 from core.sim.textures import fitzpatrick_albedo
 from core.sim.breathing import MOUTHPIECE_OFF, RATE_HZ, ForcedBlow, Subject, Sway, Waveform, protocol_waveform
 from core.sim.flowsensor import FlowSensorModel
+from core.sim.makehuman import MeshBody, load_mesh_data
+from core.sim.mesh_scene import MeshScene
 from core.sim.render import CameraModel
 from core.sim.surfaces import HeightField, mode_volumes_mm3, stretched_volume_mm3
 from core.sim.scene import Digitiser, HeightFieldScene, Scene, SpherePlacement, SphereScene, noise_key
@@ -35,7 +37,9 @@ class SimConfig:
     """Everything that defines a simulated session; defaults are the thesis rig and a healthy adult."""
 
     scene: str = "torso"
-    body: Body | None = None  # None: our own torso (shapes.torso); else a parametric body (core/sim/bodies.py)
+    # None: our own torso (shapes.torso); else a parametric body (core/sim/bodies.py) or a mesh body
+    # of the test population (core/sim/makehuman.py)
+    body: Body | MeshBody | None = None
     protocol: str = "full"
     seconds: float | None = None  # None: the protocol's natural length
     scale: float = 0.25
@@ -311,6 +315,22 @@ def _torso_scene(config: SimConfig, waveform: Waveform, baseline: float) -> Heig
     return scene
 
 
+def _mesh_scene(config: SimConfig, waveform: Waveform) -> MeshScene:
+    """A body of the mesh population (core/sim/makehuman.py), bare-skinned: the config's skin type
+    and sheen when it has them, else the body's."""
+    body = config.body
+    specular = config.specular if config.specular else body.sheen
+    specular = polarised_specular(specular) if config.polarisers else specular
+    skin = fitzpatrick_albedo(config.skin_type if config.skin_type is not None else body.skin_type)
+    sway = config.sway if config.sway is not None else Sway(seed=config.seed)
+    if config.steps:
+        sway = replace(sway, steps=config.steps, steps_span_s=waveform.duration_s)
+    scene = MeshScene(body, load_mesh_data(), waveform, config.distance_mm, config.distance_back_mm, sway.at,
+                      albedo=skin, specular=specular)
+    scene.root_attrs["simulated_protocol"] = config.protocol
+    return scene
+
+
 def _object_scene(config: SimConfig) -> HeightFieldScene:
     builder = shapes.SHAPES[config.scene]
     surfaces = builder(config.grid_step_mm) if config.scene == "plane" else builder(config.grid_step_mm, seed=config.seed)
@@ -344,6 +364,8 @@ def build_scene(config: SimConfig, rig: Rig) -> tuple[Scene, Waveform | None]:
     baseline = config.distance_mm + config.distance_back_mm + 230.0
     if config.scene == "torso":
         waveform = protocol_waveform(breathing_subject(config), config.protocol, config.seconds, config.seed, config.blows)
+        if isinstance(config.body, MeshBody):
+            return _mesh_scene(config, waveform), waveform
         return _torso_scene(config, waveform, baseline), waveform
     if config.scene in ("plane", "vase", "relief"):
         return _object_scene(config), None
@@ -498,7 +520,7 @@ def simulate(path: str | Path, config: SimConfig, progress: Callable[[float], No
             if drift.amplitude:
                 truth_heads[name]["light_drift"] = drift.relative_intensity(truth_t)
         extra = {"sway_mm": scene.sway_mm(truth_t), "flow_lps": scene.truth_flow_lps(truth_t)}
-        if isinstance(scene, HeightFieldScene) and scene.compartment_volumes_l(truth_t) is not None:
+        if isinstance(scene, (HeightFieldScene, MeshScene)) and scene.compartment_volumes_l(truth_t) is not None:
             extra["compartment_volume_l"] = scene.compartment_volumes_l(truth_t)
         truth_volume = scene.truth_volume_l(truth_t)
         truth_attrs = {"world": world_json(config)}
