@@ -469,6 +469,9 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
     po.add_argument("--world", choices=tuple(w for w in WORLD_NAMES if w != "ideal"), default="clinic-widening",
                     help="the clinic's rig, or the same behind crossed polarisers on the LEDs and lenses, or that "
                          "with bodies whose trunk widens as they breathe (clinic-widening, the default)")
+    po.add_argument("--bodies", choices=("parametric", "mesh"), default="parametric",
+                    help="the development population (parametric trunks, the default) or the test population "
+                         "(MakeHuman body meshes from ../shared/data/makehuman, ray-cast; no method is tuned on it)")
     po.add_argument("--keep", type=Path, default=None,
                     help="keep each finished subject here and, run again, go on from them (long runs)")
     po.add_argument("--no-write", action="store_true", help="print only")
@@ -491,10 +494,11 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
 
         sheen = MAX_SHEEN if args.max_sheen is None else args.max_sheen
         text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images,
-                                       sheen, args.keep, args.world)
+                                       sheen, args.keep, args.world, args.bodies)
         suffix = ("" if sheen == MAX_SHEEN else f" --max-sheen {sheen:g}") + (
-            "" if args.world == WORLD else f" --world {args.world}")
-        section = population_section(args.scale, sheen, args.world)
+            "" if args.world == WORLD else f" --world {args.world}") + (
+            " --bodies mesh" if args.bodies == "mesh" else "")
+        section = population_section(args.scale, sheen, args.world, args.bodies)
         return _publish(args, section, f"Population (`photopft bench population --subjects {subjects} --scale "
                                        f"{args.scale:g} --seed {args.seed}{suffix}`)", text)
 

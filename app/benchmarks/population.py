@@ -38,7 +38,7 @@ COLOURS = {"calibrated": "tab:blue", "estimate": "tab:green", "flow": "tab:orang
 class VirtualSubject:
     index: int
     seed: int
-    body: str  # 'random' or a preset's name
+    body: str  # 'random', a preset's name, or 'mesh:N' (the test population's body N)
     distance_mm: float
     skin_type: int
     specular: float
@@ -56,20 +56,28 @@ MAX_SHEEN = 0.3  # the population's skin sheen is drawn from 0 (matte) to this (
 
 
 def draw_subjects(count: int, seed: int, blows: list[Path], quick: bool = False,
-                  max_sheen: float = MAX_SHEEN) -> list[VirtualSubject]:
+                  max_sheen: float = MAX_SHEEN, bodies: str = "parametric") -> list[VirtualSubject]:
     """The population: random bodies, distances 1700-2300 mm, Fitzpatrick I-VI, skin sheen 0-max_sheen,
-    LEDs 0-15 mm off the drawing, a standard blow each (in turn, from a shuffled list)."""
+    LEDs 0-15 mm off the drawing, a standard blow each (in turn, from a shuffled list). `bodies`:
+    "parametric" (the development population, core/sim/bodies.py) or "mesh" (the test population,
+    core/sim/makehuman.py, with seeds of its own; the rest drawn alike)."""
     rng = np.random.default_rng(seed + 777)
     order = rng.permutation(len(blows)) if blows else []
     subjects = []
     for k in range(count):
+        body = ("average-woman", "arms-close")[k % 2] if quick else "random"
+        if bodies == "mesh":
+            body = f"mesh:{MESH_SEEDS + 1000 * seed + k}"
         subjects.append(VirtualSubject(
-            index=k, seed=1000 * seed + k, body=("average-woman", "arms-close")[k % 2] if quick else "random",
+            index=k, seed=1000 * seed + k, body=body,
             distance_mm=float(rng.uniform(1700, 2300)), skin_type=int(rng.integers(1, 7)),
             specular=float(rng.uniform(0.0, 1.0)) * max_sheen, led_offset_mm=float(rng.uniform(0.0, 15.0)),
             standard=str(blows[order[k % len(blows)]]) if blows else None))
     return subjects
 
+
+BODIES = ("parametric", "mesh")  # the development population, the test population (docs/benchmarks.md)
+MESH_SEEDS = 100_000  # the test population's bodies are drawn from seeds of their own, apart from the rest
 
 WORLD = "clinic"  # the population's world (core/sim/simulate.py, WORLDS); clinic-polarised: behind crossed polarisers
 
@@ -486,7 +494,8 @@ def bland_altman_pngs(rows: list[dict], folder: Path, stem: str) -> list[Path]:
 
 
 def _kept(folder: Path | None, subject: VirtualSubject, scale: float, world: str = WORLD) -> Path | None:
-    return None if folder is None else folder / f"subject-{subject.seed}-{scale:g}{_world_suffix(world)}.json"
+    mesh = "-mesh" if subject.body.startswith("mesh:") else ""
+    return None if folder is None else folder / f"subject-{subject.seed}-{scale:g}{_world_suffix(world)}{mesh}.json"
 
 
 def _stages_folder(folder: Path | None, subject: VirtualSubject, scale: float, world: str = WORLD) -> Path | None:
@@ -512,7 +521,7 @@ def _keep(path: Path | None, row: dict) -> None:
 def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, workers: int,
                          standards: Path | None, images: Path | None,
                          max_sheen: float = MAX_SHEEN, keep: Path | None = None, world: str = WORLD,
-                         ) -> tuple[str, list[dict]]:
+                         bodies: str = "parametric") -> tuple[str, list[dict]]:
     """The bench's table and rows. With `keep`, each finished subject's row is kept there and a
     later run with the same arguments takes it instead of running the subject again."""
     from app.progress import Progress
@@ -521,7 +530,7 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
 
     started = time.perf_counter()
     blows = standard_blows(standards)
-    population = draw_subjects(subjects, seed, blows, quick, max_sheen)
+    population = draw_subjects(subjects, seed, blows, quick, max_sheen, bodies)
     protocol, seconds = ("short", 8.0) if quick else ("clinical", None)
     calibration_scale = scale if quick else max(scale, CALIBRATION_SCALE)
     done: dict[int, dict] = {}
@@ -558,15 +567,16 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
     resumed = len(population) - len(jobs)
     elapsed = time.perf_counter() - started
     describe_bodies(rows)
-    stem = population_section(scale, max_sheen, world)
+    stem = population_section(scale, max_sheen, world, bodies)
     pngs = bland_altman_pngs(rows, images, stem) if images is not None else []
     return _table(rows, scale, seed, quick, blows, elapsed, workers, pngs, WORLDS[world], max_sheen,
-                  calibration_scale, resumed), rows
+                  calibration_scale, resumed, bodies), rows
 
 
-def population_section(scale: float, max_sheen: float, world: str) -> str:
+def population_section(scale: float, max_sheen: float, world: str, bodies: str = "parametric") -> str:
     """The bench's name in docs/benchmarks.md and its plots' stem."""
-    return f"population-{scale:g}" + ("" if max_sheen == MAX_SHEEN else f"-sheen{max_sheen:g}") + _world_suffix(world)
+    return (f"population-{scale:g}" + ("" if max_sheen == MAX_SHEEN else f"-sheen{max_sheen:g}") + _world_suffix(world)
+            + ("-mesh" if bodies == "mesh" else ""))
 
 
 def _run_job(job: tuple) -> dict:
@@ -623,7 +633,7 @@ def refusal_tally(rows: list[dict]) -> str:
 
 def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[Path], elapsed: float,
            workers: int, pngs: list[Path], world: dict, max_sheen: float = MAX_SHEEN,
-           calibration_scale: float | None = None, resumed: int = 0) -> str:
+           calibration_scale: float | None = None, resumed: int = 0, bodies: str = "parametric") -> str:
     from core.rig import thesis_head
     from core.sim.simulate import world_words
 
@@ -633,7 +643,10 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
     lines = [f"{len(rows)} simulated subjects (seed {seed}{', quick' if quick else ''}), two heads of {head.width} x "
              f"{head.height} pixels; protocol: {'its first 8 s' if quick else 'the clinical one: 20 s tidal (irregular, sighs) and one slow VC through the flow sensor (the subject calibration), then with the mouthpiece off 10 s tidal, one slow VC, three forced blows'}; "
              f"blows following {'the standard waveforms (' + ', '.join(STANDARD_SETS) + f', {len(blows)} files)' if blows else 'the simulator own model (no standard waveforms found)'}, "
-             "scaled to each subject's predicted FVC. The world: random bodies (core/sim/bodies.py), distance 1700-2300 mm, "
+             "scaled to each subject's predicted FVC. The world: "
+             + ("the test population: MakeHuman body meshes ray-cast (core/sim/makehuman.py; no method tuned on them)"
+                if bodies == "mesh" else "the development population: random parametric bodies (core/sim/bodies.py)")
+             + ", distance 1700-2300 mm, "
              f"Fitzpatrick I-VI, skin sheen 0-{max_sheen:g}, LEDs 0-15 mm off the drawing, and the clinic's "
              + world_words(world, leave_out=("led_offset_mm", "specular"))
              + (" (crossed polarisers on the LEDs and lenses; the sphere sessions without)" if world.get("polarisers") else "")

@@ -191,7 +191,7 @@ class MeshBody:
 
     def as_json(self) -> str:
         out = asdict(self)
-        out["kind"] = "makehuman mesh"
+        out.update(kind="makehuman mesh", arms="away")  # MakeHuman's rest pose holds them 45 degrees down
         return json.dumps(out)
 
     def vertices_mm(self, data: MeshData | None = None) -> np.ndarray:

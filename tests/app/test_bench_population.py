@@ -141,3 +141,22 @@ def test_a_subject_stopped_midway_goes_on_from_its_last_finished_stage(tmp_path,
     session.write_bytes(b"")
     stages = SubjectStages(folder, {"commit": "this"})
     assert not stages.has("process") and list(folder.iterdir()) == []
+
+
+def test_the_test_population_has_bodies_and_kept_rows_of_its_own(tmp_path, shared_data):
+    """`--bodies mesh`: the same rigs, distances and skins as the development population, on MakeHuman
+    bodies drawn from seeds of their own; their rows are kept apart and published under their own name."""
+    from app.benchmarks.population import (MESH_SEEDS, _kept, describe_bodies, draw_subjects, population_body,
+                                           population_section)
+    from core.sim.makehuman import MeshBody
+
+    development = draw_subjects(3, 1, [])
+    test = draw_subjects(3, 1, [], bodies="mesh")
+    assert [s.body for s in test] == [f"mesh:{MESH_SEEDS + 1000 + k}" for k in range(3)]
+    assert [s.distance_mm for s in test] == [s.distance_mm for s in development]
+    assert isinstance(population_body(test[0].body, test[0].seed), MeshBody)
+    assert _kept(tmp_path, test[0], 0.5) != _kept(tmp_path, development[0], 0.5)
+    assert population_section(0.5, 0.3, "clinic", "mesh") == "population-0.5-mesh"
+    rows = [{"subject": {"body": s.body, "seed": s.seed}} for s in test]
+    describe_bodies(rows)
+    assert rows[0]["body"]["kind"] == "makehuman mesh" and rows[0]["body"]["arms"] == "away"
