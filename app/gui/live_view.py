@@ -294,13 +294,17 @@ class LostFrames:
         return frames - frames0, lost - lost0
 
 
+SIMULATED_FULL_PACE_FPS = 100.0  # the simulated cameras keep the rig's 110 frames/s, or near it
+
+
 def camera_status(fps: float, maps: int, recent_frames: int, recent_lost: int, lost: int,
                   simulated: bool) -> tuple[str, bool]:
     """A camera's status line and whether it is a fault. The simulated cameras skip frames the
     renderer cannot make in time (a real camera drops them the same way, but that is a fault)."""
     if simulated:
-        return (f"{fps:.0f} frames/s rendered ({lost} skipped by the renderer: this computer's pace, not a "
-                f"fault); {maps} maps"), False
+        fewer = "; fewer maps than the rig makes, so blows are read coarsely" if fps < SIMULATED_FULL_PACE_FPS else ""
+        return (f"{fps:.0f} frames/s rendered ({lost} skipped: this computer's pace, not a fault{fewer}); "
+                f"{maps} maps"), False
     share = recent_lost / max(recent_frames + recent_lost, 1)
     return (f"{fps:.0f} frames/s; {recent_lost} lost in the last {LOST_WINDOW_S:.0f} s ({lost} in all); "
             f"{maps} maps"), share > LOST_SHARE_WARN

@@ -10,6 +10,9 @@ from app.gui.live_view import LostFrames, camera_status
 def test_a_simulated_renderer_skipping_frames_is_not_a_fault():
     text, warn = camera_status(35.0, 20, 350, 400, 4135, simulated=True)
     assert not warn and "rendered" in text and "not a fault" in text
+    assert "fewer maps than the rig makes" in text  # said plainly: the blows are read from fewer maps
+    text, _ = camera_status(108.0, 20, 1080, 20, 20, simulated=True)
+    assert "fewer maps" not in text
 
 
 def test_a_real_camera_is_red_only_while_it_loses_frames():
