@@ -124,17 +124,20 @@ class ManoeuvreGap:
     gap_s: float
     what: str = "flow samples"
     limit_s: float = MAX_FLOW_GAP_S
+    count: int = 1  # the manoeuvre's gaps over limit_s; gap_s is the longest
 
     @property
     def reason(self) -> str:
+        longest = f"the longest of {self.count} gaps; " if self.count > 1 else ""
         return (f"{self.gap_s * 1000:.0f} ms of {self.what} missing inside the {self.kind} manoeuvre at "
-                f"{self.start_s:.1f} s (at most {self.limit_s * 1000:.0f} ms)")
+                f"{self.start_s:.1f} s ({longest}at most {self.limit_s * 1000:.0f} ms)")
 
 
 def gaps_in_manoeuvres(gaps: list[tuple[int, int]], events: list[tuple[int, str]], start_ns: int,
                        what: str = "flow samples", limit_s: float = MAX_FLOW_GAP_S) -> list[ManoeuvreGap]:
-    """The gaps that fall inside a manoeuvre: from its start event to the next `maneuver-end`, the
-    next manoeuvre's start, or the end of the recording."""
+    """The gaps that fall inside a manoeuvre, one ManoeuvreGap for each manoeuvre that has any (its
+    longest): from its start event to the next `maneuver-end`, the next manoeuvre's start, or the end
+    of the recording."""
     spans, opened = [], None
     for t, label in sorted(events):
         if (label in MANOEUVRES or label == "maneuver-end") and opened is not None:
@@ -146,9 +149,9 @@ def gaps_in_manoeuvres(gaps: list[tuple[int, int]], events: list[tuple[int, str]
         spans.append((opened[0], np.iinfo(np.int64).max, opened[1]))
     out = []
     for begin, end, kind in spans:
-        for before, after in gaps:
-            if before < end and after > begin:
-                out.append(ManoeuvreGap(kind, (begin - start_ns) / 1e9, (after - before) / 1e9, what, limit_s))
+        inside = [(after - before) / 1e9 for before, after in gaps if before < end and after > begin]
+        if inside:
+            out.append(ManoeuvreGap(kind, (begin - start_ns) / 1e9, max(inside), what, limit_s, len(inside)))
     return out
 
 

@@ -51,6 +51,19 @@ def complete_cycles(light_index: np.ndarray, frame_id: np.ndarray, cycle_length:
     return windows
 
 
+def windows_apart(windows: list[CycleWindow], frame_id: np.ndarray, every_frames: int) -> list[CycleWindow]:
+    """Of complete_cycles' windows, one each `every_frames` frame ids, by the frames' ids and not
+    their positions: where the camera dropped frames, the cycles around the gap are all kept."""
+    ids = np.asarray(frame_id, dtype=np.int64)
+    chosen, last = [], None
+    for window in windows:
+        newest = int(ids[window.newest])
+        if last is None or newest - last >= every_frames:
+            chosen.append(window)
+            last = newest
+    return chosen
+
+
 def distant_light_normals(images: np.ndarray, dark: np.ndarray, light_vectors: np.ndarray,
                           ) -> tuple[np.ndarray, np.ndarray]:
     """Woodham's photometric stereo with one light vector per light for every pixel.

@@ -21,7 +21,7 @@ from core.analysis.optical_litres import OpticalLitres, subject_litres
 from core.analysis.values import PEAK_FLOW_REACH_S, peak_flow_spans_s
 from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, on_maps_shown,
                                 side_targets, tidal_compartments)
-from core.reconstruction.photometric import CycleWindow, complete_cycles
+from core.reconstruction.photometric import CycleWindow, complete_cycles, windows_apart
 from core.rig import DARK
 from core.io.outputs import atomic_output, stop_if_requested
 from core.io.plausibility import head_intrinsics_problems
@@ -111,9 +111,9 @@ def reflectance_refusal(sheen_by_head: dict[str, float]) -> str | None:
 SURVEY_INTERVAL_S = 0.5
 
 
-def _survey_windows(windows: list[CycleWindow], frame_rate_hz: float) -> list[CycleWindow]:
+def _survey_windows(windows: list[CycleWindow], frame_id: np.ndarray, frame_rate_hz: float) -> list[CycleWindow]:
     """Of a head's complete light cycles, those about SURVEY_INTERVAL_S apart."""
-    return windows[::max(1, int(round(SURVEY_INTERVAL_S * frame_rate_hz)))]
+    return windows_apart(windows, frame_id, max(1, int(round(SURVEY_INTERVAL_S * frame_rate_hz))))
 
 
 def geometric_distances(surveyed: dict, baseline_mm: float) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -423,7 +423,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 missing = [i for i in maps_at if i not in by_end]
                 if missing:
                     raise SessionError(f"head {name}: no complete light cycle ends at frame(s) {missing}")
-                chosen = windows[::every]
+                chosen = windows_apart(windows, session.frame_id(name), every)
                 chosen_ends = {w.newest for w in chosen}
                 chosen += [by_end[i] for i in maps_at if i not in chosen_ends]
                 chosen.sort(key=lambda w: w.newest)
@@ -438,7 +438,8 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             results.attr("distance_from", "two heads' trunk widths and baseline" if geometry else "photometric fit")
             survey = {}
             if geometry:
-                survey = {name: _survey_windows(complete[name], rig.frame_rate_hz) for name in names}
+                survey = {name: _survey_windows(complete[name], session.frame_id(name), rig.frame_rate_hz)
+                          for name in names}
                 survey_windows = sum(len(w) for w in survey.values())
                 total_windows += 2 * survey_windows  # the photometric survey, the lights' outputs
             # the maps at every frame through each forced blow's peak flow (_peak_flow_pass), as many as it

@@ -515,17 +515,20 @@ def test_frames_missing_inside_a_manoeuvre_refuse_its_optical_values(breathing, 
     with h5py.File(path, "r+") as f:
         g = f["heads/front"]
         n = g["frames"].shape[0]
-        keep = np.r_[0:n // 2, n // 2 + 33:n]  # 300 ms of the front camera's frames lost
+        keep = np.r_[0:n // 4, n // 4 + 40:n // 2, n // 2 + 33:n]  # 364 ms, then 300 ms of the front camera's lost
         for key in ("frames", "light_index", "timestamp_ns", "frame_id"):
             data = g[key][:][keep]
             del g[key]
             g.create_dataset(key, data=data, maxshape=(None,) + data.shape[1:], chunks=(1,) + data.shape[1:]
                              if key == "frames" else True)
     assert main(["validate", str(path)]) == 1
-    assert "of the front head's frames missing inside the tidal manoeuvre" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "of the front head's frames missing inside the tidal manoeuvre" in out and "the longest of 2 gaps" in out
     analysed = analyse_session(path, optical_volume=curve)
     assert analysed.optical.tidal is None and analysed.flow_sensor.tidal is not None
-    assert any("the tidal values not given" in p for p in analysed.optical.problems)
+    assert [p for p in analysed.optical.problems if "the tidal values not given" in p] == [
+        "the tidal values not given: 373 ms of the front head's frames missing inside the tidal manoeuvre at 0.0 s "
+        "(the longest of 2 gaps; at most 250 ms)"]  # one line a manoeuvre, not one a gap
 
 
 def test_a_password_for_nobody_is_refused_before_any_is_asked(kept_records, capsys, typed):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from core.reconstruction.lightfield import light_field, normals_from_field
-from core.reconstruction.photometric import complete_cycles, distant_light_normals, near_light_normals
+from core.reconstruction.photometric import complete_cycles, distant_light_normals, near_light_normals, windows_apart
 from core.reconstruction.pipeline import (DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance,
                                            occluded_side_share, shadow_threshold, side_out_of_view_share,
                                            subject_mask, trunk_mask)
@@ -39,6 +39,19 @@ def test_sliding_windows_skip_lost_frames():
     windows = complete_cycles(lights, ids, 5)
     assert [w.newest for w in windows] == [4, 5, 6, 11, 12]  # none spans the gap at frame id 7
     assert windows[-1].lit == (9, 10, 11, 12) and windows[-1].dark == 8
+
+
+def test_a_map_each_cycle_keeps_every_cycle_a_dropping_camera_delivered():
+    """A camera behind its host drops whole cycles: one map each cycle is one map each cycle
+    delivered, not every fifth window (which kept one cycle in five of a recording at 14 frames/s)."""
+    kept = [0, 5, 40, 65, 70, 75, 110]  # the first frame id of each cycle the camera delivered
+    ids = np.concatenate([np.arange(k, k + 5) for k in kept])
+    lights = np.tile([0, 1, 2, 3, -1], len(kept))
+    windows = complete_cycles(lights, ids, 5)
+    assert [int(ids[w.newest]) for w in windows_apart(windows, ids, 5)] == [k + 4 for k in kept]
+    gapless = complete_cycles(np.tile([0, 1, 2, 3, -1], 8), np.arange(40), 5)
+    assert windows_apart(gapless, np.arange(40), 5) == gapless[::5]  # as before where nothing was dropped
+    assert windows_apart(gapless, np.arange(40), 22) == gapless[::22]
 
 
 @pytest.fixture(scope="module")
