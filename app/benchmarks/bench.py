@@ -28,6 +28,9 @@ SHAPES = ("sphere", "torso", "vase", "relief")
 DISTANCES = (1800, 1900, 2000, 2100, 2200)
 # The project's reference data, beside the checkout (never shipped with the application).
 # ../shared beside the checkout, or where PHOTOPFT_SHARED says (as the tests read it)
+# bench population --subset: a fixed subset of either population, quick enough to rerun between full runs
+SUBSET_SUBJECTS = 8
+SUBSET_SCALE = 0.25
 SHARED = Path(os.environ.get("PHOTOPFT_SHARED", Path(__file__).resolve().parents[3] / "shared"))
 DILIGENT_BEAR = SHARED / "data" / "diligent-integration" / "bear"
 
@@ -474,6 +477,15 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
                          "(MakeHuman body meshes from ../shared/data/makehuman, ray-cast; no method is tuned on it)")
     po.add_argument("--keep", type=Path, default=None,
                     help="keep each finished subject here and, run again, go on from them (long runs)")
+    po.add_argument("--renders", type=Path, default=None, metavar="DIR",
+                    help="keep the subjects' rendered sessions here and reuse them while the simulator's code is "
+                         "unchanged: a rerun after a change to the reconstruction or the analysis costs "
+                         "calibration and processing only")
+    po.add_argument("--renders-max-gb", type=positive, default=40.0,
+                    help="the renders kept at most (GB); the least recently used are removed first")
+    po.add_argument("--subset", action="store_true",
+                    help=f"the fixed subset for use between full runs: the population's first {SUBSET_SUBJECTS} "
+                         f"subjects at scale {SUBSET_SCALE:g} (overrides --subjects and --scale)")
     po.add_argument("--no-write", action="store_true", help="print only")
 
     def run_population(args: argparse.Namespace) -> int:
@@ -487,14 +499,24 @@ def add_bench(sub: argparse._SubParsersAction) -> None:
             from app.errors import UserError
 
             raise UserError(f"{args.keep}: --keep must be a folder (the finished subjects are kept in it), this is a file")
+        if args.subset:
+            args.subjects, args.scale = SUBSET_SUBJECTS, SUBSET_SCALE
+        if args.renders is not None and args.renders.exists() and not args.renders.is_dir():
+            from app.errors import UserError
+
+            raise UserError(f"{args.renders}: --renders must be a folder (the rendered sessions are kept in it), "
+                            "this is a file")
         subjects = 2 if args.quick else args.subjects
         workers = max(1, min(subjects, args.workers or os.cpu_count() or 1))
         images = None if args.no_write or not in_checkout() else DOCS.parent / "images"
         from app.benchmarks.population import MAX_SHEEN, WORLD, population_section
 
         sheen = MAX_SHEEN if args.max_sheen is None else args.max_sheen
+        from app.benchmarks.renders import RenderCache
+
+        renders = RenderCache(args.renders, args.renders_max_gb * 1e9) if args.renders is not None else None
         text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images,
-                                       sheen, args.keep, args.world, args.bodies)
+                                       sheen, args.keep, args.world, args.bodies, renders)
         suffix = ("" if sheen == MAX_SHEEN else f" --max-sheen {sheen:g}") + (
             "" if args.world == WORLD else f" --world {args.world}") + (
             " --bodies mesh" if args.bodies == "mesh" else "")

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from app.benchmarks.renders import RenderCache
+
 # value key, label, unit, tolerance: absolute, relative (the issue's "within 3 % or 50 mL")
 VALUES = (("TV_l", "TV", "L", 0.050, 0.0), ("RR_bpm", "RR", "/min", 0.5, 0.0), ("VC_l", "VC", "L", 0.050, 0.03),
           ("FVC_l", "FVC", "L", 0.050, 0.03), ("FEV1_l", "FEV1", "L", 0.050, 0.03),
@@ -160,16 +162,33 @@ def sphere_sessions(subject: VirtualSubject, scale: float, folder: Path,
     hold = int(round(CAPTURE_SECONDS * rig.frame_rate_hz / rig.cycle_length))
     switched_on = dt.datetime.now(dt.timezone.utc).replace(microsecond=0)
     clock_s = LEDS_ON_BEFORE_S
-    paths: dict[str, list[Path]] = {}
+    paths = sphere_paths(subject, scale, folder, scenes)
     for scene in scenes:
-        for place in range(SPHERE_PLACES):
-            path = folder / f"{subject.index}-{scene}-{scale:g}-{place + 1}.h5"
+        for place, path in enumerate(paths[scene]):
             created = (switched_on + dt.timedelta(seconds=clock_s)).isoformat(timespec="seconds")
             simulate(path, _config(subject, scale, world, scene=scene, placement_only=place, placement_cycles=hold,
                                    steps=0, drop_rate=0.0, truth_maps_at=[], rig_clock_s=clock_s, created=created))
-            paths.setdefault(scene, []).append(path)
             clock_s += CAPTURE_INTERVAL_S
     return paths
+
+
+def sphere_paths(subject: VirtualSubject, scale: float, folder: Path,
+                 scenes: tuple[str, ...] = ("specular-sphere", "matte-sphere")) -> dict[str, list[Path]]:
+    """Where sphere_sessions writes the subject's sphere captures, {scene: paths}."""
+    return {scene: [folder / f"{subject.index}-{scene}-{scale:g}-{place + 1}.h5" for place in range(SPHERE_PLACES)]
+            for scene in scenes}
+
+
+def _render_subject(subject: VirtualSubject) -> dict:
+    """A subject as a render's key holds it: its standard blow by name, not by where this checkout keeps it."""
+    return {**asdict(subject), "standard": Path(subject.standard).name if subject.standard else None}
+
+
+def _config_digest(config) -> str:
+    import hashlib
+    import pickle
+
+    return hashlib.sha256(pickle.dumps(config)).hexdigest()[:16]
 
 
 def lights_truth(session: Path) -> dict[str, dict[str, np.ndarray]]:
@@ -182,12 +201,21 @@ def lights_truth(session: Path) -> dict[str, dict[str, np.ndarray]]:
                     if f"{h}/{k}" in truth} for h in s.heads}
 
 
-def calibrate_rig(subject: VirtualSubject, scale: float, folder: Path, world: str = WORLD) -> tuple[object, dict]:
+def calibrate_rig(subject: VirtualSubject, scale: float, folder: Path, world: str = WORLD,
+                  renders: RenderCache | None = None) -> tuple[object, dict]:
     """The subject's rig calibrated as a user would (core/calibration/light_sessions.py) from its specular and
     matte sphere sessions at `scale`, and the truth of its lights (lights_truth). Raises what the
-    wizard would show."""
+    wizard would show. With `renders`, the sphere sessions are taken from there, or rendered into it."""
     from core.calibration.light_sessions import calibrate_lights
 
+    if renders is not None:
+        what = {"kind": "sphere sessions", "subject": _render_subject(subject), "scale": scale, "world": world,
+                "config": _config_digest(_config(subject, scale, world)), "places": SPHERE_PLACES,
+                "interval_s": CAPTURE_INTERVAL_S, "leds_on_before_s": LEDS_ON_BEFORE_S}
+        kept, _ = renders.rendered(what, lambda into: sphere_sessions(subject, scale, into, world=world),
+                                   source_commit())
+        spheres = [p for paths in sphere_paths(subject, scale, kept).values() for p in paths]
+        return calibrate_lights(spheres)[0], lights_truth(spheres[0])
     spheres: list[Path] = []
     try:
         spheres = [p for paths in sphere_sessions(subject, scale, folder, world=world).values() for p in paths]
@@ -214,12 +242,14 @@ def light_errors(calibration, lights: dict) -> dict[str, dict[str, list[float]]]
 
 def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: str, seconds: float | None,
                 calibration_scale: float | None = None, world: str = WORLD, resume: bool = False,
-                process_workers: int = 1) -> dict:
+                process_workers: int = 1, renders: RenderCache | None = None) -> dict:
     """One subject end to end; what each stage gave or why it refused. The lights are calibrated
     from sphere sessions at calibration_scale (default: scale, but no less than CALIBRATION_SCALE).
     With `resume`, `folder` is the subject's own and keeps each finished stage's output (the lights'
     profile, the session, the results) so that a run stopped midway goes on from the last one:
-    a subject at the camera's full resolution takes longer than a working session."""
+    a subject at the camera's full resolution takes longer than a working session.
+    With `renders`, the sphere sessions and the subject's session are taken from there, or rendered
+    into it (app/benchmarks/renders.py)."""
     from core.reconstruction.process import process_session
     from core.io.results import ResultsFile, optical_inputs, optical_refusal
     from core.rig import thesis_rig
@@ -233,6 +263,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
 
     started = time.perf_counter()
     work = Path(folder)
+    work.mkdir(parents=True, exist_ok=True)
     stages_done = SubjectStages(work, {"subject": asdict(subject), "scale": scale, "world": world,
                                        "commit": source_commit()}) if resume else None
     out: dict = {"subject": asdict(subject), "stage_seconds": dict(stages_done.seconds) if stages_done else {}}
@@ -248,7 +279,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     if calibration is None:
         try:
             calibration, lights = calibrate_rig(subject, calibration_scale or max(scale, CALIBRATION_SCALE), work,
-                                                world)
+                                                world, renders)
         except Exception as exc:  # the bench reports a refusal, as a user would see it
             out["refused"] = f"light calibration: {exc}"
             return out
@@ -271,7 +302,14 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     config = _config(subject, scale, world, protocol=protocol, seconds=seconds, distance_mm=subject.distance_mm,
                      distance_back_mm=subject.distance_mm, blows=blows, compression=RECORDING_COMPRESSION)
     config = replace(config, subject=replace(config.subject, rate_variability=0.15, sigh_every=12))
-    if not (stages_done and stages_done.has("simulate subject")):
+    if renders is not None:
+        what = {"kind": "session", "subject": _render_subject(subject), "scale": scale, "world": world,
+                "protocol": protocol, "seconds": seconds, "config": _config_digest(config)}
+        kept, mark = renders.rendered(what, lambda into: simulate(into / session.name, config), source_commit())
+        session = kept / session.name
+        out["rendered_by"] = mark["commit"]
+        stages["simulate subject"] = time.perf_counter() - started - sum(stages.values())
+    elif not (stages_done and stages_done.has("simulate subject")):
         simulate(session, config)
         stages["simulate subject"] = time.perf_counter() - started - sum(stages.values())
         if stages_done:
@@ -314,7 +352,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     out["distance_errors_mm"] = [] if out["distance_refused"] else _distance_errors(session, results, after_cycles=10)
     stages["analyse"] = time.perf_counter() - started - sum(stages.values())
     out["seconds"] = sum(stages.values())
-    for path in (session, results):
+    for path in (results,) if renders is not None else (session, results):
         path.unlink(missing_ok=True)
     if stages_done:
         stages_done.clear()
@@ -521,9 +559,10 @@ def _keep(path: Path | None, row: dict) -> None:
 def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, workers: int,
                          standards: Path | None, images: Path | None,
                          max_sheen: float = MAX_SHEEN, keep: Path | None = None, world: str = WORLD,
-                         bodies: str = "parametric") -> tuple[str, list[dict]]:
+                         bodies: str = "parametric", renders: RenderCache | None = None) -> tuple[str, list[dict]]:
     """The bench's table and rows. With `keep`, each finished subject's row is kept there and a
-    later run with the same arguments takes it instead of running the subject again."""
+    later run with the same arguments takes it instead of running the subject again. With `renders`,
+    the subjects' rendered sessions are taken from there or kept there (app/benchmarks/renders.py)."""
     from app.progress import Progress
     from core.reconstruction.process import use_threads
     from core.sim.simulate import WORLDS
@@ -545,7 +584,7 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
         # one subject at a time processes its two heads at once (a Pool's workers cannot start their own)
         count = max(1, min(workers, len(population) - len(done)))
         jobs = [((s, scale, protocol, _stages_folder(keep, s, scale, world) or tmp, seconds, calibration_scale, world,
-                  keep is not None, 2 if count == 1 else 1), _kept(keep, s, scale, world))
+                  keep is not None, 2 if count == 1 else 1, renders), _kept(keep, s, scale, world))
                 for s in population if s.index not in done]
         progress(len(done) / len(population), f"{len(done)} of {len(population)} subjects")
         if count > 1:
@@ -697,7 +736,9 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
               + f". Run time {elapsed:.0f} s with "
               f"{workers} subject(s) at once on {os.cpu_count()} cores"
               + (f" ({resumed} subjects kept from an earlier run of the same bench)" if resumed else "")
-              + (f"; subjects run at commit(s) {', '.join(sorted({r.get('commit', 'unknown') for r in rows}))}")
+              + (f"; subjects processed at commit(s) {', '.join(sorted({r.get('commit', 'unknown') for r in rows}))}")
+              + (f", rendered at {', '.join(sorted({r['rendered_by'] for r in rows if 'rendered_by' in r}))}"
+                 if any("rendered_by" in r for r in rows) else "")
               + (f"; {np.median(subject_seconds):.0f} s per subject (median)." if subject_seconds else ".")]
     if pngs:
         lines += ["", "Bland-Altman plots: " + ", ".join(f"![{p.stem}](images/{p.name})" for p in pngs)]

@@ -160,3 +160,68 @@ def test_the_test_population_has_bodies_and_kept_rows_of_its_own(tmp_path, share
     rows = [{"subject": {"body": s.body, "seed": s.seed}} for s in test]
     describe_bodies(rows)
     assert rows[0]["body"]["kind"] == "makehuman mesh" and rows[0]["body"]["arms"] == "away"
+
+
+@pytest.mark.slow
+def test_a_rerun_on_kept_renders_calibrates_and_processes_only(tmp_path, shared_data, monkeypatch):
+    """With --renders, the subject's sphere sessions and session are rendered once; a rerun at the
+    same simulator code takes them (nothing simulated) and gives the same values, and the row names
+    the commit that rendered them."""
+    import core.sim.simulate as simulator
+    from app.benchmarks.population import draw_subjects, run_subject, standard_blows
+    from app.benchmarks.renders import RenderCache
+
+    subject = draw_subjects(1, 1, standard_blows(SHARED / "data" / "spirometry-waveforms"), quick=True)[0]
+    renders = RenderCache(tmp_path / "renders", 1e12)
+    first = run_subject(subject, 0.1, "short", str(tmp_path / "a"), 4.0, 0.1, renders=renders)
+    assert "truth" in first and first["rendered_by"], first.get("refused")
+    kept = renders.renders()
+    assert len(kept) == 2 and all(size > 0 for _, size, _ in kept)  # the sphere sessions, the session
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("simulated again")
+
+    monkeypatch.setattr(simulator, "simulate", no_simulation)
+    again = run_subject(subject, 0.1, "short", str(tmp_path / "b"), 4.0, 0.1, renders=renders)
+    assert again["truth"] == first["truth"] and again["optical"] == first["optical"]
+    assert {folder for _, _, folder in renders.renders()} == {folder for _, _, folder in kept}
+    assert all(folder.is_dir() for _, _, folder in kept)  # a rerun leaves the renders it used
+
+
+def test_kept_renders_are_keyed_by_the_simulator_and_pruned_least_recently_used(tmp_path, monkeypatch):
+    import os
+
+    import app.benchmarks.renders as renders_module
+    from app.benchmarks.renders import RenderCache
+
+    cache = RenderCache(tmp_path, max_bytes=2500)
+    made = []
+
+    def render(size):
+        def into(folder):
+            made.append(size)
+            (folder / "session.h5").write_bytes(b"x" * size)
+        return into
+
+    a, _ = cache.rendered({"subject": 1}, render(1000), "c1")
+    b, _ = cache.rendered({"subject": 2}, render(1000), "c1")
+    assert cache.rendered({"subject": 1}, render(1000), "c2") == (a, cache.rendered({"subject": 1}, render(1), "c3")[1])
+    assert made == [1000, 1000] and (a / "session.h5").stat().st_size == 1000
+    os.utime(b / renders_module.MARK, (1, 1))  # b used longest ago
+    c, mark = cache.rendered({"subject": 3}, render(1000), "c4")
+    assert mark["commit"] == "c4" and not b.exists() and a.exists() and c.exists()  # 3000 bytes > 2500: b went
+    (tmp_path / "not-ours").mkdir()
+    (tmp_path / "not-ours" / "data.h5").write_bytes(b"y" * 5000)
+    cache.prune()
+    assert (tmp_path / "not-ours" / "data.h5").exists()  # only renders (with their mark) are ever removed
+    monkeypatch.setattr(renders_module, "simulator_digest", lambda: "another simulator")
+    d, _ = cache.rendered({"subject": 1}, render(1000), "c5")
+    assert d != a and made[-1] == 1000  # the simulator changed: rendered again
+
+    def fails(folder):
+        (folder / "half.h5").write_bytes(b"z")
+        raise RuntimeError("render stopped")
+
+    with pytest.raises(RuntimeError):
+        cache.rendered({"subject": 9}, fails, "c6")
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # nothing half-made left
