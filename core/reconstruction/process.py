@@ -33,6 +33,7 @@ from core.io.results import ResultsFile, ResultsWriter
 from core.limits import past_limit
 from core.volume.maps import DisplacementSums, DisplacementTracker, smooth_in_time
 from core.volume.sides import bend_refusal, paired_tilts, side_profile_mm
+from core.volume.steps import maps_in_steps, step_spans_s
 
 # Work (maps times pixels) from which worker processes repay their start (docs/benchmarks.md, constants).
 AUTO_WORKERS_PIXEL_MAPS = 5e6
@@ -237,6 +238,24 @@ def sides_shown(hidden_share: np.ndarray) -> np.ndarray:
     rows hidden (by an arm, `occluded_side_share`; or cut off by the image, `side_out_of_view_share`).
     A map without the share measured counts as shown."""
     return ~(np.asarray(hidden_share, dtype=float) > MAX_OCCLUDED_SIDE_SHARE)
+
+
+def maps_left_out_words(displacements: dict, sides: dict[str, np.ndarray], in_step: dict[str, np.ndarray]) -> str:
+    """What the volume left out and why, for /@maps_left_out: the maps an arm hid the sides of and
+    the maps in a step (core/volume/steps.py), each head's share; "" when none."""
+    def shares(masks: dict[str, np.ndarray]) -> str:
+        return ", ".join(f"head {n} {100 * float(np.mean(m)):.1f} % of its maps" for n, m in masks.items())
+
+    parts = []
+    if any((~m).any() for m in sides.values()):
+        parts.append("an arm against the trunk hid its sides: " + shares({n: ~m for n, m in sides.items()}))
+    if any(m.any() for m in in_step.values()):
+        first = next(iter(displacements))
+        spans = step_spans_s(displacements[first].timestamp_ns, in_step[first]) or [
+            span for n in in_step for span in step_spans_s(displacements[n].timestamp_ns, in_step[n])]
+        at = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in spans)
+        parts.append(f"the subject stepped ({at}): " + shares(in_step))
+    return "; ".join(parts)
 
 
 def _share_of_maps(hidden: float, limit: float) -> str:
@@ -520,7 +539,9 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             if refused is not None:
                 results.refuse_optical(refused)
             bent = shading_refusal(sheen, tilts)
-            shown = {name: sides_shown(occluded[name]) for name in displacements}
+            sides = {name: sides_shown(occluded[name]) for name in displacements}
+            in_step = {name: maps_in_steps(d.timestamp_ns, d.body_shift_mm) for name, d in displacements.items()}
+            shown = {name: sides[name] & ~in_step[name] for name in displacements}
             metric = (metric_volume({n: d.of_maps(shown[n]) for n, d in displacements.items()}, rig.baseline_mm)
                       if all(counts.values()) and refused is None and all(m.any() for m in shown.values()) else None)
             for name, level in (metric.levels.items() if metric is not None else ()):
@@ -549,10 +570,9 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             if in_view:
                 compartments = tidal_compartments(session, metric)
                 metric = gapped
-                if any(not m.all() for m in shown.values()):
-                    results.attr("maps_left_out", "an arm against the trunk hid its sides: "
-                                 + ", ".join(f"head {n} {100 * float(np.mean(~m)):.1f} % of its maps"
-                                             for n, m in shown.items()))
+                left_out = maps_left_out_words(displacements, sides, in_step)
+                if left_out:
+                    results.attr("maps_left_out", left_out)
                 results.metric_volume(metric.timestamp_ns, metric.volume_l, metric.scale_from, metric.heads,
                                       metric.side_distance_mm, metric.regions, compartments, metric.head_regions)
             if volume_calibration is not None:

@@ -298,6 +298,9 @@ class DisplacementSums:
     # the trunk's widths over the reference's on the same body rows (BodySilhouette.width_ratio; 1 on
     # the reference): what the width follows where an arm joins the trunk on some rows
     width_ratio: float = float("nan")
+    # the body's shift in the image plane since the reference (mm across, mm down; the body frame's
+    # shift at the map's distance): what core/volume/steps.py finds steps in
+    body_shift_mm: tuple[float, float] = (float("nan"), float("nan"))
 
 
 def _row_edges(mask: np.ndarray, width: int):
@@ -713,6 +716,7 @@ class DisplacementTracker:
             self._reference = (np.where(valid, depth_mm, np.nan), valid, footprint, regions)
             self._reference_width = width
             self._reference_distance = float(distance_mm) if known else float("nan")
+            self._reference_depth_mm = float(np.median(depth_mm[valid]))
             self._silhouette = BodySilhouette(valid, row_widths, self.head, silhouette)
             self._band_px = rim_band_px(depth_mm, valid, self.head, self.rim_band_mm)
             self._skip_px = rim_skip_px(depth_mm, valid, self.head)
@@ -730,6 +734,8 @@ class DisplacementTracker:
             frame, width = self._gated(self._silhouette.frame(valid, row_widths, width / self._reference_width),
                                        valid, row_widths, width)
         width_ratio = self._silhouette.width_ratio(row_widths, frame)
+        at_mm = float(distance_mm) if known else self._reference_depth_mm / frame.scale
+        body_shift_mm = (frame.shift_u_px * at_mm / self.head.fx, frame.shift_v_px * at_mm / self.head.fy)
         z = frame.resampled(depth_mm, valid, ref_mask.shape, self.head)
         both = ref_mask & np.isfinite(z)
         _, rim = rim_depths(ref_depth, z, both, self._band_px, self._skip_px)
@@ -743,7 +749,8 @@ class DisplacementTracker:
                                 {k: float(current[m].sum()) for k, m in parts.items()},
                                 {k: float(area[m].sum()) for k, m in parts.items()},
                                 {k: float(displaced[m].sum()) for k, m in parts.items()},
-                                (level_ref, level), self._rim.edge_statistics(z - ref_depth, both), width_ratio)
+                                (level_ref, level), self._rim.edge_statistics(z - ref_depth, both), width_ratio,
+                                body_shift_mm)
         return sums
 
 

@@ -122,6 +122,11 @@ class HeadDisplacements:
         return current + self._own_level_over_session_mm * self.series("areas", region)
 
     @property
+    def body_shift_mm(self) -> np.ndarray:
+        """(maps, 2) the body's in-plane shift since the reference (DisplacementSums.body_shift_mm)."""
+        return np.array([s.body_shift_mm for s in self.sums], dtype=float).reshape(-1, 2)
+
+    @property
     def side_mm(self) -> np.ndarray:
         return np.array([s.side_mm for s in self.sums], dtype=float)
 

@@ -1,0 +1,75 @@
+"""Steps: the maps a subject's step spoils, found from the body's own motion in the image.
+
+A step (20-100 mm within half a second) moves the whole body faster than postural sway does. Its
+maps are spoilt twice: the four lights of one cycle see the body at four places, and the motion
+compensation draws a straight line between cycles across the step (core/reconstruction/cycle.py).
+Each map's body frame (core/volume/maps.py, BodySilhouette) carries the body's shift in the image
+plane since the reference map; where its speed passes STEP_SPEED_MM_S the maps are left out, with
+their neighbours within STEP_MARGIN_S, as maps an arm hides are: not bridged, not referred to.
+The motion along the axis is followed by the two heads' distances (core/volume/metric.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage, signal
+
+# In-plane body speed (mm/s) above which a map is in a step. Postural sway moves the trunk sideways by
+# at most 15 mm at up to 0.25 Hz (about 24 mm/s at its fastest); a step of 20 mm within 0.5 s peaks at
+# 60 mm/s. Measured on a mesh body in the clinic world: 3-10 mm/s from map to map without a step,
+# 65-170 mm/s in its steps (docs/volume.md, "Steps").
+STEP_SPEED_MM_S = 40.0
+# The shifts are smoothed by a running median over this much time (a map whose frame is misplaced by
+# its cycle's motion stands out of its neighbours for one map), and their speed is the slope of a line
+# fitted over as long (Savitzky-Golay): with 0.8 mm of noise a map, sway reads at most 23 mm/s.
+SHIFT_MEDIAN_S = 0.2
+# Maps this close to a map in a step are left out too: their cycles and the neighbour cycles their
+# motion compensation reads overlap the step's slower start and end.
+STEP_MARGIN_S = 0.1
+
+
+def _odd_count(seconds: np.ndarray, window_s: float) -> int:
+    step = float(np.median(np.diff(seconds))) if len(seconds) > 1 else window_s
+    count = int(round(window_s / step)) if step > 0 else 1
+    return max(3, count | 1)
+
+
+def maps_in_steps(timestamp_ns: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
+    """Per map, whether it lies in a step: the body's in-plane shift (maps, 2) in mm since the
+    reference, its running median over SHIFT_MEDIAN_S moving faster than STEP_SPEED_MM_S, widened by
+    STEP_MARGIN_S each way. Maps without a shift (NaN) are judged by their neighbours' times."""
+    seconds = np.asarray(timestamp_ns, dtype=float) / 1e9
+    shift = np.asarray(shift_mm, dtype=float).reshape(len(seconds), 2)
+    moving = np.zeros(len(seconds), dtype=bool)
+    good = np.isfinite(shift).all(axis=1)
+    if good.sum() < 3:
+        return moving
+    times = seconds[good]
+    size = _odd_count(times, SHIFT_MEDIAN_S)
+    smooth = np.stack([ndimage.median_filter(shift[good, k], size, mode="nearest") for k in range(2)], axis=1)
+    period = float(np.median(np.diff(times)))
+    if len(times) < size or period <= 0:
+        return moving
+    speed = np.hypot(*signal.savgol_filter(smooth, size, 1, deriv=1, delta=period, axis=0, mode="interp").T)
+    fast = times[speed > STEP_SPEED_MM_S]
+    if not len(fast):
+        return moving
+    nearest = np.abs(seconds[:, None] - fast[None, :]).min(axis=1)
+    return nearest <= STEP_MARGIN_S
+
+
+def step_spans_s(timestamp_ns: np.ndarray, in_step: np.ndarray) -> list[tuple[float, float]]:
+    """The (start, end) times in s since the first map of each run of maps in a step."""
+    seconds = (np.asarray(timestamp_ns, dtype=float) - float(timestamp_ns[0])) / 1e9 if len(timestamp_ns) else []
+    spans, start = [], None
+    for t, inside in zip(seconds, np.asarray(in_step, dtype=bool)):
+        if inside and start is None:
+            start = t
+        if inside:
+            end = t
+        elif start is not None:
+            spans.append((start, end))
+            start = None
+    if start is not None:
+        spans.append((start, end))
+    return spans
