@@ -87,17 +87,37 @@ class SubjectCalibration:
         return f"optical, calibrated on the subject (residual {1000 * self.residual_l:.0f} mL)"
 
 
+# Maps further apart than this (a step or an arm left them out: core/volume/steps.py) start a new stretch
+# with its own offset in the fit: the optical signal's level across such a gap is not known (a mesh
+# body read 0.35 L higher after a 36 mm step sideways; docs/volume.md, "Steps").
+MAX_BRIDGE_S = 0.3
+
+
+def stretches(t_s: np.ndarray) -> np.ndarray:
+    """Each map's stretch number: maps more than MAX_BRIDGE_S apart (or three of the maps' usual
+    intervals, where they are sparser) begin a new stretch."""
+    steps = np.diff(np.asarray(t_s, dtype=float))
+    if not len(steps):
+        return np.zeros(len(t_s), dtype=int)
+    bridge = max(MAX_BRIDGE_S, 3.0 * float(np.median(steps)))
+    return np.r_[0, np.cumsum(steps > bridge)].astype(int)
+
+
 def _design(t_s: np.ndarray, signals: np.ndarray) -> np.ndarray:
+    """The signals, an offset for each stretch (stretches) and one linear trend."""
     centred = t_s - t_s.mean()
-    return np.column_stack([signals, np.ones_like(t_s), centred])
+    stretch = stretches(t_s)
+    offsets = (stretch[:, None] == np.unique(stretch)[None, :]).astype(float)
+    return np.column_stack([signals, offsets, centred])
 
 
 def _fit(t_s: np.ndarray, signals: np.ndarray, flow_l: np.ndarray) -> np.ndarray:
-    """Gains (non-negative) then offset and trend, least squares."""
+    """Gains (non-negative) then each stretch's offset and the trend, least squares."""
+    design = _design(t_s, signals)
     k = signals.shape[1]
-    lower = np.r_[np.zeros(k), -np.inf, -np.inf]
-    upper = np.full(k + 2, np.inf)
-    return lsq_linear(_design(t_s, signals), flow_l, bounds=(lower, upper), method="bvls").x
+    lower = np.r_[np.zeros(k), np.full(design.shape[1] - k, -np.inf)]
+    upper = np.full(design.shape[1], np.inf)
+    return lsq_linear(design, flow_l, bounds=(lower, upper), method="bvls").x
 
 
 # The regional signals' groupings the calibration chooses between, simplest first: each signal's group

@@ -71,3 +71,20 @@ def test_regional_signals_are_each_head_s_chest_and_abdomen():
     signals = regional_signals({"front": quadrants, "back": quadrants})
     assert set(signals) == {"front chest", "front abdomen", "back chest", "back abdomen"}
     assert signals["front chest"].tolist() == [3.0] * 3 and signals["back abdomen"].tolist() == [7.0] * 3
+
+
+def test_a_step_s_offset_in_the_optical_signal_is_not_taken_for_breath():
+    """The optical signal's level moves across a gap the step left (maps left out, core/volume/steps.py):
+    each stretch between gaps has its own offset in the fit, so the gain stays the breath's; one offset
+    for the whole segment would bend the gain to fit the jump."""
+    from core.volume.subject_calibration import fit_subject_calibration
+
+    t = np.arange(0.0, 30.0, 5 / 110)
+    breath = 0.25 * np.sin(2 * np.pi * t / 4.0) + 1.5 * np.exp(-0.5 * ((t - 24.0) / 2.0) ** 2)  # tidal, a VC
+    step = (t > 10.0) & (t < 10.6)
+    optical = breath / 1.2 + np.where(t >= 10.6, 0.4, 0.0)  # the step lifted the level by 0.4 L
+    optical[step] = np.nan
+    calibration = fit_subject_calibration(t, {"front chest": optical}, t, breath, (0.0, 30.0))
+    assert calibration.refused is None, calibration.refused
+    assert calibration.gains["front chest"] == pytest.approx(1.2, rel=0.01)
+    assert calibration.residual_l < 0.005
