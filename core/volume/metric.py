@@ -33,6 +33,7 @@ from core.analysis.values import curve_noise_l, tidal_stretches, tidal_values, t
 from core.limits import past_limit
 from core.volume.compartments import compartment_shares, phase_angle_deg
 from core.rig import Head
+from core.volume.steps import StepWatch
 from core.volume.maps import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l,
                               metric_head_volume_l, row_widths_px, smooth_in_time, trunk_width_px,
                               two_head_distances)
@@ -468,6 +469,7 @@ class LiveMetricVolume:
         self._volume = {name: 0.0 for name in heads}
         self._regions: dict[str, dict[str, float]] = {}  # each head's quadrants as its last map gave them
         self._geometric: dict[str, float] = {}  # each head's subject distance from the two heads' geometry
+        self._steps = {name: StepWatch() for name in heads}  # a step's maps give no volume (core/volume/steps.py)
 
     def _smoothed(self, name: str, t_s: float, value: float, time_constant_s: float) -> float:
         if name in self._target:
@@ -515,6 +517,10 @@ class LiveMetricVolume:
             if np.isfinite(sums.width_ratio) and np.isfinite(sums.width_px) and sums.width_ratio > 0:
                 self._reference_widths[name].append(sums.width_px / sums.width_ratio)
                 self._robust_width[name] = sums.width_ratio * float(np.median(self._reference_widths[name]))
+            if self._steps[name].moving(t_s, sums.body_shift_mm):  # the other head's sum too, until it ends
+                self._volume[name] = float("nan")
+                self._regions[name] = {r: float("nan") for r in REGIONS}
+                return float("nan")
             if not np.isfinite(sums.side_mm) or "all" not in sums.reference:
                 return float("nan")
             reference_side = self._reference_side.setdefault(name, sums.side_mm)  # the first is the reference

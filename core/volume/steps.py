@@ -73,3 +73,26 @@ def step_spans_s(timestamp_ns: np.ndarray, in_step: np.ndarray) -> list[tuple[fl
     if start is not None:
         spans.append((start, end))
     return spans
+
+
+class StepWatch:
+    """maps_in_steps for the live view, causally: each map's in-plane shift (mm) and time in; whether the
+    body moves faster than STEP_SPEED_MM_S (the slope of a line over the shifts of the last SHIFT_MEDIAN_S)
+    or did within the last STEP_MARGIN_S."""
+
+    def __init__(self) -> None:
+        self._times: list[float] = []
+        self._shifts: list[tuple[float, float]] = []
+        self._until_s = float("-inf")
+
+    def moving(self, t_s: float, shift_mm: tuple[float, float]) -> bool:
+        if all(np.isfinite(shift_mm)):
+            self._times.append(float(t_s))
+            self._shifts.append((float(shift_mm[0]), float(shift_mm[1])))
+            while self._times and self._times[0] < t_s - SHIFT_MEDIAN_S:
+                del self._times[0], self._shifts[0]
+            if len(self._times) >= 3 and self._times[-1] > self._times[0]:
+                slope = np.polyfit(np.asarray(self._times) - self._times[0], np.asarray(self._shifts), 1)[0]
+                if float(np.hypot(*slope)) > STEP_SPEED_MM_S:
+                    self._until_s = t_s + STEP_MARGIN_S
+        return t_s <= self._until_s

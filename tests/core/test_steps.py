@@ -83,3 +83,26 @@ def test_the_body_frame_follows_a_step_sideways_on_true_maps_and_only_the_step_i
     found = maps_in_steps(stamps, shift)
     assert found[(seconds > 2.15) & (seconds < 2.35)].all()
     assert not found[(seconds < 1.8) | (seconds > 2.7)].any()
+
+
+def test_the_live_view_blanks_a_step_as_it_happens_and_not_sway():
+    """StepWatch, causal: the maps where the body moves sideways fast are blanked as they come (lagging by
+    about 0.1 s, the line's half-width), sway is not."""
+    from core.volume.steps import StepWatch
+
+    seconds = np.arange(0.0, 30.0, MAP_PERIOD_S)
+    swaying = Sway(seed=4)
+    stepping = Sway(seed=4, steps=3, steps_span_s=30.0)
+    for sway, steps in ((swaying, False), (stepping, True)):
+        watch = StepWatch()
+        shift = shifts(seconds, sway, 0.8)
+        blanked = np.array([watch.moving(t, tuple(s)) for t, s in zip(seconds, shift)])
+        if not steps:
+            assert not blanked.any()
+            continue
+        fast = np.abs(np.gradient(stepping.at(seconds)[:, 0] - swaying.at(seconds)[:, 0], seconds)) > 45.0
+        # causal, it lags by about a tenth of a second: from its fastest maps on, and some of every step
+        runs = np.split(np.flatnonzero(fast), np.flatnonzero(np.diff(np.flatnonzero(fast)) > 1) + 1)
+        assert all(blanked[run].any() for run in runs)
+        assert blanked[fast].mean() >= 0.6
+        assert blanked.mean() < 0.1
