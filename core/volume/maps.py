@@ -771,6 +771,13 @@ def metric_head_volume_l(reference: np.ndarray, current: np.ndarray, side_mm: np
     return head_volume_l(reference, current, k0, k)
 
 
+def maps_within(seconds: np.ndarray, window_s: float) -> int:
+    """How many maps of a series (times in s, nearly even) a running median over window_s takes: an odd
+    number, 3 at least."""
+    step = float(np.median(np.diff(seconds)))
+    return max(3, int(round(window_s / step)) | 1) if step > 0 else 3
+
+
 def smooth_in_time(t_s: np.ndarray, values: np.ndarray, sigma_s: float) -> np.ndarray:
     """Gaussian smoothing of a series in time (sigma in s); NaNs bridged by interpolation. On (nearly)
     even steps a Gaussian filter over the samples; on a series that holds a stretch of samples much

@@ -34,7 +34,7 @@ from core.limits import past_limit
 from core.volume.compartments import compartment_shares, phase_angle_deg
 from core.rig import Head
 from core.volume.steps import StepWatch
-from core.volume.maps import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l,
+from core.volume.maps import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l, maps_within,
                               metric_head_volume_l, row_widths_px, smooth_in_time, trunk_width_px,
                               two_head_distances)
 
@@ -63,13 +63,6 @@ MAX_MAP_NOISE_L = 0.05
 JUMP_WINDOW_S = 0.4
 JUMP_L = 0.1
 MAX_JUMP_SHARE = 0.01
-
-
-def maps_within(seconds: np.ndarray, window_s: float) -> int:
-    """How many maps of a series (times in s, nearly even) a running median over window_s takes: an odd
-    number, 3 at least."""
-    step = float(np.median(np.diff(seconds)))
-    return max(3, int(round(window_s / step)) | 1) if step > 0 else 3
 
 
 def jump_share(timestamp_ns: np.ndarray, volume_l: np.ndarray) -> tuple[float, float]:

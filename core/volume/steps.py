@@ -14,10 +14,12 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage, signal
 
+from core.volume.maps import maps_within
+
 # In-plane body speed (mm/s) above which a map is in a step. Postural sway moves the trunk sideways by
 # at most 15 mm at up to 0.25 Hz (about 24 mm/s at its fastest); a step of 20 mm within 0.5 s peaks at
-# 60 mm/s. Measured on a mesh body in the clinic world: 3-10 mm/s from map to map without a step,
-# 65-170 mm/s in its steps (docs/volume.md, "Steps").
+# 60 mm/s. Measured on a mesh body in the clinic world (about 2.6 mm a pixel): at most about 11 mm/s
+# without a step, 65-170 mm/s in its steps (docs/volume.md, "Steps").
 STEP_SPEED_MM_S = 40.0
 # The shifts are smoothed by a running median over this much time (a map whose frame is misplaced by
 # its cycle's motion stands out of its neighbours for one map), and their speed is the slope of a line
@@ -26,12 +28,6 @@ SHIFT_MEDIAN_S = 0.2
 # Maps this close to a map in a step are left out too: their cycles and the neighbour cycles their
 # motion compensation reads overlap the step's slower start and end.
 STEP_MARGIN_S = 0.1
-
-
-def _odd_count(seconds: np.ndarray, window_s: float) -> int:
-    step = float(np.median(np.diff(seconds))) if len(seconds) > 1 else window_s
-    count = int(round(window_s / step)) if step > 0 else 1
-    return max(3, count | 1)
 
 
 def maps_in_steps(timestamp_ns: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
@@ -45,7 +41,7 @@ def maps_in_steps(timestamp_ns: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
     if good.sum() < 3:
         return moving
     times = seconds[good]
-    size = _odd_count(times, SHIFT_MEDIAN_S)
+    size = maps_within(times, SHIFT_MEDIAN_S)
     smooth = np.stack([ndimage.median_filter(shift[good, k], size, mode="nearest") for k in range(2)], axis=1)
     period = float(np.median(np.diff(times)))
     if len(times) < size or period <= 0:
@@ -61,18 +57,9 @@ def maps_in_steps(timestamp_ns: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
 def step_spans_s(timestamp_ns: np.ndarray, in_step: np.ndarray) -> list[tuple[float, float]]:
     """The (start, end) times in s since the first map of each run of maps in a step."""
     seconds = (np.asarray(timestamp_ns, dtype=float) - float(timestamp_ns[0])) / 1e9 if len(timestamp_ns) else []
-    spans, start = [], None
-    for t, inside in zip(seconds, np.asarray(in_step, dtype=bool)):
-        if inside and start is None:
-            start = t
-        if inside:
-            end = t
-        elif start is not None:
-            spans.append((start, end))
-            start = None
-    if start is not None:
-        spans.append((start, end))
-    return spans
+    edges = np.diff(np.concatenate([[0], np.asarray(in_step, dtype=np.int8), [0]]))
+    return [(float(seconds[a]), float(seconds[b - 1])) for a, b in zip(np.flatnonzero(edges == 1),
+                                                                        np.flatnonzero(edges == -1))]
 
 
 class StepWatch:
