@@ -349,6 +349,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
         metric = r.metric_volume()
     if calibrated and metric is not None:  # the same session read as if it had no calibration
         out["estimate"] = _numbers(estimate_values(session, metric).parameters())
+    out["groupings"] = grouping_values(session, results)
     out["distance_errors_mm"] = [] if out["distance_refused"] else _distance_errors(session, results, after_cycles=10)
     stages["analyse"] = time.perf_counter() - started - sum(stages.values())
     out["seconds"] = sum(stages.values())
@@ -357,6 +358,42 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     if stages_done:
         stages_done.clear()
         work.rmdir()
+    return out
+
+
+def grouping_values(session: Path, results: Path) -> dict[str, dict]:
+    """The session's optical values calibrated on the subject in each grouping of the regional signals
+    (core/volume/subject_calibration.py, GROUPINGS) and as the calibration chooses ("chosen"), all read
+    from the light cycles' maps alike (no maps at every frame through the blows): which grouping carries
+    from the calibration to the later manoeuvres, measured on both populations. {} without a calibration."""
+    from core.analysis.session_analysis import session_flow_volume
+    from core.analysis.values import analyse_volume
+    from core.io.results import ResultsFile
+    from core.io.session import SessionFile
+    from core.volume.subject_calibration import (GROUPINGS, calibration_segment, fit_subject_calibration,
+                                                 regional_signals)
+
+    with ResultsFile(results) as r:
+        metric, head_regions = r.metric_volume(), r.head_regions()
+    if metric is None or not head_regions:
+        return {}
+    with SessionFile(session) as s:
+        start = s.start_ns()
+        events = sorted(((t - start) / 1e9, label) for t, label in s.events())
+        age = s.subject.age_years if s.subject is not None else None
+        flow = session_flow_volume(s, events)
+    segment = None if flow is None or flow.refused is not None else calibration_segment(events, float(flow.t_s[-1]))
+    if segment is None:
+        return {}
+    t = (np.asarray(metric[0], dtype=np.int64) - start) / 1e9
+    signals = regional_signals(head_regions)
+    out = {}
+    for name, groupings in [("chosen", tuple(GROUPINGS))] + [(g, (g,)) for g in GROUPINGS]:
+        calibration = fit_subject_calibration(t, signals, flow.t_s, flow.volume_l, segment, groupings)
+        values = {} if calibration.refused else _numbers(
+            analyse_volume(t, calibration.volume_l(signals), events, age, fitted=True).parameters())
+        out[name] = {"values": values, "refused": calibration.refused, "gains": calibration.gains,
+                     "grouping": calibration.extra.get("grouping"), "expected_error": calibration.expected_error}
     return out
 
 
@@ -740,9 +777,43 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
               + (f", rendered at {', '.join(sorted({r['rendered_by'] for r in rows if 'rendered_by' in r}))}"
                  if any("rendered_by" in r for r in rows) else "")
               + (f"; {np.median(subject_seconds):.0f} s per subject (median)." if subject_seconds else ".")]
+    lines += grouping_lines(rows)
     if pngs:
         lines += ["", "Bland-Altman plots: " + ", ".join(f"![{p.stem}](images/{p.name})" for p in pngs)]
     return "\n".join(lines)
+
+
+GROUPING_VALUES = ("TV_l", "VC_l", "FVC_l", "FEV1_l", "FEV1_FVC")
+
+
+def grouping_lines(rows: list[dict]) -> list[str]:
+    """The subject's calibration in each grouping of the regional signals against the truth: per grouping
+    and value, the subjects given, the median and the worst error (%) and the share within tolerance."""
+    from core.volume.subject_calibration import GROUPINGS
+
+    fitted = [r for r in rows if r.get("groupings")]
+    if not fitted:
+        return []
+    tolerances = {key: (absolute, relative) for key, _, _, absolute, relative in VALUES}
+    labels = {key: label for key, label, *_ in VALUES}
+    lines = ["", f"The subject's calibration in each grouping of the regional signals (core/volume/subject_calibration.py), "
+             f"{len(fitted)} subjects with one; every value read from the light cycles' maps alike, so the chosen "
+             "grouping's PEF and FEV1 here may differ from the table above. Error: optical minus truth, % of the truth.",
+             "", "| grouping | " + " | ".join(f"{labels[k]}: n, median, worst, within" for k in GROUPING_VALUES) + " |",
+             "|---|" + "---|" * len(GROUPING_VALUES)]
+    for grouping in ("chosen", *GROUPINGS):
+        cells = []
+        for key in GROUPING_VALUES:
+            pairs = [(r["groupings"][grouping]["values"][key], r["truth"][key]) for r in fitted
+                     if key in r["groupings"].get(grouping, {}).get("values", {}) and key in r.get("truth", {})]
+            if not pairs:
+                cells.append("none")
+                continue
+            errors = np.array([100 * (m - t) / t for m, t in pairs])
+            share = np.mean([within(m, t, *tolerances[key]) for m, t in pairs])
+            cells.append(f"{len(pairs)}, {np.median(errors):+.1f}, {errors[np.argmax(np.abs(errors))]:+.1f}, {share:.0%}")
+        lines.append(f"| {grouping} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def calibration_cell(calibration: dict) -> str:

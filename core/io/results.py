@@ -188,6 +188,13 @@ class ResultsFile:
         return ((f["metric_volume/timestamp_ns"][:], f["metric_volume/volume_l"][:].astype(float))
                 if "metric_volume" in f else None)
 
+    def head_regions(self) -> dict[str, dict[str, np.ndarray]]:
+        """Each head's trunk quadrants on the metric volume's times, {head: {region: litres}}; {} without."""
+        heads = self._f.get("metric_volume/heads", {})
+        return {name: {region: heads[f"{name}/regions/{region}/volume_l"][:].astype(float)
+                       for region in heads[f"{name}/regions"]}
+                for name in heads if "regions" in heads[name]}
+
     @property
     def optical_refused(self) -> str | None:
         reason = self._f.attrs.get("optical_refused")

@@ -131,10 +131,11 @@ SELECTION_MARGIN = 0.9
 
 
 def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray], flow_t_s: np.ndarray,
-                            flow_volume_l: np.ndarray, segment_s: tuple[float, float]) -> SubjectCalibration:
+                            flow_volume_l: np.ndarray, segment_s: tuple[float, float],
+                            groupings: tuple[str, ...] = tuple(GROUPINGS)) -> SubjectCalibration:
     """The least squares of the flow sensor's volume on the regional signals over `segment_s` (times in
-    seconds on one clock), in the grouping (GROUPINGS) that predicts the segment's parts left out of the
-    fit best. Refused (the reason in `refused`) where the fit is poor."""
+    seconds on one clock), in the grouping of `groupings` (GROUPINGS' names, simplest first) that predicts
+    the segment's parts left out of the fit best. Refused (the reason in `refused`) where the fit is poor."""
     names = list(signals)
     t = np.asarray(map_t_s, dtype=float)
     x = np.column_stack([np.asarray(signals[n], dtype=float) for n in names]) if names else np.zeros((len(t), 0))
@@ -153,7 +154,8 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
     y = np.interp(t, flow_t, np.asarray(flow_volume_l, dtype=float))
     range_l = float(np.ptp(y))
     chosen, tried = None, set()
-    for grouping, group_of in GROUPINGS.items():
+    for grouping in groupings:
+        group_of = GROUPINGS[grouping]
         groups = sorted({group_of(n) for n in names})
         members = np.array([[group_of(n) == g for g in groups] for n in names], dtype=float)  # names x groups
         if members.tobytes() in tried:  # one head: its chest and abdomen are its regions

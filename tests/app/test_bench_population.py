@@ -101,6 +101,27 @@ def test_the_table_tallies_why_the_optical_values_were_refused():
     assert refusal_tally([{}]) == ""
 
 
+def test_the_table_sets_the_calibration_s_groupings_against_the_truth():
+    from app.benchmarks.population import grouping_lines
+
+    truth = {"TV_l": 0.5, "VC_l": 4.0, "FVC_l": 4.0, "FEV1_l": 3.0, "FEV1_FVC": 0.75}
+
+    def row(scale_one, scale_two):
+        return {"truth": truth, "groupings": {
+            "chosen": {"values": {k: scale_two * v for k, v in truth.items()}},
+            "one gain": {"values": {k: scale_one * v for k, v in truth.items()}},
+            "chest and abdomen": {"values": {k: scale_two * v for k, v in truth.items()}},
+            "each region": {"values": {}, "refused": "the front chest signal would be weighed 7.0 times"}}}
+
+    lines = grouping_lines([row(1.01, 1.10), row(0.98, 1.20), {"truth": truth, "groupings": {}}])
+    table = {line.split(" | ")[0].strip("| "): line for line in lines if line.startswith("| ")}
+    assert "2 subjects with one" in "\n".join(lines)
+    assert table["one gain"].split(" | ")[1] == "2, -0.5, -2.0, 100%"  # TV: n, median, worst, within 3 % or 50 mL
+    assert table["chest and abdomen"].split(" | ")[3] == "2, +15.0, +20.0, 0%"  # FVC
+    assert table["each region"].endswith("| none | none | none | none | none |")
+    assert grouping_lines([{"truth": truth}]) == []
+
+
 @pytest.mark.slow
 def test_a_subject_stopped_midway_goes_on_from_its_last_finished_stage(tmp_path, shared_data, monkeypatch):
     """At the camera's full resolution a subject takes longer than a working session: with `keep`

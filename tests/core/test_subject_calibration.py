@@ -41,6 +41,21 @@ def test_the_fit_finds_each_region_s_gain_and_ignores_an_offset_and_a_drift():
     assert "calibrated on the subject (residual" in c.label()
 
 
+def test_a_grouping_asked_for_is_the_one_fitted():
+    t, chest, abdomen = _breathing(36.0)
+    rng = np.random.default_rng(3)
+    seen = {"front chest": chest / 1.6 + 0.004 * rng.standard_normal(len(t)),
+            "front abdomen": abdomen / 1.1 + 0.004 * rng.standard_normal(len(t))}
+    flow_t = np.arange(0.0, 36.0, 0.001)
+    flow = np.interp(flow_t, t, chest + abdomen)
+    chosen = fit_subject_calibration(t, seen, flow_t, flow, (0.0, 36.0))
+    one = fit_subject_calibration(t, seen, flow_t, flow, (0.0, 36.0), groupings=("one gain",))
+    assert chosen.extra["grouping"] != "one gain" and one.extra["grouping"] == "one gain"
+    assert one.gains["front chest"] == one.gains["front abdomen"]
+    assert 1.1 < one.gains["front chest"] < 1.6  # between the two regions' own
+    assert one.residual_l > chosen.residual_l
+
+
 def test_a_signal_that_does_not_follow_the_flow_sensor_is_refused_with_what_to_do():
     t, chest, abdomen = _breathing(36.0)
     rng = np.random.default_rng(4)
