@@ -201,21 +201,38 @@ def lights_truth(session: Path) -> dict[str, dict[str, np.ndarray]]:
                     if f"{h}/{k}" in truth} for h in s.heads}
 
 
+LIGHTS_PROFILE, LIGHTS_TRUTH = "lights.json", "lights-truth.json"  # a kept light calibration's files
+
+
 def calibrate_rig(subject: VirtualSubject, scale: float, folder: Path, world: str = WORLD,
                   renders: RenderCache | None = None) -> tuple[object, dict]:
     """The subject's rig calibrated as a user would (core/calibration/light_sessions.py) from its specular and
     matte sphere sessions at `scale`, and the truth of its lights (lights_truth). Raises what the
-    wizard would show. With `renders`, the sphere sessions are taken from there, or rendered into it."""
+    wizard would show. With `renders`, the calibration is taken from there, or made from the sphere sessions
+    kept there (rendered into it first where they are not) and kept."""
     from core.calibration.light_sessions import calibrate_lights
 
     if renders is not None:
+        from app.benchmarks.renders import CALIBRATION_SOURCES, code_digest
+        from core.calibration.rig_profile import load_profile
+
         what = {"kind": "sphere sessions", "subject": _render_subject(subject), "scale": scale, "world": world,
                 "config": _config_digest(_config(subject, scale, world)), "places": SPHERE_PLACES,
                 "interval_s": CAPTURE_INTERVAL_S, "leds_on_before_s": LEDS_ON_BEFORE_S}
-        kept, _ = renders.rendered(what, lambda into: sphere_sessions(subject, scale, into, world=world),
-                                   source_commit())
-        spheres = [p for paths in sphere_paths(subject, scale, kept).values() for p in paths]
-        return calibrate_lights(spheres)[0], lights_truth(spheres[0])
+
+        def calibrate(into: Path) -> None:
+            kept, _ = renders.rendered(what, lambda folder: sphere_sessions(subject, scale, folder, world=world),
+                                       source_commit())
+            spheres = [p for paths in sphere_paths(subject, scale, kept).values() for p in paths]
+            calibrate_lights(spheres)[0].save(into / LIGHTS_PROFILE)
+            lights = {h: {k: v.tolist() for k, v in t.items()} for h, t in lights_truth(spheres[0]).items()}
+            (into / LIGHTS_TRUTH).write_text(json.dumps(lights))
+
+        calibrated = {"kind": "light calibration", "spheres": what, "code": code_digest(CALIBRATION_SOURCES)}
+        kept, _ = renders.rendered(calibrated, calibrate, source_commit())
+        lights = json.loads((kept / LIGHTS_TRUTH).read_text())
+        return (load_profile(kept / LIGHTS_PROFILE),
+                {h: {k: np.asarray(v) for k, v in t.items()} for h, t in lights.items()})
     spheres: list[Path] = []
     try:
         spheres = [p for paths in sphere_sessions(subject, scale, folder, world=world).values() for p in paths]

@@ -1,6 +1,8 @@
 """Rendered sessions kept for the population bench (`bench population --renders DIR`): a subject's
 sphere sessions and its protocol, keyed by everything that sets them, so that a rerun after a change
-to the reconstruction, the volume or the analysis costs calibration and processing only.
+to the reconstruction, the volume or the analysis costs calibration and processing only. The light
+calibration made from the sphere sessions is kept the same way, keyed by them and by the code that
+calibrates (CALIBRATION_SOURCES): a change to the volume or the analysis costs processing only.
 
 A render is one folder DIR/<key>/ holding the session files and `rendered.json` (what was rendered,
 by which commit); it is made under a temporary name and renamed when whole, so a run stopped midway
@@ -24,12 +26,23 @@ MARK = "rendered.json"
 SIMULATOR_SOURCES = ("core/sim", "core/rig.py", "core/io/session.py", "core/io/outputs.py")
 
 
+# what sets a light calibration besides its sphere sessions: the calibration, the reconstruction it runs
+# on the spheres, and the readers of the session and the rig
+CALIBRATION_SOURCES = ("core/calibration", "core/reconstruction", "core/io", "core/rig.py")
+
+
 @functools.cache
 def simulator_digest() -> str:
     """A digest of the simulator's code (SIMULATOR_SOURCES): a render is reused only by the code that made it."""
+    return code_digest(SIMULATOR_SOURCES)
+
+
+@functools.cache
+def code_digest(sources: tuple[str, ...]) -> str:
+    """A digest of the code in `sources` (folders and files of the checkout, their Python files)."""
     root = Path(__file__).resolve().parents[2]
     digest = hashlib.sha256()
-    for source in SIMULATOR_SOURCES:
+    for source in sources:
         path = root / source
         files = sorted(path.rglob("*.py")) if path.is_dir() else [path]
         for file in files:

@@ -185,9 +185,12 @@ def test_the_test_population_has_bodies_and_kept_rows_of_its_own(tmp_path, share
 
 @pytest.mark.slow
 def test_a_rerun_on_kept_renders_calibrates_and_processes_only(tmp_path, shared_data, monkeypatch):
-    """With --renders, the subject's sphere sessions and session are rendered once; a rerun at the
-    same simulator code takes them (nothing simulated) and gives the same values, and the row names
-    the commit that rendered them."""
+    """With --renders, the subject's sphere sessions, its light calibration and its session are made once;
+    a rerun at the same code takes them (nothing simulated or calibrated) and gives the same values, and
+    the row names the commit that rendered them. A change to the calibrating code calibrates again from
+    the kept sphere sessions."""
+    import app.benchmarks.renders as renders_module
+    import core.calibration.light_sessions as light_sessions
     import core.sim.simulate as simulator
     from app.benchmarks.population import draw_subjects, run_subject, standard_blows
     from app.benchmarks.renders import RenderCache
@@ -197,16 +200,26 @@ def test_a_rerun_on_kept_renders_calibrates_and_processes_only(tmp_path, shared_
     first = run_subject(subject, 0.1, "short", str(tmp_path / "a"), 4.0, 0.1, renders=renders)
     assert "truth" in first and first["rendered_by"], first.get("refused")
     kept = renders.renders()
-    assert len(kept) == 2 and all(size > 0 for _, size, _ in kept)  # the sphere sessions, the session
+    assert len(kept) == 3 and all(size > 0 for _, size, _ in kept)  # the sphere sessions, the lights, the session
 
     def no_simulation(*args, **kwargs):
         raise AssertionError("simulated again")
 
+    calibrate_lights = light_sessions.calibrate_lights
     monkeypatch.setattr(simulator, "simulate", no_simulation)
+    monkeypatch.setattr(light_sessions, "calibrate_lights", no_simulation)
     again = run_subject(subject, 0.1, "short", str(tmp_path / "b"), 4.0, 0.1, renders=renders)
     assert again["truth"] == first["truth"] and again["optical"] == first["optical"]
+    assert again["led_error_mm"] == first["led_error_mm"]
     assert {folder for _, _, folder in renders.renders()} == {folder for _, _, folder in kept}
     assert all(folder.is_dir() for _, _, folder in kept)  # a rerun leaves the renders it used
+
+    calibrated = []
+    monkeypatch.setattr(light_sessions, "calibrate_lights", lambda *a: calibrated.append(1) or calibrate_lights(*a))
+    monkeypatch.setattr(renders_module, "code_digest", lambda sources: "another calibration")
+    changed = run_subject(subject, 0.1, "short", str(tmp_path / "c"), 4.0, 0.1, renders=renders)
+    assert calibrated == [1] and changed["led_error_mm"] == first["led_error_mm"]
+    assert len(renders.renders()) == 4  # the new calibration beside the old, from the same sphere sessions
 
 
 def test_kept_renders_are_keyed_by_the_simulator_and_pruned_least_recently_used(tmp_path, monkeypatch):
