@@ -23,14 +23,15 @@ import numpy as np
 from core.reconstruction.ambient import FLICKER_WINDOW_S, FlickerCorrection
 from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
-from core.reconstruction.live_checks import LiveOpticalChecks
+from core.pipeline.live_checks import LiveOpticalChecks
 from core.volume.flow_sensor import btps_factor
 from core.analysis.optical_litres import ESTIMATE, ESTIMATE_UNCERTAINTY, POPULATION_GAIN, estimate_label
 from core.volume.metric import LiveMetricVolume
 from core.volume.subject_calibration import MOUTHPIECE_OFF, regional_signals
 from core.volume.sides import side_profile_mm
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
-from core.reconstruction.process import MAX_OCCLUDED_SIDE_SHARE, use_threads
+from core.pipeline.quality import MAX_OCCLUDED_SIDE_SHARE
+from core.pipeline.process import use_threads
 from core.rig import DARK, Rig
 from core.io.session import SessionError, SessionFile, SubjectRecord
 from drivers.camera import CameraError, CameraStats, Frame, capture_frames
@@ -294,7 +295,7 @@ class HeadView:
 
     @property
     def arm_against_trunk(self) -> bool:
-        """The last map shows an arm against the trunk hiding its side (core/reconstruction/process.py's rule)."""
+        """The last map shows an arm against the trunk hiding its side (core/pipeline/quality.py's rule)."""
         return bool(self.occluded_side_share > MAX_OCCLUDED_SIDE_SHARE)
 
 

@@ -40,7 +40,7 @@ def process_visit(records: Records, session_id: int, progress: Callable[[float],
     processing, and a True leaves nothing written (ProcessingCancelled)."""
     from core.io.outputs import is_session_file
     from core.io.results import is_results_file, optical_refusal
-    from core.reconstruction.process import process_session
+    from core.pipeline.process import process_session
 
     visit = records.session(session_id)
     session = visit.session_path

@@ -66,7 +66,7 @@ def _cycles(session, head_name: str):
     """Every complete light cycle of a head, in order: (newest frame, signal, saturated, dark), as
     `photopft process` makes them (without its motion compensation: the subjects stand still)."""
     from core.reconstruction.photometric import complete_cycles
-    from core.reconstruction.process import cycle_signal
+    from core.pipeline.process import cycle_signal
 
     frames, ids, stamps = session.frames(head_name), session.frame_id(head_name), session.timestamp_ns(head_name)
     max_value = session.rig.heads[head_name].max_value
@@ -842,7 +842,8 @@ def run_motion(write: bool, scale: float = 0.25) -> str:
     from core.io.results import optical_volume
     from core.io.session import SessionFile
     from core.reconstruction.pipeline import ReconstructionSettings
-    from core.reconstruction.process import MOTION_MODES, process_session, with_true_lights
+    from app.benchmarks.true_lights import with_true_lights
+    from core.pipeline.process import MOTION_MODES, process_session
     from core.sim.breathing import Sway
     from core.sim.simulate import SimConfig, simulate
 

@@ -267,7 +267,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     a subject at the camera's full resolution takes longer than a working session.
     With `renders`, the sphere sessions and the subject's session are taken from there, or rendered
     into it (app/benchmarks/renders.py)."""
-    from core.reconstruction.process import process_session
+    from core.pipeline.process import process_session
     from core.io.results import ResultsFile, optical_inputs, optical_refusal
     from core.rig import thesis_rig
     from core.io.session import SessionFile
@@ -618,7 +618,7 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
     later run with the same arguments takes it instead of running the subject again. With `renders`,
     the subjects' rendered sessions are taken from there or kept there (app/benchmarks/renders.py)."""
     from app.progress import Progress
-    from core.reconstruction.process import use_threads
+    from core.pipeline.process import use_threads
     from core.sim.simulate import WORLDS
 
     started = time.perf_counter()
@@ -696,7 +696,7 @@ def source_commit() -> str:
         return "unknown"
 
 
-# What `process` refuses the optical values for (core/reconstruction/process.py, core/volume/metric.py),
+# What `process` refuses the optical values for (core/pipeline/quality.py, core/volume/metric.py),
 # by words its reasons hold; the first match names a reason
 REFUSAL_KINDS = (("an arm lies against the trunk", "an arm against the trunk"),
                  ("runs out of the image", "the trunk out of the image"),

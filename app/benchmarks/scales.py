@@ -65,7 +65,7 @@ def run_one(body: str, scale: float, protocol: str, seconds: float | None, seed:
     """One body at one scale: simulate, process with the defaults, the metric volume against the truth."""
     from app.benchmarks.volume import metric_against_truth
     from core.io.results import ResultsFile, optical_refusal
-    from core.reconstruction.process import process_session
+    from core.pipeline.process import process_session
     from core.sim.simulate import simulate
 
     started = time.perf_counter()

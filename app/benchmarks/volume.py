@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from core.reconstruction.pipeline import ReconstructionSettings
-from core.reconstruction.process import process_session
+from core.pipeline.process import process_session
 from core.io.results import ResultsFile, optical_inputs
 from core.io.session import SessionFile
 from core.analysis.session_analysis import analyse_session

@@ -93,7 +93,7 @@ def foreign_at_results_name(results: Path) -> str | None:
 
 def process_one(session: str, results: str, options: BatchOptions) -> tuple[str, str | None, float]:
     """The task a Dask worker runs: (session, None or the one-line reason it failed, seconds)."""
-    from core.reconstruction.process import process_session, use_threads
+    from core.pipeline.process import process_session, use_threads
     from core.calibration.rig_profile import load_profile
 
     started = time.perf_counter()

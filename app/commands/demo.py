@@ -10,7 +10,7 @@ import numpy as np
 from app.args import positive
 from core.io.outputs import OutputError
 from core.reconstruction.pipeline import ReconstructionSettings
-from core.reconstruction.process import process_session
+from core.pipeline.process import process_session
 from core.io.results import ResultsFile, optical_inputs, optical_volume
 from core.io.session import SessionFile, validate_session
 from core.analysis.session_analysis import analyse_session

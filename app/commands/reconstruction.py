@@ -162,7 +162,7 @@ def add_process(sub: argparse._SubParsersAction) -> None:
 
 def run_process(args: argparse.Namespace) -> int:
     from core.reconstruction.pipeline import ReconstructionSettings
-    from core.reconstruction.process import process_session
+    from core.pipeline.process import process_session
     from core.io.outputs import check_output
     from core.calibration.rig_profile import ProfileError, load_profile
 

@@ -160,7 +160,7 @@ def _smoke_test(window, seconds: float, failed: list[bool]) -> int:
         return 1
     from app.report_data import build_report
     from app.report_pdf import write_report
-    from core.reconstruction.process import process_session
+    from core.pipeline.process import process_session
 
     results = folder / "smoke-results.h5"
     processed = process_session(session, results, every=11)

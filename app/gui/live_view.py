@@ -12,7 +12,7 @@ from PySide6.QtWidgets import (QGridLayout, QGroupBox, QHBoxLayout, QLabel, QPus
 
 from app.live import WINDOW_S, Snapshot
 from core.analysis.optical_litres import ESTIMATE
-from core.reconstruction.process import WORKING_RANGE_MM
+from core.pipeline.quality import WORKING_RANGE_MM
 
 
 HEIGHT_RANGE_MM = 40.0  # the maps' fixed scale: +-40 mm about the subject's mean surface

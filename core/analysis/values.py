@@ -15,6 +15,7 @@ from scipy.signal import find_peaks
 
 from core.analysis.fitted_curve import smoothed_on_grid
 from core.analysis.spirometry import ForcedValues, SessionGrade, forced_values, grade_session
+from core.volume.noise import curve_noise_l
 
 ANALYSIS_RATE_HZ = 200.0
 
@@ -24,18 +25,6 @@ ANALYSIS_RATE_HZ = 200.0
 # breaths of that size (docs/benchmarks.md, constants).
 MIN_TIDAL_FLOOR_L = 0.02
 BREATH_OVER_NOISE = 4.0
-
-
-def curve_noise_l(volume_l: np.ndarray) -> float:
-    """A volume curve's noise from sample to sample (L): the robust rms (1.4826 MAD) of its second
-    differences over sqrt(6), which breathing's own curvature from one optical map to the next hardly
-    reaches. NaN with fewer than four samples."""
-    v = np.asarray(volume_l, dtype=float)
-    v = v[np.isfinite(v)]
-    if len(v) < 4:
-        return float("nan")
-    second = np.diff(v, 2)
-    return float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0))
 
 
 def least_tidal_l(stretches: list[tuple[np.ndarray, np.ndarray]]) -> float:
@@ -328,7 +317,7 @@ def tidal_breaths(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: 
 def tidal_stretches(t_s: np.ndarray, volume_l: np.ndarray,
                     events: list[tuple[float, str]]) -> list[tuple[np.ndarray, np.ndarray]]:
     """The curve's stretches of quiet breathing (see tidal_windows), each cut where the curve has no
-    value (an optical map left out: core/reconstruction/process.py, MAX_HIDDEN_MAPS): a breath is read
+    value (an optical map left out: core/pipeline/quality.py, MAX_HIDDEN_MAPS): a breath is read
     only where it was measured, and one missing map no longer loses the whole stretch."""
     out = []
     finite = np.isfinite(volume_l)

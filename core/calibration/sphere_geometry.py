@@ -18,6 +18,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.optimize import least_squares
 
+from core.reconstruction import rays
 from core.rig import Head
 
 
@@ -237,14 +238,11 @@ def detect_highlight(signal: np.ndarray, sphere: SphereFit, head: Head, radius_m
 
 
 def closest_points(p1: np.ndarray, l1: np.ndarray, p2: np.ndarray, l2: np.ndarray) -> tuple[np.ndarray, float]:
-    """Thesis eqs 4.2-4.5: the midpoint of the closest points of two rays, and their distance E."""
-    cross = np.cross(l1, l2)
-    denominator = cross @ cross
-    if denominator < 1e-12:
-        raise CalibrationError("two highlight rays are parallel: move the sphere further between placements")
-    lp1 = p1 + (np.cross(l2, p1 - p2) @ cross) / denominator * l1  # eq. 4.2 (sign as in the thesis)
-    lp2 = p2 + (np.cross(l1, p1 - p2) @ cross) / denominator * l2  # eq. 4.3
-    return (lp1 + lp2) / 2, float(np.linalg.norm(lp1 - lp2))  # eqs 4.4, 4.5
+    """Where two highlight rays pass closest (core/reconstruction/rays.py): parallel rays are a placement to change."""
+    try:
+        return rays.closest_points(p1, l1, p2, l2)
+    except rays.ParallelRays:
+        raise CalibrationError("two highlight rays are parallel: move the sphere further between placements") from None
 
 
 @dataclass(frozen=True)

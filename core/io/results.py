@@ -1,4 +1,4 @@
-"""Reading a results file (written by core.reconstruction.process): the one reader every part of the program
+"""Reading a results file (written by core.pipeline.process): the one reader every part of the program
 goes through (`ResultsFile`, `optical_volume`, `optical_refusal`, `session_of_results`).
 
 `check_results` reads every part once and refuses, in one line naming the file and the part,
@@ -419,3 +419,30 @@ class ResultsWriter:
             f = self.out.create_group("flow_sensor")
             f.create_dataset("time_s", data=flow_curve[0])
             f.create_dataset("volume_l", data=flow_curve[1])
+
+
+def processed_distance_mm(results_path: str | os.PathLike, head_name: str, frame_indices: list[int]) -> list[float]:
+    """The subject's distance `process` reconstructed a head's maps at (from the two heads' geometry
+    where it had both), at the given frames: interpolated between its maps; NaN where it has none."""
+    with ResultsFile(results_path) as r:
+        if head_name not in r.heads or not (r.has_series(head_name, "frame_index")
+                                            and r.has_series(head_name, "distance_mm")):
+            return [float("nan")] * len(frame_indices)
+        frames = r.series(head_name, "frame_index").astype(float)
+        distance = r.series(head_name, "distance_mm").astype(float)
+    good = np.isfinite(distance)
+    if not good.any():
+        return [float("nan")] * len(frame_indices)
+    return [float(d) for d in np.interp(np.asarray(frame_indices, dtype=float), frames[good], distance[good])]
+
+
+def processed_light_gains(results_path: str | os.PathLike, head_name: str, timestamp_ns: np.ndarray) -> np.ndarray | None:
+    """(len(timestamp_ns), 4) the lights' outputs `process` solved a head's maps with at those instants
+    (interpolated between its readings, held beyond them), or None where it did not follow them."""
+    with ResultsFile(results_path) as r:
+        followed = r.light_gain(head_name)
+    if followed is None or not len(followed[0]):
+        return None
+    t, gains = followed[0].astype(float), followed[1]
+    at = np.asarray(timestamp_ns, dtype=float)
+    return np.stack([np.interp(at, t, gains[:, k]) for k in range(gains.shape[1])], axis=1)

@@ -1,1 +1,2 @@
-"""From frames to height maps: a light cycle's signal, normals, depth, distance, and `process`."""
+"""From frames to height maps: a light cycle's signal, normals, depth and distance (the session's
+orchestration is core/pipeline/process.py)."""

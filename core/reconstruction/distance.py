@@ -17,8 +17,8 @@ from scipy import ndimage
 from scipy.optimize import minimize, minimize_scalar
 
 from core.reconstruction.binning import bin_all, bin_mean
-from core.calibration.sphere_geometry import closest_points
 from core.reconstruction.photometric import add_row, solve_symmetric3
+from core.reconstruction.rays import ParallelRays, closest_points
 
 DMR_THRESHOLD = 0.9
 MIN_FIT_PIXELS = 100  # the photometric distance is not fitted on fewer pixels
@@ -65,8 +65,11 @@ def dmr_distance(pseudo_normals: np.ndarray, mask: np.ndarray, fx: float, fy: fl
         rows, cols = np.nonzero(region)
         u, v = cols.mean(), rows.mean()
         ray = np.array([(u - cx) / fx, (v - cy) / fy, 1.0])
-        point, _ = closest_points(np.zeros(3), ray / np.linalg.norm(ray), light_positions_mm[k],
-                                  -pseudo_light_vectors[k])
+        try:
+            point, _ = closest_points(np.zeros(3), ray / np.linalg.norm(ray), light_positions_mm[k],
+                                      -pseudo_light_vectors[k])
+        except ParallelRays:  # a region seen along its light's own axis places nothing
+            continue
         centres[k] = (u, v)
         points[k] = point
         depths[k] = point[2]

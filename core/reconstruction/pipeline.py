@@ -359,7 +359,7 @@ class HeadReconstructor:
         """signal (4, H, W): each light's frame minus the dark frame; saturated (4, H, W) bool;
         dark (H, W), the dark frame, for the noise model of the distance search. distance_mm: the
         subject's median depth when it is known from elsewhere (the two heads' geometry,
-        core/reconstruction/process.py): the maps are scaled to it and no distance is searched or averaged."""
+        core/pipeline/process.py): the maps are scaled to it and no distance is searched or averaged."""
         h, s = self.head, self.settings
         signal, saturated, dark = self._as_pinhole(signal, saturated, dark)
         mask = subject_mask(signal, s.mask_fraction, s.mask_edge_fraction)

@@ -29,9 +29,8 @@ from functools import cached_property
 import numpy as np
 from scipy import ndimage
 
-from core.analysis.values import curve_noise_l, tidal_stretches, tidal_values, tidal_windows
 from core.limits import past_limit
-from core.volume.compartments import compartment_shares, phase_angle_deg
+from core.volume.noise import curve_noise_l
 from core.rig import Head
 from core.volume.steps import StepWatch
 from core.volume.maps import (REGIONS, DisplacementSums, DisplacementTracker, head_volume_l, maps_within,
@@ -421,22 +420,6 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
     return MetricVolume(t, volume, per_head, regions, targets, scale_from, mismatch, levels, head_regions)
 
 
-def tidal_compartments(session, metric: MetricVolume) -> dict[str, float]:
-    """Each quadrant's share of quiet breathing (`share_upper_left` ...) and the thoraco-abdominal
-    phase angle (`phase_angle_deg`, upper against lower half of the trunk) of a session
-    (core.io.session.SessionFile) over its stretches of quiet breathing."""
-    t = (metric.timestamp_ns - metric.timestamp_ns[0]) / 1e9
-    start = int(metric.timestamp_ns[0])
-    events = sorted(((ts - start) / 1e9, label) for ts, label in session.events())
-    windows = tidal_windows(events, float(t[-1]))
-    out = {f"share_{k.replace(' ', '_')}": v for k, v in compartment_shares(t, metric.regions, windows).items()}
-    tidal = tidal_values(tidal_stretches(t, metric.volume_l, events))
-    if tidal is not None:
-        chest = metric.regions["upper left"] + metric.regions["upper right"]
-        abdomen = metric.regions["lower left"] + metric.regions["lower right"]
-        out["phase_angle_deg"] = phase_angle_deg(t, chest, abdomen, windows, 60.0 / tidal.respiratory_rate_bpm)
-    return out
-
 
 class LiveMetricVolume:
     """The metric volume map by map, for the live view: causal, so each map's scale comes from the
@@ -474,7 +457,7 @@ class LiveMetricVolume:
 
     def geometric_distance_mm(self, name: str) -> float | None:
         """The head's subject distance (median depth) where the two heads' trunk widths and baseline put
-        its last map (as core/reconstruction/process.py's geometric_distances, causally); None before both heads
+        its last map (as core/pipeline/process.py's geometric_distances, causally); None before both heads
         have a trunk in view, and with one head."""
         with self._lock:
             return self._geometric.get(name)

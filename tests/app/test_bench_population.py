@@ -67,8 +67,7 @@ def test_the_table_tallies_why_the_optical_values_were_refused():
     import numpy as np
 
     from app.benchmarks.population import refusal_kind, refusal_tally
-    from core.reconstruction.process import (coverage_refusal, distance_refusal, occlusion_refusal,
-                                             reflectance_refusal)
+    from core.pipeline.quality import coverage_refusal, distance_refusal, occlusion_refusal, reflectance_refusal
     from core.volume.metric import MetricVolume
     from core.volume.sides import bend_refusal
 
@@ -129,7 +128,7 @@ def test_a_subject_stopped_midway_goes_on_from_its_last_finished_stage(tmp_path,
     instead of calibrating and recording again; what a stage stopped midway left is cleared."""
     import json
 
-    import core.reconstruction.process as process
+    import core.pipeline.process as process
     from app.benchmarks.population import SubjectStages, draw_subjects, run_subject, standard_blows
 
     subject = draw_subjects(1, 1, standard_blows(SHARED / "data" / "spirometry-waveforms"), quick=True)[0]

@@ -27,11 +27,11 @@ def test_a_cache_folder_that_cannot_be_written_leaves_the_temporary_folder(tmp_p
 
     writable = tmp_path / "cache"
     monkeypatch.setattr(config, "CACHE_DIR", str(writable))
-    locator = BundleCacheLocator.from_function(values.curve_noise_l, "core/analysis/values.py")
+    locator = BundleCacheLocator.from_function(values.least_tidal_l, "core/analysis/values.py")
     assert locator.get_cache_path() == str(writable / "core" / "analysis")
     blocked = tmp_path / "a-file"
     blocked.write_text("not a folder")
     monkeypatch.setattr(config, "CACHE_DIR", str(blocked))
-    locator = BundleCacheLocator.from_function(values.curve_noise_l, "core/analysis/values.py")
+    locator = BundleCacheLocator.from_function(values.least_tidal_l, "core/analysis/values.py")
     assert locator.get_cache_path().startswith(tempfile.gettempdir())
     assert locator.get_cache_path().endswith("core/analysis")

@@ -519,7 +519,7 @@ def _normal_errors_deg(folder, before: dict, after: dict) -> tuple[dict, dict]:
 
     import h5py
 
-    from core.reconstruction.process import maps_at
+    from core.pipeline.process import maps_at
     from core.sim.simulate import simulate
     from drivers.assembly import simulated_rig_config
 

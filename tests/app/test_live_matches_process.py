@@ -15,7 +15,7 @@ import pytest
 from app.live import LiveRig, replay_source
 from core.analysis.optical_litres import POPULATION_GAIN
 from core.io.session import SessionFile
-from core.reconstruction.process import process_session
+from core.pipeline.process import process_session
 from core.sim.breathing import Sway
 from core.sim.simulate import SimConfig, simulate
 

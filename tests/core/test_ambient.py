@@ -8,7 +8,7 @@ import pytest
 
 from core.reconstruction.ambient import FlickerCorrection, flicker_phase
 from core.reconstruction.photometric import complete_cycles
-from core.reconstruction.process import DarkFeed, cycle_signal
+from core.pipeline.process import DarkFeed, cycle_signal
 from core.io.session import SessionFile
 
 FRAME_RATE_HZ, CYCLE = 110.0, 5
@@ -93,7 +93,7 @@ def test_a_cycle_in_a_flickering_room_gives_the_signal_of_a_steady_room(flickeri
 
 
 def test_the_results_file_says_how_much_the_room_light_flickered(flickering_pair, tmp_path):
-    from core.reconstruction.process import process_session
+    from core.pipeline.process import process_session
 
     _, flicker_path = flickering_pair
     process_session(flicker_path, tmp_path / "r.h5", every=10)

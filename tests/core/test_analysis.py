@@ -8,7 +8,7 @@ import pytest
 
 from core.analysis.values import analyse_volume, tidal_stretches, tidal_values, tidal_windows
 from core.volume.flow_sensor import btps_factor, flow_sensor_volume
-from core.reconstruction.process import process_session
+from core.pipeline.process import process_session
 from core.analysis.session_analysis import analyse_session
 from core.sim.breathing import ForcedBlow, Sway
 from core.sim.flowsensor import FlowSensorModel
@@ -167,7 +167,7 @@ def test_session_without_tidal_breathing_says_so():
 
 def test_a_tidal_stretch_with_maps_left_out_is_read_on_either_side_of_the_gap():
     """Eight breaths of 0.5 L at 15/min, sampled a map a light cycle, with 2 s of maps left out in the
-    middle (an arm swung against the trunk: core/reconstruction/process.py): the breaths on either
+    middle (an arm swung against the trunk: core/pipeline/quality.py): the breaths on either
     side are read, the one the gap cuts is not, and no breath is read across it. Until 2026-11-28 one
     missing map gave no tidal values at all."""
     t = np.arange(0, 32, 1 / 22.0)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from core.reconstruction.lens import LensCorrection
-from core.reconstruction.process import process_session
+from core.pipeline.process import process_session
 from core.rig import thesis_head
 from core.sim.breathing import Sway
 from core.sim.render import CameraModel

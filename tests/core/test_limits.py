@@ -3,8 +3,7 @@
 import numpy as np
 
 from core.limits import past_limit
-from core.reconstruction.process import (MAX_HIDDEN_MAPS, WORKING_RANGE_MM, distance_refusal, occlusion_refusal,
-                                         reflectance_refusal)
+from core.pipeline.quality import MAX_HIDDEN_MAPS, WORKING_RANGE_MM, distance_refusal, occlusion_refusal, reflectance_refusal
 
 
 def test_a_value_past_its_limit_gets_the_decimals_that_tell_them_apart():

@@ -1,12 +1,12 @@
-"""The live view's checks on the optical volume (core/reconstruction/live_checks.py): what they
+"""The live view's checks on the optical volume (core/pipeline/live_checks.py): what they
 judge by and for how long."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from core.reconstruction.live_checks import LOOK_INTERVAL_S, WINDOW_S, LiveOpticalChecks
-from core.reconstruction.process import MAX_SHEEN
+from core.pipeline.live_checks import LOOK_INTERVAL_S, WINDOW_S, LiveOpticalChecks
+from core.pipeline.quality import MAX_SHEEN
 from core.volume.sides import MAX_SIDES_TILT
 
 

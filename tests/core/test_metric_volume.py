@@ -97,7 +97,7 @@ def test_process_writes_the_metric_volume_and_uses_it_without_a_flow_sensor(tmp_
     come from it."""
     import h5py
 
-    from core.reconstruction.process import process_session
+    from core.pipeline.process import process_session
     from core.io.session import SessionFile
     from core.sim.breathing import Sway
     from core.sim.simulate import SimConfig, simulate
@@ -175,7 +175,7 @@ def test_the_live_distances_do_not_follow_an_arm_joining_the_trunk():
 def test_a_volume_curve_noisier_from_map_to_map_than_its_values_allow_is_refused():
     """Quiet breathing (0.5 L at 15/min) sampled at 22 maps/s: the noise estimate sees the noise
     added, not the breathing; above 50 mL the volume is refused with the figure."""
-    from core.analysis.values import curve_noise_l
+    from core.volume.noise import curve_noise_l
     from core.volume.metric import MAX_MAP_NOISE_L, MetricVolume
 
     t = np.arange(0, 30, 1 / 22)
@@ -198,7 +198,7 @@ def test_a_volume_curve_that_jumps_away_and_back_is_refused():
     5 mL of noise: the running median follows the blow and nothing counts as a jump. The same curve with
     a jump of 0.6 L for two maps every two seconds (as a population subject's showed, where the
     trunk's sides glitched) is refused; its robust map-to-map noise stays under the noise limit."""
-    from core.analysis.values import curve_noise_l
+    from core.volume.noise import curve_noise_l
     from core.volume.metric import MAX_MAP_NOISE_L, MetricVolume, jump_share
 
     t = np.arange(0, 40, 1 / 22)
@@ -468,7 +468,7 @@ def test_the_two_heads_distances_follow_sway_as_fast_as_quiet_breathing():
 
 
 def test_maps_left_out_for_an_arm_leave_gaps_in_the_volume_not_a_bridge():
-    """A volume made from the maps no arm hid (core/reconstruction/process.py) goes back onto all the
+    """A volume made from the maps no arm hid (core/pipeline/quality.py) goes back onto all the
     first head's maps with NaN where a map of either head was left out: the front's own, and the
     front's maps whose nearest back map was; the maps shown keep their values, each head's side
     distances go onto its own maps."""

@@ -1,4 +1,4 @@
-"""A forced blow's peak flow read on maps at every frame through it (core/reconstruction/process.py,
+"""A forced blow's peak flow read on maps at every frame through it (core/pipeline/process.py,
 _peak_flow_pass; core/analysis/values.py, peak_flow_of_frames), beside the session's map a cycle."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from core.analysis.spirometry import forced_values
 from core.analysis.values import (ANALYSIS_RATE_HZ, MAX_PEF_NOISE_RATIO_FRAMES, PEAK_FLOW_REACH_S, PEAK_FLOW_SIGMAS_S,
                                   analyse_volume, flow_noise_gain, peak_flow_spans_s)
 from core.io.results import optical_inputs
-from core.reconstruction.process import process_session
+from core.pipeline.process import process_session
 from core.sim.breathing import RATE_HZ, ForcedBlow, Subject, Sway, forced
 from core.sim.simulate import SimConfig, simulate
 from core.analysis.optical_litres import POPULATION_GAIN

@@ -14,7 +14,8 @@ from core.reconstruction.photometric import complete_cycles, distant_light_norma
 from core.reconstruction.pipeline import (DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance,
                                            occluded_side_share, shadow_threshold, side_out_of_view_share,
                                            subject_mask, trunk_mask)
-from core.reconstruction.process import process_session, with_true_lights
+from app.benchmarks.true_lights import with_true_lights
+from core.pipeline.process import process_session
 from core.calibration.rig_profile import HeadCalibration, RigCalibration
 from core.rig import thesis_head
 from core.io.session import SessionError, SessionFile
@@ -382,7 +383,7 @@ def test_a_simulated_body_s_arms_held_away_are_left_out_and_arms_held_close_are_
     """Arms held away: both heads' maps hold the trunk alone, and its width is the same in both (the
     metric volume's distances come from it). Arms held close: an occluding contour runs down the
     trunk in one head's view at least, and `process` would refuse the optical volume for it."""
-    from core.reconstruction.process import MAX_OCCLUDED_SIDE_SHARE
+    from core.pipeline.quality import MAX_OCCLUDED_SIDE_SHARE
     from core.volume.maps import trunk_width_px
 
     head, maps = _body_cycle(tmp_path, "average-woman", 0.15)
@@ -400,7 +401,7 @@ def test_process_gives_no_subject_distance_where_an_arm_hides_the_trunk_s_sides(
     from app.cli import main
     from app.commands.demo import volume_summary
     from core.io.results import ResultsFile
-    from core.reconstruction.process import geometric_distance_refusal
+    from core.pipeline.quality import geometric_distance_refusal
     from core.sim.bodies import body_named
 
     clear, now_and_then, swinging = np.zeros(40), np.zeros(40), np.zeros(40)
@@ -477,8 +478,8 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     """A distance outside 1500-2600 mm is a measurement gone wrong or a subject out of place: the
     results say so and hold no volume to report. (A subject 3300 mm away measures about 2650 mm:
     the distance search does not follow a subject far outside the working range either.)"""
-    from core.reconstruction.process import (WORKING_RANGE_MM, coverage_refusal, distance_refusal, occlusion_refusal, process_session,
-                              trunk_area_m2)
+    from core.pipeline.quality import WORKING_RANGE_MM, coverage_refusal, distance_refusal, occlusion_refusal
+    from core.pipeline.process import process_session, trunk_area_m2
     from core.io.results import optical_refusal, optical_volume
     from core.sim.simulate import SimConfig, simulate
 
@@ -501,7 +502,7 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
         {"front": clear, "back": clear}, {"front": quarter, "back": clear})
     assert "front: no subject distance" in distance_refusal({"front": float("nan"), "back": 2000.0})
     # an arm against the trunk moves the two heads' distances: it is named first, not the distance it spoilt
-    from core.reconstruction.process import session_refusal
+    from core.pipeline.quality import session_refusal
 
     arm = session_refusal({"front": 1842.0, "back": 2658.0}, {"front": np.full(40, 0.3), "back": np.full(40, 0.3)},
                           {"front": np.full(40, 0.67), "back": np.zeros(40)}, {})
@@ -525,7 +526,8 @@ def test_two_heads_take_the_subject_distance_from_their_geometry_where_glossy_sk
     sheen (core/reconstruction/reflectance.py) that would flatten its maps."""
     import h5py
 
-    from core.reconstruction.process import MAX_SHEEN, process_session
+    from core.pipeline.quality import MAX_SHEEN
+    from core.pipeline.process import process_session
 
     session = tmp_path / "glossy.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=1.0, scale=0.1, specular=0.2, clothing="skin",
@@ -551,7 +553,8 @@ def test_matte_skin_passes_the_checks_of_its_reflectance_and_of_its_maps_sides(t
     its height (`/@sides_tilt` well under MAX_SIDES_TILT), and the volume is written."""
     import h5py
 
-    from core.reconstruction.process import MAX_SHEEN, process_session
+    from core.pipeline.quality import MAX_SHEEN
+    from core.pipeline.process import process_session
     from core.volume.sides import MAX_SIDES_TILT
 
     session = tmp_path / "matte.h5"
@@ -612,7 +615,8 @@ def test_process_follows_the_leds_drift_through_the_session_from_the_subject_s_o
     lay 77 mL (25 mL on the same session rendered with steady LEDs). A report's map of a frame
     (maps_at, with the distance and the lights' outputs `process` followed) is the map `process` made
     there (0.003 deg; without the outputs 0.37 deg off)."""
-    from core.reconstruction.process import maps_at, processed_distance_mm, processed_light_gains
+    from core.io.results import processed_distance_mm, processed_light_gains
+    from core.pipeline.process import maps_at
 
     session = tmp_path / "drift.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=10.0, scale=0.1, seed=3, led_drift=0.05))

@@ -68,7 +68,7 @@ def test_a_sheen_reads_in_proportion_to_itself_over_the_albedo():
     """A sheen of 0.02 and 0.05 of white over skin of albedo 0.45, and 0.05 over dark skin (0.1): the
     estimate grows with the sheen over the albedo and passes MAX_SHEEN for each (it is fitted with a
     broader lobe than the skin's, and with normals the sheen has bent, so it is not spec / rho itself)."""
-    from core.reconstruction.process import MAX_SHEEN
+    from core.pipeline.quality import MAX_SHEEN
 
     head = thesis_rig(0.25).heads["front"]
     points, normal, mask = _trunk(head)

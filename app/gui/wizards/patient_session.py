@@ -24,7 +24,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDateEdit, QDoubleSpinBox, 
 
 from app.gui.errors import show_error
 from app.gui.volume_trace import SHOWN_S, VolumeTrace, plateau
-from core.reconstruction.process import WORKING_RANGE_MM
+from core.pipeline.quality import WORKING_RANGE_MM
 from app.engine_process import Engine
 from app.paths import data_dir
 from app.records import Patient, Records, RecordsError

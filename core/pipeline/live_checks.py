@@ -14,7 +14,7 @@ import threading
 
 import numpy as np
 
-from core.reconstruction.process import reflectance_refusal
+from core.pipeline.quality import reflectance_refusal
 from core.volume.sides import bend_refusal, sides_tilt
 
 # A look costs a side profile and the sheen's fit, a few ms. Until 2026-11-27 it cost a map at the
