@@ -34,6 +34,19 @@ def _quiet_stop_in_callbacks(unraisable) -> None:
         sys.__unraisablehook__(unraisable)
 
 
+def _bench_verb():
+    """The `bench` verb's adder from the source checkout this application runs from (benchmarks/, beside
+    app/), or None: an installed or bundled application ships without the benchmarks."""
+    checkout = Path(__file__).resolve().parents[1]
+    if not (checkout / "benchmarks" / "cli.py").is_file():
+        return None
+    if str(checkout) not in sys.path:
+        sys.path.insert(0, str(checkout))
+    from benchmarks.cli import add_bench
+
+    return add_bench
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="photopft", description="Non-contact lung function testing by "
                                      "near-light photometric stereo. Every verb has --help.")
@@ -61,10 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_process(sub)
     add_analyze(sub)
     add_batch(sub)
-    try:
-        from app.benchmarks.bench import add_bench
-    except ImportError:  # the bundled application ships without the benchmarks (a source checkout has them)
-        add_bench = None
+    add_bench = _bench_verb()
     if add_bench is not None:
         add_bench(sub)
     add_emulate(sub)

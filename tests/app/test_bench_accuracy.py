@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from app.benchmarks.bench import TRACKED_CYCLES, run_accuracy
+from benchmarks.accuracy import TRACKED_CYCLES, run_accuracy
 
 
 def _row(text: str, method: str) -> list[str]:

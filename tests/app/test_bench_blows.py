@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.benchmarks.blows import maps_of, readings
-from app.benchmarks.population import within
+from benchmarks.blows import maps_of, readings
+from benchmarks.population import within
 from app.cli import main
 
 

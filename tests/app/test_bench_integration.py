@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from app.benchmarks.bench import run_integration
+from benchmarks.integration import run_integration
 
 
 def test_integration_bench_reports_both_integrators_on_real_data(shared_data):

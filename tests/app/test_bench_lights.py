@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.benchmarks.lights import lights_table, run_rig
-from app.benchmarks.population import draw_subjects
+from benchmarks.lights import lights_table, run_rig
+from benchmarks.population import draw_subjects
 
 
 def test_a_rig_is_calibrated_from_its_spheres_and_compared_with_the_lights_as_built(tmp_path):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from app.benchmarks.live import run_live_bench
+from benchmarks.live import run_live_bench
 from core.analysis.optical_litres import POPULATION_GAIN
 
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import cv2
 import pytest
 
-from app.benchmarks.bench import SHARED
-from app.benchmarks.population import agreement, run_population_bench
+from benchmarks.common import SHARED
+from benchmarks.population import agreement, run_population_bench
 
 
 @pytest.mark.slow
@@ -66,7 +66,7 @@ def test_the_table_tallies_why_the_optical_values_were_refused():
     themselves, so a reworded reason is caught here), and the table counts them, most first."""
     import numpy as np
 
-    from app.benchmarks.population import refusal_kind, refusal_tally
+    from benchmarks.population import refusal_kind, refusal_tally
     from core.pipeline.quality import coverage_refusal, distance_refusal, occlusion_refusal, reflectance_refusal
     from core.volume.metric import MetricVolume
     from core.volume.sides import bend_refusal
@@ -101,7 +101,7 @@ def test_the_table_tallies_why_the_optical_values_were_refused():
 
 
 def test_the_table_sets_the_calibration_s_groupings_against_the_truth():
-    from app.benchmarks.population import grouping_lines
+    from benchmarks.population import grouping_lines
 
     truth = {"TV_l": 0.5, "VC_l": 4.0, "FVC_l": 4.0, "FEV1_l": 3.0, "FEV1_FVC": 0.75}
 
@@ -129,7 +129,7 @@ def test_a_subject_stopped_midway_goes_on_from_its_last_finished_stage(tmp_path,
     import json
 
     import core.pipeline.process as process
-    from app.benchmarks.population import SubjectStages, draw_subjects, run_subject, standard_blows
+    from benchmarks.population import SubjectStages, draw_subjects, run_subject, standard_blows
 
     subject = draw_subjects(1, 1, standard_blows(SHARED / "data" / "spirometry-waveforms"), quick=True)[0]
     folder = tmp_path / "subject.stages"
@@ -166,7 +166,7 @@ def test_a_subject_stopped_midway_goes_on_from_its_last_finished_stage(tmp_path,
 def test_the_test_population_has_bodies_and_kept_rows_of_its_own(tmp_path, shared_data):
     """`--bodies mesh`: the same rigs, distances and skins as the development population, on MakeHuman
     bodies drawn from seeds of their own; their rows are kept apart and published under their own name."""
-    from app.benchmarks.population import (MESH_SEEDS, _kept, describe_bodies, draw_subjects, population_body,
+    from benchmarks.population import (MESH_SEEDS, _kept, describe_bodies, draw_subjects, population_body,
                                            population_section)
     from core.sim.makehuman import MeshBody
 
@@ -188,11 +188,11 @@ def test_a_rerun_on_kept_renders_calibrates_and_processes_only(tmp_path, shared_
     a rerun at the same code takes them (nothing simulated or calibrated) and gives the same values, and
     the row names the commit that rendered them. A change to the calibrating code calibrates again from
     the kept sphere sessions."""
-    import app.benchmarks.renders as renders_module
+    import benchmarks.renders as renders_module
     import core.calibration.light_sessions as light_sessions
     import core.sim.simulate as simulator
-    from app.benchmarks.population import draw_subjects, run_subject, standard_blows
-    from app.benchmarks.renders import RenderCache
+    from benchmarks.population import draw_subjects, run_subject, standard_blows
+    from benchmarks.renders import RenderCache
 
     subject = draw_subjects(1, 1, standard_blows(SHARED / "data" / "spirometry-waveforms"), quick=True)[0]
     renders = RenderCache(tmp_path / "renders", 1e12)
@@ -224,8 +224,8 @@ def test_a_rerun_on_kept_renders_calibrates_and_processes_only(tmp_path, shared_
 def test_kept_renders_are_keyed_by_the_simulator_and_pruned_least_recently_used(tmp_path, monkeypatch):
     import os
 
-    import app.benchmarks.renders as renders_module
-    from app.benchmarks.renders import RenderCache
+    import benchmarks.renders as renders_module
+    from benchmarks.renders import RenderCache
 
     cache = RenderCache(tmp_path, max_bytes=2500)
     made = []

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from app.benchmarks.scales import ScaleRow, named_body, scales_table, slope_spread
+from benchmarks.scales import ScaleRow, named_body, scales_table, slope_spread
 
 
 def test_the_spread_is_the_largest_slope_over_the_smallest():

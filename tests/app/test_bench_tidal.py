@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.benchmarks.tidal import readings
+from benchmarks.tidal import readings
 from app.cli import main
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from app.benchmarks.volume import within_limit
+from benchmarks.volume import within_limit
 
 
 def test_volume_bench_limit_is_three_percent_or_50_ml():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from app.benchmarks.blows import CYCLE_S, FRAME_S, maps_of
+from benchmarks.blows import CYCLE_S, FRAME_S, maps_of
 from app.cli import main
 from core.analysis.session_analysis import analyse_session
 from core.analysis.spirometry import forced_values

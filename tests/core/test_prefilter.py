@@ -8,7 +8,7 @@ import pytest
 from core.reconstruction.distance import PhotometricDistance
 from core.reconstruction.pipeline import HeadReconstructor, ReconstructionSettings
 from core.reconstruction.prefilter import prefilter_frame, prefilter_sigma_px, prefiltered
-from app.benchmarks.true_lights import with_true_lights
+from benchmarks.true_lights import with_true_lights
 from core.rig import thesis_head
 from core.io.session import SessionFile
 from core.sim.breathing import Sway

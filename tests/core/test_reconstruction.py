@@ -14,7 +14,7 @@ from core.reconstruction.photometric import complete_cycles, distant_light_norma
 from core.reconstruction.pipeline import (DISTANCE_RESET, HeadReconstructor, ReconstructionSettings, RunningDistance,
                                            occluded_side_share, shadow_threshold, side_out_of_view_share,
                                            subject_mask, trunk_mask)
-from app.benchmarks.true_lights import with_true_lights
+from benchmarks.true_lights import with_true_lights
 from core.pipeline.process import process_session
 from core.calibration.rig_profile import HeadCalibration, RigCalibration
 from core.rig import thesis_head

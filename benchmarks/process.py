@@ -3,12 +3,16 @@ two-head session at the camera's resolution, timed end to end with 1, 2, ... wor
 
 from __future__ import annotations
 
+import argparse
 import os
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from app.args import positive
+from benchmarks.common import publish
 
 
 def run_process_bench(seconds: float, scale: float, worker_counts: tuple[int, ...]) -> str:
@@ -52,3 +56,23 @@ def run_process_bench(seconds: float, scale: float, worker_counts: tuple[int, ..
                      f"{maps / elapsed:.2f} | {elapsed / recorded_s:.1f} |")
     lines += ["", "Target (issue 25): at most 6 × real time on this 2-core machine."]
     return "\n".join(lines)
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench process`: its arguments and what it runs."""
+    pr = what.add_parser("process", help="the whole `photopft process` at the camera's resolution, against real time")
+    pr.add_argument("--seconds", type=positive, default=2.0)
+    pr.add_argument("--scale", type=positive, default=1.0)
+    pr.add_argument("--workers", default=None, help="worker counts to time, comma-separated (default 1,2,...,cores)")
+    pr.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_process(args: argparse.Namespace) -> int:
+        from benchmarks.process import run_process_bench
+
+        counts = (tuple(int(w) for w in args.workers.split(",")) if args.workers
+                  else tuple(range(1, min(os.cpu_count() or 1, 2) + 1)))
+        text = run_process_bench(args.seconds, args.scale, counts)
+        return publish(args, "process", f"Process (`photopft bench process --seconds {args.seconds:g}"
+                                         f"{'' if args.scale == 1 else f' --scale {args.scale:g}'}`)", text)
+
+    pr.set_defaults(run=run_process)

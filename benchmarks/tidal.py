@@ -2,7 +2,7 @@
 
 Each subject of `bench population` (the same seed draws the same bodies) breathes the 20 s of quiet
 breathing that opens its protocol (core.sim.breathing.tidal, the bench's irregular rate and sighs). The
-curve is sampled one map a light cycle, each map the mean volume over its cycle (app.benchmarks.blows),
+curve is sampled one map a light cycle, each map the mean volume over its cycle (benchmarks.blows),
 with white noise of a given size a map, and its tidal values read as the session analysis reads them
 (core.analysis.values.tidal_values_of). The table gives, per noise, the tidal volume's and the rate's
 bias and 95 % limits of agreement against the same reading of the noise-free curve, and the share
@@ -12,20 +12,25 @@ mid-inspiration to mid-inspiration), the rate read between end-expiratory minima
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from app.benchmarks.blows import maps_of
-from app.benchmarks.population import WORLD, _config, draw_subjects
+from benchmarks.common import noises_ml, publish
+from benchmarks.blows import maps_of
+from benchmarks.population import WORLD, _config, draw_subjects
 from core.analysis.values import Breath, quiet_breaths, tidal_breaths, tidal_values_of
 from core.sim.breathing import RATE_HZ, TIDAL_SECONDS, tidal
 from core.sim.simulate import breathing_subject
+
 
 TIDAL_S = TIDAL_SECONDS["short"]  # the population bench's protocol opens with it
 
 
 @dataclass
+
+
 class Reading:
     """One subject's quiet breathing, one noise draw: (tidal volume L, rate /min, breaths) of the
     noise-free curve and of the sampled one, and both rates read between minima."""
@@ -101,3 +106,30 @@ def run_tidal_bench(subjects: int, seed: int, noise_ml: list[float], draws: int)
              f"of {', '.join(f'{n:g}' for n in noise_ml)} mL a map ({draws} draws each), read as the session analysis "
              "reads a curve, against the same reading of the noise-free curve.")
     return intro + "\n\n" + table(rows)
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench tidal`: its arguments and what it runs."""
+    ti = what.add_parser("tidal", help="the population's quiet breathing read as optical maps with noise: TV and RR")
+    ti.add_argument("--subjects", type=int, default=30)
+    ti.add_argument("--seed", type=int, default=1, help="the population's seed (bench population's)")
+    ti.add_argument("--noise-ml", default="0,5,10,15,20,25,35", help="noise of a map, mL (comma-separated)")
+    ti.add_argument("--draws", type=int, default=4, help="noise draws per subject and noise")
+    ti.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_tidal(args: argparse.Namespace) -> int:
+        from benchmarks.tidal import run_tidal_bench
+        from app.errors import UserError
+
+        noise = noises_ml(args.noise_ml)
+        if args.subjects < 1 or args.draws < 1:
+            raise UserError("--subjects and --draws take 1 or more")
+        try:
+            text = run_tidal_bench(args.subjects, args.seed, noise, args.draws)
+        except ValueError as exc:
+            raise UserError(str(exc)) from exc
+        return publish(args, "tidal", f"Quiet breathing read through the maps' noise (`photopft bench tidal "
+                                       f"--subjects {args.subjects} --seed {args.seed} --noise-ml {args.noise_ml} "
+                                       f"--draws {args.draws}`)", text)
+
+    ti.set_defaults(run=run_tidal)

@@ -4,12 +4,16 @@ session format asks), and the GB a minute of two-head recording takes with each.
 
 from __future__ import annotations
 
+import argparse
 import os
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from app.args import positive
+from benchmarks.common import publish
 
 
 def _filters() -> dict[str, dict]:
@@ -82,3 +86,20 @@ def run_compression_bench(scale: float, frame_count: int) -> str:
     lines += ["", "Headroom: write MB/s over what two heads deliver, on an otherwise idle machine (the recorder "
                   "shares the cores with capture and the live view)."]
     return "\n".join(lines)
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench compression`: its arguments and what it runs."""
+    co = what.add_parser("compression", help="lossless HDF5 filters on the rig's frames: ratio, MB/s, GB a minute")
+    co.add_argument("--scale", type=positive, default=1.0)
+    co.add_argument("--frames", type=int, default=110)
+    co.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_compression(args: argparse.Namespace) -> int:
+        from benchmarks.compression import run_compression_bench
+
+        text = run_compression_bench(args.scale, max(1, args.frames))
+        return publish(args, "compression", "Compression (`photopft bench compression`"
+                        + (f" --scale {args.scale:g}" if args.scale != 1 else "") + ")", text)
+
+    co.set_defaults(run=run_compression)

@@ -3,10 +3,14 @@ memory, in the real window on the simulated rig (offscreen unless a display is s
 
 from __future__ import annotations
 
+import argparse
 import os
 import tempfile
 from functools import partial
 from pathlib import Path
+
+from app.args import positive
+from benchmarks.common import publish
 
 
 def run_gui_bench(scale: float, seconds: float, record: bool, warmup_s: float = 30.0, loop_cycles: int = 0) -> str:
@@ -54,3 +58,29 @@ def run_gui_bench(scale: float, seconds: float, record: bool, warmup_s: float = 
     if len(f.rss_mb) > 8:  # sampled every 10 s: a leak grows steadily, a heap settling levels off
         rows += ["", "memory each minute (MB): " + ", ".join(f"{m:.0f}" for m in f.rss_mb[::6])]
     return "\n".join(rows)
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench gui`: its arguments and what it runs."""
+    gui = what.add_parser("gui", help="the live view: display updates/s, GUI-thread stalls, maps/s, memory")
+    gui.add_argument("--scale", type=positive, default=0.5)
+    gui.add_argument("--seconds", type=positive, default=20.0)
+    gui.add_argument("--no-record", action="store_true", help="live view only (no session file written)")
+    gui.add_argument("--warmup", type=positive, default=30.0,
+                     help="seconds of live view before the measurement (as while positioning the patient)")
+    gui.add_argument("--loop", type=int, default=0, metavar="CYCLES",
+                     help="render this many light cycles once and deliver them in a loop (the renderer then does "
+                          "not limit the rate; the images repeat)")
+    gui.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_gui(args: argparse.Namespace) -> int:
+        from benchmarks.gui import run_gui_bench
+
+        text = run_gui_bench(args.scale, args.seconds, not args.no_record, args.warmup, args.loop)
+        return publish(args, f"gui-{args.scale:g}-{'live' if args.no_record else 'recording'}"
+                              + (f"-loop{args.loop}" if args.loop else ""),
+                        f"Live view (`photopft bench gui --scale {args.scale:g} --seconds {args.seconds:g}"
+                        f"{' --no-record' if args.no_record else ''}{f' --loop {args.loop}' if args.loop else ''}`)",
+                        text)
+
+    gui.set_defaults(run=run_gui)

@@ -4,9 +4,13 @@ the slope and r of the one against the other, and the maps it came from."""
 
 from __future__ import annotations
 
+import argparse
 import time
 
 import numpy as np
+
+from app.args import positive
+from benchmarks.common import publish
 
 
 def run_live_bench(seconds: float, scale: float, seed: int = 1) -> tuple[str, dict[str, float]]:
@@ -42,3 +46,21 @@ def run_live_bench(seconds: float, scale: float, seed: int = 1) -> tuple[str, di
         f"| {len(t)} | {figures['per_s']:.1f} | {figures['r']:.3f} | {figures['slope']:.3f} | {figures['rms_l']:.3f} | "
         f"{figures['swing_true_l']:.2f} | {verdict} |"])
     return text, figures
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench live`: its arguments and what it runs."""
+    lv = what.add_parser("live", help="the live view's metric volume against the simulated subject's true volume")
+    lv.add_argument("--seconds", type=positive, default=60.0)
+    lv.add_argument("--scale", type=positive, default=0.25)
+    lv.add_argument("--seed", type=int, default=1)
+    lv.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_live(args: argparse.Namespace) -> int:
+        from benchmarks.live import run_live_bench
+
+        text, _ = run_live_bench(args.seconds, args.scale, args.seed)
+        return publish(args, f"live-{args.scale:g}", f"Live volume (`photopft bench live --seconds {args.seconds:g} "
+                                                      f"--scale {args.scale:g}`)", text)
+
+    lv.set_defaults(run=run_live)

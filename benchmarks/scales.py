@@ -11,6 +11,7 @@ The truth is read only to compare.
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 import time
 from dataclasses import dataclass, replace
@@ -18,12 +19,18 @@ from pathlib import Path
 
 import numpy as np
 
+from app.args import WORLD_NAMES, positive
+from benchmarks.common import publish, world_words
+
+
 BODIES = ("torso", "average-man", "random-1004")  # our own torso, a parametric man, a population body
 SCALES = (0.25, 0.5, 1.0)
 MAX_SLOPE_SPREAD = 0.01  # issue 27: the same slope at every scale within 1 %
 
 
 @dataclass(frozen=True)
+
+
 class ScaleRow:
     body: str
     scale: float
@@ -63,7 +70,7 @@ def named_body(name: str, seed: int):
 def run_one(body: str, scale: float, protocol: str, seconds: float | None, seed: int, world: str,
             folder: Path) -> ScaleRow:
     """One body at one scale: simulate, process with the defaults, the metric volume against the truth."""
-    from app.benchmarks.volume import metric_against_truth
+    from benchmarks.volume import metric_against_truth
     from core.io.results import ResultsFile, optical_refusal
     from core.pipeline.process import process_session
     from core.sim.simulate import simulate
@@ -124,3 +131,42 @@ def scales_table(rows: list[ScaleRow], protocol: str, seconds: float | None, see
         lines.append(f"- {body}: slopes spread by {verdict}")
     lines += ["", f"Run time {elapsed_s:.0f} s on this machine."]
     return "\n".join(lines)
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench scales`: its arguments and what it runs."""
+    from core.sim.breathing import PROTOCOLS  # as simulate's parser takes them (app/commands/session.py)
+
+    sc = what.add_parser("scales", help="the metric volume's slope on the truth, one session rendered at several "
+                                        "of the camera's scales")
+    sc.add_argument("--bodies", default="torso,average-man,random-1004",
+                    help="torso (our own) or bodies as simulate --body names them, comma-separated")
+    sc.add_argument("--scales", default="0.25,0.5,1")
+    sc.add_argument("--protocol", choices=[p for p in PROTOCOLS if p != "static"], default="vc",
+                    help="the simulated protocol (simulate --protocol; static holds no breath to compare)")
+    sc.add_argument("--seconds", type=positive, default=None, help="the protocol's length (default: its own)")
+    sc.add_argument("--seed", type=int, default=1)
+    sc.add_argument("--world", choices=WORLD_NAMES, default="ideal", help="realism of the simulated rig")
+    sc.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_scales(args: argparse.Namespace) -> int:
+        from benchmarks.scales import named_body, run_scales_bench
+        from app.errors import UserError
+
+        try:  # each name and scale checked before the first body's minutes of rendering
+            scales = tuple(positive(s) for s in args.scales.split(","))
+            bodies = tuple(args.bodies.split(","))
+            for body in bodies:
+                if body != "torso":
+                    named_body(body, args.seed)
+        except (argparse.ArgumentTypeError, ValueError) as exc:
+            raise UserError(f"--scales {args.scales} --bodies {args.bodies}: {exc}") from exc
+        text = run_scales_bench(bodies, scales, args.protocol, args.seconds, args.seed, args.world)
+        section = "scales" if args.world == "ideal" else f"scales-{args.world}"
+        command = " ".join(f"--{k} {v}" for k, v in (("bodies", args.bodies), ("scales", args.scales),
+                                                     ("protocol", args.protocol), ("seconds", args.seconds),
+                                                     ("seed", args.seed), ("world", args.world)) if v is not None)
+        return publish(args, section, f"Scales (`photopft bench scales {command}`)",
+                        f"World: {args.world} ({world_words(args.world)}).\n\n{text}")
+
+    sc.set_defaults(run=run_scales)

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+
 MARK = "rendered.json"
 # what sets a rendered session besides its arguments: the simulator, the rig and the file it writes
 SIMULATOR_SOURCES = ("core/sim", "core/rig.py", "core/io/session.py", "core/io/outputs.py")
@@ -32,15 +33,19 @@ CALIBRATION_SOURCES = ("core/calibration", "core/reconstruction", "core/io", "co
 
 
 @functools.cache
+
+
 def simulator_digest() -> str:
     """A digest of the simulator's code (SIMULATOR_SOURCES): a render is reused only by the code that made it."""
     return code_digest(SIMULATOR_SOURCES)
 
 
 @functools.cache
+
+
 def code_digest(sources: tuple[str, ...]) -> str:
     """A digest of the code in `sources` (folders and files of the checkout, their Python files)."""
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[1]
     digest = hashlib.sha256()
     for source in sources:
         path = root / source

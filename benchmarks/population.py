@@ -11,6 +11,7 @@ analysed. The truth is read only to compare.
 
 from __future__ import annotations
 
+import argparse
 import functools
 import json
 import os
@@ -22,7 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from app.benchmarks.renders import RenderCache
+from app.args import WORLD_NAMES, finite, positive
+from benchmarks.common import DOCS, SHARED, in_checkout, publish
+from benchmarks.renders import RenderCache
+
 
 # value key, label, unit, tolerance: absolute, relative (the issue's "within 3 % or 50 mL")
 VALUES = (("TV_l", "TV", "L", 0.050, 0.0), ("RR_bpm", "RR", "/min", 0.5, 0.0), ("VC_l", "VC", "L", 0.050, 0.03),
@@ -37,6 +41,8 @@ COLOURS = {"calibrated": "tab:blue", "estimate": "tab:green", "flow": "tab:orang
 
 
 @dataclass(frozen=True)
+
+
 class VirtualSubject:
     index: int
     seed: int
@@ -80,6 +86,10 @@ def draw_subjects(count: int, seed: int, blows: list[Path], quick: bool = False,
 
 BODIES = ("parametric", "mesh")  # the development population, the test population (docs/benchmarks.md)
 MESH_SEEDS = 100_000  # the test population's bodies are drawn from seeds of their own, apart from the rest
+
+# bench population --subset: a fixed subset of either population, quick enough to rerun between full runs
+SUBSET_SUBJECTS = 8
+SUBSET_SCALE = 0.25
 
 WORLD = "clinic"  # the population's world (core/sim/simulate.py, WORLDS); clinic-polarised: behind crossed polarisers
 
@@ -213,7 +223,7 @@ def calibrate_rig(subject: VirtualSubject, scale: float, folder: Path, world: st
     from core.calibration.light_sessions import calibrate_lights
 
     if renders is not None:
-        from app.benchmarks.renders import CALIBRATION_SOURCES, code_digest
+        from benchmarks.renders import CALIBRATION_SOURCES, code_digest
         from core.calibration.rig_profile import load_profile
 
         what = {"kind": "sphere sessions", "subject": _render_subject(subject), "scale": scale, "world": world,
@@ -266,7 +276,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     profile, the session, the results) so that a run stopped midway goes on from the last one:
     a subject at the camera's full resolution takes longer than a working session.
     With `renders`, the sphere sessions and the subject's session are taken from there, or rendered
-    into it (app/benchmarks/renders.py)."""
+    into it (benchmarks/renders.py)."""
     from core.pipeline.process import process_session
     from core.io.results import ResultsFile, optical_inputs, optical_refusal
     from core.rig import thesis_rig
@@ -616,7 +626,7 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
                          bodies: str = "parametric", renders: RenderCache | None = None) -> tuple[str, list[dict]]:
     """The bench's table and rows. With `keep`, each finished subject's row is kept there and a
     later run with the same arguments takes it instead of running the subject again. With `renders`,
-    the subjects' rendered sessions are taken from there or kept there (app/benchmarks/renders.py)."""
+    the subjects' rendered sessions are taken from there or kept there (benchmarks/renders.py)."""
     from app.progress import Progress
     from core.pipeline.process import use_threads
     from core.sim.simulate import WORLDS
@@ -681,6 +691,8 @@ def _run_job(job: tuple) -> dict:
 
 
 @functools.cache
+
+
 def source_commit() -> str:
     """The checkout's commit the subject was run with (kept rows may come from several), "-dirty" after it
     where the checkout had changes. Read once a process, when it first runs a subject and imports the code:
@@ -690,7 +702,7 @@ def source_commit() -> str:
 
     try:
         return subprocess.run(["git", "describe", "--always", "--dirty", "--abbrev=7"],
-                              cwd=Path(__file__).resolve().parents[2],
+                              cwd=Path(__file__).resolve().parents[1],
                               capture_output=True, text=True, timeout=10).stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
@@ -846,3 +858,74 @@ def describe_bodies(rows: list[dict]) -> None:
         s = row["subject"]
         b = population_body(s["body"], s["seed"])
         row["body"] = {**json.loads(b.as_json()), "bmi": b.bmi}
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench population`: its arguments and what it runs."""
+    po = what.add_parser("population", help="clinical values of simulated subjects in a clinic-like world, "
+                                            "against the truth (Bland-Altman)")
+    po.add_argument("--subjects", type=int, default=30)
+    po.add_argument("--scale", type=positive, default=0.5)
+    po.add_argument("--seed", type=int, default=1)
+    po.add_argument("--quick", action="store_true", help="two small subjects and 14 s each (what the tests run)")
+    po.add_argument("--workers", type=int, default=None, help="subjects at once (default: one per core)")
+    po.add_argument("--waveforms", type=Path, default=SHARED / "data" / "spirometry-waveforms",
+                    help="the standard test waveforms the blows follow (default ../shared/data/spirometry-waveforms)")
+    po.add_argument("--max-sheen", type=finite, default=None,
+                    help="skin sheen drawn from 0 to this (default 0.3; 0: matte skin)")
+    po.add_argument("--world", choices=tuple(w for w in WORLD_NAMES if w != "ideal"), default="clinic-widening",
+                    help="the clinic's rig, or the same behind crossed polarisers on the LEDs and lenses, or that "
+                         "with bodies whose trunk widens as they breathe (clinic-widening, the default)")
+    po.add_argument("--bodies", choices=("parametric", "mesh"), default="parametric",
+                    help="the development population (parametric trunks, the default) or the test population "
+                         "(MakeHuman body meshes from ../shared/data/makehuman, ray-cast; no method is tuned on it)")
+    po.add_argument("--keep", type=Path, default=None,
+                    help="keep each finished subject here and, run again, go on from them (long runs)")
+    po.add_argument("--renders", type=Path, default=None, metavar="DIR",
+                    help="keep the subjects' rendered sessions here and reuse them while the simulator's code is "
+                         "unchanged: a rerun after a change to the reconstruction or the analysis costs "
+                         "calibration and processing only")
+    po.add_argument("--renders-max-gb", type=positive, default=40.0,
+                    help="the renders kept at most (GB); the least recently used are removed first")
+    po.add_argument("--subset", action="store_true",
+                    help=f"the fixed subset for use between full runs: the population's first {SUBSET_SUBJECTS} "
+                         f"subjects at scale {SUBSET_SCALE:g} (overrides --subjects and --scale)")
+    po.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_population(args: argparse.Namespace) -> int:
+        from benchmarks.population import run_population_bench
+
+        if args.subjects < 1:
+            from app.errors import UserError
+
+            raise UserError("--subjects must be 1 or more")
+        if args.keep is not None and args.keep.exists() and not args.keep.is_dir():
+            from app.errors import UserError
+
+            raise UserError(f"{args.keep}: --keep must be a folder (the finished subjects are kept in it), this is a file")
+        if args.subset:
+            args.subjects, args.scale = SUBSET_SUBJECTS, SUBSET_SCALE
+        if args.renders is not None and args.renders.exists() and not args.renders.is_dir():
+            from app.errors import UserError
+
+            raise UserError(f"{args.renders}: --renders must be a folder (the rendered sessions are kept in it), "
+                            "this is a file")
+        subjects = 2 if args.quick else args.subjects
+        workers = max(1, min(subjects, args.workers or os.cpu_count() or 1))
+        images = None if args.no_write or not in_checkout() else DOCS.parent / "images"
+        from benchmarks.population import MAX_SHEEN, WORLD, population_section
+
+        sheen = MAX_SHEEN if args.max_sheen is None else args.max_sheen
+        from benchmarks.renders import RenderCache
+
+        renders = RenderCache(args.renders, args.renders_max_gb * 1e9) if args.renders is not None else None
+        text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images,
+                                       sheen, args.keep, args.world, args.bodies, renders)
+        suffix = ("" if sheen == MAX_SHEEN else f" --max-sheen {sheen:g}") + (
+            "" if args.world == WORLD else f" --world {args.world}") + (
+            " --bodies mesh" if args.bodies == "mesh" else "")
+        section = population_section(args.scale, sheen, args.world, args.bodies)
+        return publish(args, section, f"Population (`photopft bench population --subjects {subjects} --scale "
+                                       f"{args.scale:g} --seed {args.seed}{suffix}`)", text)
+
+    po.set_defaults(run=run_population)

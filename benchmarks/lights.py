@@ -1,6 +1,6 @@
 """`photopft bench lights`: the light calibration of rigs as built, against their truth.
 
-Each rig is drawn as the population bench draws them (app/benchmarks/population.py: LEDs 0-15 mm off
+Each rig is drawn as the population bench draws them (benchmarks/population.py: LEDs 0-15 mm off
 the drawing, and the clinic world's cos^mu falloff with tilted axes, intensity spread, drift,
 mains flicker, lens distortion and vignetting). Its sphere captures are simulated as the calibration
 wizard records them (each place its own recording, the LEDs drifting from one to the next) and
@@ -11,6 +11,7 @@ compare (issue 27: every LED within 5 mm from specular sessions alone, better wi
 
 from __future__ import annotations
 
+import argparse
 import os
 import tempfile
 import time
@@ -19,8 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from app.benchmarks.population import (CAPTURE_INTERVAL_S, LEDS_ON_BEFORE_S, SPHERE_PLACES, VirtualSubject,
+from app.args import positive
+from benchmarks.common import publish
+from benchmarks.population import (CAPTURE_INTERVAL_S, LEDS_ON_BEFORE_S, SPHERE_PLACES, VirtualSubject,
                                        draw_subjects, light_errors, lights_truth, sphere_sessions)
+
 
 WITHIN_MM = 5.0
 
@@ -123,3 +127,28 @@ def run_lights_bench(rigs: int, scale: float, seed: int, workers: int) -> tuple[
         else:
             rows = [run_rig(*job) for job in jobs]
     return lights_table(rows, scale, seed, time.perf_counter() - started, workers), rows
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench lights`: its arguments and what it runs."""
+    li = what.add_parser("lights", help="light calibration from simulated sphere sessions of rigs as built, against "
+                                        "their truth")
+    li.add_argument("--rigs", type=int, default=6)
+    li.add_argument("--scale", type=positive, default=0.5)
+    li.add_argument("--seed", type=int, default=1)
+    li.add_argument("--workers", type=int, default=None, help="rigs at once (default: one per core)")
+    li.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_lights(args: argparse.Namespace) -> int:
+        from benchmarks.lights import run_lights_bench
+
+        if args.rigs < 1:
+            from app.errors import UserError
+
+            raise UserError("--rigs must be 1 or more")
+        workers = max(1, min(args.rigs, args.workers or os.cpu_count() or 1))
+        text, _ = run_lights_bench(args.rigs, args.scale, args.seed, workers)
+        return publish(args, f"lights-{args.scale:g}", f"Light calibration (`photopft bench lights --rigs {args.rigs} "
+                                                        f"--scale {args.scale:g} --seed {args.seed}`)", text)
+
+    li.set_defaults(run=run_lights)

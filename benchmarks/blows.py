@@ -12,16 +12,19 @@ waveform's own, of blows whose acceptability is the waveform's, and of PEF withi
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import SHARED, noises_ml, publish
 from core.analysis.fitted_curve import smoothed_on_grid
 from core.analysis.spirometry import ForcedValues, forced_values, read_waveform
-from app.benchmarks.population import within
+from benchmarks.population import within
 from core.analysis.values import (ANALYSIS_RATE_HZ, MAX_PEF_NOISE_RATIO, MAX_PEF_NOISE_RATIO_FRAMES,
                                   peak_flow_of_frames, pef_noise_ratio, resample)
+
 
 CYCLE_S = 1.0 / 22.0  # one light cycle: four lit frames and a dark one at 110 frames/s
 FRAME_S = CYCLE_S / 5.0
@@ -30,6 +33,8 @@ BANDS = (0.0, 0.03, 0.05, 0.08, 0.10, 0.15, 0.20, 0.30, np.inf)
 
 
 @dataclass
+
+
 class Reading:
     """One sampling of one waveform, read straight and fitted, against the waveform's own values."""
 
@@ -144,3 +149,37 @@ def run_blows_bench(folder: Path, noise_ml: list[float], phases: int, draws: int
                   f"{100 * MAX_PEF_NOISE_RATIO_FRAMES:.0f} % of the fitted PEF, then straight; the bands are of the "
                   "maps' own ratio, unsmoothed.")
     return intro + "\n\n" + table(rows, every_frame)
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench blows`: its arguments and what it runs."""
+    bl = what.add_parser("blows", help="the standard waveforms read as optical maps with noise: FEV1, FVC, "
+                                       "acceptability and PEF, read straight and fitted")
+    bl.add_argument("--noise-ml", default="0,5,10,15,20,25,35", help="noise of a map, mL (comma-separated)")
+    bl.add_argument("--phases", type=int, default=4, help="phases of the light cycle each waveform is sampled at")
+    bl.add_argument("--draws", type=int, default=2, help="noise draws per phase and noise")
+    bl.add_argument("--seed", type=int, default=0)
+    bl.add_argument("--waveforms", type=Path, default=SHARED / "data" / "spirometry-waveforms",
+                    help="the standard test waveforms (default ../shared/data/spirometry-waveforms)")
+    bl.add_argument("--every-frame", action="store_true",
+                    help="one map a frame (1/110 s), as process makes through the top of each forced blow")
+    bl.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_blows(args: argparse.Namespace) -> int:
+        from benchmarks.blows import run_blows_bench
+        from app.errors import UserError
+
+        noise = noises_ml(args.noise_ml)
+        if args.phases < 1 or args.draws < 1:
+            raise UserError("--phases and --draws take 1 or more")
+        try:
+            text = run_blows_bench(args.waveforms, noise, args.phases, args.draws, args.seed, args.every_frame)
+        except (FileNotFoundError, ValueError) as exc:
+            raise UserError(str(exc)) from exc
+        frames = " --every-frame" if args.every_frame else ""
+        return publish(args, "blows-frames" if args.every_frame else "blows",
+                        f"Forced expirations read through the maps' noise (`photopft bench blows "
+                        f"--noise-ml {args.noise_ml} --phases {args.phases} --draws {args.draws} "
+                        f"--seed {args.seed}{frames}`)", text)
+
+    bl.set_defaults(run=run_blows)

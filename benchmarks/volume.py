@@ -9,7 +9,6 @@ simulation's true lung volume through the same analysis.
 from __future__ import annotations
 
 import argparse
-
 import tempfile
 import time
 from dataclasses import dataclass
@@ -17,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from app.args import WORLD_NAMES, positive
+from benchmarks.common import publish, world_words
 from core.reconstruction.pipeline import ReconstructionSettings
 from core.pipeline.process import process_session
 from core.io.results import ResultsFile, optical_inputs
@@ -24,10 +25,13 @@ from core.io.session import SessionFile
 from core.analysis.session_analysis import analyse_session
 from core.volume.maps import gradient_volume_correlations
 
+
 VALUES = (("TV", "TV_l"), ("VC", "VC_l"), ("FVC", "FVC_l"), ("FEV1", "FEV1_l"))
 
 
 @dataclass(frozen=True)
+
+
 class Scenario:
     distance_mm: float
     axial_sway_mm: float
@@ -122,3 +126,26 @@ def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ..
                      f"{m['rms_l']:.3f} |")
     lines += ["", f"Run time {time.perf_counter() - started:.0f} s on this machine."]
     return "\n".join(lines)
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench volume`: its arguments and what it runs."""
+    vol = what.add_parser("volume", help="tidal volume, VC, FVC, FEV1 and the optical volume against the truth")
+    vol.add_argument("--scale", type=positive, default=0.25)
+    vol.add_argument("--seconds", type=positive, default=60.0)
+    vol.add_argument("--every", type=int, default=2, help="reconstruct every Nth cycle window (1: at the camera rate)")
+    vol.add_argument("--world", choices=WORLD_NAMES, default="ideal",
+                   help="realism of the simulated rig")
+    vol.add_argument("--no-write", action="store_true", help="print only")
+
+    def run_volume(args: argparse.Namespace) -> int:
+        from benchmarks.volume import run_volume_bench
+
+        text = run_volume_bench(args.scale, args.seconds, every=args.every, world=args.world)
+        section = "volume" if args.world == "ideal" else f"volume-{args.world}"
+        return publish(args, section, f"Volume (`photopft bench volume --scale {args.scale:g} --seconds "
+                                       f"{args.seconds:g} --every {args.every}"
+                                       + (f" --world {args.world}" if args.world != "ideal" else "") + "`)",
+                        f"World: {args.world} ({world_words(args.world)}).\n\n{text}")
+
+    vol.set_defaults(run=run_volume)
