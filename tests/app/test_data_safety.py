@@ -122,7 +122,7 @@ def test_a_library_failing_after_the_stop_is_reported_as_the_stop(session, tmp_p
     """Ctrl-C while numba compiles: its handler's exception is swallowed inside the compiler, which
     then fails in its own words (caching a kernel it never finished). Seen with an empty numba cache."""
     from core.io.outputs import request_stop, stop_if_requested
-    from core.reconstruction import process
+    from core.pipeline import process
 
     def cut_short(*args, **kwargs):
         request_stop(KeyboardInterrupt())

@@ -182,7 +182,7 @@ def test_an_unexpected_error_with_nobody_to_close_a_dialog_ends_the_smoke_test_w
     assert "ValueError: min() arg is an empty sequence" in caplog.text
 
 
-def test_a_measurement_of_the_live_view_ends_when_the_engine_dies_before_its_first_maps(window):
+def test_a_measurement_of_the_live_view_ends_when_the_engine_dies_before_its_first_maps(window, qtbot):
     """The smoke test and `bench gui` wait for every head's first map; an engine that crashed sends
     none (numba aborting its kernels did it once, 2026-11-29): the wait ends at once, not after its
     five minutes, and the figures say no maps came."""
@@ -194,10 +194,13 @@ def test_a_measurement_of_the_live_view_ends_when_the_engine_dies_before_its_fir
 
     os.kill(window.engine.pid, signal.SIGKILL)
     started = time.monotonic()
+    # maps the engine made before it died may still reach the window (a busy machine): what it saw is what counts
+    qtbot.waitUntil(lambda: window.engine.stopped, timeout=10_000)
+    came = all(v.reconstructed > 0 for v in window.engine.snapshot().heads.values())
     figures = measure_live_view(window, 0.5)  # closes the window at its end
     assert time.monotonic() - started < 20
     assert all(rate == 0 for rate in figures.maps_per_s.values())
-    assert np.isnan(figures.first_maps_s)
+    assert np.isnan(figures.first_maps_s) != came
 
 
 def test_a_rig_that_cannot_start_opens_on_the_diagnostics_page(qtbot, tmp_path):
