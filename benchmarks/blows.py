@@ -166,7 +166,6 @@ def add(what: argparse._SubParsersAction) -> None:
     bl.add_argument("--no-write", action="store_true", help="print only")
 
     def run_blows(args: argparse.Namespace) -> int:
-        from benchmarks.blows import run_blows_bench
         from app.errors import UserError
 
         noise = noises_ml(args.noise_ml)

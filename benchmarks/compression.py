@@ -96,8 +96,6 @@ def add(what: argparse._SubParsersAction) -> None:
     co.add_argument("--no-write", action="store_true", help="print only")
 
     def run_compression(args: argparse.Namespace) -> int:
-        from benchmarks.compression import run_compression_bench
-
         text = run_compression_bench(args.scale, max(1, args.frames))
         return publish(args, "compression", "Compression (`photopft bench compression`"
                         + (f" --scale {args.scale:g}" if args.scale != 1 else "") + ")", text)

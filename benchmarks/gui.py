@@ -74,8 +74,6 @@ def add(what: argparse._SubParsersAction) -> None:
     gui.add_argument("--no-write", action="store_true", help="print only")
 
     def run_gui(args: argparse.Namespace) -> int:
-        from benchmarks.gui import run_gui_bench
-
         text = run_gui_bench(args.scale, args.seconds, not args.no_record, args.warmup, args.loop)
         return publish(args, f"gui-{args.scale:g}-{'live' if args.no_record else 'recording'}"
                               + (f"-loop{args.loop}" if args.loop else ""),

@@ -140,8 +140,6 @@ def add(what: argparse._SubParsersAction) -> None:
     li.add_argument("--no-write", action="store_true", help="print only")
 
     def run_lights(args: argparse.Namespace) -> int:
-        from benchmarks.lights import run_lights_bench
-
         if args.rigs < 1:
             from app.errors import UserError
 

@@ -57,8 +57,6 @@ def add(what: argparse._SubParsersAction) -> None:
     lv.add_argument("--no-write", action="store_true", help="print only")
 
     def run_live(args: argparse.Namespace) -> int:
-        from benchmarks.live import run_live_bench
-
         text, _ = run_live_bench(args.seconds, args.scale, args.seed)
         return publish(args, f"live-{args.scale:g}", f"Live volume (`photopft bench live --seconds {args.seconds:g} "
                                                       f"--scale {args.scale:g}`)", text)

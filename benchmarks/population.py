@@ -893,31 +893,21 @@ def add(what: argparse._SubParsersAction) -> None:
     po.add_argument("--no-write", action="store_true", help="print only")
 
     def run_population(args: argparse.Namespace) -> int:
-        from benchmarks.population import run_population_bench
+        from app.errors import UserError
 
         if args.subjects < 1:
-            from app.errors import UserError
-
             raise UserError("--subjects must be 1 or more")
         if args.keep is not None and args.keep.exists() and not args.keep.is_dir():
-            from app.errors import UserError
-
             raise UserError(f"{args.keep}: --keep must be a folder (the finished subjects are kept in it), this is a file")
         if args.subset:
             args.subjects, args.scale = SUBSET_SUBJECTS, SUBSET_SCALE
         if args.renders is not None and args.renders.exists() and not args.renders.is_dir():
-            from app.errors import UserError
-
             raise UserError(f"{args.renders}: --renders must be a folder (the rendered sessions are kept in it), "
                             "this is a file")
         subjects = 2 if args.quick else args.subjects
         workers = max(1, min(subjects, args.workers or os.cpu_count() or 1))
         images = None if args.no_write or not in_checkout() else DOCS.parent / "images"
-        from benchmarks.population import MAX_SHEEN, WORLD, population_section
-
         sheen = MAX_SHEEN if args.max_sheen is None else args.max_sheen
-        from benchmarks.renders import RenderCache
-
         renders = RenderCache(args.renders, args.renders_max_gb * 1e9) if args.renders is not None else None
         text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images,
                                        sheen, args.keep, args.world, args.bodies, renders)

@@ -67,8 +67,6 @@ def add(what: argparse._SubParsersAction) -> None:
     pr.add_argument("--no-write", action="store_true", help="print only")
 
     def run_process(args: argparse.Namespace) -> int:
-        from benchmarks.process import run_process_bench
-
         counts = (tuple(int(w) for w in args.workers.split(",")) if args.workers
                   else tuple(range(1, min(os.cpu_count() or 1, 2) + 1)))
         text = run_process_bench(args.seconds, args.scale, counts)

@@ -150,7 +150,6 @@ def add(what: argparse._SubParsersAction) -> None:
     sc.add_argument("--no-write", action="store_true", help="print only")
 
     def run_scales(args: argparse.Namespace) -> int:
-        from benchmarks.scales import named_body, run_scales_bench
         from app.errors import UserError
 
         try:  # each name and scale checked before the first body's minutes of rendering

@@ -118,7 +118,6 @@ def add(what: argparse._SubParsersAction) -> None:
     ti.add_argument("--no-write", action="store_true", help="print only")
 
     def run_tidal(args: argparse.Namespace) -> int:
-        from benchmarks.tidal import run_tidal_bench
         from app.errors import UserError
 
         noise = noises_ml(args.noise_ml)

@@ -139,8 +139,6 @@ def add(what: argparse._SubParsersAction) -> None:
     vol.add_argument("--no-write", action="store_true", help="print only")
 
     def run_volume(args: argparse.Namespace) -> int:
-        from benchmarks.volume import run_volume_bench
-
         text = run_volume_bench(args.scale, args.seconds, every=args.every, world=args.world)
         section = "volume" if args.world == "ideal" else f"volume-{args.world}"
         return publish(args, section, f"Volume (`photopft bench volume --scale {args.scale:g} --seconds "
