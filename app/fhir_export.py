@@ -20,6 +20,7 @@ from app.report_data import ReportData
 from core.analysis.interpretation import NORMAL, NOT_INTERPRETED
 from core.io.outputs import atomic_output
 from core.analysis.reference import Z_LLN
+from core.analysis.registry import VALUES
 
 LOINC = "http://loinc.org"
 SNOMED = "http://snomed.info/sct"
@@ -29,15 +30,6 @@ PATIENT_NUMBER_SYSTEM = "urn:photopft:patient-number"
 SPIROMETRY_STUDY = ("18759-1", "Spirometry study")
 Z_SCORE = ("1078210003", "Z-score calculation technique")
 
-# (key in the values, reference name, measured code and display, predicted code, % predicted code, UCUM unit)
-VALUES = (
-    ("FEV1_l", "FEV1", ("20150-9", "FEV1"), "20149-1", "20152-5", "L"),
-    ("FVC_l", "FVC", ("19868-9", "Forced vital capacity [Volume] Respiratory system by Spirometry"), "19869-7",
-     "19872-1", "L"),
-    ("FEV1_FVC", "FEV1_FVC", ("19926-5", "FEV1/FVC"), "19925-7", None, "1"),
-    ("PEF_lps", None, ("19935-6", "Maximum expiratory gas flow Respiratory system airway by Peak flow meter"),
-     None, None, "L/s"),
-)
 BRONCHODILATOR_FEV1 = {"pre": ("20157-4", "FEV1 --pre bronchodilation"),
                        "post": ("20155-8", "FEV1 --post bronchodilation")}
 
@@ -94,7 +86,9 @@ def _observations(data: ReportData, status: str, patient_ref: str, effective: st
               "optical (near-light photometric stereo, photopft): "
               + (data.optical_label or "made before its kind was recorded")}
     out = []
-    for key, ref_name, (code, display), predicted_code, percent_code, unit in VALUES:
+    for coded in (v for v in VALUES if v.loinc is not None):
+        key, ref_name, (code, display) = coded.key, coded.reference, coded.loinc
+        predicted_code, percent_code, unit = coded.loinc_predicted, coded.loinc_percent, coded.ucum
         if key not in values:
             continue
         value = float(values[key])

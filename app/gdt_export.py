@@ -21,22 +21,13 @@ from datetime import datetime
 from pathlib import Path
 
 from app.report_data import ReportData
+from core.analysis.registry import VALUES
 from core.io.outputs import atomic_output
 
 ENCODING = "iso8859_15"
 GDT_VERSION = "03.00"
 SENDER = "PHOTOPFT"
 RECORD_TYPE = "6310"
-# (key in the values, test identifier, name, unit, reference parameter)
-TESTS = (("FVC_l", "FVC", "Forced vital capacity", "L", "FVC"),
-         ("FEV1_l", "FEV1", "Forced expiratory volume in 1 s", "L", "FEV1"),
-         ("FEV1_FVC", "FEV1FVC", "FEV1/FVC", "", "FEV1_FVC"),
-         ("PEF_lps", "PEF", "Peak expiratory flow", "L/s", None),
-         ("FEF2575_lps", "FEF2575", "FEF25-75", "L/s", "FEF2575"),
-         ("VC_l", "VC", "Vital capacity (slow)", "L", None),
-         ("TV_l", "VT", "Tidal volume", "L", None),
-         ("RR_bpm", "AF", "Respiratory rate", "/min", None))
-
 
 MAX_LINE_BYTES = 999  # the length field has three digits
 MAX_CONTENT_BYTES = MAX_LINE_BYTES - 3 - 4 - 2  # less the length, the field id and CR LF
@@ -116,7 +107,8 @@ def gdt_record(data: ReportData, receiver: str = "PRAXIS") -> tuple[bytes, list[
     lines.append(_line("8402", "LUFU01"))
     values = data.parameters(data.main_source) if data.main_source else {}
     references = {row.reference.parameter: row.reference for row in data.rows if row.reference is not None}
-    for key, ident, name, unit, ref_name in TESTS:
+    for test in (v for v in VALUES if v.gdt_test is not None):
+        key, ident, name, unit, ref_name = test.key, test.gdt_test, test.name, test.unit, test.reference
         if key not in values:
             continue
         value = float(values[key])

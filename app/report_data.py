@@ -23,6 +23,7 @@ from core.analysis.interpretation import (BronchodilatorChange, Interpretation, 
                                  bronchodilator_statement, interpret)
 from core.io.results import READ_ERRORS, RESULTS_FORMAT, check_results
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
+from core.analysis.registry import VALUES
 from core.io.session import SessionError, SessionFile
 from core.analysis.session_analysis import analyse_session
 from core.volume.maps import body_aligned_displacement, normalised_gradient_volume, torso_rows, trunk_regions
@@ -30,15 +31,9 @@ from core.volume.maps import body_aligned_displacement, normalised_gradient_volu
 OPTICAL = "optical"
 FLOW_SENSOR = "flow sensor"
 
-# (key in SessionValues.parameters(), label, unit, reference parameter); FEV1/FVC is a ratio.
-MAIN_ROWS = (("TV_l", "Tidal volume", "L", None), ("RR_bpm", "Respiratory rate", "/min", None),
-             ("VE_lpm", "Minute ventilation", "L/min", None), ("VC_l", "VC", "L", None),
-             ("FVC_l", "FVC", "L", "FVC"), ("FEV1_l", "FEV1", "L", "FEV1"), ("FEV1_FVC", "FEV1/FVC", "", "FEV1_FVC"),
-             ("PEF_lps", "PEF", "L/s", None), ("FEF2575_lps", "FEF25-75", "L/s", "FEF2575"))
-TIDAL_ROWS = (("Ti_s", "Inspiratory time Ti", "s"), ("Te_s", "Expiratory time Te", "s"), ("IE_ratio", "Ti/Te", ""),
-              ("tPTEF_tE", "tPTEF/tE", ""), ("IE50", "IE50 (insp./exp. flow at half VT)", ""),
-              ("breaths", "Breaths analysed", ""), ("IC_l", "IC", "L"), ("ERV_l", "ERV", "L"), ("IRV_l", "IRV", "L"),
-              ("FEV6_l", "FEV6", "L"), ("FEV075_l", "FEV0.75", "L"), ("FET_s", "FET", "s"))
+# The report's two tables (core/analysis/registry.py): the main values, with predicted values, and the tidal ones
+MAIN_ROWS = tuple(v for v in VALUES if v.table == "main")
+TIDAL_ROWS = tuple(v for v in VALUES if v.table == "tidal")
 
 
 @dataclass
@@ -48,6 +43,7 @@ class ValueRow:
     unit: str
     values: dict[str, float]  # by source
     reference: Reference | None
+    decimals: int | None = None  # as the registry gives them; None: by the unit (app/report_pdf.py, fmt)
 
     def z(self, source: str) -> float | None:
         value = self.values.get(source)
@@ -479,9 +475,10 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
         def by_source(key: str) -> dict[str, float]:
             return {src: float(p[key]) for src, p in parameters.items() if key in p}
 
-        rows = [ValueRow(key, label, unit, by_source(key), analysed.references.get(ref) if ref else None)
-                for key, label, unit, ref in MAIN_ROWS]
-        tidal_rows = [ValueRow(key, label, unit, by_source(key), None) for key, label, unit in TIDAL_ROWS]
+        rows = [ValueRow(v.key, v.name, v.unit, by_source(v.key),
+                         analysed.references.get(v.reference) if v.reference else None, v.decimals)
+                for v in MAIN_ROWS]
+        tidal_rows = [ValueRow(v.key, v.name, v.unit, by_source(v.key), None, v.decimals) for v in TIDAL_ROWS]
         for src, values in sources.items():
             notes += [f"{src}: {problem}" for problem in values.problems]
         manoeuvres = _manoeuvres(sources[main]) if main is not None else []

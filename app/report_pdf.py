@@ -29,7 +29,7 @@ from reportlab.platypus import (Image, KeepTogether, PageBreak, Paragraph, Simpl
                                 TableStyle)
 
 from app.paths import resources_dir
-from app.report_data import DISTANCE_REFUSED, FLOW_SENSOR, OPTICAL, HeadMaps, ReportData, ValueRow, best_manoeuvres
+from app.report_data import DISTANCE_REFUSED, FLOW_SENSOR, OPTICAL, HeadMaps, ReportData, best_manoeuvres
 from core import __version__
 from core.io.outputs import atomic_output
 
@@ -66,10 +66,6 @@ def fmt(value: float | None, unit: str = "", digits: int | None = None) -> str:
     if digits is None:
         digits = 0 if unit in ("%", "/min") else (1 if unit in ("L/min", "s") else 2)
     return f"{value:.{digits}f}"
-
-
-def _ratio_row(row: ValueRow) -> bool:
-    return row.key == "FEV1_FVC"
 
 
 def _grid(data, widths, header_rows=1, align_from=1) -> Table:
@@ -139,11 +135,9 @@ def _values_table(data: ReportData) -> Table:
         if not row.values and row.reference is None:
             body.append([row.label, row.unit] + ["–"] * (len(sources) + 4))
             continue
-        ratio = _ratio_row(row)
-        cells = [fmt(row.values.get(s), row.unit, 2 if ratio else None) for s in sources]
+        cells = [fmt(row.values.get(s), row.unit, row.decimals) for s in sources]
         ref = row.reference
-        pred = [fmt(ref.predicted, row.unit, 2 if ratio else None), fmt(ref.lln, row.unit, 2 if ratio else None)] \
-            if ref else ["–", "–"]
+        pred = [fmt(ref.predicted, row.unit, row.decimals), fmt(ref.lln, row.unit, row.decimals)] if ref else ["–", "–"]
         z = fmt(row.z(main), digits=2) if main else "–"
         pct = fmt(row.percent(main), digits=0) if main else "–"
         body.append([row.label, row.unit] + cells + pred + [z, pct])
@@ -545,8 +539,7 @@ def _tidal(data: ReportData, styles) -> list:
     out: list = [Paragraph("Tidal breathing indices and other values", styles["h2"])]
     rows = [["Value", "Unit"] + [s.capitalize() for s in sources]]
     for row in data.tidal_rows:
-        digits = 0 if row.key == "breaths" else (2 if row.unit in ("", "L", "s") else None)
-        rows.append([row.label, row.unit] + [fmt(row.values.get(s), row.unit, digits) for s in sources])
+        rows.append([row.label, row.unit] + [fmt(row.values.get(s), row.unit, row.decimals) for s in sources])
     out.append(_grid(rows, [62 * mm, 14 * mm] + [26 * mm] * len(sources), align_from=2))
     return out
 

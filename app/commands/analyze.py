@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 from app.errors import UserError
+from core.analysis.registry import VALUES
 
 
 def add_analyze(sub: argparse._SubParsersAction) -> None:
@@ -57,13 +58,8 @@ def run_analyze(args: argparse.Namespace) -> int:
     return 0
 
 
-ROWS = (("TV_l", "TV", "L"), ("RR_bpm", "RR", "/min"), ("VE_lpm", "VE", "L/min"), ("Ti_s", "Ti", "s"),
-        ("Te_s", "Te", "s"), ("IE_ratio", "Ti/Te", ""), ("tPTEF_tE", "tPTEF/tE", ""), ("IE50", "IE50", ""),
-        ("VC_l", "VC", "L"), ("IC_l", "IC", "L"), ("ERV_l", "ERV", "L"), ("IRV_l", "IRV", "L"),
-        ("FVC_l", "FVC", "L"), ("FEV1_l", "FEV1", "L"), ("FEV1_FVC", "FEV1/FVC", ""), ("FEV6_l", "FEV6", "L"),
-        ("FEV075_l", "FEV0.75", "L"), ("PEF_lps", "PEF", "L/s"), ("FEF2575_lps", "FEF25-75", "L/s"),
-        ("FET_s", "FET", "s"))
-REFERENCE_OF = {"FVC_l": "FVC", "FEV1_l": "FEV1", "FEV1_FVC": "FEV1_FVC", "FEF2575_lps": "FEF2575"}
+# the registry's values but the count of breaths analysed, which the report lists with the tidal values
+ROWS = tuple(v for v in VALUES if v.key != "breaths")
 
 
 def _plain(value):
@@ -77,7 +73,7 @@ def _as_json(session: Path, results: Path | None, equations: str, report, named,
 
     main_name, main = sources[0]
     references = {}
-    for key, name in REFERENCE_OF.items():
+    for key, name in ((v.key, v.reference) for v in VALUES if v.reference):
         ref = report.references.get(name)
         if ref is not None:
             references[name] = {"predicted": ref.predicted, "lln": ref.lln}
@@ -136,11 +132,12 @@ def run_analyze_session(args: argparse.Namespace) -> int:
     print(f"{session}: values from the {sources[0][0]}; reference {args.equations} (z and % predicted of the "
           "first source that gives the value)")
     print(header)
-    for key, label, unit in ROWS:
+    for row in ROWS:
+        key, label, unit = row.key, row.label, row.unit
         if not any(key in values for _, values in sources):
             continue
         cells = "".join(f"{values[key]:>20.3f}" if key in values else f"{'':>20}" for _, values in sources)
-        ref = report.references.get(REFERENCE_OF.get(key, ""))
+        ref = report.references.get(row.reference or "")
         extra = ""
         first = next((values[key] for _, values in sources if key in values), None)
         if ref is not None and first is not None:

@@ -18,6 +18,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QComboBox, QDialog, QDialogBut
 
 from app.records import Patient, Records, RecordsError, SessionRecord
 from app.report_data import TREND_VALUES, source_values, stored_interpretation, trend_points
+from core.analysis.registry import BY_KEY
 
 TREND_PENS = {"FEV1": pg.mkPen("#1f5fa8", width=2), "FVC": pg.mkPen("#b85c00", width=2, style=Qt.PenStyle.DashLine),
               "FEV1_FVC": pg.mkPen("#333333", width=1.5, style=Qt.PenStyle.DotLine)}
@@ -67,8 +68,7 @@ class TrendPlot(QWidget):
 
 
 # The values shown per source for a visit, as the report names them
-VISIT_VALUES = (("FEV1_l", "FEV1", "L"), ("FVC_l", "FVC", "L"), ("FEV1_FVC", "FEV1/FVC", ""), ("VC_l", "VC", "L"),
-                ("TV_l", "TV", "L"), ("RR_bpm", "RR", "/min"))
+VISIT_VALUES = tuple(BY_KEY[key] for key in ("FEV1_l", "FVC_l", "FEV1_FVC", "VC_l", "TV_l", "RR_bpm"))
 SOURCE_LABELS = {"flow sensor": "flow sensor", "optical": "optical (made before its kind was recorded)"}
 
 
@@ -79,12 +79,12 @@ def values_by_source_html(summary: dict) -> str:
     for source, values in summary.items():
         if not isinstance(values, dict):
             continue
-        if "refused" in values and not any(k in values for k, _, _ in VISIT_VALUES):
+        if "refused" in values and not any(v.key in values for v in VISIT_VALUES):
             rows.append(f"<tr><td><b>{source}</b></td><td colspan=6>no values: {values['refused']}</td></tr>")
             continue
         label = str(values.get("label") or SOURCE_LABELS.get(source, source))
-        cells = "".join(f"<td>{name} {float(values[key]):.2f}{' ' + unit if unit else ''}</td>"
-                        for key, name, unit in VISIT_VALUES if isinstance(values.get(key), (int, float)))
+        cells = "".join(f"<td>{v.label} {float(values[v.key]):.{v.decimals}f}{' ' + v.unit if v.unit else ''}</td>"
+                        for v in VISIT_VALUES if isinstance(values.get(v.key), (int, float)))
         rows.append(f"<tr><td><b>{label}</b></td>{cells or '<td>no values</td>'}</tr>")
     if not rows:
         return "No values stored for this visit: process it (Process again)."

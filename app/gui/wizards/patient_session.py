@@ -611,14 +611,15 @@ def review_html(parameters: dict, problems: list[str], patient: Patient | None, 
     now = datetime.now(timezone.utc)
     references = references_on(patient, now, "gli-global") if patient else {}
     rows = ["<tr><th align=left>Value</th><th>Unit</th><th>Measured</th><th>Predicted</th><th>LLN</th><th>z</th></tr>"]
-    for key, label, unit, ref_name in MAIN_ROWS:
-        if key not in parameters:
+    for row in MAIN_ROWS:
+        if row.key not in parameters:
             continue
-        value = float(parameters[key])
-        ref = references.get(ref_name) if ref_name else None
+        value = float(parameters[row.key])
+        ref = references.get(row.reference) if row.reference else None
         extra = (f"<td align=right>{ref.predicted:.2f}</td><td align=right>{ref.lln:.2f}</td>"
                  f"<td align=right>{ref.zscore(value):+.2f}</td>") if ref else "<td></td><td></td><td></td>"
-        rows.append(f"<tr><td>{label}</td><td>{unit}</td><td align=right>{value:.2f}</td>{extra}</tr>")
+        rows.append(f"<tr><td>{row.name}</td><td>{row.unit}</td><td align=right>{value:.{row.decimals}f}</td>"
+                    f"{extra}</tr>")
     html = "<table cellspacing=0 cellpadding=3>" + "".join(rows) + "</table>"
     if "grade" in parameters:
         html += (f"<p>ATS/ERS 2019 grade <b>{parameters['grade']}</b>: {parameters['acceptable_FEV1']} acceptable "
