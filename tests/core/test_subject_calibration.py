@@ -24,13 +24,20 @@ def _breathing(seconds: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray, n
     return t, chest, abdomen
 
 
-def test_the_fit_finds_each_region_s_gain_and_ignores_an_offset_and_a_drift():
-    t, chest, abdomen = _breathing(36.0)
+def _seen_by_one_head(seconds: float = 36.0):
+    """Map times, the front head's chest and abdomen seen at 1/1.6 and 1/1.1 of their volumes with 4 mL of
+    noise, the flow sensor's times and volume, and the true chest and abdomen."""
+    t, chest, abdomen = _breathing(seconds)
     rng = np.random.default_rng(3)
     seen = {"front chest": chest / 1.6 + 0.004 * rng.standard_normal(len(t)),
             "front abdomen": abdomen / 1.1 + 0.004 * rng.standard_normal(len(t))}
-    flow_t = np.arange(0.0, 36.0, 0.001)
-    flow = np.interp(flow_t, t, chest + abdomen) + 0.3 + 0.002 * flow_t  # its zero and a slow drift
+    flow_t = np.arange(0.0, seconds, 0.001)
+    return t, seen, flow_t, np.interp(flow_t, t, chest + abdomen), chest, abdomen
+
+
+def test_the_fit_finds_each_region_s_gain_and_ignores_an_offset_and_a_drift():
+    t, seen, flow_t, flow, chest, abdomen = _seen_by_one_head()
+    flow = flow + 0.3 + 0.002 * flow_t  # its zero and a slow drift
     c = fit_subject_calibration(t, seen, flow_t, flow, (0.0, 36.0))
     assert c.refused is None
     assert c.gains["front chest"] == pytest.approx(1.6, rel=0.03)
@@ -42,12 +49,7 @@ def test_the_fit_finds_each_region_s_gain_and_ignores_an_offset_and_a_drift():
 
 
 def test_a_grouping_asked_for_is_the_one_fitted():
-    t, chest, abdomen = _breathing(36.0)
-    rng = np.random.default_rng(3)
-    seen = {"front chest": chest / 1.6 + 0.004 * rng.standard_normal(len(t)),
-            "front abdomen": abdomen / 1.1 + 0.004 * rng.standard_normal(len(t))}
-    flow_t = np.arange(0.0, 36.0, 0.001)
-    flow = np.interp(flow_t, t, chest + abdomen)
+    t, seen, flow_t, flow, _, _ = _seen_by_one_head()
     chosen = fit_subject_calibration(t, seen, flow_t, flow, (0.0, 36.0))
     one = fit_subject_calibration(t, seen, flow_t, flow, (0.0, 36.0), groupings=("one gain",))
     assert chosen.extra["grouping"] != "one gain" and one.extra["grouping"] == "one gain"
