@@ -351,7 +351,7 @@ class LiveView(QWidget):
         if replay:
             self.replay_bar.show_position(s.replay_position_s, s.replay_length_s, s.replay_paused)
         # with two heads each one's distance comes from both trunk widths: an arm in one view spoils both
-        # (docs/volume.md, "An arm against the trunk moves the two heads' distances")
+        # (docs/history/volume-log.md, "An arm against the trunk moves the two heads' distances")
         arms = [h for h, view in s.heads.items() if view.arm_against_trunk] if len(s.heads) == 2 else []
         for h, view in s.heads.items():
             if h in self.maps:

@@ -5,7 +5,7 @@ population's subjects). Read straight, a forced expiration's steepest 45 ms and 
 the noise's largest excursions: PEF, the back-extrapolated time zero (and so FEV1), the FVC and the
 cough check follow them. A cubic smoothing spline whose roughness weight is chosen by generalised
 cross-validation (Craven and Wahba 1979) weighs the curve's own noise against its bends, with nothing
-set in litres or seconds (docs/volume.md, "Forced expirations read through the maps' noise").
+set in litres or seconds (docs/history/volume-log.md, "Forced expirations read through the maps' noise").
 """
 
 from __future__ import annotations

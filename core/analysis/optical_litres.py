@@ -1,5 +1,5 @@
 """Litres from the optical volume: the subject's own calibration where the session has one, else an
-estimate with the population's gain and its measured uncertainty (docs/volume.md, "Calibrated litres").
+estimate with the population's gain and its measured uncertainty (docs/history/volume-log.md, "Calibrated litres").
 
 The plain optical signal is each head's trunk displacement in its quadrants (core/volume/metric.py);
 with a calibration its chest and abdomen are weighed by the gains fitted through the flow sensor
@@ -19,7 +19,7 @@ from core.volume.subject_calibration import (SubjectCalibration, calibration_seg
                                              regional_signals)
 
 # The flow sensor's volume over the plain optical volume (the one-gain calibration), the mean over the
-# sessions measured, and 1.96 of their standard deviations as a share of it (docs/volume.md, "Calibrated
+# sessions measured, and 1.96 of their standard deviations as a share of it (docs/history/volume-log.md, "Calibrated
 # litres": four sessions so far, 1.04-1.34)
 POPULATION_GAIN = 1.20
 ESTIMATE_UNCERTAINTY = 0.20

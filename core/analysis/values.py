@@ -136,7 +136,7 @@ def forced_proportions(f: SessionGrade) -> dict[str, float | str | int]:
 
 # The widest sample interval a volume curve's peak flow is given from: one optical map a light cycle
 # (45 ms at 110 frames/s). The 37 standard waveforms sampled so, error-free, read their PEF within 10 %
-# on 78 % of them at every phase; one map every 91 ms (every other cycle) on 43 % (docs/volume.md, "Peak
+# on 78 % of them at every phase; one map every 91 ms (every other cycle) on 43 % (docs/history/volume-log.md, "Peak
 # flow").
 MAX_PEF_SAMPLE_INTERVAL_S = 0.05
 
@@ -200,7 +200,7 @@ def resample(t_s: np.ndarray, volume_l: np.ndarray, rate_hz: float = ANALYSIS_RA
     """A volume curve on an even grid at rate_hz, straight between its samples. A shape-preserving cubic
     (PCHIP) was tried for the optical curve's peak flow (one map a light cycle): on error-free curves it
     brought the standard waveforms' PEF within 10 % on 92 % of them against 78 %, but on measured optical
-    curves it followed their noise: 4 of 7 blows within 10 % or 0.30 L/s against 5 of 7 (docs/volume.md,
+    curves it followed their noise: 4 of 7 blows within 10 % or 0.30 L/s against 5 of 7 (docs/history/volume-log.md,
     "Peak flow")."""
     grid = np.arange(t_s[0], t_s[-1], 1.0 / rate_hz)
     return grid, np.interp(grid, t_s, volume_l)
@@ -554,7 +554,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
 # The most the flow noise of one sample step (sqrt(2) times the curve's noise over the step) may be of
 # the peak flow for the peak flow to be given: the 37 standard waveforms sampled one map a light cycle
 # with 0-35 mL of noise read their PEF within 10 % or 0.30 L/s on 92 % of the samplings under 5 %, 86 %
-# at 5-8 %, 73 % at 10-15 % (`photopft bench blows`; docs/volume.md, "Forced expirations read through
+# at 5-8 %, 73 % at 10-15 % (`photopft bench blows`; docs/history/volume-log.md, "Forced expirations read through
 # the maps' noise").
 MAX_PEF_NOISE_RATIO = 0.05
 
@@ -587,7 +587,7 @@ MAX_PEF_NOISE_RATIO_FRAMES = 0.05
 # them (peak_flow_of_frames): on population subjects in the clinic world the maps' noise, 10-20 mL a map
 # as at one map a cycle, is 25-36 % of the peak flow over a frame step unsmoothed. On our torso's blow
 # (scale 0.25, true lights, 50 mm of sway) each 5 ms takes 2-3 % off the PEF read, on population subject
-# 4's (lights from the sphere) 5 ms took 10 %, 10 ms 15 % of what the noise had added (docs/volume.md,
+# 4's (lights from the sphere) 5 ms took 10 %, 10 ms 15 % of what the noise had added (docs/history/volume-log.md,
 # "Maps at every frame through each blow's peak flow")
 PEAK_FLOW_SIGMAS_S = (0.0, 0.005, 0.01, 0.015, 0.02)
 

@@ -55,7 +55,7 @@ LEDS_THAT_CHANGE_ADVICE = ("Where the LEDs' output changed between captures: swi
 # standard errors (per axis, in quadrature) of where the highlights put it. Measured as above, the worst
 # light of a head: steady LEDs 0.6-3.1 (one head of four over 3, its lights then 0.9-2.8 mm off for
 # 0.6-1.8); 0.1 % of drift 1.2-6.0 (the two heads over 3 were those 8-10 mm off, now 2.1 and 2.9)
-# (docs/reconstruction.md, "The wizard's captures on LEDs that drift").
+# (docs/history/reconstruction-log.md, "The wizard's captures on LEDs that drift").
 MAX_SHADING_FROM_HIGHLIGHTS = 3.0
 
 

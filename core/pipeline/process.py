@@ -57,7 +57,7 @@ class ProcessSummary:
 
 # The first pass of a two-head `process` (geometric_distances) reconstructs a light cycle this often:
 # sway is slower than 0.25 Hz and the distances are smoothed over WIDTH_SMOOTHING_S (0.3 s; 2 survey maps a
-# second sample it well: 0.5 s and 0.2 s gave the same volume, docs/volume.md "Axial sway read as breath")
+# second sample it well: 0.5 s and 0.2 s gave the same volume, docs/history/volume-log.md "Axial sway read as breath")
 SURVEY_INTERVAL_S = 0.5
 
 
@@ -436,7 +436,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
 # blow's maps as little as their noise allows before it reads the peak flow (PEAK_FLOW_SIGMAS_S). VOLUME_SMOOTHING_S
 # (30 ms) on it put our torso's two blows (scale 0.25, true lights, 50 mm of sway) -11.6 % and -9.3 % low;
 # 20 ms -9.8 %; 10 ms -7.4 %; none -2.3 % and -1.6 % (noise ratios 9.7 % and 3.4 %). The same 30 ms on the
-# true volume alone takes 7 % off that blow's peak (docs/volume.md, "Peak flow")
+# true volume alone takes 7 % off that blow's peak (docs/history/volume-log.md, "Peak flow")
 PEAK_FLOW_SMOOTHING_S = 0.0
 
 
@@ -447,7 +447,7 @@ def _peak_flow_pass(results: ResultsWriter, session: SessionFile, jobs: dict[str
     the session's volume), beside the session's maps, and the metric volume of the two together there,
     unsmoothed (PEAK_FLOW_SMOOTHING_S). Error-free, one map a light cycle reads PEF within 10 % on 78 %
     of the standard waveforms, one map a frame on 95 %; with 0-35 mL of noise a map, as the analysis
-    reads them, 92 % and 96 % of those it gives (docs/volume.md, "Peak flow"). Each head's new maps
+    reads them, 92 % and 96 % of those it gives (docs/history/volume-log.md, "Peak flow"). Each head's new maps
     follow its reference map (made again first), distances and lights' outputs as the session's maps
     have them; the volume takes the levels /metric_volume took. `progress` gets the share of its maps made."""
     t0 = int(metric.timestamp_ns[0])

@@ -52,7 +52,7 @@ def distance_refusal(distances_mm: dict[str, float]) -> str | None:
 
 
 # The most sheen a head's maps may show (core/reconstruction/reflectance.py: the lobe's weight over the
-# albedo, the median of the session's maps) before the volume is refused (docs/volume.md, "A sheen,
+# albedo, the median of the session's maps) before the volume is refused (docs/history/volume-log.md, "A sheen,
 # measured"): on random body 1004's slow VC in the clinic world (true lights) matte skin read 0.001-0.003
 # and nine matte bodies -0.004-+0.003; a sheen of 0.01 read 0.05 / 0.08 (front / back) and its volume
 # 2.6 % low, 0.02 read 0.11 / 0.16 and 4.8 % low, 0.05 0.24 / 0.32 and 11 % low
@@ -169,7 +169,7 @@ def geometric_distance_refusal(occluded_share: dict[str, np.ndarray]) -> str | N
     """Why the two heads' geometry cannot give the subject's distance, or None: it is measured
     between the trunk's sides, and an arm against the trunk in one head's view hides them from both.
     The front head of population subject 2 (seed 1) kept the arms in its trunk and the back head cut
-    them off at the crease beside them: 1845 and 2586 mm for a true 2195 and 2139 (docs/volume.md,
+    them off at the crease beside them: 1845 and 2586 mm for a true 2195 and 2139 (docs/history/volume-log.md,
     "An arm against the trunk moves the two heads' distances")."""
     if (arm := _first_hidden(occluded_share, MAX_HIDDEN_MAPS)) is None:
         return None

@@ -4,7 +4,7 @@ The dark frame of a light cycle measures the ambient light (ARCHITECTURE.md: I_k
 but only at its own instant. Lamps on the mains flicker at twice its frequency (100 Hz on a 50 Hz
 supply); the camera's frames sample that flicker at another phase each, so "lit minus dark" leaves
 every light with its own share of it: a different error in each light's image, a different normal
-error in every cycle, a volume curve that jumps from map to map (docs/reconstruction.md, "Room
+error in every cycle, a volume curve that jumps from map to map (docs/history/reconstruction-log.md, "Room
 light": 0.47 L of map-to-map noise from a 30 % flicker on a population subject, 0.016 L without).
 
 Over a short window of dark frames j (FLICKER_WINDOW_S) the ambient image is modelled as

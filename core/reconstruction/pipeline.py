@@ -149,7 +149,7 @@ def shadow_threshold(signal: np.ndarray, mask: np.ndarray, fraction: float) -> f
     subject's brightness, the 99th percentile over `mask` of each pixel's brightest light. It follows
     the exposure, the LEDs' power, polarising filters and the skin's tone; a threshold of 1 % of full
     scale (41 DN at 12 bits; 0.02 of the brightness is 38 DN on the simulated subject at 2000 mm) put
-    most of a dark-skinned trunk behind polarisers, at a fifth of the light, in shadow (docs/volume.md,
+    most of a dark-skinned trunk behind polarisers, at a fifth of the light, in shadow (docs/history/volume-log.md,
     "Skin the light model does not describe, and bent maps")."""
     if not mask.any():
         return float("inf")

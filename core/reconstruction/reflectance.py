@@ -14,7 +14,7 @@ the pixel's four light directions (w . L = 0), Lambertian skin gives w . b = 0 u
 
 Fitted together over the trunk's frontal pixels, what is left to the lobe measures the sheen's
 weight relative to the albedo (spec / rho), the quantity that bends the normals
-(docs/reconstruction.md, "Glossy skin"; docs/volume.md, "A sheen, measured"). It is spec / rho
+(docs/history/reconstruction-log.md, "Glossy skin"; docs/history/volume-log.md, "A sheen, measured"). It is spec / rho
 itself only where the skin's lobe has SHEEN_EXPONENT and the normals are unbent; the skin's exponent
 is not known, so the estimate was measured against sheens rendered with exponents 5-60 (same section).
 """
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 # the Blinn-Phong exponent of the lobe fitted, broader than the simulator's skin (30): skin rendered with
-# 5, 10, 30 and 60 all read far above matte (docs/volume.md, "A sheen, measured")
+# 5, 10, 30 and 60 all read far above matte (docs/history/volume-log.md, "A sheen, measured")
 SHEEN_EXPONENT = 10.0
 # the pixels a map's estimate takes: a regular subsample of those lit by all four lights (the fit has 4 unknowns)
 SHEEN_PIXELS = 4000

@@ -35,7 +35,7 @@ from core.rig import Head
 # RIM_SKIP_PX by default, RIM_SKIP_MM on a map (rim_skip_px). Near grazing the flank's pixels are the
 # noisiest and an arm beside the trunk moves them (its shadow, the crease): a population body in the
 # clinic world with its arms swinging 10 mm read 0.81 of the truth with 2 px (5 mm) left out and 1.03
-# with 14 mm; 0.95 and 1.01 with the arms still (docs/volume.md, "One level for the session").
+# with 14 mm; 0.95 and 1.01 with the arms still (docs/history/volume-log.md, "One level for the session").
 RIM_SKIP_PX = 2
 RIM_SKIP_MM = 14.0
 # The rim's band inside the silhouette: wider steadies it against sway (docs/benchmarks.md, constants).

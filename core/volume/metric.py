@@ -42,7 +42,7 @@ from core.volume.maps import (REGIONS, DisplacementSums, DisplacementTracker, he
 # and scaled at distances that lagged the subject, and the near-light maps, bent by lights placed from a
 # wrong distance, read the sway as breath. A child's quiet breathing with 50 mm of axial sway (ideal
 # world) read 1.42 times the truth, -1.1 mL per mm of sway; with 0.3 s 0.93 and -0.06 mL/mm (0.5 s:
-# 1.05 and -0.27; 0.2 s: 0.90 and +0.04); docs/volume.md, "Axial sway read as breath"
+# 1.05 and -0.27; 0.2 s: 0.90 and +0.04); docs/history/volume-log.md, "Axial sway read as breath"
 WIDTH_SMOOTHING_S = 0.3
 # The live view's distances follow the two heads' widths with an exponential time constant of this (s):
 # causal, and on one map at a time, so smoothed longer
@@ -58,7 +58,7 @@ MAX_SCALE_MISMATCH = 0.08
 MAX_MAP_NOISE_L = 0.05
 # Maps whose volume stands out of its neighbours' (the median over JUMP_WINDOW_S) by more than
 # JUMP_L: a jump away and back within a few maps, faster than any breath. A curve with more than
-# MAX_JUMP_SHARE of them is refused (docs/volume.md, "On bodies it was not tuned to").
+# MAX_JUMP_SHARE of them is refused (docs/history/volume-log.md, "On bodies it was not tuned to").
 JUMP_WINDOW_S = 0.4
 JUMP_L = 0.1
 MAX_JUMP_SHARE = 0.01
@@ -285,7 +285,7 @@ def session_shifts(timestamp_ns: np.ndarray, sums: list[DisplacementSums]) -> np
 # deviations from the median of the maps within DESPIKE_WINDOW_S) takes that median, and every other map
 # keeps its own value, so a forced expiration's fall is not spread. Smoothed over 0.1 s (as until the
 # fifteenth session) the session's level took what the smoothing removed for a shift, which spread the
-# blow over +-0.3 s: population subject 4's peak flow read 3.23 L/s for 4.18 (docs/volume.md, "Peak
+# blow over +-0.3 s: population subject 4's peak flow read 3.23 L/s for 4.18 (docs/history/volume-log.md, "Peak
 # flow"). Their difference (the halves' asynchrony, and the map's tilt, which
 # alternates from map to map with the room light's flicker: +-2 mm on the average man) is smoothed over
 # BREATHING_SMOOTHING_S: unsmoothed it made jumps on bodies in the clinic world (1.6-3 % of the maps).

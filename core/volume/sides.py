@@ -5,8 +5,8 @@ turns parallel to the axis) is about the same curve in both views, so at every h
 from the front head and from the back head add up to the baseline. The maps' scale is set from the
 two heads' widths (core/pipeline/process.py, geometric_distances), which fixes that sum on
 average; what is left is its change along the height. Maps bent by normals the light model does not
-explain (a sheen on the skin: docs/reconstruction.md, "Glossy skin") tilt the sum by tens of mm per
-100 mm of height, and their volume is not the breathing's (docs/volume.md, "Skin the light model
+explain (a sheen on the skin: docs/history/reconstruction-log.md, "Glossy skin") tilt the sum by tens of mm per
+100 mm of height, and their volume is not the breathing's (docs/history/volume-log.md, "Skin the light model
 does not describe, and bent maps").
 """
 
@@ -18,7 +18,7 @@ from core.rig import Head
 from core.limits import past_limit
 from core.volume.maps import contour_rows_mm
 
-# Measured (docs/volume.md, "... and bent maps"), as mm of the sum per 100 mm of height: the true
+# Measured (docs/history/volume-log.md, "... and bent maps"), as mm of the sum per 100 mm of height: the true
 # depth of a simulated subject 2-5 (the two perspective views' contours are not quite one curve),
 # matte reconstructions 4-5, a faint sheen (0.05) 9-12, population subject 9 (a sheen of 0.16, its
 # VC read 0.02 of the truth) 75.

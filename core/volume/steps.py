@@ -19,7 +19,7 @@ from core.volume.maps import maps_within
 # In-plane body speed (mm/s) above which a map is in a step. Postural sway moves the trunk sideways by
 # at most 15 mm at up to 0.25 Hz (about 24 mm/s at its fastest); a step of 20 mm within 0.5 s peaks at
 # 60 mm/s. Measured on a mesh body in the clinic world (about 2.6 mm a pixel): at most about 11 mm/s
-# without a step, 65-170 mm/s in its steps (docs/volume.md, "Steps").
+# without a step, 65-170 mm/s in its steps (docs/history/volume-log.md, "Steps").
 STEP_SPEED_MM_S = 40.0
 # The shifts are smoothed by a running median over this much time (a map whose frame is misplaced by
 # its cycle's motion stands out of its neighbours for one map), and their speed is the slope of a line

@@ -89,7 +89,7 @@ class SubjectCalibration:
 
 # Maps further apart than this (a step or an arm left them out: core/volume/steps.py) start a new stretch
 # with its own offset in the fit: the optical signal's level across such a gap is not known (a mesh
-# body read 0.35 L higher after a 36 mm step sideways; docs/volume.md, "Steps").
+# body read 0.35 L higher after a 36 mm step sideways; docs/history/volume-log.md, "Steps").
 MAX_BRIDGE_S = 0.3
 
 
@@ -124,7 +124,7 @@ def _fit(t_s: np.ndarray, signals: np.ndarray, flow_l: np.ndarray) -> np.ndarray
 # (its name: "<head> chest" ...) has one gain. A grouping with more gains is taken only where its error
 # on the parts of the segment left out of the fit is under SELECTION_MARGIN of the simpler one's: gains
 # of signals that move together (quiet breathing and a slow VC move chest and abdomen, front and back
-# alike) are otherwise fitted to the noise (docs/volume.md, "Calibrated litres").
+# alike) are otherwise fitted to the noise (docs/history/volume-log.md, "Calibrated litres").
 GROUPINGS = {"one gain": lambda name: "all", "chest and abdomen": lambda name: name.split()[-1],
              "each head": lambda name: name.split()[0], "each region": lambda name: name}
 SELECTION_MARGIN = 0.9

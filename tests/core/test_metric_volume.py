@@ -453,7 +453,7 @@ def test_the_session_level_is_checked_against_each_maps_own_for_gain_and_lag():
 def test_the_two_heads_distances_follow_sway_as_fast_as_quiet_breathing():
     """Sway at 0.2 Hz, a quiet breath's rate: the distances each map is scaled to (and, in `process`, reconstructed
     at) follow at least 90 % of it. Smoothed over 1 s they followed 45 %, and a child's quiet breathing with
-    50 mm of axial sway read 1.42 times the truth (docs/volume.md, "Axial sway read as breath")."""
+    50 mm of axial sway read 1.42 times the truth (docs/history/volume-log.md, "Axial sway read as breath")."""
     baseline_mm, width_px, sway_mm = 4000.0, 150.0, 25.0
     t = np.arange(0.0, 20.0, 1.0 / 22.0)
     front_mm = 2000.0 + sway_mm * np.sin(2.0 * np.pi * 0.2 * t)
