@@ -20,6 +20,7 @@ from app.cli import build_parser, main
 from core.io.outputs import OutputError, check_output
 from core.io.recovery import recover_session
 from core.io.session import SessionFile, validate_session
+from tests.waiting import wait_until
 
 
 def digest(path: Path) -> str:
@@ -107,9 +108,7 @@ def test_an_interrupted_process_leaves_no_results_file(session, tmp_path, sig):
     out = tmp_path / "results.h5"
     proc = subprocess.Popen([sys.executable, "-m", "app", "process", str(session), "-o", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60
-    while not _partials(tmp_path) and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.05)
+    wait_until(lambda: _partials(tmp_path) or proc.poll() is not None, 60, "the results' temporary file")
     assert proc.poll() is None, "process ended before it could be interrupted"
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)

@@ -14,17 +14,11 @@ from app.engine_process import EngineError, EngineProcess
 from app.live import replay_source, simulated_source
 from core.io.recovery import recover_session
 from core.io.session import SessionError, SessionFile, SubjectRecord, validate_session
+from tests.waiting import wait_until
 
 pytestmark = pytest.mark.slow
 
 SUBJECT = SubjectRecord("ENGINE-1", "female", 40.0, 165.0, 60.0)
-
-
-def _wait(condition, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.05)
 
 
 @pytest.fixture
@@ -36,7 +30,7 @@ def engine():
 
 def test_snapshots_and_a_recording_with_events(engine, tmp_path):
     assert engine.info.heads == ("front", "back") and engine.info.simulated and not engine.info.replay
-    _wait(lambda: all(v.reconstructed > 0 for v in engine.snapshot().heads.values()), 120)
+    wait_until(lambda: all(v.reconstructed > 0 for v in engine.snapshot().heads.values()), 120, "a map from each head")
     snapshot = engine.snapshot()
     assert all(v.height_mm is not None and v.height_mm.shape == engine.rig.heads[h].shape
                for h, v in snapshot.heads.items())  # each map travels once, and stays
@@ -44,10 +38,10 @@ def test_snapshots_and_a_recording_with_events(engine, tmp_path):
     before = time.monotonic_ns()
     engine.start_recording(path, SUBJECT, kind="simulation")
     assert engine.recording
-    time.sleep(0.5)
+    wait_until(lambda: min(engine.snapshot().recorded_frames.values(), default=0) > 0, 30, "frames recorded")
     mark = engine.mark("tidal-start")
     assert engine.perform("forced") > 1.0  # the simulated subject follows the prompt
-    _wait(lambda: engine.flow_reaches(mark + 500_000_000), 30)
+    wait_until(lambda: engine.flow_reaches(mark + 500_000_000), 30, "flow samples 0.5 s past the mark")
     assert engine.recorded_values(30.0) is not None
     summary = engine.stop_recording()
     assert not engine.recording and min(summary.frames.values()) >= 5
@@ -71,12 +65,12 @@ def test_a_source_that_cannot_be_opened_raises_its_own_error(tmp_path):
 
 def test_an_engine_that_dies_is_said_and_the_recording_so_far_is_kept(engine, tmp_path):
     path = tmp_path / "killed.h5"
-    _wait(lambda: all(v.frames > 0 for v in engine.snapshot().heads.values()), 120)
+    wait_until(lambda: all(v.frames > 0 for v in engine.snapshot().heads.values()), 120, "frames from each head")
     engine.start_recording(path, SUBJECT, kind="simulation")
-    _wait(lambda: min(engine.snapshot().recorded_frames.values(), default=0) > 30, 60)
-    time.sleep(1.5)
+    # killed well into the recording: past its first frames and the datasets' first growth
+    wait_until(lambda: min(engine.snapshot().recorded_frames.values(), default=0) > 100, 60, "100 frames recorded")
     os.kill(engine.pid, signal.SIGKILL)
-    _wait(lambda: any("capture engine stopped" in p for p in engine.snapshot().problems), 10)
+    wait_until(lambda: any("capture engine stopped" in p for p in engine.snapshot().problems), 10, "the engine's death said")
     assert engine.stopped
     with pytest.raises(EngineError, match="stopped"):
         engine.stop_recording()

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from functools import partial
 from pathlib import Path
 
@@ -19,6 +18,7 @@ from app.gui.shutdown import ShutdownSignals
 from app.live import simulated_source
 from app.records import Records
 from core.io.session import validate_session
+from tests.waiting import wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -83,9 +83,8 @@ def test_the_application_exits_0_on_a_signal(tmp_path, sig):
     gui = subprocess.Popen([sys.executable, "-m", "app", "gui", "--scale", "0.1"], env=env,
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 120
-        while not _engine_started(gui.pid) and gui.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.2)  # the engine process is started when the window is up
+        # the engine process is started when the window is up
+        wait_until(lambda: _engine_started(gui.pid) or gui.poll() is not None, 120, "the window's engine")
         assert _engine_started(gui.pid), "the window did not start its engine"
         engine = _children(gui.pid)
         gui.send_signal(sig)
@@ -102,7 +101,5 @@ def test_the_application_exits_0_on_a_signal(tmp_path, sig):
         except OSError:
             return False
 
-    deadline = time.monotonic() + 15  # the engine and multiprocessing's helper end with the application
-    while any(alive(pid) for pid in engine) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not any(alive(pid) for pid in engine)
+    # the engine and multiprocessing's helper end with the application
+    wait_until(lambda: not any(alive(pid) for pid in engine), 15, "the engine's processes to end")

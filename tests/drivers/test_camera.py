@@ -9,10 +9,12 @@ import subprocess
 import threading
 import time
 
+import h5py
 import numpy as np
 import pytest
 
 from drivers.camera import AravisCamera, CameraError, CameraSettings, bandwidth_advice, bandwidth_mb_s, capture_frames
+from tests.waiting import wait_until
 
 # the fake cameras run one test at a time (a lock, below): these tests on one xdist worker, so that the
 # other worker runs other tests instead of waiting on the lock (16-17 s a test measured)
@@ -82,15 +84,15 @@ def fake_gv_cameras():
         processes[serial] = process
         from drivers.camera import find_aravis_device
 
-        end = time.monotonic() + 10.0
-        while True:  # wait until the camera answers discovery
+        def answers() -> bool:
             try:
                 find_aravis_device(serial)
-                return process
+                return True
             except CameraError:
-                if time.monotonic() > end:
-                    raise
-                time.sleep(0.2)
+                return False
+
+        wait_until(answers, 10.0, f"fake camera {serial} to answer discovery")
+        return process
 
     # The fake cameras share the loopback addresses and the GVCP port: one test at a time, across
     # pytest-xdist's workers too.
@@ -195,17 +197,12 @@ def test_camera_that_returns_is_reconnected_with_the_gap_in_frame_id(fake_gv_cam
     capture = threading.Thread(target=capture_frames, args=(camera, stop, deliver, said.append))
     capture.start()
     try:
-        end = time.monotonic() + 10.0
-        while len(frames) < 100 and time.monotonic() < end:
-            time.sleep(0.05)
+        wait_until(lambda: len(frames) >= 100, 10.0, "100 frames")
         before = len(frames)
         process.kill()
         process.wait()
-        end = time.monotonic() + 20.0
-        while not camera.disconnected and time.monotonic() < end:
-            time.sleep(0.1)
-        assert camera.disconnected, "the killed camera was never noticed"
-        time.sleep(1.0)
+        wait_until(lambda: camera.disconnected, 20.0, "the killed camera to be noticed")
+        time.sleep(1.0)  # the scenario: the camera stays away for a second before it comes back
         fake_gv_cameras("127.0.0.1", "FLAKY01")  # the same camera comes back
         capture.join(timeout=60.0)
     finally:
@@ -244,13 +241,17 @@ def test_recording_goes_on_through_a_camera_that_leaves_and_returns(fake_gv_came
                               text=True)
     # kill the camera once the recording runs (the file is open), not after a set time: on a loaded
     # machine start-up took over 5 s and the camera was gone and back before the recording began
-    deadline = time.monotonic() + 60.0
-    while not out.exists() and time.monotonic() < deadline and record.poll() is None:
-        time.sleep(0.1)
-    time.sleep(2.0)
+    def recorded_frames(head: str) -> int:
+        try:
+            with h5py.File(out, "r", swmr=True) as f:
+                return f[f"heads/{head}/frames"].shape[0]
+        except (OSError, KeyError):
+            return 0
+
+    wait_until(lambda: recorded_frames("back") >= 100 or record.poll() is not None, 60.0, "the back head's frames")
     back.kill()
     back.wait()
-    time.sleep(4.0)
+    time.sleep(4.0)  # the scenario: the camera stays away for four seconds before it comes back
     fake_gv_cameras("127.0.0.2", "BACK01")
     stdout, stderr = record.communicate(timeout=90)
     assert record.returncode == 0, stderr

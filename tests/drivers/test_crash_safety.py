@@ -14,6 +14,7 @@ import numpy as np
 
 from core.io.recovery import recover_session
 from core.io.session import SessionFile, validate_session
+from tests.waiting import wait_until
 
 
 def test_sigkill_mid_recording_keeps_the_data(tmp_path):
@@ -21,20 +22,19 @@ def test_sigkill_mid_recording_keeps_the_data(tmp_path):
     process = subprocess.Popen([sys.executable, "-m", "app", "record", "-o", str(out), "--seconds", "30"],
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     # wait until recording has begun (the file exists and holds frames), then kill at a random moment
-    deadline = time.monotonic() + 60
     seen = {}
-    while time.monotonic() < deadline:
-        if out.exists():
-            try:
-                with h5py.File(out, "r", swmr=True) as f:
-                    seen = {h: f[f"heads/{h}/frames"].shape[0] for h in ("front", "back")}
-                    if min(seen.values()) > 20:
-                        break
-            except (OSError, KeyError):
-                pass
-        time.sleep(0.2)
+
+    def recording() -> bool:
+        try:
+            with h5py.File(out, "r", swmr=True) as f:
+                seen.update({h: f[f"heads/{h}/frames"].shape[0] for h in ("front", "back")})
+        except (OSError, KeyError):
+            return False
+        return min(seen.values()) > 20
+
+    wait_until(recording, 60, "20 frames of each head in the file")
     recorded_s = random.uniform(1.0, 3.0)
-    time.sleep(recorded_s)
+    time.sleep(recorded_s)  # the scenario: the kill falls at a random moment of the recording, not on a condition
     killed_at = time.monotonic()
     process.send_signal(signal.SIGKILL)
     process.wait()

@@ -10,6 +10,7 @@ import pytest
 from drivers.flowsensor import FlowSensor, FlowSensorEmulator, FlowSensorError
 from drivers.framing import FrameReader, crc16_ccitt, encode
 from drivers.sequencer import Sequencer, SequencerEmulator, SequencerError
+from tests.waiting import wait_until
 
 
 def test_crc_and_framing_resynchronise():
@@ -37,10 +38,10 @@ def test_sequencer_session_over_a_serial_line():
             seq.arm()
             before = time.monotonic()
             seq.start()
-            time.sleep(0.3)
+            wait_until(lambda: seq.status().trigger_count >= 33, 5, "33 triggers (0.3 s at 110 Hz)")
             status = seq.status()
             elapsed = time.monotonic() - before
-            assert status.state == "running" and 0.3 * 110 - 1 <= status.trigger_count <= elapsed * 110 + 1
+            assert status.state == "running" and 33 <= status.trigger_count <= elapsed * 110 + 1
             seq.stop()
             assert seq.status().state == "configured"
         finally:
@@ -58,12 +59,15 @@ def test_sequencer_that_stops_answering_gives_a_clear_error():
             seq.close()
 
 
-def _collect(sensor: FlowSensor, seconds: float):
+def _collect(sensor: FlowSensor, samples: int):
+    """The sensor's blocks until they hold `samples` samples."""
     blocks = []
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
+
+    def enough() -> bool:
         blocks.append(sensor.read())
-        time.sleep(0.01)
+        return sum(len(b.counter) for b in blocks) >= samples
+
+    wait_until(enough, 30, f"{samples} flow samples")
     return blocks
 
 
@@ -73,7 +77,7 @@ def test_flow_sensor_stream_is_complete_and_on_the_session_clock():
         try:
             assert "photopft-flowsensor" in sensor.identify()
             sensor.start()
-            blocks = _collect(sensor, 0.6)
+            blocks = _collect(sensor, 500)
             sensor.stop()
         finally:
             sensor.close()
@@ -91,7 +95,7 @@ def test_flow_sensor_resyncs_after_corruption_and_counts_losses():
         sensor = FlowSensor(emulator.port)
         try:
             sensor.start()
-            blocks = _collect(sensor, 0.8)
+            blocks = _collect(sensor, 600)
             sensor.stop()
         finally:
             sensor.close()
@@ -109,9 +113,7 @@ def test_silent_flow_sensor_and_missing_port():
         sensor = FlowSensor(emulator.port, timeout_s=0.2)
         try:
             with pytest.raises(FlowSensorError, match="sent nothing"):
-                for _ in range(50):
-                    sensor.read()
-                    time.sleep(0.01)
+                wait_until(lambda: sensor.read() is None, 5, "the sensor's silence to be said")
         finally:
             sensor.close()
     with pytest.raises(FlowSensorError, match="cannot open"):
