@@ -23,6 +23,7 @@ import numpy as np
 from core.reconstruction.ambient import FLICKER_WINDOW_S, FlickerCorrection
 from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
+from core.limits import Refusal
 from core.pipeline.live_checks import LiveOpticalChecks
 from core.volume.flow_sensor import btps_factor
 from core.analysis.optical_litres import ESTIMATE, ESTIMATE_UNCERTAINTY, POPULATION_GAIN, estimate_label
@@ -316,7 +317,7 @@ class Snapshot:
     flow_until_ns: int = 0  # the recording's newest flow sample (no limit without a recording or flow sensor)
     replay_finished: bool = False
     # why `process` would refuse the optical volume of what the heads see now (skin, bent maps), or None
-    optical_refused: str | None = None
+    optical_refused: Refusal | None = None
     optical_checked: bool = False  # whether the heads' last seconds gave those checks anything to judge by
     # what the optical litres are now: calibrated on the subject (its residual) or an estimate
     optical_litres: str = ESTIMATE

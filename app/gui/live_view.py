@@ -190,20 +190,6 @@ class Settled:
         return self._shown[key]
 
 
-def operator_action(reason: str) -> str:
-    """What the operator can do about a refusal of the optical volume, in their words."""
-    words = reason.lower()
-    if "arm" in words:
-        return "hold the arms away from the body"
-    if "no subject" in words or "not seen" in words or "trunk" in words and "see" in words:
-        return "the patient stands between the heads, facing the front camera"
-    if "range" in words or "too far" in words or "too near" in words or "distance" in words:
-        return "the patient stands on the floor marks"
-    if "jump" in words or "moves" in words or "sway" in words or "step" in words:
-        return "ask the patient to stand still"
-    return "ask the patient to stand still, arms away from the body"
-
-
 class StatusPanel(QGroupBox):
     def __init__(self, heads: list[str], parent=None) -> None:
         super().__init__("Status", parent)
@@ -372,7 +358,8 @@ class LiveView(QWidget):
             self.status.set(f"{h}_distance", *self.settled.choose(f"{h}_distance", text, not ok or bool(arms) or arm,
                                                                    "", s.elapsed_s, text_follows=True))
         if s.optical_refused is not None:
-            line = (f"not valid now: {operator_action(s.optical_refused)}", True, s.optical_refused)
+            line = (f"not valid now: {s.optical_refused.action or 'ask the patient to stand still'}", True,
+                    str(s.optical_refused))
         else:
             line = ("valid" if s.optical_checked else "not checked yet: both heads must see the trunk"
                     if len(self.heads) == 2 else "not checked: the checks take two heads", False,

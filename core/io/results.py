@@ -16,6 +16,7 @@ import h5py
 import numpy as np
 
 from core.io.session import SessionError
+from core.limits import Refusal
 
 RESULTS_FORMAT = "photopft-results"
 HEAD_SERIES = {"timestamp_ns": "i", "frame_index": "i", "distance_mm": "f", "gradient_volume": "f",
@@ -201,6 +202,13 @@ class ResultsFile:
         return None if reason is None else str(reason)
 
     @property
+    def optical_refused_code(self) -> str | None:
+        """The rule that refused the optical volume (core/pipeline/quality.py), or None: files processed
+        before 2026-12-05 carry the words only."""
+        code = self._f.attrs.get("optical_refused_code")
+        return None if code is None else str(code)
+
+    @property
     def distance_refused(self) -> str | None:
         """Why the subject distance is not given (its maps are scaled to one all the same), or None."""
         reason = self._f.attrs.get("distance_refused")
@@ -290,9 +298,11 @@ class ResultsWriter:
     def attr(self, key: str, value) -> None:
         self.out.attrs[key] = value
 
-    def refuse_optical(self, reason: str) -> None:
-        """Why no optical volume is given, in words."""
-        self.out.attrs["optical_refused"] = reason
+    def refuse(self, what: str, refusal: Refusal) -> None:
+        """Why `what` ("optical": the optical volume; "distance": the subject distance) is not given:
+        /@<what>_refused in words (what was measured, then what to do), /@<what>_refused_code the rule."""
+        self.out.attrs[f"{what}_refused"] = str(refusal)
+        self.out.attrs[f"{what}_refused_code"] = refusal.code
 
     def photometric_survey(self, head: str, timestamp_ns: np.ndarray, distance_mm: np.ndarray,
                            geometric_distance_mm: np.ndarray, offset_mm: float | None) -> None:

@@ -1,7 +1,7 @@
 """The checks `photopft process` makes before it gives an optical volume, made as the maps come in,
 for the live view: the operator learns during the session, not from the report, that the skin or
 the lights do not follow the light model (a sheen, reflectance_refusal) or that the two heads' maps
-are bent against each other (core/volume/sides.py, bend_refusal), and can act (polarising filters,
+are bent against each other (core/pipeline/quality.py, bend_refusal), and can act (polarising filters,
 a towel on oily skin, the rig's calibration).
 
 Both look at a map of each head's stream every LOOK_INTERVAL_S (`process`: every SURVEY_INTERVAL_S)
@@ -14,8 +14,9 @@ import threading
 
 import numpy as np
 
-from core.pipeline.quality import reflectance_refusal
-from core.volume.sides import bend_refusal, sides_tilt
+from core.limits import Refusal
+from core.pipeline.quality import bend_refusal, reflectance_refusal
+from core.volume.sides import sides_tilt
 
 # A look costs a side profile and the sheen's fit, a few ms. Until 2026-11-27 it cost a map at the
 # photometric fit's own distance: at scale 1 the live view made 6.0 maps/s a head without looks, 5.1 with
@@ -83,7 +84,7 @@ class LiveOpticalChecks:
         with self._lock:
             return any(self._sheen.values()) or bool(self._tilts)
 
-    def refusal(self) -> str | None:
+    def refusal(self) -> Refusal | None:
         """Why the optical volume would be refused now, or None."""
         with self._lock:
             sheen = {h: float(np.median([o for _, o in s])) for h, s in self._sheen.items() if s}

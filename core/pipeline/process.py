@@ -34,8 +34,9 @@ from core.io.results import ResultsWriter
 from core.volume.maps import DisplacementSums, DisplacementTracker, smooth_in_time
 from core.volume.sides import paired_tilts, side_profile_mm
 from core.volume.steps import maps_in_steps
+from core.limits import Refusal
 from core.pipeline.quality import (geometric_distance_refusal, maps_left_out_words, session_refusal, shading_refusal,
-                                   sides_shown)
+                                   sides_shown, volume_refusal)
 
 # Work (maps times pixels) from which worker processes repay their start (docs/benchmarks.md, constants).
 AUTO_WORKERS_PIXEL_MAPS = 5e6
@@ -47,10 +48,10 @@ class ProcessSummary:
     maps: dict[str, int]
     elapsed_s: float
     mean_distance_mm: dict[str, float]
-    optical_refused: str | None = None  # why no optical volume was written, when one was not
+    optical_refused: Refusal | None = None  # why no optical volume was written, when one was not
     # per head, the photometric fit's median distance less the two heads' geometric one, where that was used
     photometric_offset_mm: dict[str, float] = field(default_factory=dict)
-    distance_refused: str | None = None  # why the subject distance is not given, when it is not
+    distance_refused: Refusal | None = None  # why the subject distance is not given, when it is not
     # per head, the median of its maps' sheen over the albedo (core/reconstruction/reflectance.py)
     sheen: dict[str, float] = field(default_factory=dict)
 
@@ -379,10 +380,10 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 results.attr("sides_tilt", float(np.nanmedian(tilts)))
             distance_refused = geometric_distance_refusal(occluded) if geometry else None
             if distance_refused is not None:
-                results.attr("distance_refused", distance_refused)
+                results.refuse("distance", distance_refused)
             refused = session_refusal(distances, areas, occluded, out_of_view)
             if refused is not None:
-                results.refuse_optical(refused)
+                results.refuse("optical", refused)
             bent = shading_refusal(sheen, tilts)
             sides = {name: sides_shown(occluded[name]) for name in displacements}
             in_step = {name: maps_in_steps(d.timestamp_ns, d.body_shift_mm) for name, d in displacements.items()}
@@ -391,9 +392,9 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                       if all(counts.values()) and refused is None and all(m.any() for m in shown.values()) else None)
             for name, level in (metric.levels.items() if metric is not None else ()):
                 results.attr(f"level_{name}", level)  # the session's or each map's own (core/volume/metric.py)
-            if metric is not None and (refused := metric.refusal()) is not None:
+            if metric is not None and (refused := volume_refusal(metric)) is not None:
                 metric = None
-                results.refuse_optical(refused)
+                results.refuse("optical", refused)
             in_view = metric is not None and np.isfinite(metric.volume_l).all()  # a trunk in every head's view
             litres = None
             if in_view:
@@ -403,12 +404,12 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                 litres = subject_litres(session, gapped)
                 results.subject_calibration(litres.calibration, litres.not_calibrated)
             if bent is not None and litres is not None and litres.calibrated:  # a scale the calibration takes
-                results.attr("shading_note", f"{bent}; the subject's calibration takes the scale this changes")
+                results.attr("shading_note", f"{bent.reason}; the subject's calibration takes the scale this changes")
             elif bent is not None:
                 in_view, metric = False, None
                 if refused is None:
                     refused = bent
-                    results.refuse_optical(bent)
+                    results.refuse("optical", bent)
             if in_view and dense_peak_flow:
                 _peak_flow_pass(results, session, {job.name: job for job in jobs}, made, complete, metric, pool,
                                 lambda f: overall(f, peak_flow_windows), litres)

@@ -29,7 +29,6 @@ from functools import cached_property
 import numpy as np
 from scipy import ndimage
 
-from core.limits import past_limit
 from core.volume.noise import curve_noise_l
 from core.rig import Head
 from core.volume.steps import StepWatch
@@ -153,29 +152,6 @@ class MetricVolume:
     # each head's trunk quadrants (REGIONS), on timestamp_ns: the regional signals the subject's
     # calibration weighs (core/volume/subject_calibration.py)
     head_regions: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
-
-    def refusal(self) -> str | None:
-        """Why this volume cannot be reported, or None: a head whose maps had to be rescaled by more
-        than MAX_SCALE_MISMATCH to put their sides where the two heads' trunk widths put them, a
-        curve noisier from map to map than MAX_MAP_NOISE_L, or one that jumps away and back in more
-        than MAX_JUMP_SHARE of its maps (jump_share)."""
-        noise = curve_noise_l(self.volume_l)
-        if noise > MAX_MAP_NOISE_L:
-            noisy = past_limit(1000 * noise, 1000 * MAX_MAP_NOISE_L)
-            return (f"the optical volume's noise from map to map is {noisy} mL (at most "
-                    f"{1000 * MAX_MAP_NOISE_L:.0f} mL for values within tolerance): its values would be the noise's")
-        share, largest = jump_share(self.timestamp_ns, self.volume_l)
-        if share > MAX_JUMP_SHARE:
-            return (f"the optical volume jumps away and back (up to {1000 * largest:.0f} mL) in "
-                    f"{past_limit(100 * share, 100 * MAX_JUMP_SHARE, 1)} % "
-                    f"of its maps (at most {100 * MAX_JUMP_SHARE:.0f} %): its tidal volume, rate and peak flow "
-                    "would be the jumps'")
-        for name, mismatch in self.scale_mismatch.items():
-            if mismatch > MAX_SCALE_MISMATCH:
-                return (f"head {name}: the trunk's width in the two heads' views and its depth in this head's maps "
-                        f"disagree by {100 * mismatch:.0f} % (arms against the trunk's sides, or the trunk not "
-                        "wholly in view)")
-        return None
 
     def with_gaps(self, timestamp_ns: np.ndarray, maps_shown: dict[str, tuple[np.ndarray, np.ndarray]],
                   ) -> "MetricVolume":

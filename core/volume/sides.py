@@ -15,7 +15,6 @@ from __future__ import annotations
 import numpy as np
 
 from core.rig import Head
-from core.limits import past_limit
 from core.volume.maps import contour_rows_mm
 
 # Measured (docs/history/volume-log.md, "... and bent maps"), as mm of the sum per 100 mm of height: the true
@@ -63,20 +62,3 @@ def paired_tilts(front: tuple[np.ndarray, list], back: tuple[np.ndarray, list]) 
     t_back = np.asarray(t_back, dtype=float)
     nearest = [int(np.argmin(np.abs(t_back - float(t)))) for t in t_front]
     return np.array([sides_tilt(p, p_back[j]) for p, j in zip(p_front, nearest)])
-
-
-def bend_refusal(tilts: np.ndarray) -> str | None:
-    """Why the optical volume cannot be reported from maps whose sides the two heads place at
-    depths that drift apart along the trunk's height by more than MAX_SIDES_TILT (the median over
-    the pairs of maps compared), or None."""
-    tilts = np.asarray(tilts, dtype=float)
-    tilts = tilts[np.isfinite(tilts)]
-    if not len(tilts):
-        return None
-    tilt = float(np.median(tilts))
-    if abs(tilt) <= MAX_SIDES_TILT:
-        return None
-    apart = past_limit(100 * abs(tilt), 100 * MAX_SIDES_TILT)
-    return (f"the front and back maps disagree on the depth of the trunk's sides by {apart} mm more "
-            f"for every 100 mm of its height (at most {100 * MAX_SIDES_TILT:.0f} mm): the maps are bent (a sheen on "
-            "the skin, lights the calibration does not describe), and their volume would not be the breathing's")

@@ -784,6 +784,7 @@ def test_a_verdict_at_its_threshold_does_not_flicker(qtbot):
     in words the operator acts on, the details on hover."""
     from app.gui.live_view import VERDICT_HOLD_S, LiveView
     from app.live import Snapshot
+    from core.limits import Refusal
 
     view = LiveView(["front", "back"])
     qtbot.addWidget(view)
@@ -793,11 +794,12 @@ def test_a_verdict_at_its_threshold_does_not_flicker(qtbot):
     shown = []
     for k in range(41):  # a value that crosses its limit every other update, 30 updates a second
         snapshot.elapsed_s = k / 30
-        snapshot.optical_refused = "the top reads 115.2 % of the reference (at most 115 %)" if k % 2 else None
+        snapshot.optical_refused = Refusal("noisy-volume", "the noise reads 50.2 mL (at most 50 mL)") if k % 2 else None
         view.show(snapshot, "simulated", "simulated")
         shown.append(line.text())
     assert set(shown) == {"valid"} and "b00020" not in line.styleSheet()
-    snapshot.optical_refused = "an arm against the trunk hides its side"
+    snapshot.optical_refused = Refusal("arm-against-trunk", "an arm against the trunk hides its side",
+                                       "hold the arms away from the body")
     for k in range(60):
         snapshot.elapsed_s = 2.0 + k / 30
         view.show(snapshot, "simulated", "simulated")
@@ -805,4 +807,4 @@ def test_a_verdict_at_its_threshold_does_not_flicker(qtbot):
             break
     assert k / 30 >= VERDICT_HOLD_S - 0.05
     assert line.text() == "not valid now: hold the arms away from the body" and "b00020" in line.styleSheet()
-    assert line.toolTip() == "an arm against the trunk hides its side"
+    assert line.toolTip() == "an arm against the trunk hides its side; hold the arms away from the body"

@@ -19,7 +19,7 @@ def test_refusals_just_past_their_limits_read_past_them():
     hidden = np.zeros(1000)
     hidden[: int(1000 * MAX_HIDDEN_MAPS) + 3] = 0.5
     arm = occlusion_refusal({"front": hidden})
-    assert f"in {100 * (MAX_HIDDEN_MAPS + 0.003):.1f} % of the maps" in arm
+    assert f"in {100 * (MAX_HIDDEN_MAPS + 0.003):.1f} % of the maps" in arm.reason
     far = distance_refusal({"front": WORKING_RANGE_MM[1] + 0.3})
-    assert f"{WORKING_RANGE_MM[1] + 0.3:.1f} mm" in far
-    assert "0.0404 of its albedo" in reflectance_refusal({"back": 0.0404})
+    assert f"{WORKING_RANGE_MM[1] + 0.3:.1f} mm" in far.reason
+    assert "0.0404 of its albedo" in reflectance_refusal({"back": 0.0404}).reason

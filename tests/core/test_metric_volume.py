@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.pipeline.quality import volume_refusal
 from core.volume.metric import HeadDisplacements, MetricVolume, metric_volume, side_targets
 from core.rig import thesis_head
 from core.volume.maps import DisplacementSums, DisplacementTracker, metric_head_volume_l
@@ -85,10 +86,10 @@ def test_two_heads_take_their_distances_from_the_silhouette_widths():
     # the quadrants cover the trunk rows (60 % of the widest or more), not the narrow ends of the dome
     in_quadrants = sum(r[1] - r[0] for r in result.regions.values())
     assert 0.9 * gained < in_quadrants < gained
-    assert result.refusal() is None and max(result.scale_mismatch.values()) < 0.01
+    assert volume_refusal(result) is None and max(result.scale_mismatch.values()) < 0.01
     # heads whose widths put the sides 12 % from where their own maps have them: not the same sides
     apart = metric_volume(heads, 2.24 * RIM_MM)
-    assert "disagree by 12 %" in apart.refusal()
+    assert "disagree by 12 %" in volume_refusal(apart).reason
 
 
 def test_process_writes_the_metric_volume_and_uses_it_without_a_flow_sensor(tmp_path):
@@ -187,8 +188,8 @@ def test_a_volume_curve_noisier_from_map_to_map_than_its_values_allow_is_refused
     def volume(values: np.ndarray) -> MetricVolume:
         return MetricVolume((t * 1e9).astype(np.int64), values, {}, {}, {}, "test", {"front": 0.0})
 
-    assert volume(breathing + 0.02 * noise).refusal() is None
-    refused = volume(breathing + 0.3 * noise).refusal()
+    assert volume_refusal(volume(breathing + 0.02 * noise)) is None
+    refused = str(volume_refusal(volume(breathing + 0.3 * noise)))
     assert refused is not None and "noise from map to map is" in refused and f"{1000 * MAX_MAP_NOISE_L:.0f} mL" in refused
 
 
@@ -220,8 +221,8 @@ def test_a_volume_curve_that_jumps_away_and_back_is_refused():
     def volume(values: np.ndarray) -> MetricVolume:
         return MetricVolume(stamps, values, {}, {}, {}, "test", {"front": 0.0})
 
-    assert volume(curve).refusal() is None
-    refused = volume(jumped).refusal()
+    assert volume_refusal(volume(curve)) is None
+    refused = str(volume_refusal(volume(jumped)))
     assert refused is not None and "jumps away and back" in refused
 
 

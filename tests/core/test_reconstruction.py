@@ -409,7 +409,7 @@ def test_process_gives_no_subject_distance_where_an_arm_hides_the_trunk_s_sides(
     assert geometric_distance_refusal({"front": clear + 0.1, "back": clear}) is None
     # maps with an arm against the trunk now and then are left out; the distance comes from the others
     assert geometric_distance_refusal({"front": clear, "back": now_and_then}) is None
-    assert geometric_distance_refusal({"front": clear, "back": swinging}).startswith(
+    assert geometric_distance_refusal({"front": clear, "back": swinging}).reason.startswith(
         "an arm lies against the trunk in head back's view in 35 % of the maps")
     session, results = tmp_path / "arms.h5", tmp_path / "arms-r.h5"
     simulate(session, SimConfig(protocol="static", seconds=0.4, scale=0.15, body=body_named("arms-close", 3),
@@ -420,7 +420,7 @@ def test_process_gives_no_subject_distance_where_an_arm_hides_the_trunk_s_sides(
     assert "mean subject distance" not in out
     with ResultsFile(results) as r:
         assert r.distance_refused.startswith("an arm lies against the trunk")
-        assert "an arm lies against the trunk" in r.optical_refused
+        assert "an arm lies against the trunk" in r.optical_refused and r.optical_refused_code == "arm-against-trunk"
     summary = volume_summary(session, results)  # what `photopft demo` prints after processing
     assert "no subject distance: an arm lies" in summary and not re.search(r"subject distance \d", summary)
 
@@ -489,24 +489,26 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     assert area == pytest.approx(np.full(10, 4000 * (2000 / head.fx) * (2000 / head.fy) * 1e-6))
     assert coverage_refusal({"front": np.full(5, 0.1), "back": np.full(5, 0.05)}) is None
     assert "head back: its maps hold 100 cm^2 of the subject" in coverage_refusal(
-        {"front": np.full(5, 0.1), "back": np.full(5, 0.01)})
+        {"front": np.full(5, 0.1), "back": np.full(5, 0.01)}).reason
     clear = np.zeros(40)
     assert occlusion_refusal({"front": clear + 0.01, "back": np.full(40, np.nan)}) is None
     swinging, quarter = clear.copy(), clear.copy()
     swinging[::3] = 0.6  # an arm against the trunk in a third of the maps: held close
     quarter[::4] = 0.6  # in a quarter: those maps are left out, the others give the volume
+    swung = occlusion_refusal({"front": clear, "back": swinging})
+    assert swung.code == "arm-against-trunk" and "hold the arms away" in swung.action
     assert "head back: an arm lies against the trunk (along more than 20 % of its height) in 35 % of the maps" in \
-        occlusion_refusal({"front": clear, "back": swinging})
+        swung.reason
     assert occlusion_refusal({"front": clear, "back": quarter}) is None
     assert "head front: the trunk runs out of the image at the side in 25 % of the maps" in occlusion_refusal(
-        {"front": clear, "back": clear}, {"front": quarter, "back": clear})
-    assert "front: no subject distance" in distance_refusal({"front": float("nan"), "back": 2000.0})
+        {"front": clear, "back": clear}, {"front": quarter, "back": clear}).reason
+    assert "front: no subject distance" in distance_refusal({"front": float("nan"), "back": 2000.0}).reason
     # an arm against the trunk moves the two heads' distances: it is named first, not the distance it spoilt
     from core.pipeline.quality import session_refusal
 
     arm = session_refusal({"front": 1842.0, "back": 2658.0}, {"front": np.full(40, 0.3), "back": np.full(40, 0.3)},
                           {"front": np.full(40, 0.67), "back": np.zeros(40)}, {})
-    assert arm.startswith("head front: an arm lies against the trunk")
+    assert arm.reason.startswith("head front: an arm lies against the trunk")
     session, results = tmp_path / "far.h5", tmp_path / "far-r.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=0.5, scale=0.1, distance_mm=3300.0,
                                 distance_back_mm=3300.0))
@@ -535,9 +537,9 @@ def test_two_heads_take_the_subject_distance_from_their_geometry_where_glossy_sk
     with SessionFile(session) as s:
         truth = {h: float(np.nanmedian(s.truth()[f"{h}/depth_mm"][0])) for h in s.heads}
     photometric = process_session(session, tmp_path / "p.h5", distance_from="photometric")
-    assert "outside the rig's working range" in photometric.optical_refused
+    assert "outside the rig's working range" in photometric.optical_refused.reason
     geometric = process_session(session, tmp_path / "g.h5")
-    assert "a sheen on the skin" in geometric.optical_refused
+    assert geometric.optical_refused.code == "sheen" and "a sheen on the skin" in geometric.optical_refused.reason
     for name, distance in geometric.mean_distance_mm.items():
         assert abs(distance - truth[name]) < 100.0
         assert geometric.photometric_offset_mm[name] < -500.0

@@ -302,7 +302,8 @@ def test_the_two_heads_sides_agree_on_an_upright_trunk_and_not_on_a_bent_map():
     height (tilt 0). The front map bent by 0.4 mm per mm of height, as a sheen bends it, tilts the
     sum by that much and the volume is refused; 0.1 is let through."""
     from core.rig import thesis_head
-    from core.volume.sides import MAX_SIDES_TILT, bend_refusal, paired_tilts, side_profile_mm, sides_tilt
+    from core.pipeline.quality import bend_refusal
+    from core.volume.sides import MAX_SIDES_TILT, paired_tilts, side_profile_mm, sides_tilt
 
     front_head, back_head = thesis_head("front", scale=0.15), thesis_head("back", scale=0.15)
     baseline = 4000.0
@@ -320,7 +321,7 @@ def test_the_two_heads_sides_agree_on_an_upright_trunk_and_not_on_a_bent_map():
         refusal = bend_refusal(paired_tilts((np.array([0, 10]), [side_profile_mm(bent, valid, silhouette, front_head)] * 2),
                                             (np.array([5]), [back_profile])))
         assert (refusal is not None) == (bend > MAX_SIDES_TILT)
-    assert "by 40 mm more for every 100 mm of its height" in refusal
+    assert refusal.code == "bent-maps" and "by 40 mm more for every 100 mm of its height" in refusal.reason
     short = (np.array([0.0, 100.0]), np.array([2000.0, 2000.0]))
     assert np.isnan(sides_tilt(short, short))  # less height in common than MIN_SIDES_SPAN_MM
     assert bend_refusal(np.array([np.nan])) is None
