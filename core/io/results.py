@@ -196,6 +196,14 @@ class ResultsFile:
                        for region in heads[f"{name}/regions"]}
                 for name in heads if "regions" in heads[name]}
 
+    def displacement_sums(self) -> dict[str, dict[str, np.ndarray]]:
+        """/displacement_sums: {head: {dataset: array, "parts": names}}; {} in files processed before it."""
+        out = {}
+        for head, g in self._f.get("displacement_sums", {}).items():
+            out[head] = {key: g[key][:] for key in g}
+            out[head]["parts"] = [str(p) for p in g.attrs["parts"]]
+        return out
+
     @property
     def optical_refused(self) -> str | None:
         reason = self._f.attrs.get("optical_refused")
@@ -417,6 +425,28 @@ class ResultsWriter:
         for name, quadrants in (head_regions or {}).items():
             for region, values in quadrants.items():
                 g.create_dataset(f"heads/{name}/regions/{region}/volume_l", data=from_first(values))
+
+    def displacement_sums(self, head: str, timestamp_ns: np.ndarray, sums: list, side_target_mm: np.ndarray,
+                          shown: np.ndarray, parts: tuple[str, ...]) -> None:
+        """/displacement_sums/<head>: each map's footprint-weighted sums against its head's reference map
+        (core/volume/maps.py, DisplacementSums) as they came from the maps, before any level, scale or
+        gap is chosen, so another optical signal can be made from a results file without the maps:
+        per part (`parts`, the attribute) `reference`, `current`, `areas`, `displaced` (maps x parts,
+        mm^3 or mm^2); `levels_mm` (reference's, map's), `body_shift_mm`, `side_mm`, `width_px`,
+        `width_ratio`; `side_target_mm`, the distance the sides were scaled to; `shown`, whether the
+        map entered the volume."""
+        g = self.out.create_group(f"displacement_sums/{head}")
+        g.attrs["parts"] = list(parts)
+        g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
+        for key in ("reference", "current", "areas", "displaced"):
+            g.create_dataset(key, data=np.array([[getattr(s, key).get(p, np.nan) for p in parts] for s in sums],
+                                                dtype=float).reshape(len(sums), len(parts)))
+        for key in ("levels_mm", "body_shift_mm"):
+            g.create_dataset(key, data=np.array([getattr(s, key) for s in sums], dtype=float).reshape(len(sums), 2))
+        for key in ("side_mm", "width_px", "width_ratio"):
+            g.create_dataset(key, data=np.array([getattr(s, key) for s in sums], dtype=float))
+        g.create_dataset("side_target_mm", data=np.asarray(side_target_mm, dtype=float))
+        g.create_dataset("shown", data=np.asarray(shown, dtype=bool))
 
     def parameters(self, source: str, values: dict, flow_curve: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """/parameters: the pulmonary function values and their `source`; with the flow sensor's

@@ -31,7 +31,7 @@ from core.reconstruction.reflectance import RedundancyFit
 from core.calibration.rig_profile import ProfileError, RigCalibration
 from core.io.session import SessionError, SessionFile
 from core.io.results import ResultsWriter
-from core.volume.maps import DisplacementSums, DisplacementTracker, smooth_in_time
+from core.volume.maps import REGIONS, DisplacementSums, DisplacementTracker, smooth_in_time
 from core.volume.sides import paired_tilts, side_profile_mm
 from core.volume.steps import maps_in_steps
 from core.limits import Refusal
@@ -388,6 +388,11 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
             sides = {name: sides_shown(occluded[name]) for name in displacements}
             in_step = {name: maps_in_steps(d.timestamp_ns, d.body_shift_mm) for name, d in displacements.items()}
             shown = {name: sides[name] & ~in_step[name] for name in displacements}
+            if all(d.sums for d in displacements.values()):  # the sums as they came, for other signals
+                targets, _ = side_targets(displacements, rig.baseline_mm)
+                for name, d in displacements.items():
+                    results.displacement_sums(name, d.timestamp_ns, d.sums, targets[name], shown[name],
+                                              REGIONS + ("all",))
             metric = (metric_volume({n: d.of_maps(shown[n]) for n, d in displacements.items()}, rig.baseline_mm)
                       if all(counts.values()) and refused is None and all(m.any() for m in shown.values()) else None)
             for name, level in (metric.levels.items() if metric is not None else ()):
