@@ -28,7 +28,7 @@ from core.pipeline.live_checks import LiveOpticalChecks
 from core.volume.flow_sensor import btps_factor
 from core.analysis.optical_litres import ESTIMATE, ESTIMATE_UNCERTAINTY, POPULATION_GAIN, estimate_label
 from core.volume.metric import LiveMetricVolume
-from core.volume.subject_calibration import MOUTHPIECE_OFF, regional_signals
+from core.volume.subject_calibration import MOUTHPIECE_OFF, REDO as CALIBRATION_REDO, regional_signals
 from core.volume.sides import side_profile_mm
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
 from core.pipeline.quality import MAX_OCCLUDED_SIDE_SHARE
@@ -543,7 +543,8 @@ class LiveRig:
             t0 = self._t0
         if recorded is None or t0 is None or not curve:
             return SubjectCalibration({}, (0.0, 0.0), float("nan"), float("nan"), float("nan"),
-                                      refused="no flow sensor volume or no optical signal recorded to calibrate on")
+                                      refused=Refusal("calibration-no-signal", "no flow sensor volume or no optical "
+                                                      "signal recorded to calibrate on", CALIBRATION_REDO))
         volume, start, _ = recorded
         map_t = (t0 + np.array([t for t, _ in curve]) * 1e9 - start) / 1e9
         names = list(curve[-1][1])

@@ -419,7 +419,8 @@ def grouping_values(session: Path, results: Path) -> dict[str, dict]:
         calibration = fit_subject_calibration(t, signals, flow.t_s, flow.volume_l, segment, groupings)
         values = {} if calibration.refused else _numbers(
             analyse_volume(t, calibration.volume_l(signals), events, age, fitted=True).parameters())
-        out[name] = {"values": values, "refused": calibration.refused, "gains": calibration.gains,
+        out[name] = {"values": values, "refused": calibration.refused and str(calibration.refused),
+                     "gains": calibration.gains,
                      "grouping": calibration.extra.get("grouping"), "expected_error": calibration.expected_error}
     return out
 

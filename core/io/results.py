@@ -379,7 +379,8 @@ class ResultsWriter:
         g.attrs["signals"] = list(calibration.gains)
         g.attrs["gains"] = np.array(list(calibration.gains.values()), dtype=float)
         if calibration.refused:
-            g.attrs["refused"] = calibration.refused
+            g.attrs["refused"] = str(calibration.refused)
+            g.attrs["refused_code"] = calibration.refused.code
 
     def volume(self, timestamp_ns: np.ndarray, volume_l: np.ndarray, method: str, **attrs) -> None:
         """/volume: the optical volume in litres, from its first sample, and how it was made."""

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import lsq_linear
 
+from core.limits import Refusal
 from core.volume.maps import REGIONS
 
 MOUTHPIECE_OFF = "mouthpiece-off"  # the event that ends the subject's calibration through the flow sensor
@@ -75,7 +76,7 @@ class SubjectCalibration:
     residual_l: float
     range_l: float
     expected_error: float
-    refused: str | None = None
+    refused: Refusal | None = None
     samples: int = 0
     # fit_t_s, fit_l: the fitted curve over the segment, to show; grouping: the GROUPINGS key chosen
     extra: dict = field(default_factory=dict)
@@ -144,11 +145,12 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
     inside &= (t >= flow_t[0]) & (t <= flow_t[-1]) if len(flow_t) else np.zeros(len(t), bool)
     empty = SubjectCalibration({n: float("nan") for n in names}, segment_s, float("nan"), float("nan"), float("nan"))
     if not names:
-        empty.refused = "no regional optical signal to calibrate"
+        empty.refused = Refusal("calibration-no-signal", "no regional optical signal to calibrate", REDO)
         return empty
     if inside.sum() < MIN_FIT_MAPS:
-        empty.refused = (f"only {int(inside.sum())} maps with every region in view during the calibration (at least "
-                         f"{MIN_FIT_MAPS}): the trunk hidden or the maps too few; repeat the calibration")
+        empty.refused = Refusal("calibration-few-maps", f"only {int(inside.sum())} maps with every region in view "
+                                f"during the calibration (at least {MIN_FIT_MAPS}): the trunk hidden or the maps too few",
+                                REDO)
         return empty
     t, x = t[inside], x[inside]
     y = np.interp(t, flow_t, np.asarray(flow_volume_l, dtype=float))
@@ -195,21 +197,23 @@ def _held_out(t: np.ndarray, x: np.ndarray, y: np.ndarray, range_l: float) -> tu
     return float(np.sqrt(np.mean(np.square(np.concatenate(residuals))))), float(np.sqrt(np.mean(np.square(excursions))))
 
 
-def calibration_refusal(calibration: SubjectCalibration) -> str | None:
+REDO = "repeat the calibration: quiet breathing and one slow VC through the mouthpiece"
+
+
+def calibration_refusal(calibration: SubjectCalibration) -> Refusal | None:
     """Why the subject's calibration cannot be used, with what the operator should do; None if it can."""
-    redo = "repeat the calibration: quiet breathing and one slow VC through the mouthpiece"
     if calibration.range_l < MIN_RANGE_L:
-        return (f"the flow sensor's volume swings {calibration.range_l:.2f} L during the calibration (at least "
-                f"{MIN_RANGE_L:.1f} L: a slow VC); {redo}")
+        return Refusal("calibration-small-swing", f"the flow sensor's volume swings {calibration.range_l:.2f} L during "
+                       f"the calibration (at least {MIN_RANGE_L:.1f} L: a slow VC)", REDO)
     share = calibration.residual_l / calibration.range_l
     if share > MAX_RESIDUAL_SHARE:
-        return (f"the optical signals follow the flow sensor within {100 * share:.1f} % of its range "
-                f"(at most {100 * MAX_RESIDUAL_SHARE:.0f} %); {redo}")
+        return Refusal("calibration-poor-fit", f"the optical signals follow the flow sensor within {100 * share:.1f} % "
+                       f"of its range (at most {100 * MAX_RESIDUAL_SHARE:.0f} %)", REDO)
     gains = np.array(list(calibration.gains.values()))
     if not np.any(gains > 0):
-        return f"no region's signal follows the flow sensor's volume; {redo}"
+        return Refusal("calibration-no-follow", "no region's signal follows the flow sensor's volume", REDO)
     worst = max(calibration.gains, key=calibration.gains.get)
     if calibration.gains[worst] > MAX_REGION_GAIN:
-        return (f"the {worst} signal would be weighed {calibration.gains[worst]:.1f} times (at most "
-                f"{MAX_REGION_GAIN:.0f}): it moves too little to be measured; {redo}")
+        return Refusal("calibration-gain", f"the {worst} signal would be weighed {calibration.gains[worst]:.1f} times "
+                       f"(at most {MAX_REGION_GAIN:.0f}): it moves too little to be measured", REDO)
     return None

@@ -66,11 +66,12 @@ def test_a_signal_that_does_not_follow_the_flow_sensor_is_refused_with_what_to_d
     noisy = {"front chest": chest + 0.4 * rng.standard_normal(len(t))}
     c = fit_subject_calibration(t, noisy, flow_t, flow, (0.0, 36.0))
     assert c.residual_l / c.range_l > MAX_RESIDUAL_SHARE
-    assert "follow the flow sensor within" in c.refused and "repeat the calibration" in c.refused
+    assert c.refused.code == "calibration-poor-fit" and "follow the flow sensor within" in c.refused.reason
+    assert "repeat the calibration" in str(c.refused)
     quiet_only = fit_subject_calibration(t, {"front chest": chest}, flow_t, flow, (0.0, 20.0))
-    assert "swings" in quiet_only.refused and "slow VC" in quiet_only.refused
+    assert "swings" in quiet_only.refused.reason and "slow VC" in quiet_only.refused.reason
     nothing = fit_subject_calibration(t, {"front chest": np.full(len(t), np.nan)}, flow_t, flow, (0.0, 36.0))
-    assert "maps with every region in view" in nothing.refused
+    assert "maps with every region in view" in nothing.refused.reason
 
 
 def test_the_calibration_segment_ends_where_the_mouthpiece_comes_off_or_after_the_first_slow_vc():
