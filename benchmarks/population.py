@@ -282,6 +282,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     from core.rig import thesis_rig
     from core.io.session import SessionFile
     from core.analysis.session_analysis import analyse_session
+    from core.sim.truth import truth_values
     from core.sim.breathing import ForcedBlow, standard_curve
     from core.sim.simulate import simulate
     from core.analysis.spirometry import read_waveform
@@ -360,7 +361,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     except Exception as exc:
         out["refused"] = f"process: {exc}"
         return out
-    out["truth"] = _numbers(report.truth.parameters())
+    out["truth"] = _numbers(truth_values(session).parameters())
     out["flow"] = _numbers(report.flow_sensor.parameters()) if report.flow_sensor is not None else {}
     out["optical"] = _numbers(report.optical.parameters()) if report.optical is not None else {}
     out["optical_label"] = report.optical_label

@@ -23,6 +23,7 @@ from core.pipeline.process import process_session
 from core.io.results import ResultsFile, optical_inputs
 from core.io.session import SessionFile
 from core.analysis.session_analysis import analyse_session
+from core.sim.truth import truth_values
 from core.volume.maps import gradient_volume_correlations
 
 
@@ -92,7 +93,7 @@ def run_volume_bench(scale: float, seconds: float, scenarios: tuple[Scenario, ..
                 "--world", world]))
             process_session(session, results, every=every, settings=ReconstructionSettings(track=True))
             report = analyse_session(session, **optical_inputs(results))
-            truth = report.truth.parameters()
+            truth = truth_values(session).parameters()
             flow = report.flow_sensor.parameters() if report.flow_sensor is not None else {}
             rows.append((scenario, truth, flow, report.optical.parameters(), _gradient_correlations(session, results),
                          metric_against_truth(session, results), report.optical.problems))

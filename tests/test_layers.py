@@ -33,3 +33,15 @@ def test_the_truth_contract_covers_every_module_of_core():
     modules = {m.removesuffix(".__init__") for m in modules if not m.startswith("core.sim")}
     uncovered = sorted(m for m in modules if not any(m == s or m.startswith(s + ".") for s in listed))
     assert not uncovered, uncovered
+
+
+def test_no_science_reads_a_simulation_truth():
+    """Only the simulator (core/sim) reads /truth for its values; core/io only reads, checks and
+    recovers the file. The analysis, volume, reconstruction, calibration and pipeline never call it."""
+    import re
+
+    reading = re.compile(r"\.truth\(\)|\[\"truth\"\]|\btruth_values\b")
+    readers = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "core").rglob("*.py")
+                     if not p.is_relative_to(ROOT / "core" / "sim") and not p.is_relative_to(ROOT / "core" / "io")
+                     and reading.search(p.read_text()))
+    assert not readers, readers

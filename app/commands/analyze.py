@@ -110,13 +110,15 @@ def run_analyze_session(args: argparse.Namespace) -> int:
     from core.io.results import optical_inputs, optical_refusal
     from core.io.session import SessionError
     from core.analysis.session_analysis import analyse_session
+    from core.sim.truth import truth_values
 
     try:
         session, results = open_inputs(args.session)
         report = analyse_session(session, args.equations, **optical_inputs(results))
+        truth = truth_values(session)
     except (SessionError, ValueError, OSError, KeyError) as exc:
         raise UserError(str(exc) if str(args.session) in str(exc) else f"{args.session}: {exc}") from exc
-    named = (("flow sensor", report.flow_sensor), ("optical", report.optical), ("truth (simulation)", report.truth))
+    named = (("flow sensor", report.flow_sensor), ("optical", report.optical), ("truth (simulation)", truth))
     sources = [(name, values.parameters()) for name, values in named if values]
     if not sources and report.flow_refused:
         raise UserError(f"{args.session}: the flow sensor's values are refused: {report.flow_refused}")

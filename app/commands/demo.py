@@ -74,9 +74,11 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
             for head, (_, distance, _) in series.items():
                 lines.append(f"  {head}: subject distance {np.nanmedian(distance):.0f} mm (from "
                              f"{np.nanpercentile(distance, 2):.0f} to {np.nanpercentile(distance, 98):.0f} mm)")
+    truth_volume = None
     with SessionFile(path) as s:
         if s.has_truth:
             truth = s.truth()
+            truth_volume = truth["volume_l"][:]
             t_truth = truth["timestamp_ns"][:]
             volume = truth["volume_l"][:]
             lines.append(f"  true volume (simulation): range {volume.min():+.3f} to {volume.max():+.3f} L, "
@@ -96,7 +98,7 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
     if report.flow_volume is not None:
         t_flow, v_flow = report.flow_volume
         lines.append(f"  flow sensor (BTPS, zero drift removed): range {v_flow.min():+.3f} to {v_flow.max():+.3f} L")
-        if report.truth is not None:
+        if truth_volume is not None:
             with SessionFile(path) as s:
                 start = int(min(s.timestamp_ns(h)[0] for h in s.heads))
             v = np.interp((t_truth - start) / 1e9, t_flow, v_flow)

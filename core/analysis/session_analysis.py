@@ -1,5 +1,6 @@
-"""The pulmonary function values of a recorded session: from its flow sensor, from an optical volume
-curve when one is given (a results file's /volume), and from its truth (simulations)."""
+"""The pulmonary function values of a recorded session: from its flow sensor, and from an optical volume
+curve when one is given (a results file's /volume). A simulation's truth is not read here
+(core/sim/truth.py)."""
 
 from __future__ import annotations
 
@@ -18,7 +19,6 @@ from core.io.session import SessionError, SessionFile
 @dataclass
 class SessionReport:
     flow_sensor: SessionValues | None
-    truth: SessionValues | None
     references: dict[str, Reference]
     reference_problem: str | None
     flow_volume: tuple[np.ndarray, np.ndarray] | None  # (seconds from the first frame, litres)
@@ -109,11 +109,6 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
             flow_values = without_gapped_manoeuvres(analyse_volume(flow.t_s, flow.volume_l, covered, age),
                                                     gaps_in_manoeuvres(flow_gaps(flow.stamps_ns), s.events(), start))
             flow_volume = (flow.t_s, flow.volume_l)
-        truth_values = None
-        if s.has_truth:
-            truth = s.truth()
-            t = (np.asarray(truth["timestamp_ns"]) - start) / 1e9
-            truth_values = analyse_volume(t, np.asarray(truth["volume_l"]), events, age)
         optical_values, optical_curve = None, None
         if optical_volume is not None:
             t = (np.asarray(optical_volume[0], dtype=np.int64) - start) / 1e9
@@ -137,5 +132,5 @@ def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
                                                       s.subject.height_cm, equations)
             except ReferenceUnavailable as exc:
                 problem = str(exc)
-    return SessionReport(flow_values, truth_values, references, problem, flow_volume, optical_values,
+    return SessionReport(flow_values, references, problem, flow_volume, optical_values,
                          optical_curve, flow_refused, optical_label if optical_values is not None else None)

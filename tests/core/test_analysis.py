@@ -10,6 +10,7 @@ from core.analysis.values import analyse_volume, tidal_stretches, tidal_values, 
 from core.volume.flow_sensor import btps_factor, flow_sensor_volume
 from core.pipeline.process import process_session
 from core.analysis.session_analysis import analyse_session
+from core.sim.truth import truth_values
 from core.sim.breathing import ForcedBlow, Sway
 from core.sim.flowsensor import FlowSensorModel
 from core.sim.simulate import SimConfig, simulate
@@ -140,7 +141,7 @@ def full_session(tmp_path_factory):
 
 def test_flow_sensor_values_match_the_truth(full_session):
     report = analyse_session(full_session)
-    flow, truth = report.flow_sensor.parameters(), report.truth.parameters()
+    flow, truth = report.flow_sensor.parameters(), truth_values(full_session).parameters()
     for key in ("TV_l", "VC_l", "FVC_l", "FEV1_l"):
         assert flow[key] == pytest.approx(truth[key], abs=max(0.05, 0.03 * truth[key])), key
     assert flow["manoeuvres"] == 3
