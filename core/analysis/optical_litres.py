@@ -18,9 +18,7 @@ from core.volume.metric import MetricVolume
 from core.volume.subject_calibration import (SubjectCalibration, calibration_segment, fit_subject_calibration,
                                              regional_signals)
 
-# The flow sensor's volume over the plain optical volume (the one-gain calibration), the mean over the
-# sessions measured, and 1.96 of their standard deviations as a share of it (docs/history/volume-log.md, "Calibrated
-# litres": four sessions so far, 1.04-1.34)
+# The estimate's gain and its 95 % uncertainty, from the sessions measured (docs/constants.md)
 POPULATION_GAIN = 1.20
 ESTIMATE_UNCERTAINTY = 0.20
 CALIBRATED = "optical, calibrated on the subject"

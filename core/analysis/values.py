@@ -19,10 +19,7 @@ from core.volume.noise import curve_noise_l
 
 ANALYSIS_RATE_HZ = 200.0
 
-# The least tidal volume a breath may have: a floor under a small child's quiet breaths (a child of 7
-# in the population bench breathed 0.06-0.13 L; with 0.08 L, two of its four breaths went and its
-# truth read 5.8 breaths/min for 12), raised where the curve's own noise (curve_noise_l) would make
-# breaths of that size (docs/benchmarks.md, constants).
+# The least tidal volume of a breath, raised where the curve's noise makes breaths that size (docs/constants.md)
 MIN_TIDAL_FLOOR_L = 0.02
 BREATH_OVER_NOISE = 4.0
 
@@ -134,18 +131,11 @@ def forced_proportions(f: SessionGrade) -> dict[str, float | str | int]:
                 acceptable_FEV1=f.acceptable_fev1, acceptable_FVC=f.acceptable_fvc, manoeuvres=len(f.manoeuvres))
 
 
-# The widest sample interval a volume curve's peak flow is given from: one optical map a light cycle
-# (45 ms at 110 frames/s). The 37 standard waveforms sampled so, error-free, read their PEF within 10 %
-# on 78 % of them at every phase; one map every 91 ms (every other cycle) on 43 % (docs/history/volume-log.md, "Peak
-# flow").
+# The widest sample interval a curve's PEF is given from: one map a light cycle (docs/constants.md)
 MAX_PEF_SAMPLE_INTERVAL_S = 0.05
 
 
-# A map missing here and there (an arm's edge on the trunk's side in one map, a lost frame) leaves the
-# curve a gap of 91 ms between its neighbours at one map a light cycle, 136 ms beside a lost cycle; a slow
-# VC or a forced blow is read across such a gap and left out only for a longer one (three maps missing:
-# 182 ms). Population subject 4 at scale 0.25 (docs/benchmarks.md) lost its slow VC and its first blow
-# for one map left out each (2 of its 1245; the blow's beside a lost cycle).
+# A manoeuvre is read across a gap of maps up to this, left out beyond (docs/constants.md)
 MAX_BRIDGED_GAP_S = 0.15
 # A forced blow's peak flow lies within this of its top (the 61 waveforms of ../shared/data/spirometry-
 # waveforms: 0.03-0.57 s after 0.5 % of the volume is out, median 0.09 s); a map missing there takes
@@ -551,11 +541,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
     return result
 
 
-# The most the flow noise of one sample step (sqrt(2) times the curve's noise over the step) may be of
-# the peak flow for the peak flow to be given: the 37 standard waveforms sampled one map a light cycle
-# with 0-35 mL of noise read their PEF within 10 % or 0.30 L/s on 92 % of the samplings under 5 %, 86 %
-# at 5-8 %, 73 % at 10-15 % (`photopft bench blows`; docs/history/volume-log.md, "Forced expirations read through
-# the maps' noise").
+# The most one step's flow noise may be of the PEF, a map a cycle, for the PEF to be given (docs/constants.md)
 MAX_PEF_NOISE_RATIO = 0.05
 
 
@@ -576,19 +562,9 @@ def _peak_flow_read_straight(m: ForcedValues, t_s: np.ndarray, volume_l: np.ndar
 # A curve sampled at most this far apart is one of maps at every frame (9.1 ms at 110 frames/s), whose
 # PEF is judged by MAX_PEF_NOISE_RATIO_FRAMES
 MAX_FRAME_STEP_S = 0.02
-# The most the flow noise of one frame step may be of the peak flow, at a map every frame: the 37 standard
-# waveforms sampled so with 0-35 mL of white noise a map, read straight, gave their PEF within 10 % or
-# 0.30 L/s on 100 % of the samplings under 5 %, 97 % at 5-8 %, 73 % at 8-10 % (`photopft bench blows
-# --every-frame`). The maps are smoothed first as little as brings them under it (PEAK_FLOW_SIGMAS_S), and a
-# smoothing takes a share of the peak itself, so the bar is where the straight reading was always within
-# 10 %, not 8 %. So read, the same samplings gave PEF on 1392 of 2220, 96 % of them within 10 % or 0.30 L/s
+# The same bar at a map every frame (docs/constants.md)
 MAX_PEF_NOISE_RATIO_FRAMES = 0.05
-# The Gaussian smoothings (sigma, s) tried in turn on a blow's maps at every frame before its PEF is read on
-# them (peak_flow_of_frames): on population subjects in the clinic world the maps' noise, 10-20 mL a map
-# as at one map a cycle, is 25-36 % of the peak flow over a frame step unsmoothed. On our torso's blow
-# (scale 0.25, true lights, 50 mm of sway) each 5 ms takes 2-3 % off the PEF read, on population subject
-# 4's (lights from the sphere) 5 ms took 10 %, 10 ms 15 % of what the noise had added (docs/history/volume-log.md,
-# "Maps at every frame through each blow's peak flow")
+# Smoothings (sigma, s) tried in turn on a blow's maps at every frame before its PEF is read (docs/constants.md)
 PEAK_FLOW_SIGMAS_S = (0.0, 0.005, 0.01, 0.015, 0.02)
 
 

@@ -438,11 +438,7 @@ def process_session(session_path: str | os.PathLike, output: str | os.PathLike, 
                           distance_refused, sheen)
 
 
-# The volume at every frame is not smoothed in time (metric_volume's smoothing_s): the analysis smooths a
-# blow's maps as little as their noise allows before it reads the peak flow (PEAK_FLOW_SIGMAS_S). VOLUME_SMOOTHING_S
-# (30 ms) on it put our torso's two blows (scale 0.25, true lights, 50 mm of sway) -11.6 % and -9.3 % low;
-# 20 ms -9.8 %; 10 ms -7.4 %; none -2.3 % and -1.6 % (noise ratios 9.7 % and 3.4 %). The same 30 ms on the
-# true volume alone takes 7 % off that blow's peak (docs/history/volume-log.md, "Peak flow")
+# The volume at every frame is not smoothed: the analysis smooths a blow's maps as its noise needs (docs/constants.md)
 PEAK_FLOW_SMOOTHING_S = 0.0
 
 

@@ -32,11 +32,7 @@ WORKING_RANGE_MM = (1500.0, 2600.0)
 MAX_OCCLUDED_SIDE_SHARE = 0.2
 
 
-# A map whose sides an arm hides is left out of the distance and the volume (the volume is NaN there,
-# and the analysis leaves out what it would have needed: core/analysis/values.py); past this share of a
-# head's maps the arms are held against the trunk and the session is refused. It was 5 % of the maps
-# with the whole session refused past it: population subjects 12, 14 and 20 of seed 1, arms held away
-# and swung against the trunk now and then (6-9 % of their maps), gave no optical value at all.
+# Past this share of a head's maps with an arm hiding the sides, the session is refused (docs/constants.md)
 MAX_HIDDEN_MAPS = 0.25
 
 
@@ -65,11 +61,7 @@ def distance_refusal(distances_mm: dict[str, float]) -> Refusal | None:
     return None
 
 
-# The most sheen a head's maps may show (core/reconstruction/reflectance.py: the lobe's weight over the
-# albedo, the median of the session's maps) before the volume is refused (docs/history/volume-log.md, "A sheen,
-# measured"): on random body 1004's slow VC in the clinic world (true lights) matte skin read 0.001-0.003
-# and nine matte bodies -0.004-+0.003; a sheen of 0.01 read 0.05 / 0.08 (front / back) and its volume
-# 2.6 % low, 0.02 read 0.11 / 0.16 and 4.8 % low, 0.05 0.24 / 0.32 and 11 % low
+# The most sheen (over the albedo, a head's median) before uncalibrated litres are refused (docs/constants.md)
 MAX_SHEEN = 0.04
 
 

@@ -31,11 +31,7 @@ from scipy import ndimage
 
 from core.rig import Head
 
-# The silhouette's outermost pixels, dim and noisy, left out of the rim fits (docs/benchmarks.md, constants):
-# RIM_SKIP_PX by default, RIM_SKIP_MM on a map (rim_skip_px). Near grazing the flank's pixels are the
-# noisiest and an arm beside the trunk moves them (its shadow, the crease): a population body in the
-# clinic world with its arms swinging 10 mm read 0.81 of the truth with 2 px (5 mm) left out and 1.03
-# with 14 mm; 0.95 and 1.01 with the arms still (docs/history/volume-log.md, "One level for the session").
+# The silhouette's outermost pixels, dim and noisy, left out of the rim fits (docs/constants.md)
 RIM_SKIP_PX = 2
 RIM_SKIP_MM = 14.0
 # The rim's band inside the silhouette: wider steadies it against sway (docs/benchmarks.md, constants).
@@ -662,11 +658,7 @@ def trunk_width_px(depth_mm: np.ndarray, valid: np.ndarray, head: Head, widths_p
     return float(np.nanmean(widths))
 
 
-# The body's image scale cannot move by more than this from the median of the last few maps': 3 %
-# is 60 mm at 2 m, a step's whole length, where sway moves it at most 0.5 % between maps at 22 maps a
-# second and 2.5 % at 2 a second. A population subject's trunk width jumped 5 % for one to four maps
-# (an arm's edge taken for the trunk's side), each map a jump of 0.2-0.9 L in the volume
-# (docs/volume.md). A jump that lasts over half the window moves the median: the subject moved.
+# A map's image scale held at the median of the last maps' when it jumps further (docs/constants.md)
 SCALE_JUMP = 0.03
 SCALE_WINDOW_MAPS = 9
 

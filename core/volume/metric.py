@@ -36,12 +36,7 @@ from core.volume.maps import (REGIONS, DisplacementSums, DisplacementTracker, he
                               metric_head_volume_l, row_widths_px, smooth_in_time, trunk_width_px,
                               two_head_distances)
 
-# The two heads' distances are smoothed over this (a Gaussian's sigma, s). Sway runs at 0.03-0.25 Hz, and a
-# sigma of 1 s (until 2026-11-28) kept 29 % of it at 0.25 Hz, 82 % at 0.1 Hz: the maps were reconstructed
-# and scaled at distances that lagged the subject, and the near-light maps, bent by lights placed from a
-# wrong distance, read the sway as breath. A child's quiet breathing with 50 mm of axial sway (ideal
-# world) read 1.42 times the truth, -1.1 mL per mm of sway; with 0.3 s 0.93 and -0.06 mL/mm (0.5 s:
-# 1.05 and -0.27; 0.2 s: 0.90 and +0.04); docs/history/volume-log.md, "Axial sway read as breath"
+# Sigma (s) the two heads' distances are smoothed over: short enough to follow sway (docs/constants.md)
 WIDTH_SMOOTHING_S = 0.3
 # The live view's distances follow the two heads' widths with an exponential time constant of this (s):
 # causal, and on one map at a time, so smoothed longer
@@ -51,13 +46,9 @@ SIDE_SMOOTHING_S = 3.0
 VOLUME_SMOOTHING_S = 0.03  # the maps' own noise; a forced expiration's volume curve has little above 5 Hz
 # A head's map scale this far from 1: the two views' trunk sides are not the same (docs/volume.md).
 MAX_SCALE_MISMATCH = 0.08
-# The most map-to-map noise (L, robust rms) a volume curve may carry and still give values: tidal
-# volumes within 50 mL and breaths counted as breaths. Measured: 0.005-0.011 L on simulated subjects
-# whose volume follows the truth, 0.42 L on a population subject whose optical RR read 31/min for 15.
+# The most map-to-map noise (L, robust rms) a curve may carry and give values (docs/constants.md)
 MAX_MAP_NOISE_L = 0.05
-# Maps whose volume stands out of its neighbours' (the median over JUMP_WINDOW_S) by more than
-# JUMP_L: a jump away and back within a few maps, faster than any breath. A curve with more than
-# MAX_JUMP_SHARE of them is refused (docs/history/volume-log.md, "On bodies it was not tuned to").
+# A map over JUMP_L off the median of its JUMP_WINDOW_S has jumped (docs/constants.md)
 JUMP_WINDOW_S = 0.4
 JUMP_L = 0.1
 MAX_JUMP_SHARE = 0.01
@@ -256,15 +247,7 @@ def session_shifts(timestamp_ns: np.ndarray, sums: list[DisplacementSums]) -> np
     return out
 
 
-# The two halves' breathing as session_fit takes it (steady_breathing). Their mean is despiked, not
-# smoothed: a single map whose band or half stands off its neighbours (more than DESPIKE_MADS robust
-# deviations from the median of the maps within DESPIKE_WINDOW_S) takes that median, and every other map
-# keeps its own value, so a forced expiration's fall is not spread. Smoothed over 0.1 s (as until the
-# fifteenth session) the session's level took what the smoothing removed for a shift, which spread the
-# blow over +-0.3 s: population subject 4's peak flow read 3.23 L/s for 4.18 (docs/history/volume-log.md, "Peak
-# flow"). Their difference (the halves' asynchrony, and the map's tilt, which
-# alternates from map to map with the room light's flicker: +-2 mm on the average man) is smoothed over
-# BREATHING_SMOOTHING_S: unsmoothed it made jumps on bodies in the clinic world (1.6-3 % of the maps).
+# The halves' mean breathing despiked (a blow is not spread), their difference smoothed (docs/constants.md)
 DESPIKE_WINDOW_S = 0.2
 DESPIKE_MADS = 3.0
 BREATHING_SMOOTHING_S = 0.1
@@ -315,13 +298,7 @@ def session_fit(stats: np.ndarray, breathing: np.ndarray) -> np.ndarray | None:
         return None
 
 
-# The session's level is taken where the head's volume with each map's own level jumps or is too noisy
-# for the volume's checks (MetricVolume.refusal) and, regressed on the session's and its rate, gives a
-# gain within MAX_LEVEL_GAIN of 1 and a lag within MAX_LEVEL_LAG_S (level_agreement): the two measure
-# the same breathing, one with the noise of each map's extrapolation; but a session whose band breathes
-# in a way the compartments' courses do not span would read late and low (our own torso's quiet
-# breathing: 0.3-0.4 s late; the demo's forced expirations: r 0.9978 and peak flow 6.8 L/s, against
-# 0.9998 and 8.3 with each map's own, for a true 8.8).
+# The session's level only where each map's own fails and the two agree (docs/constants.md)
 MAX_LEVEL_GAIN = 0.05
 MAX_LEVEL_LAG_S = 0.1
 GAIN_HUBER = 1.5  # residuals beyond this many robust sigmas weigh less (Huber)

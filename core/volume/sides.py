@@ -17,10 +17,7 @@ import numpy as np
 from core.rig import Head
 from core.volume.maps import contour_rows_mm
 
-# Measured (docs/history/volume-log.md, "... and bent maps"), as mm of the sum per 100 mm of height: the true
-# depth of a simulated subject 2-5 (the two perspective views' contours are not quite one curve),
-# matte reconstructions 4-5, a faint sheen (0.05) 9-12, population subject 9 (a sheen of 0.16, its
-# VC read 0.02 of the truth) 75.
+# How far the two heads' side contours may part (mm per mm of height) before the maps are bent (docs/constants.md)
 MAX_SIDES_TILT = 0.25
 SIDES_GRID_MM = 10.0
 MIN_SIDES_SPAN_MM = 150.0  # the heights both heads' sides must share for a tilt: half a child's trunk

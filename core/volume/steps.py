@@ -16,14 +16,9 @@ from scipy import ndimage, signal
 
 from core.volume.maps import maps_within
 
-# In-plane body speed (mm/s) above which a map is in a step. Postural sway moves the trunk sideways by
-# at most 15 mm at up to 0.25 Hz (about 24 mm/s at its fastest); a step of 20 mm within 0.5 s peaks at
-# 60 mm/s. Measured on a mesh body in the clinic world (about 2.6 mm a pixel): at most about 11 mm/s
-# without a step, 65-170 mm/s in its steps (docs/history/volume-log.md, "Steps").
+# In-plane body speed (mm/s) above which a map is in a step: over sway's, under a step's (docs/constants.md)
 STEP_SPEED_MM_S = 40.0
-# The shifts are smoothed by a running median over this much time (a map whose frame is misplaced by
-# its cycle's motion stands out of its neighbours for one map), and their speed is the slope of a line
-# fitted over as long (Savitzky-Golay): with 0.8 mm of noise a map, sway reads at most 23 mm/s.
+# The shifts' running median and the line their speed is read from span this (docs/constants.md)
 SHIFT_MEDIAN_S = 0.2
 # Maps this close to a map in a step are left out too: their cycles and the neighbour cycles their
 # motion compensation reads overlap the step's slower start and end.

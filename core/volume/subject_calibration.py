@@ -121,11 +121,7 @@ def _fit(t_s: np.ndarray, signals: np.ndarray, flow_l: np.ndarray) -> np.ndarray
     return lsq_linear(design, flow_l, bounds=(lower, upper), method="bvls").x
 
 
-# The regional signals' groupings the calibration chooses between, simplest first: each signal's group
-# (its name: "<head> chest" ...) has one gain. A grouping with more gains is taken only where its error
-# on the parts of the segment left out of the fit is under SELECTION_MARGIN of the simpler one's: gains
-# of signals that move together (quiet breathing and a slow VC move chest and abdomen, front and back
-# alike) are otherwise fitted to the noise (docs/history/volume-log.md, "Calibrated litres").
+# Groupings of the regional signals, simplest first; more gains only where they predict better (docs/constants.md)
 GROUPINGS = {"one gain": lambda name: "all", "chest and abdomen": lambda name: name.split()[-1],
              "each head": lambda name: name.split()[0], "each region": lambda name: name}
 SELECTION_MARGIN = 0.9
@@ -148,9 +144,9 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
         empty.refused = Refusal("calibration-no-signal", "no regional optical signal to calibrate", REDO)
         return empty
     if inside.sum() < MIN_FIT_MAPS:
-        empty.refused = Refusal("calibration-few-maps", f"only {int(inside.sum())} maps with every region in view "
-                                f"during the calibration (at least {MIN_FIT_MAPS}): the trunk hidden or the maps too few",
-                                REDO)
+        empty.refused = Refusal("calibration-few-maps", f"only {int(inside.sum())} maps with every region in "
+                                f"view during the calibration (at least {MIN_FIT_MAPS}): the trunk hidden or the "
+                                "maps too few", REDO)
         return empty
     t, x = t[inside], x[inside]
     y = np.interp(t, flow_t, np.asarray(flow_volume_l, dtype=float))
