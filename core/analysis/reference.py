@@ -44,7 +44,7 @@ class Reference:
 def _equations(name: str):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        from pyspiro import BOWERMAN_2022, GLI_2012
+        from pyspiro import BOWERMAN_2022, GLI_2012  # here: its import warns, silenced above
 
     return BOWERMAN_2022() if name == "gli-global" else GLI_2012()
 

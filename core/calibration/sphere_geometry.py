@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
 
 from core.reconstruction import rays
 from core.rig import Head
@@ -368,8 +369,6 @@ def _sparsity(sizes: list[int], anisotropic: bool, drift_group: np.ndarray | Non
     only its pixels, a placement's distance only that placement's, a recording's drift of a light
     only that light's pixels in its placements. Finite differences then perturb the four lights
     (and all placements) at once."""
-    from scipy.sparse import lil_matrix
-
     n_placements = len(sizes)
     n_base = 16 + n_placements
     n_shape = n_base + (12 if anisotropic else 0)

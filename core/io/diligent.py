@@ -28,7 +28,7 @@ def load_real_surface(folder: str | Path) -> RealSurface:
     """One object's folder. The normal map's PNG is 16-bit despite the data's README (the scale is
     taken from its type); its channels (B, G, R as OpenCV reads them) are the camera's -z, -y, +x:
     checked against the depth's own normals (tests/core/test_integrate.py)."""
-    import cv2
+    import cv2  # here: OpenCV takes a while to import, and only benches and tests read DiLiGenT
 
     folder = Path(folder)
     missing = [n for n in ("normal_map.png", "mask.png", "K.txt", "depth_gt.npz") if not (folder / n).is_file()]

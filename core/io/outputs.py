@@ -56,6 +56,7 @@ def is_session_file(path: str | os.PathLike) -> bool:
                 return False
     except OSError:
         return False
+    # here, not at the top: the command line imports this module at start-up, and h5py takes a while
     import h5py
 
     from core.io.hdf5_probe import probe

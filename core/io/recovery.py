@@ -26,7 +26,7 @@ import numpy as np
 
 from core.io.outputs import atomic_output, next_free_path
 from core.io.results import READ_ERRORS
-from core.io.session import SessionError, now_iso, validate_session
+from core.io.session import SessionError, frame_filter, now_iso, validate_session
 
 READ_ATTEMPTS = 2
 HEAD_KEYS = ("frames", "light_index", "timestamp_ns", "frame_id")
@@ -127,8 +127,6 @@ def _written_prefix(timestamp_ns: np.ndarray) -> int:
 
 def _same_filter(dataset: h5py.Dataset) -> dict:
     """The copy compressed as the original was: Blosc (the recorder's frames) or HDF5's own."""
-    from core.io.session import frame_filter
-
     checksum = {"fletcher32": True} if dataset.fletcher32 else {}
     if "32001" in dataset._filters:  # h5py names a plugin filter by its id
         return frame_filter("blosc-lz4") | checksum

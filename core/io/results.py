@@ -15,6 +15,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from core.io.hdf5_probe import probe
 from core.io.session import SessionError
 from core.limits import Refusal
 
@@ -92,8 +93,6 @@ def _check_parameters(path: Path, f: h5py.File) -> None:
 
 def check_results(path: str | os.PathLike) -> None:
     """Refuses a results file that any reader would stumble on (see the module doc)."""
-    from core.io.hdf5_probe import probe
-
     path = Path(path)
     probe(path)
     try:
@@ -120,8 +119,6 @@ def check_results(path: str | os.PathLike) -> None:
 
 def is_results_file(path: str | os.PathLike) -> bool:
     """True for an HDF5 file that says it is a results file (whether or not it is whole)."""
-    from core.io.hdf5_probe import probe
-
     probe(path)
     try:
         with h5py.File(path, "r") as f:

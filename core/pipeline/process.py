@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import queue
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
@@ -10,6 +12,7 @@ from pathlib import Path
 from typing import Callable
 
 import h5py
+import numba
 import numpy as np
 
 from core import __version__
@@ -18,6 +21,8 @@ from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.reconstruction.drift import light_gains_over_time
 from core.analysis.optical_litres import OpticalLitres, subject_litres
+from core.analysis.session_analysis import analyse_session
+from core.calibration.spirometer import regression_features
 from core.analysis.values import PEAK_FLOW_REACH_S, peak_flow_spans_s
 from core.volume.metric import (WIDTH_SMOOTHING_S, HeadDisplacements, MetricVolume, metric_volume, on_maps_shown,
                                 side_targets)
@@ -629,8 +634,6 @@ def use_threads(threads: int) -> None:
     """The calling thread's numba kernels, and the DCTs that follow them (core/reconstruction/integrate.py),
     on `threads` cores: at least one, at most numba's pool. Per thread: a live head's reconstruction
     thread, a worker process, a Dask task each take their share of the cores."""
-    import numba
-
     numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
 
 
@@ -657,8 +660,6 @@ class _HeadWorkers:
 
     def __enter__(self) -> "_HeadWorkers":
         if self._count > 1:
-            import multiprocessing
-
             context = multiprocessing.get_context("spawn")
             self._ticks = context.Queue()
             self._pool = context.Pool(self._count, initializer=_start_worker,
@@ -683,8 +684,6 @@ class _HeadWorkers:
 
         if self._pool is None or len(jobs) <= 1:
             return [_process_head(job, tick) for job in jobs]
-        import queue
-
         pending = self._pool.map_async(_process_head_in_worker, jobs, chunksize=1)
         while not pending.ready():
             stop_if_requested()
@@ -740,8 +739,6 @@ def _write_parameters(session_path: str | os.PathLike, results: ResultsWriter) -
     """Pulmonary function values: from the flow sensor where the session has one (the reference
     instrument), else from /volume (the optical volume in litres); the `source` attribute says
     which. The optical values are also kept as attributes of /volume, beside the flow sensor's."""
-    from core.analysis.session_analysis import analyse_session
-
     label = results.out["volume"].attrs.get("label") if results.has_volume() else None
     report = analyse_session(session_path, optical_volume=results.written_volume(),
                              optical_label=None if label is None else str(label),
@@ -761,8 +758,6 @@ def _write_parameters(session_path: str | os.PathLike, results: ResultsWriter) -
 
 def _write_regression_volume(results: ResultsWriter, out: h5py.File, heads: list[str], calibration) -> None:
     """/volume from the thesis' regression (eqs 5.1-5.3) on the gradient volume, pixels and distance."""
-    from core.calibration.spirometer import regression_features
-
     t, features = regression_features(lambda head, name: out[f"heads/{head}/{name}"][:], heads)
     results.volume(t, calibration.volume_l(features),
                    "thesis regression (eqs 5.1-5.3) on gradient volume, valid pixels and distance",
