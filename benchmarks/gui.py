@@ -19,7 +19,7 @@ def run_gui_bench(scale: float, seconds: float, record: bool, warmup_s: float = 
 
     from app.gui.main_window import MainWindow
     from app.gui.measure import measure_live_view
-    from app.live import simulated_source
+    from app.engine.sources import simulated_source
     from core.io.session import SubjectRecord
 
     app = QApplication.instance() or QApplication([])

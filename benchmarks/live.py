@@ -14,7 +14,8 @@ from benchmarks.common import publish
 
 
 def run_live_bench(seconds: float, scale: float, seed: int = 1) -> tuple[str, dict[str, float]]:
-    from app.live import LiveRig, simulated_source
+    from app.engine.live_rig import LiveRig
+    from app.engine.sources import simulated_source
 
     source = simulated_source(scale=scale, seed=seed)
     engine = LiveRig(source)

@@ -16,7 +16,7 @@ if getattr(sys, "frozen", False):
     os.environ["GI_TYPELIB_PATH"] = os.pathsep.join(
         p for p in (str(bundle / "gi_typelibs"), os.environ.get("GI_TYPELIB_PATH", "")) if p)
 
-# the live engine runs in a spawned process of this same executable (app/engine_process.py)
+# the live engine runs in a spawned process of this same executable (app/engine/process.py)
 multiprocessing.freeze_support()
 
 from app.cli import main  # noqa: E402

@@ -15,7 +15,7 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 # (two heavy tests side by side: 138 s by default, 64 s passive)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # Each xdist worker runs at the lowest priority, so that the live engine's threads, which set their
-# own (app/live.py WORKER_NICENESS), keep the simulated rig's pace as on a clinic PC with nothing
+# own (app/engine/live_rig.py WORKER_NICENESS), keep the simulated rig's pace as on a clinic PC with nothing
 # else to run: beside the other worker's tests at their default priority, the whole patient session
 # recorded 14 frames/s a head and its optical values were refused for the missing frames.
 if os.environ.get("PYTEST_XDIST_WORKER"):

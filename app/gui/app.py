@@ -83,7 +83,7 @@ def _run_window(app, args: argparse.Namespace, shutdown) -> int:
     from app.errors import UserError
     from app.gui.errors import ENGINE_LOG, install_excepthook
     from app.gui.main_window import MainWindow
-    from app.live import replay_source, rig_source
+    from app.engine.sources import replay_source, rig_source
     from app.logs import log_file
 
     if args.smoke_test is None and (not signed_in() or shutdown.received):

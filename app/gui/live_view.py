@@ -1,6 +1,6 @@
 """The live view: front and back height maps on a fixed, labelled scale, the volume curve of the
 last 30 s, and the status of the rig. It only draws: `show(snapshot)` is called from the GUI's
-timer with what the engine (app.live) has ready."""
+timer with what the engine (app.engine) has ready."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import (QGridLayout, QGroupBox, QHBoxLayout, QLabel, QPushButton, QScrollArea, QSlider,
                                QVBoxLayout, QWidget)
 
-from app.live import WINDOW_S, Snapshot
+from app.engine.feeds import Snapshot
+from app.engine.live_rig import WINDOW_S
 from core.analysis.optical_litres import ESTIMATE
 from core.pipeline.quality import WORKING_RANGE_MM
 

@@ -18,8 +18,9 @@ from PySide6.QtWidgets import QApplication, QFileDialog, QLabel, QMainWindow, QM
 
 from app.gui.errors import file_problem, show_error
 from app.gui.live_view import LiveView
-from app.engine_process import EngineProcess
-from app.live import EngineInfo, Source, replay_source, rig_source
+from app.engine.process import EngineProcess
+from app.engine.feeds import EngineInfo
+from app.engine.sources import Source, replay_source, rig_source
 
 log = logging.getLogger("photopft.gui")
 
@@ -150,7 +151,7 @@ GIL_SWITCH_INTERVAL_S = 0.001
 
 def tune_process_for_live_view() -> None:
     """Settings of the GUI process for a long live session (the engine has its own process,
-    app.engine_process, and its own settings).
+    app.engine.process, and its own settings).
 
     - The GIL switch interval (above).
     - Python's full garbage collections walk every object the program has made; with Qt and
@@ -165,7 +166,7 @@ class MainWindow(QMainWindow):
     def __init__(self, opener: Callable[[], Source], rig_config: Path | None = None,
                  engine_log: Path | None = None) -> None:
         """`opener`: a picklable callable that opens the source in the engine process (see
-        app.engine_process), e.g. functools.partial(app.live.simulated_source, scale=0.5)."""
+        app.engine.process), e.g. functools.partial(app.engine.sources.simulated_source, scale=0.5)."""
         super().__init__()
         tune_process_for_live_view()
         self._frozen_after_first_maps = False

@@ -72,7 +72,7 @@ def main(out: Path) -> int:
     from app.gui.wizards.patient_session import PatientSessionWizard
     from app.gui.wizards.sphere import SphereCalibrationWizard
     from app.gui.wizards.spirometer import SpirometerCalibrationWizard
-    from app.live import simulated_source
+    from app.engine.sources import simulated_source
     from app.records import Records
 
     out.mkdir(parents=True, exist_ok=True)
@@ -242,7 +242,7 @@ def _dialogs(app, window, records, folder: Path, out: Path) -> None:
 def _diagnostics(app, folder: Path, out: Path) -> None:
     """The window on a rig whose front camera and sequencer are not connected."""
     from app.gui.main_window import MainWindow
-    from app.live import rig_source
+    from app.engine.sources import rig_source
 
     rig = folder / "clinic.toml"
     rig.write_text('name = "clinic"\n[camera]\n[heads.front]\ncamera = "192.168.10.21"\n[heads.back]\n'

@@ -286,7 +286,7 @@ def test_impossible_session_values_are_refused_by_name(session, capsys, change, 
 def test_a_recording_stopped_before_any_frame_is_one_line_for_every_verb(tmp_path, capsys):
     """A valid session file that holds no frame and no flow sample (a recording stopped at once): each
     verb names the file and says nothing was recorded, writes nothing, and the replay refuses it."""
-    from app.live import replay_source
+    from app.engine.sources import replay_source
     from core.io.session import SessionError, SessionWriter, SubjectRecord
     from core.rig import thesis_rig
 

@@ -1,19 +1,18 @@
-"""The live engine in its own process (app.engine_process), as the GUI drives it, without Qt:
+"""The live engine in its own process (app.engine.process), as the GUI drives it, without Qt:
 snapshots, a recording with its events, a source that cannot be opened, and an engine that dies."""
 
 from __future__ import annotations
 
 import os
 import signal
-import time
 from functools import partial
 
 import pytest
 
-from app.engine_process import EngineError, EngineProcess
-from app.live import replay_source, simulated_source
+from app.engine.process import EngineError, EngineProcess
+from app.engine.sources import replay_source, simulated_source
 from core.io.recovery import recover_session
-from core.io.session import SessionError, SessionFile, SubjectRecord, validate_session
+from core.io.session import SessionError, SubjectRecord, validate_session
 from tests.waiting import wait_until
 
 pytestmark = pytest.mark.slow
@@ -26,34 +25,6 @@ def engine():
     e = EngineProcess(partial(simulated_source, scale=0.1))
     yield e
     e.stop()
-
-
-def test_snapshots_and_a_recording_with_events(engine, tmp_path):
-    assert engine.info.heads == ("front", "back") and engine.info.simulated and not engine.info.replay
-    wait_until(lambda: all(v.reconstructed > 0 for v in engine.snapshot().heads.values()), 120, "a map from each head")
-    snapshot = engine.snapshot()
-    assert all(v.height_mm is not None and v.height_mm.shape == engine.rig.heads[h].shape
-               for h, v in snapshot.heads.items())  # each map travels once, and stays
-    path = tmp_path / "s.h5"
-    before = time.monotonic_ns()
-    engine.start_recording(path, SUBJECT, kind="simulation")
-    assert engine.recording
-    wait_until(lambda: min(engine.snapshot().recorded_frames.values(), default=0) > 0, 30, "frames recorded")
-    mark = engine.mark("tidal-start")
-    assert engine.perform("forced") > 1.0  # the simulated subject follows the prompt
-    wait_until(lambda: engine.flow_reaches(mark + 500_000_000), 30, "flow samples 0.5 s past the mark")
-    assert engine.recorded_values(30.0) is not None
-    summary = engine.stop_recording()
-    assert not engine.recording and min(summary.frames.values()) >= 5
-    assert validate_session(path) == [], validate_session(path)
-    with SessionFile(path) as s:
-        for head in s.heads:  # the frames span the recording in camera time (a busy machine's renderer skips some)
-            ids = s.frame_id(head).astype(int)
-            assert (ids[-1] - ids[0]) / s.rig.frame_rate_hz >= summary.elapsed_s - 0.6, (head, ids, summary.elapsed_s)
-        assert [(t, label) for t, label in s.events()] == [(mark, "tidal-start")]
-        # the stamp crossed over unchanged, on the monotonic clock (not compared with the frames' stamps:
-        # on a loaded machine the simulated cameras' nominal stamps fall seconds behind it)
-        assert before < mark
 
 
 def test_a_source_that_cannot_be_opened_raises_its_own_error(tmp_path):

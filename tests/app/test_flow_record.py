@@ -1,8 +1,8 @@
-"""The live engine's store of the recording's flow samples (app.live.FlowRecord)."""
+"""The live engine's store of the recording's flow samples (app.engine.FlowRecord)."""
 
 import numpy as np
 
-from app.live import FlowRecord
+from app.engine.flow_record import FlowRecord
 from drivers.flowsensor import FlowBlock
 
 

@@ -13,8 +13,8 @@ from PySide6.QtCore import QTimer
 from PySide6.QtWidgets import QApplication, QWizard
 
 from app.gui.main_window import MainWindow
-from app.engine_process import EngineProcess
-from app.live import replay_source, simulated_source
+from app.engine.process import EngineProcess
+from app.engine.sources import replay_source, simulated_source
 from app.records import Records
 from core.io.session import SessionFile, validate_session
 
@@ -206,7 +206,7 @@ def test_a_measurement_of_the_live_view_ends_when_the_engine_dies_before_its_fir
 def test_a_rig_that_cannot_start_opens_on_the_diagnostics_page(qtbot, tmp_path):
     """A camera that is not there: the window opens anyway, on a page that names each device, its
     state and what to do; the operator can switch to the simulated rig from there."""
-    from app.live import rig_source
+    from app.engine.sources import rig_source
 
     rig = tmp_path / "clinic.toml"
     rig.write_text('name = "clinic"\n[camera]\n[heads.front]\ncamera = "NO-SUCH-CAMERA-42"\n'
@@ -427,7 +427,7 @@ def test_the_sphere_calibration_wizard_puts_its_profile_in_force(qtbot, tmp_path
     the next recording's /rig holds its lights."""
     from app.calibration_store import calibration_dir, history
     from app.gui.wizards.sphere import SphereCalibrationWizard
-    from app.live import rig_source
+    from app.engine.sources import rig_source
     from core.calibration.rig_profile import load_profile
     from core.io.session import SubjectRecord
 
@@ -757,7 +757,7 @@ def test_an_arm_in_one_view_marks_both_heads_distances(qtbot):
     447 mm too far, and both lines say, in red, that the distance is not measured and why, as
     `photopft process` gives none."""
     from app.gui.live_view import LiveView
-    from app.live import HeadView, Snapshot
+    from app.engine.feeds import HeadView, Snapshot
 
     view = LiveView(["front", "back"])
     qtbot.addWidget(view)
@@ -783,7 +783,7 @@ def test_a_verdict_at_its_threshold_does_not_flicker(qtbot):
     """Issue 77, requirement 11: a line turns red, or back, only once its verdict has held 1.5 s,
     in words the operator acts on, the details on hover."""
     from app.gui.live_view import VERDICT_HOLD_S, LiveView
-    from app.live import Snapshot
+    from app.engine.feeds import Snapshot
     from core.limits import Refusal
 
     view = LiveView(["front", "back"])

@@ -10,7 +10,8 @@ import h5py
 import numpy as np
 import pytest
 
-from app.live import LiveRig, replay_source
+from app.engine.live_rig import LiveRig
+from app.engine.sources import replay_source
 from core.analysis.optical_litres import POPULATION_GAIN
 from core.io.session import SessionFile
 from core.pipeline.process import process_session

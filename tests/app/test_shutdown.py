@@ -15,7 +15,7 @@ from PySide6.QtWidgets import QApplication
 
 from app.gui.main_window import MainWindow
 from app.gui.shutdown import ShutdownSignals
-from app.live import simulated_source
+from app.engine.sources import simulated_source
 from app.records import Records
 from core.io.session import validate_session
 from tests.waiting import wait_until

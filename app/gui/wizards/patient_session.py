@@ -25,7 +25,7 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QDateEdit, QDoubleSpinBox, 
 from app.gui.errors import show_error
 from app.gui.volume_trace import SHOWN_S, VolumeTrace, plateau
 from core.pipeline.quality import WORKING_RANGE_MM
-from app.engine_process import Engine
+from app.engine.protocol import LiveEngine
 from app.paths import data_dir
 from app.records import Patient, Records, RecordsError
 from core.io.outputs import next_free_path
@@ -125,7 +125,7 @@ class PatientPage(QWizardPage):
 class PositioningPage(QWizardPage):
     """The live view behind shows the maps; here, the checks that must pass before recording."""
 
-    def __init__(self, engine: Engine) -> None:
+    def __init__(self, engine: LiveEngine) -> None:
         super().__init__()
         self.engine = engine
         self.setTitle("Positioning")
@@ -223,7 +223,7 @@ class CalibrationPage(QWizardPage):
     Next marks `mouthpiece-off`: from there the cameras alone give the litres. A patient who cannot use
     a mouthpiece skips it: the optical litres are then an estimate with the population's uncertainty."""
 
-    def __init__(self, engine: Engine) -> None:
+    def __init__(self, engine: LiveEngine) -> None:
         super().__init__()
         self.engine = engine
         self.setTitle("Calibration through the flow sensor")
@@ -356,7 +356,7 @@ class CalibrationPage(QWizardPage):
 class TimedPage(QWizardPage):
     """Tidal breathing: a set time of quiet breathing, counted down."""
 
-    def __init__(self, engine: Engine) -> None:
+    def __init__(self, engine: LiveEngine) -> None:
         super().__init__()
         self.engine = engine
         self.setTitle("Tidal breathing")
@@ -441,7 +441,7 @@ class TimedPage(QWizardPage):
 class ManoeuvrePage(QWizardPage):
     """One kind of manoeuvre, started and ended by the operator (the simulated subject follows)."""
 
-    def __init__(self, engine: Engine, kind: str) -> None:
+    def __init__(self, engine: LiveEngine, kind: str) -> None:
         super().__init__()
         self.engine = engine
         self.kind = kind
@@ -632,7 +632,7 @@ def review_html(parameters: dict, problems: list[str], patient: Patient | None, 
 
 
 class ReviewPage(QWizardPage):
-    def __init__(self, engine: Engine) -> None:
+    def __init__(self, engine: LiveEngine) -> None:
         super().__init__()
         self.engine = engine
         self.setTitle("Review and save")
@@ -654,7 +654,7 @@ class ReviewPage(QWizardPage):
 
 
 class PatientSessionWizard(QWizard):
-    def __init__(self, parent, engine: Engine, records: Records | None = None,
+    def __init__(self, parent, engine: LiveEngine, records: Records | None = None,
                  sessions_dir: Path | None = None, operator: str = "") -> None:
         super().__init__(parent)
         self.setWindowTitle("Patient session")

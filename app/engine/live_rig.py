@@ -14,9 +14,7 @@ import logging
 import os
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -26,19 +24,21 @@ from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.limits import Refusal
 from core.pipeline.live_checks import LiveOpticalChecks
 from core.volume.flow_sensor import btps_factor
-from core.analysis.optical_litres import ESTIMATE, ESTIMATE_UNCERTAINTY, POPULATION_GAIN, estimate_label
+from core.analysis.optical_litres import ESTIMATE_UNCERTAINTY, POPULATION_GAIN, estimate_label
 from core.volume.metric import LiveMetricVolume
 from core.volume.subject_calibration import MOUTHPIECE_OFF, REDO as CALIBRATION_REDO, regional_signals
 from core.volume.sides import side_profile_mm
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
-from core.pipeline.quality import MAX_OCCLUDED_SIDE_SHARE
 from core.pipeline.process import use_threads
-from core.rig import DARK, Rig
-from core.io.session import SessionError, SessionFile, SubjectRecord
-from drivers.camera import CameraError, CameraStats, Frame, capture_frames
+from core.rig import DARK
+from core.io.session import SubjectRecord
+from drivers.camera import CameraError, Frame, capture_frames
 from drivers.flowsensor import FlowBlock
-from drivers.light_phase import LightPhase, LightPhaseError, RecordedLights
+from drivers.light_phase import LightPhaseError
 from drivers.recorder import Recorder, RecordSummary
+from app.engine.feeds import EngineInfo, HeadView, Snapshot, Rate
+from app.engine.flow_record import FlowRecord
+from app.engine.sources import Source
 
 log = logging.getLogger(__name__)
 
@@ -48,314 +48,6 @@ WORKER_NICENESS = 10
 SIMULATED_CAMERA_NICENESS = 14
 NO_LIMIT_NS = 2**63 - 1
 
-
-@dataclass
-class Source:
-    """Where frames come from: the rig's cameras (simulated or real) or a recorded file."""
-    rig: Rig
-    cameras: dict
-    flow: object | None
-    lights: LightPhase | RecordedLights  # which light lit each frame (drivers/light_phase.py)
-    flow_calibration: tuple[float, float] | None
-    name: str
-    conditions: str = "ATPS"
-    room: tuple[float, float, float] = (23.0, 1013.0, 50.0)  # temperature C, pressure hPa, humidity %
-    replay: bool = False
-    closers: list[Callable[[], None]] = field(default_factory=list)
-    simulated: object | None = None  # drivers.simulated.SimulatedRigState: a subject that follows prompts
-    compression: str = "blosc-lz4"  # the frames' lossless filter when recording (the rig file's [recording])
-    calibration: str = ""  # the calibrations in force, in words (drivers/assembly.py)
-    flow_from: str = ""  # where the flow line in force comes from (drivers/assembly.py)
-    replay_clock: _ReplayClock | None = None  # a replay's position, pause and seek
-
-
-def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "back"), seed: int = 1,
-                     protocol: str = "tidal", seconds: float = 1800.0, loop_cycles: int = 0) -> Source:
-    """The simulated rig, breathing quietly, its LEDs as built known (a perfect sphere calibration) and
-    its flow sensor as built (benches and tests; the application opens it through rig_source, with the
-    calibrations in force).
-    `loop_cycles`: that many light cycles rendered once and delivered over and over
-    (drivers/simulated.py), for measuring the live view at a rate the renderer cannot reach on the
-    same cores."""
-    from drivers.assembly import simulated_rig
-
-    return _source(simulated_rig(heads, scale, seed, protocol, seconds, loop_cycles=loop_cycles, lights_known=True),
-                   f"simulated rig (scale {scale:g})")
-
-
-def _source(assembled, name: str, closers: list | None = None) -> Source:
-    return Source(assembled.rig, assembled.cameras, assembled.flow, assembled.lights, assembled.flow_calibration,
-                  name, closers=closers or [], simulated=assembled.simulated,
-                  calibration=f"lights: {assembled.lights_from}"
-                  + (f"; flow sensor: {assembled.flow_from}" if assembled.flow_from else ""),
-                  flow_from=assembled.flow_from)
-
-
-class _FileCamera:
-    """A recorded head played back at its own pace (times `speed`)."""
-
-    def __init__(self, session: SessionFile, head: str, clock: "_ReplayClock") -> None:
-        self.head = head
-        self._frames = session.frames(head)
-        self._ids = session.frame_id(head)
-        self._stamps = session.timestamp_ns(head)
-        self._clock = clock
-        self._next = 0
-        self._generation = 0
-        self._drained = False  # asked for a frame after the last one: every frame was handed on
-        self.stats = CameraStats()
-        self.name = f"replay-{head}"
-
-    def start(self) -> None:
-        self._clock.start()
-
-    def grab(self, timeout_s: float = 0.5) -> Frame | None:
-        if self._generation != self._clock.generation:  # the operator moved the position
-            self._generation = self._clock.generation
-            self._next = int(np.searchsorted(self._stamps, self._clock.now_ns()))
-            self._drained = False
-        if self._next >= len(self._ids):
-            self._drained = True
-            time.sleep(timeout_s)
-            return None
-        wait = self._clock.wait_s(int(self._stamps[self._next]))
-        if wait > timeout_s:
-            time.sleep(timeout_s)
-            return None
-        if wait > 0:
-            time.sleep(wait)
-        k = self._next
-        self._next += 1
-        frame = Frame(np.asarray(self._frames[k]), int(self._ids[k]), int(self._stamps[k]))
-        self.stats.count(frame)
-        return frame
-
-    @property
-    def finished(self) -> bool:
-        """Every frame handed on: the capture loop came back for one after the last (a frame is
-        counted by the engine between one grab and the next, and a replay that said it was over on
-        taking its last frame left the count one short for a moment)."""
-        return self._drained
-
-    def stop(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-class _ReplayClock:
-    """The recording's time during a replay: running at `speed` times real time, paused, or moved
-    to another position (each move counted in `generation`, so the readers find their place)."""
-
-    def __init__(self, first_ns: int, speed: float, last_ns: int | None = None) -> None:
-        self.first_ns = first_ns
-        self.last_ns = last_ns if last_ns is not None else first_ns
-        self.speed = speed
-        self._started: int | None = None
-        self._anchor_ns = first_ns  # the recording's time at the wall clock's _started
-        self._paused_at: int | None = None
-        self.generation = 0
-        self._lock = threading.Lock()
-
-    def start(self) -> None:
-        with self._lock:
-            if self._started is None:
-                self._started = time.monotonic_ns()
-
-    def now_ns(self) -> int:
-        """The recording's time now."""
-        self.start()
-        with self._lock:
-            if self._paused_at is not None:
-                return self._paused_at
-            return self._anchor_ns + int((time.monotonic_ns() - self._started) * self.speed)
-
-    def wait_s(self, stamp_ns: int) -> float:
-        if self.paused:
-            return float("inf")
-        return (stamp_ns - self.now_ns()) / self.speed / 1e9
-
-    @property
-    def paused(self) -> bool:
-        return self._paused_at is not None
-
-    def pause(self) -> None:
-        now = self.now_ns()
-        with self._lock:
-            self._paused_at = now
-
-    def resume(self) -> None:
-        self.seek(self.now_ns(), paused=False)
-
-    def seek(self, stamp_ns: int, paused: bool | None = None) -> None:
-        stamp = int(min(max(stamp_ns, self.first_ns), self.last_ns))
-        with self._lock:
-            keep_paused = self._paused_at is not None if paused is None else paused
-            self._started = time.monotonic_ns()
-            self._anchor_ns = stamp
-            self._paused_at = stamp if keep_paused else None
-            self.generation += 1
-
-
-class _FileFlow:
-    def __init__(self, session: SessionFile, clock: _ReplayClock) -> None:
-        self._adc, self._stamps = session.flow_samples()
-        self._clock = clock
-        self._next = 0
-        self._generation = 0
-        self.sample_rate_hz = session.flow.sample_rate_hz
-        self.lost_samples = 0
-
-    def start(self) -> None:
-        self._clock.start()
-
-    def read(self) -> FlowBlock:
-        now = self._clock.now_ns()
-        if self._generation != self._clock.generation:
-            self._generation = self._clock.generation
-            self._next = int(np.searchsorted(self._stamps, now))
-        end = int(np.searchsorted(self._stamps, now, side="right"))
-        k = np.arange(self._next, end)
-        self._next = max(self._next, end)
-        return FlowBlock(self._adc[k].astype(np.int32), k.astype(np.int64), self._stamps[k], 0)
-
-    def stop(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def replay_source(path: str | Path, speed: float = 1.0) -> Source:
-    """A recorded session played through the live view at real speed (or `speed` times it)."""
-    session = SessionFile(path)
-    recorded = [h for h in session.heads if session.n_frames(h)]
-    if not recorded:
-        session.close()
-        raise SessionError(f"{path} holds no camera frame to replay")
-    first = int(min(session.timestamp_ns(h)[0] for h in recorded))
-    last = int(max(session.timestamp_ns(h)[-1] for h in recorded))
-    clock = _ReplayClock(first, speed, last)
-    cameras = {h: _FileCamera(session, h, clock) for h in session.heads}
-    lights = {h: dict(zip(session.frame_id(h).tolist(), session.light_index(h).tolist())) for h in session.heads}
-    flow = _FileFlow(session, clock) if session.flow is not None and session.flow.gain_lps is not None else None
-    calibration = (session.flow.gain_lps, session.flow.offset_lps) if flow is not None else None
-    conditions = session.flow.conditions if session.flow is not None else "ATPS"
-    room = (23.0, 1013.0, 50.0)
-    if session.flow is not None:
-        a = session.flow.attrs
-        room = (float(a.get("room_temperature_c", 23.0)), float(a.get("room_pressure_hpa", 1013.0)),
-                float(a.get("room_humidity_pct", 50.0)))
-    source = Source(session.rig, cameras, flow, RecordedLights(lights),
-                    calibration, f"replay of {Path(path).name}" + (f" at {speed:g}x" if speed != 1 else ""),
-                    conditions, room, replay=True, closers=[session.close])
-    source.replay_clock = clock
-    return source
-
-
-class FlowRecord:
-    """The flow samples of the recording so far (ADC counts and session-clock stamps), for the
-    feedback after each manoeuvre: the sensor's hundred blocks a second joined into one pair of
-    arrays every JOIN_BLOCKS (kept as blocks, 60 000 of them in a 10-minute recording, their Python
-    objects come to an estimated 40 MB)."""
-
-    JOIN_BLOCKS = 500
-
-    def __init__(self) -> None:
-        self._adc: list[np.ndarray] = []
-        self._stamps: list[np.ndarray] = []
-        self._joined = 0  # leading parts that are joined already
-        self.last_ns = 0
-
-    def append(self, block: FlowBlock) -> None:
-        self._adc.append(block.adc)
-        self._stamps.append(block.timestamp_ns)
-        self.last_ns = int(block.timestamp_ns[-1])
-        if len(self._adc) - self._joined >= self.JOIN_BLOCKS:
-            for parts in (self._adc, self._stamps):
-                parts[self._joined:] = [np.concatenate(parts[self._joined:])]
-            self._joined += 1
-
-    def samples(self) -> tuple[np.ndarray, np.ndarray]:
-        if not self._adc:
-            return np.zeros(0, np.int32), np.zeros(0, np.int64)
-        return np.concatenate(self._adc), np.concatenate(self._stamps)
-
-
-@dataclass
-class HeadView:
-    height_mm: np.ndarray | None = None  # above the subject's mean surface, NaN off the subject
-    distance_mm: float = float("nan")
-    frame_id: int = -1
-    occluded_side_share: float = float("nan")  # core.reconstruction.pipeline.occluded_side_share of the last map
-    reconstructed: int = 0
-    frames: int = 0
-    lost: int = 0
-    fps: float = 0.0
-
-    @property
-    def arm_against_trunk(self) -> bool:
-        """The last map shows an arm against the trunk hiding its side (core/pipeline/quality.py's rule)."""
-        return bool(self.occluded_side_share > MAX_OCCLUDED_SIDE_SHARE)
-
-
-@dataclass
-class Snapshot:
-    heads: dict[str, HeadView]
-    optical_t_s: np.ndarray
-    optical: np.ndarray  # gradient volume (sum of heads, thesis eq. 3.26), un-normalised
-    flow_t_s: np.ndarray
-    flow_volume_l: np.ndarray
-    recording: Path | None
-    recorded_frames: dict[str, int]
-    dropped: int
-    problems: list[str]
-    elapsed_s: float
-    metric_t_s: np.ndarray
-    metric_volume_l: np.ndarray  # the metric optical volume (litres, both heads)
-    flow_until_ns: int = 0  # the recording's newest flow sample (no limit without a recording or flow sensor)
-    replay_finished: bool = False
-    # why `process` would refuse the optical volume of what the heads see now (skin, bent maps), or None
-    optical_refused: Refusal | None = None
-    optical_checked: bool = False  # whether the heads' last seconds gave those checks anything to judge by
-    # what the optical litres are now: calibrated on the subject (its residual) or an estimate
-    optical_litres: str = ESTIMATE
-    replay_position_s: float = float("nan")  # a replay's position and length in its recording, and pause
-    replay_length_s: float = float("nan")
-    replay_paused: bool = False
-
-    @classmethod
-    def empty(cls, heads) -> "Snapshot":
-        """Before the engine has anything to show."""
-        none = np.zeros(0)
-        return cls({h: HeadView() for h in heads}, none, none, none, none, None, {}, 0, [], 0.0, none, none)
-
-
-@dataclass(frozen=True)
-class EngineInfo:
-    """What the GUI knows of the source an engine runs on."""
-    rig: Rig
-    heads: tuple[str, ...]
-    name: str
-    replay: bool
-    simulated: bool  # the simulated rig: its subject follows the operator's prompts (LiveRig.perform)
-    calibration: str = ""  # the calibrations in force, in words; "" for a replay (the file's /rig holds them)
-    flow_calibration: tuple[float, float] | None = None  # the flow line in force (gain, offset L/s)
-    flow_from: str = ""  # where that line comes from
-
-
-class _Rate:
-    def __init__(self) -> None:
-        self._times: collections.deque = collections.deque(maxlen=200)
-
-    def tick(self) -> None:
-        self._times.append(time.monotonic())
-
-    def per_s(self) -> float:
-        if len(self._times) < 2 or time.monotonic() - self._times[-1] > 1.0:
-            return 0.0
-        return (len(self._times) - 1) / (self._times[-1] - self._times[0])
 
 
 class LiveRig:
@@ -374,7 +66,7 @@ class LiveRig:
         self._darks: dict[str, collections.deque] = {h: collections.deque(maxlen=darks) for h in source.cameras}
         self._new_frame = {h: threading.Condition() for h in source.cameras}
         self._views = {h: HeadView() for h in source.cameras}
-        self._rates = {h: _Rate() for h in source.cameras}
+        self._rates = {h: Rate() for h in source.cameras}
         n = int(WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length * 2) + 10
         self._optical = collections.deque(maxlen=n)
         self._gradient = {h: 0.0 for h in source.cameras}
@@ -920,27 +612,3 @@ class LiveRig:
     @property
     def replay_finished(self) -> bool:
         return self.source.replay and all(getattr(c, "finished", False) for c in self.source.cameras.values())
-
-
-def rig_source(config_path: str | Path | None = None, scale: float | None = None) -> Source:
-    """The rig a configuration names (resources/rigs/simulated.toml by default), with the
-    calibration profiles in force for it (app/calibration_store.py)."""
-    from contextlib import ExitStack
-
-    from app.calibration_store import in_force
-    from drivers.assembly import assemble_rig
-    from drivers.rig import load_rig_config
-
-    config = load_rig_config(config_path)
-    profiles = in_force(config.name)
-    stack = ExitStack()
-    try:
-        assembled = assemble_rig(config, stack, scale, light_profile=profiles.lights, flow_profile=profiles.flow)
-    except Exception:
-        stack.close()
-        raise
-    name = (f"{config.name} (simulated, scale {scale or float(config.simulation.get('scale', 0.25)):g})"
-            if config.simulated else config.name)
-    source = _source(assembled, name, [stack.close])
-    source.compression = config.compression
-    return source

@@ -1,4 +1,4 @@
-"""The live engine (app.live.LiveRig) in a process of its own, behind the same calls.
+"""The live engine (app.engine.live_rig.LiveRig) in a process of its own, behind the same calls.
 
 In one process the capture, reconstruction and recording threads share Python's GIL with the GUI
 thread, and a worker inside a long C call that holds it (an HDF5 write, a numpy reduction) stops
@@ -7,8 +7,8 @@ its GIL to itself; it sends commands and receives snapshots.
 
 - The engine process is started with "spawn" (a process running Qt's threads is never forked) and
   opens the source itself: cameras, serial ports and files belong to the process that uses them.
-  `opener` is a picklable callable that returns an app.live.Source, e.g.
-  functools.partial(app.live.simulated_source, scale=0.5).
+  `opener` is a picklable callable that returns an app.engine.sources.Source, e.g.
+  functools.partial(app.engine.sources.simulated_source, scale=0.5).
 - Snapshots: a thread there publishes one every PUBLISH_INTERVAL_S, a height map only when it is
   new; a thread here receives them, and `snapshot()` returns the newest without waiting.
 - Commands (recording, the recording's values, a simulated manoeuvre) wait for their answer. An
@@ -31,7 +31,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
-from app.live import WORKER_NICENESS, EngineInfo, HeadView, LiveRig, Snapshot, Source
+from app.engine.feeds import EngineInfo, HeadView, Snapshot
+from app.engine.live_rig import LiveRig, WORKER_NICENESS
+from app.engine.sources import Source
 from app.memory import start_memory_trimmer
 
 log = logging.getLogger(__name__)
@@ -292,6 +294,3 @@ class EngineProcess:
     @property
     def replay_finished(self) -> bool:
         return self.snapshot().replay_finished
-
-
-Engine = LiveRig | EngineProcess  # what the GUI drives: the same calls in this process or in its own
