@@ -20,7 +20,7 @@ from app.report_data import ReportData
 from core.analysis.interpretation import NORMAL, NOT_INTERPRETED
 from core.io.outputs import atomic_output
 from core.analysis.reference import Z_LLN
-from core.analysis.registry import VALUES
+from core.analysis import registry
 
 LOINC = "http://loinc.org"
 SNOMED = "http://snomed.info/sct"
@@ -86,7 +86,7 @@ def _observations(data: ReportData, status: str, patient_ref: str, effective: st
               "optical (near-light photometric stereo, photopft): "
               + (data.optical_label or "made before its kind was recorded")}
     out = []
-    for coded in (v for v in VALUES if v.loinc is not None):
+    for coded in (v for v in registry.VALUES if v.loinc is not None):
         key, ref_name, (code, display) = coded.key, coded.reference, coded.loinc
         predicted_code, percent_code, unit = coded.loinc_predicted, coded.loinc_percent, coded.ucum
         if key not in values:

@@ -21,7 +21,7 @@ from datetime import datetime
 from pathlib import Path
 
 from app.report_data import ReportData
-from core.analysis.registry import VALUES
+from core.analysis import registry
 from core.io.outputs import atomic_output
 
 ENCODING = "iso8859_15"
@@ -107,7 +107,7 @@ def gdt_record(data: ReportData, receiver: str = "PRAXIS") -> tuple[bytes, list[
     lines.append(_line("8402", "LUFU01"))
     values = data.parameters(data.main_source) if data.main_source else {}
     references = {row.reference.parameter: row.reference for row in data.rows if row.reference is not None}
-    for test in (v for v in VALUES if v.gdt_test is not None):
+    for test in (v for v in registry.VALUES if v.gdt_test is not None):
         key, ident, name, unit, ref_name = test.key, test.gdt_test, test.name, test.unit, test.reference
         if key not in values:
             continue

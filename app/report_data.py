@@ -23,7 +23,7 @@ from core.analysis.interpretation import (BronchodilatorChange, Interpretation, 
                                  bronchodilator_statement, interpret)
 from core.io.results import READ_ERRORS, RESULTS_FORMAT, check_results
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
-from core.analysis.registry import VALUES
+from core.analysis import registry
 from core.io.session import SessionError, SessionFile
 from core.analysis.session_analysis import analyse_session
 from core.volume.maps import body_aligned_displacement, normalised_gradient_volume, torso_rows, trunk_regions
@@ -32,8 +32,14 @@ OPTICAL = "optical"
 FLOW_SENSOR = "flow sensor"
 
 # The report's two tables (core/analysis/registry.py): the main values, with predicted values, and the tidal ones
-MAIN_ROWS = tuple(v for v in VALUES if v.table == "main")
-TIDAL_ROWS = tuple(v for v in VALUES if v.table == "tidal")
+def main_table_rows() -> tuple[registry.SpirometricValue, ...]:
+    """The registry's values of the report's main table (with predicted values), in order."""
+    return tuple(v for v in registry.VALUES if v.table == "main")
+
+
+def tidal_table_rows() -> tuple[registry.SpirometricValue, ...]:
+    """The registry's values of the report's table of tidal and further values."""
+    return tuple(v for v in registry.VALUES if v.table == "tidal")
 
 
 @dataclass
@@ -477,8 +483,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
 
         rows = [ValueRow(v.key, v.name, v.unit, by_source(v.key),
                          analysed.references.get(v.reference) if v.reference else None, v.decimals)
-                for v in MAIN_ROWS]
-        tidal_rows = [ValueRow(v.key, v.name, v.unit, by_source(v.key), None, v.decimals) for v in TIDAL_ROWS]
+                for v in main_table_rows()]
+        tidal_rows = [ValueRow(v.key, v.name, v.unit, by_source(v.key), None, v.decimals) for v in tidal_table_rows()]
         for src, values in sources.items():
             notes += [f"{src}: {problem}" for problem in values.problems]
         manoeuvres = _manoeuvres(sources[main]) if main is not None else []

@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 
 from app.errors import UserError
-from core.analysis.registry import VALUES
+from core.analysis import registry
 
 
 def add_analyze(sub: argparse._SubParsersAction) -> None:
@@ -58,8 +58,9 @@ def run_analyze(args: argparse.Namespace) -> int:
     return 0
 
 
-# the registry's values but the count of breaths analysed, which the report lists with the tidal values
-ROWS = tuple(v for v in VALUES if v.key != "breaths")
+def _rows() -> tuple[registry.SpirometricValue, ...]:
+    """The registry's values but the count of breaths analysed, which the report lists with the tidal values."""
+    return tuple(v for v in registry.VALUES if v.key != "breaths")
 
 
 def _plain(value):
@@ -73,7 +74,7 @@ def _as_json(session: Path, results: Path | None, equations: str, report, named,
 
     main_name, main = sources[0]
     references = {}
-    for key, name in ((v.key, v.reference) for v in VALUES if v.reference):
+    for key, name in ((v.key, v.reference) for v in registry.VALUES if v.reference):
         ref = report.references.get(name)
         if ref is not None:
             references[name] = {"predicted": ref.predicted, "lln": ref.lln}
@@ -134,7 +135,7 @@ def run_analyze_session(args: argparse.Namespace) -> int:
     print(f"{session}: values from the {sources[0][0]}; reference {args.equations} (z and % predicted of the "
           "first source that gives the value)")
     print(header)
-    for row in ROWS:
+    for row in _rows():
         key, label, unit = row.key, row.label, row.unit
         if not any(key in values for _, values in sources):
             continue

@@ -606,12 +606,12 @@ class ManoeuvrePage(QWizardPage):
 def review_html(parameters: dict, problems: list[str], patient: Patient | None, source: str) -> str:
     """The values of `source` as the report names them, with predicted values, z-scores and the
     ERS/ATS 2022 interpretation, which names the source."""
-    from app.report_data import MAIN_ROWS, references_on, stored_interpretation
+    from app.report_data import main_table_rows, references_on, stored_interpretation
 
     now = datetime.now(timezone.utc)
     references = references_on(patient, now, "gli-global") if patient else {}
     rows = ["<tr><th align=left>Value</th><th>Unit</th><th>Measured</th><th>Predicted</th><th>LLN</th><th>z</th></tr>"]
-    for row in MAIN_ROWS:
+    for row in main_table_rows():
         if row.key not in parameters:
             continue
         value = float(parameters[row.key])
