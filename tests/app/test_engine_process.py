@@ -7,6 +7,7 @@ import os
 import signal
 from functools import partial
 
+import h5py
 import pytest
 
 from app.engine.process import EngineError, EngineProcess
@@ -38,8 +39,15 @@ def test_an_engine_that_dies_is_said_and_the_recording_so_far_is_kept(engine, tm
     path = tmp_path / "killed.h5"
     wait_until(lambda: all(v.frames > 0 for v in engine.snapshot().heads.values()), 120, "frames from each head")
     engine.start_recording(path, SUBJECT, kind="simulation")
-    # killed well into the recording: past its first frames and the datasets' first growth
-    wait_until(lambda: min(engine.snapshot().recorded_frames.values(), default=0) > 100, 60, "100 frames recorded")
+    # killed once the file itself holds frames of each head (the recorder writes them out in batches)
+    def on_disk() -> bool:
+        try:
+            with h5py.File(path, "r", swmr=True) as f:
+                return min(f[f"heads/{h}/frames"].shape[0] for h in engine.info.heads) > 40
+        except (OSError, KeyError):
+            return False
+
+    wait_until(on_disk, 60, "40 frames of each head in the file")
     os.kill(engine.pid, signal.SIGKILL)
     wait_until(lambda: any("capture engine stopped" in p for p in engine.snapshot().problems), 10, "the engine's death said")
     assert engine.stopped
