@@ -1,5 +1,5 @@
 """What a report shows, gathered from a session (and its results file) by the same processing as
-`photopft process` and the live view: core.analysis.session_analysis for the values, core.pipeline.process.maps_at
+`photopft process` and the live view: core.analysis.session_analysis for the values, core.pipeline.head_maps.maps_at
 for the height maps. The PDF (app.report_pdf) and the CSV export (app.export) only lay it out.
 """
 
@@ -16,7 +16,7 @@ from app.records import Patient, Records, ReportState
 from core.analysis.values import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.reconstruction.pipeline import ReconstructionSettings
 from core.io.results import processed_distance_mm, processed_light_gains
-from core.pipeline.process import maps_at
+from core.pipeline.head_maps import maps_at
 from core.io.results import ResultsFile, optical_inputs, optical_refusal, session_of_results
 from core.io.hdf5_probe import probe
 from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,

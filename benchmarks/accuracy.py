@@ -39,7 +39,7 @@ def _cycles(session, head_name: str):
     """Every complete light cycle of a head, in order: (newest frame, signal, saturated, dark), as
     `photopft process` makes them (without its motion compensation: the subjects stand still)."""
     from core.reconstruction.photometric import complete_cycles
-    from core.pipeline.process import cycle_signal
+    from core.pipeline.head_maps import cycle_signal
 
     frames, ids, stamps = session.frames(head_name), session.frame_id(head_name), session.timestamp_ns(head_name)
     max_value = session.rig.heads[head_name].max_value

@@ -25,7 +25,8 @@ def run_motion(write: bool, scale: float = 0.25) -> str:
     from core.io.session import SessionFile
     from core.reconstruction.pipeline import ReconstructionSettings
     from benchmarks.true_lights import with_true_lights
-    from core.pipeline.process import MOTION_MODES, process_session
+    from core.pipeline.head_maps import MOTION_MODES
+    from core.pipeline.process import process_session
     from core.sim.breathing import Sway
     from core.sim.simulate import SimConfig, simulate
 

@@ -630,7 +630,7 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
     later run with the same arguments takes it instead of running the subject again. With `renders`,
     the subjects' rendered sessions are taken from there or kept there (benchmarks/renders.py)."""
     from app.progress import Progress
-    from core.pipeline.process import use_threads
+    from core.pipeline.head_maps import use_threads
     from core.sim.simulate import WORLDS
 
     started = time.perf_counter()

@@ -93,7 +93,8 @@ def foreign_at_results_name(results: Path) -> str | None:
 
 def process_one(session: str, results: str, options: BatchOptions) -> tuple[str, str | None, float]:
     """The task a Dask worker runs: (session, None or the one-line reason it failed, seconds)."""
-    from core.pipeline.process import process_session, use_threads
+    from core.pipeline.head_maps import use_threads
+    from core.pipeline.process import process_session
     from core.calibration.rig_profile import load_profile
 
     started = time.perf_counter()

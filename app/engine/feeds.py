@@ -15,6 +15,8 @@ from core.analysis.optical_litres import ESTIMATE
 from core.pipeline.quality import MAX_OCCLUDED_SIDE_SHARE
 from core.rig import Rig
 
+WINDOW_S = 30.0  # what the live view's curves show
+
 
 @dataclass
 class HeadView:

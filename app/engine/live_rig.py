@@ -18,9 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.reconstruction.ambient import FLICKER_WINDOW_S, FlickerCorrection
 from core.reconstruction.binning import binned_head, working_binning
-from core.reconstruction.cycle import CycleFrame, cycle_frame, cycle_signal_of
 from core.limits import Refusal
 from core.pipeline.live_checks import LiveOpticalChecks
 from core.volume.flow_sensor import btps_factor
@@ -29,20 +27,21 @@ from core.volume.metric import LiveMetricVolume
 from core.volume.subject_calibration import MOUTHPIECE_OFF, REDO as CALIBRATION_REDO, regional_signals
 from core.volume.sides import side_profile_mm
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
-from core.pipeline.process import use_threads
-from core.rig import DARK
+from core.pipeline.head_maps import use_threads
 from core.io.session import SubjectRecord
 from drivers.camera import CameraError, Frame, capture_frames
 from drivers.flowsensor import FlowBlock
 from drivers.light_phase import LightPhaseError
 from drivers.recorder import Recorder, RecordSummary
-from app.engine.feeds import EngineInfo, HeadView, Snapshot, Rate
+from app.engine.feeds import WINDOW_S, EngineInfo, HeadView, Rate, Snapshot
+from app.engine.cycle_buffer import CycleBuffer
+from app.engine.flow_display import FlowDisplay
 from app.engine.flow_record import FlowRecord
+from app.engine.head_stream import HeadStream
 from app.engine.sources import Source
 
 log = logging.getLogger(__name__)
 
-WINDOW_S = 30.0  # what the volume curve shows
 CALIBRATION_WINDOW_S = 180.0  # the longest calibration through the flow sensor the live view can fit
 WORKER_NICENESS = 10
 SIMULATED_CAMERA_NICENESS = 14
@@ -58,13 +57,7 @@ class LiveRig:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._recorder: Recorder | None = None
-        # three cycles: the newest complete one and the one before it, for motion compensation
-        self._cycles: dict[str, collections.deque] = {h: collections.deque(maxlen=3 * self.rig.cycle_length)
-                                                       for h in source.cameras}
-        # the last second's dark frames: the room light's flicker (core/reconstruction/ambient.py)
-        darks = int(FLICKER_WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length) + 5
-        self._darks: dict[str, collections.deque] = {h: collections.deque(maxlen=darks) for h in source.cameras}
-        self._new_frame = {h: threading.Condition() for h in source.cameras}
+        self._buffers = {h: CycleBuffer(self.rig) for h in source.cameras}
         self._views = {h: HeadView() for h in source.cameras}
         self._rates = {h: Rate() for h in source.cameras}
         n = int(WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length * 2) + 10
@@ -84,19 +77,15 @@ class LiveRig:
         self._calibration = None
         self._mouthpiece_off = False
         self._mouthpiece_off_ns: int | None = None
-        self._flow = collections.deque(maxlen=int(WINDOW_S * 100) + 10)
         self._recent_flow: collections.deque = collections.deque(maxlen=9000)  # (arrival ns, block), ~90 s
         self._blow_drift: tuple[int, float] | None = None  # (a blow's mark, the flow sensor's drift there, L/s)
-        self._flow_state = {"volume": 0.0, "last_ns": None, "means": collections.deque(maxlen=3000), "sum": 0.0}
         self._problems: list[str] = []
         self._t0: int | None = None
         self._latest_ns = 0
         self._threads: list[threading.Thread] = []
         self._started = time.monotonic()
-        factor = 1.0
-        if source.conditions == "ATPS":
-            factor = btps_factor(*source.room)
-        self._btps = factor
+        self._btps = btps_factor(*source.room) if source.conditions == "ATPS" else 1.0
+        self._flow_display = FlowDisplay(self._btps)
 
     # life cycle
     def start(self) -> None:
@@ -133,9 +122,8 @@ class LiveRig:
     def stop(self) -> RecordSummary | None:
         summary = self.stop_recording() if self._recorder is not None else None
         self._stop.set()
-        for condition in self._new_frame.values():
-            with condition:
-                condition.notify_all()
+        for buffer in self._buffers.values():
+            buffer.wake()
         for thread in self._threads:
             thread.join(timeout=5)
         for camera in self.source.cameras.values():
@@ -371,17 +359,11 @@ class LiveRig:
         if recorder is not None and head in recorder.cameras:
             recorder.submit_frame(head, frame)
         self._rates[head].tick()
-        condition = self._new_frame[head]
         try:
             self.source.lights.observe(head, frame.frame_id, frame.image)
         except LightPhaseError as exc:
             self._problem(str(exc))
-        light = self.source.lights.light_of(head, frame.frame_id)
-        with condition:
-            self._cycles[head].append((frame, light))
-            if light == DARK:
-                self._darks[head].append(frame)
-            condition.notify()
+        self._buffers[head].take(frame, self.source.lights.light_of(head, frame.frame_id))
 
     def _capture_flow(self) -> None:
         gain, offset = self.source.flow_calibration or (None, None)
@@ -401,141 +383,69 @@ class LiveRig:
                         with self._lock:
                             self._recorded_flow.append(block)
                     if gain is not None:
-                        self._integrate_flow(block, gain, offset)
+                        self._flow_display.add(block, gain, offset, self._t0)
                 time.sleep(0.01)
         except Exception as exc:  # a flow sensor that stops answering: said, and the cameras go on
             self._problem(f"flow sensor: {exc}")
 
-    def _integrate_flow(self, block: FlowBlock, gain: float, offset: float) -> None:
-        """Flow to volume for the display: BTPS, and the mean flow of the last 30 s taken out
-        (a zero offset drifts the volume; the report's volume removes drift properly)."""
-        flow = (gain * block.adc.astype(float) + offset) * self._btps
-        state = self._flow_state
-        for k in range(0, len(flow), 10):
-            chunk = flow[k:k + 10]
-            stamps = block.timestamp_ns[k:k + 10]
-            mean = float(chunk.mean())
-            means = state["means"]
-            if len(means) == means.maxlen:  # a running sum: the mean of the last 3000 chunks in O(1)
-                state["sum"] -= means[0]
-            means.append(mean)
-            state["sum"] += mean
-            if state["last_ns"] is not None:
-                dt = (int(stamps[-1]) - state["last_ns"]) / 1e9
-                state["volume"] += (mean - state["sum"] / len(means)) * dt
-            state["last_ns"] = int(stamps[-1])
-            # at most a point every 10 ms, whatever the blocks' sizes: the buffer holds the whole window
-            if self._t0 is not None and int(stamps[-1]) - state.get("shown_ns", 0) >= 10_000_000:
-                state["shown_ns"] = int(stamps[-1])
-                self._flow.append(((int(stamps[-1]) - self._t0) / 1e9, state["volume"]))
-
     def preview(self, head: str, width_px: int = 400) -> np.ndarray | None:
-        """The head's newest light cycle as one image (the brightest of its frames), at most about
-        `width_px` wide: for placing the calibration sphere."""
-        window = self._newest_cycle(head)
-        if window is None:
-            return None
-        step = max(1, int(np.ceil(window[0][0].image.shape[1] / width_px)))
-        return np.max([f.image[::step, ::step] for f, _ in window], axis=0)
-
-    def _newest_cycle(self, head: str) -> list[tuple[Frame, int]] | None:
-        """The newest complete light cycle in the buffer: consecutive frame ids, each light once,
-        ending with the dark frame."""
-        items = list(self._cycles[head])
-        n = self.rig.cycle_length
-        for end in range(len(items) - 1, n - 2, -1):
-            window = items[end - n + 1:end + 1]
-            ids = [f.frame_id for f, _ in window]
-            lights = sorted(light for _, light in window)
-            if ids == list(range(ids[0], ids[0] + n)) and lights == sorted(self.rig.sequence):
-                return window
-        return None
-
-    def _cycle_before(self, head: str, window: list[tuple[Frame, int]]) -> dict[int, Frame] | None:
-        """Each light's frame one period before the window's, if all are still in the buffer."""
-        n = self.rig.cycle_length
-        wanted = {frame.frame_id - n: light for frame, light in window if light != DARK}
-        found = {light: frame for frame, light in self._cycles[head] if wanted.get(frame.frame_id) == light}
-        return found if len(found) == len(wanted) else None
+        """The head's newest light cycle as one image, at most about `width_px` wide (CycleBuffer.preview)."""
+        return self._buffers[head].preview(width_px)
 
     def _reconstruct(self, head: str) -> None:
         # each head's thread keeps to its share of the cores: numba's parallel kernels (OpenMP) and
         # the DCTs of two heads running at once on all of them oversubscribed the cores
         use_threads((os.cpu_count() or 1) // len(self._live_heads))
-        reconstructor = HeadReconstructor(self._live_heads[head], None, self.settings)
-        done_id = -1
-        condition = self._new_frame[head]
-        max_value = self.rig.heads[head].max_value
-        factor = self._binning[head]
-        flicker = FlickerCorrection(2.0 * self.rig.mains_hz, centred=False, binning=factor)
-        fed_id = -1
-        binned: dict[int, CycleFrame] = {}  # each frame binned once (core/reconstruction/cycle.py), by frame id
-
-        def framed(frame: Frame) -> CycleFrame:
-            if frame.frame_id not in binned:
-                binned[frame.frame_id] = cycle_frame(frame.image, factor, max_value, frame.timestamp_ns / 1e9,
-                                                     frame.frame_id)
-            return binned[frame.frame_id]
-
+        stream = HeadStream(self.rig, head, self._live_heads[head], self._binning[head], self.settings)
+        buffer = self._buffers[head]
         while not self._stop.is_set():
-            with condition:
-                condition.wait(timeout=0.2)
-                window = self._newest_cycle(head)
-                before = self._cycle_before(head, window) if window is not None else None
-                darks = [d for d in self._darks[head] if d.frame_id > fed_id]
-            for d in darks:
-                flicker.add_dark(d.timestamp_ns / 1e9, d.image)
-                fed_id = d.frame_id
-            if window is None or window[-1][0].frame_id <= done_id:
+            window, before, darks = buffer.wait_for_cycle(0.2, stream.fed_id)
+            stream.feed_darks(darks)
+            if not stream.is_new(window):
                 continue
-            done_id = window[-1][0].frame_id
-            newest_s = window[-1][0].timestamp_ns / 1e9
-            by_light = {light: frame for frame, light in window}
-            # the same cycle signal as `photopft process` (binned, flicker out, motion-compensated)
-            signal, saturated, dark = cycle_signal_of(
-                [framed(by_light[k]) for k in range(4)], framed(by_light[DARK]),
-                [framed(before[k]) for k in range(4)] if before is not None else None,
-                lambda f: flicker.excess(f.time_s, newest_s))
-            for stale in [i for i in binned if i < done_id - 3 * self.rig.cycle_length]:
-                del binned[stale]
             # the distance the two heads' geometry gave the last maps (as `process` does), once it has one
             geometric = self._metric.geometric_distance_mm(head)
             try:
-                result = reconstructor.reconstruct(signal, saturated, dark, geometric)
+                result, cycle = stream.reconstruct(window, before, geometric)
             except Exception as exc:  # a map that cannot be made is skipped, and said once
                 self._problem(f"{head}: reconstruction failed: {exc}")
                 continue
-            depth = np.where(result.mask, result.depth_mm, np.nan)
-            height = (np.nanmean(depth) - depth).astype(np.float32) if result.mask.any() else None
-            stamp = window[-1][0].timestamp_ns
-            t_s = (stamp - self._t0) / 1e9 if self._t0 is not None else None
-            litres = (self._metric.add(head, t_s, result.depth_mm, result.mask, result.distance_mm,
-                                         result.silhouette) if t_s is not None
-                      else float("nan"))
-            if geometric is not None and t_s is not None and result.mask.any() and self._checks.due(head, t_s):
-                self._look(head, t_s, result, reconstructor, (signal, saturated))
-            view = self._views[head]
-            with self._lock:
-                view.height_mm = height
-                view.distance_mm = float(result.distance_mm)
-                view.occluded_side_share = float(result.extra.get("occluded_side_share", np.nan))
-                view.frame_id = done_id
-                view.reconstructed += 1
-                self._gradient[head] = float(result.gradient_volume)
-                if head == next(iter(self.source.cameras)) and t_s is not None:  # one clock for the curves
-                    self._optical.append((t_s, sum(self._gradient.values())))
-                    regions = self._metric.head_regions()
-                    if regions:
-                        signals = regional_signals(regions)
-                        self._regional_curve.append((t_s, signals))
-                        if self._calibration is not None:
-                            litres = float(self._calibration.volume_l(signals))
-                    if self._calibration is None:
-                        litres *= POPULATION_GAIN
-                    if np.isfinite(litres):
-                        self._metric_curve.append((t_s, litres))
-                        if self._recorder is not None and self._calibration is not None:
-                            self._recorded_optical.append((stamp, litres))
+            self._publish(head, window[-1][0].timestamp_ns, stream, result, cycle, geometric)
+
+    def _publish(self, head: str, stamp: int, stream: HeadStream, result: HeadMap, cycle: tuple,
+                 geometric: float | None) -> None:
+        """A head's new map to the live view: its height map, its share of the volume curves, the
+        checks `process` makes, and the subject's calibrated litres once there is a calibration."""
+        depth = np.where(result.mask, result.depth_mm, np.nan)
+        height = (np.nanmean(depth) - depth).astype(np.float32) if result.mask.any() else None
+        t_s = (stamp - self._t0) / 1e9 if self._t0 is not None else None
+        litres = (self._metric.add(head, t_s, result.depth_mm, result.mask, result.distance_mm,
+                                     result.silhouette) if t_s is not None
+                  else float("nan"))
+        if geometric is not None and t_s is not None and result.mask.any() and self._checks.due(head, t_s):
+            self._look(head, t_s, result, stream.reconstructor, cycle)
+        view = self._views[head]
+        with self._lock:
+            view.height_mm = height
+            view.distance_mm = float(result.distance_mm)
+            view.occluded_side_share = float(result.extra.get("occluded_side_share", np.nan))
+            view.frame_id = stream.done_id
+            view.reconstructed += 1
+            self._gradient[head] = float(result.gradient_volume)
+            if head == next(iter(self.source.cameras)) and t_s is not None:  # one clock for the curves
+                self._optical.append((t_s, sum(self._gradient.values())))
+                regions = self._metric.head_regions()
+                if regions:
+                    signals = regional_signals(regions)
+                    self._regional_curve.append((t_s, signals))
+                    if self._calibration is not None:
+                        litres = float(self._calibration.volume_l(signals))
+                if self._calibration is None:
+                    litres *= POPULATION_GAIN
+                if np.isfinite(litres):
+                    self._metric_curve.append((t_s, litres))
+                    if self._recorder is not None and self._calibration is not None:
+                        self._recorded_optical.append((stamp, litres))
 
     def _look(self, head: str, t_s: float, result: HeadMap, reconstructor: HeadReconstructor, cycle: tuple) -> None:
         """What `process` checks on a map made at the geometric distance: its sides along the height
@@ -565,7 +475,7 @@ class LiveRig:
                 heads[h] = HeadView(v.height_mm, v.distance_mm, v.frame_id, v.occluded_side_share, v.reconstructed,
                                     stats.delivered, stats.lost + stats.failed, self._rates[h].per_s())
             optical = np.array(self._optical, dtype=float).reshape(-1, 2)
-            flow = np.array(self._flow, dtype=float).reshape(-1, 2)
+            flow = self._flow_display.curve()
             metric = np.array(self._metric_curve, dtype=float).reshape(-1, 2)
             recorder = self._recorder
             problems = list(self._problems) + (recorder.problems if recorder is not None else [])
@@ -600,11 +510,11 @@ class LiveRig:
         elif action == "seek":
             clock.seek(clock.first_ns + int(float(position_s) * 1e9))
             with self._lock:
-                for buffer in (self._optical, self._metric_curve, self._flow, *self._cycles.values(),
-                               *self._darks.values()):
-                    buffer.clear()
-                self._flow_state.update(volume=0.0, last_ns=None, sum=0.0, shown_ns=0)
-                self._flow_state["means"].clear()
+                for curve in (self._optical, self._metric_curve):
+                    curve.clear()
+                self._flow_display.clear()
+            for buffer in self._buffers.values():
+                buffer.clear()
             self._checks.clear()
         else:
             raise ValueError(f"unknown replay action {action!r}: pause, resume or seek")

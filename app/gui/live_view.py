@@ -11,7 +11,7 @@ from PySide6.QtWidgets import (QGridLayout, QGroupBox, QHBoxLayout, QLabel, QPus
                                QVBoxLayout, QWidget)
 
 from app.engine.feeds import Snapshot
-from app.engine.live_rig import WINDOW_S
+from app.engine.feeds import WINDOW_S
 from core.analysis.optical_litres import ESTIMATE
 from core.pipeline.quality import WORKING_RANGE_MM
 

@@ -2,7 +2,7 @@
 (core/reconstruction/binning.py), the room light's flicker taken out (core/reconstruction/ambient.py), each light's frame brought
 to the cycle's newest instant (motion compensation), the dark frame subtracted.
 
-Frames come in as CycleFrame, from a session file (core.pipeline.process) or from the cameras (app.engine).
+Frames come in as CycleFrame, from a session file (core.pipeline.head_maps) or from the cameras (app.engine).
 """
 
 from __future__ import annotations

@@ -410,7 +410,7 @@ class LiveMetricVolume:
 
     def geometric_distance_mm(self, name: str) -> float | None:
         """The head's subject distance (median depth) where the two heads' trunk widths and baseline put
-        its last map (as core/pipeline/process.py's geometric_distances, causally); None before both heads
+        its last map (as core/pipeline/distance_pass.py's geometric_distances, causally); None before both heads
         have a trunk in view, and with one head."""
         with self._lock:
             return self._geometric.get(name)

@@ -3,7 +3,7 @@
 The heads face each other on one axis. The trunk's occluding contour (its side, where the surface
 turns parallel to the axis) is about the same curve in both views, so at every height its depth
 from the front head and from the back head add up to the baseline. The maps' scale is set from the
-two heads' widths (core/pipeline/process.py, geometric_distances), which fixes that sum on
+two heads' widths (core/pipeline/distance_pass.py, geometric_distances), which fixes that sum on
 average; what is left is its change along the height. Maps bent by normals the light model does not
 explain (a sheen on the skin: docs/history/reconstruction-log.md, "Glossy skin") tilt the sum by tens of mm per
 100 mm of height, and their volume is not the breathing's (docs/history/volume-log.md, "Skin the light model

@@ -522,7 +522,7 @@ def _normal_errors_deg(folder, before: dict, after: dict) -> tuple[dict, dict]:
 
     import h5py
 
-    from core.pipeline.process import maps_at
+    from core.pipeline.head_maps import maps_at
     from core.sim.simulate import simulate
     from drivers.assembly import simulated_rig_config
 

@@ -8,7 +8,7 @@ import pytest
 
 from core.reconstruction.ambient import FlickerCorrection, flicker_phase
 from core.reconstruction.photometric import complete_cycles
-from core.pipeline.process import DarkFeed, cycle_signal
+from core.pipeline.head_maps import DarkFeed, cycle_signal
 from core.io.session import SessionFile
 
 FRAME_RATE_HZ, CYCLE = 110.0, 5

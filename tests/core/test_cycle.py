@@ -75,7 +75,7 @@ def test_flicker_is_taken_out_of_every_frame():
 
 
 def test_process_interpolates_where_a_cycle_follows_and_extrapolates_the_last():
-    from core.pipeline.process import motion_mode, neighbour_cycles
+    from core.pipeline.head_maps import motion_mode, neighbour_cycles
 
     windows = {14: "cycle 10-14", 19: "cycle 15-19", 24: "cycle 20-24"}
     assert motion_mode(True) == "interpolated" and motion_mode(False) == "none"

@@ -1,5 +1,5 @@
-"""A forced blow's peak flow read on maps at every frame through it (core/pipeline/process.py,
-_peak_flow_pass; core/analysis/values.py, peak_flow_of_frames), beside the session's map a cycle."""
+"""A forced blow's peak flow read on maps at every frame through it (core/pipeline/volume_stage.py,
+peak_flow_pass; core/analysis/values.py, peak_flow_of_frames), beside the session's map a cycle."""
 
 from __future__ import annotations
 

@@ -479,7 +479,8 @@ def test_a_subject_measured_outside_the_working_range_gets_no_optical_volume(tmp
     results say so and hold no volume to report. (A subject 3300 mm away measures about 2650 mm:
     the distance search does not follow a subject far outside the working range either.)"""
     from core.pipeline.quality import WORKING_RANGE_MM, coverage_refusal, distance_refusal, occlusion_refusal
-    from core.pipeline.process import process_session, trunk_area_m2
+    from core.pipeline.head_maps import trunk_area_m2
+    from core.pipeline.process import process_session
     from core.io.results import optical_refusal, optical_volume
     from core.sim.simulate import SimConfig, simulate
 
@@ -618,7 +619,7 @@ def test_process_follows_the_leds_drift_through_the_session_from_the_subject_s_o
     (maps_at, with the distance and the lights' outputs `process` followed) is the map `process` made
     there (0.003 deg; without the outputs 0.37 deg off)."""
     from core.io.results import processed_distance_mm, processed_light_gains
-    from core.pipeline.process import maps_at
+    from core.pipeline.head_maps import maps_at
 
     session = tmp_path / "drift.h5"
     simulate(session, SimConfig(protocol="tidal", seconds=10.0, scale=0.1, seed=3, led_drift=0.05))
