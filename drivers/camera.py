@@ -79,6 +79,17 @@ class Camera(Protocol):
     def close(self) -> None: ...
 
 
+def frame_due_within(wait_s: float, timeout_s: float) -> bool:
+    """A paced camera's grab: sleeps until a frame due in `wait_s` is, and True; or, when it is due
+    after `timeout_s`, sleeps the timeout out and False (the grab returns no frame, as a camera would)."""
+    if wait_s > timeout_s:
+        time.sleep(timeout_s)
+        return False
+    if wait_s > 0:
+        time.sleep(wait_s)
+    return True
+
+
 def capture_frames(camera: Camera, stop: threading.Event, deliver: Callable[[Frame], None],
                    say: Callable[[str], None], timeout_s: float = 0.2) -> None:
     """Grab from `camera` until `stop` is set, handing each frame to `deliver`.

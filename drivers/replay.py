@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from core.io.session import SessionFile
-from drivers.camera import CameraStats, Frame
+from drivers.camera import CameraStats, Frame, frame_due_within
 from drivers.flowsensor import FlowBlock
 
 
@@ -40,12 +40,8 @@ class FileCamera:
             self._drained = True
             time.sleep(timeout_s)
             return None
-        wait = self._clock.wait_s(int(self._stamps[self._next]))
-        if wait > timeout_s:
-            time.sleep(timeout_s)
+        if not frame_due_within(self._clock.wait_s(int(self._stamps[self._next])), timeout_s):
             return None
-        if wait > 0:
-            time.sleep(wait)
         k = self._next
         self._next += 1
         frame = Frame(np.asarray(self._frames[k]), int(self._ids[k]), int(self._stamps[k]))

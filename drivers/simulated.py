@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.camera import CameraSettings, CameraStats, Frame
+from drivers.camera import CameraSettings, CameraStats, Frame, frame_due_within
 from drivers.flowsensor import FlowBlock
 
 
@@ -155,12 +155,8 @@ class SimCamera:
                 # reconstruct (one frame skipped here and there would leave none).
                 self._next = int((now - s.start_ns) // period_ns) // n * n
                 due = s.start_ns + int(round(self._next * period_ns))
-            wait = (due - now) / 1e9
-            if wait > timeout_s:
-                time.sleep(timeout_s)
+            if not frame_due_within((due - now) / 1e9, timeout_s):
                 return None
-            if wait > 0:
-                time.sleep(wait)
         i = self._next
         image = self._loop[i % len(self._loop)] if self._loop else self._render(i)
         self._next += 1
