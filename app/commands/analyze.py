@@ -102,7 +102,8 @@ def _as_json(session: Path, results: Path | None, equations: str, report, named,
                                "z": verdict.z, "statements": verdict.statements},
             "optical_refused": optical_refusal(results) if results is not None else None,
             "optical_label": report.optical_label,
-            "flow_refused": report.flow_refused, "problems": problems}
+            "flow_refused": report.flow_refused and str(report.flow_refused),
+            "flow_refused_code": report.flow_refused and report.flow_refused.code, "problems": problems}
 
 
 def run_analyze_session(args: argparse.Namespace) -> int:

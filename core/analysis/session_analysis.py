@@ -14,6 +14,7 @@ from core.volume.flow_sensor import btps_factor, flow_sensor_volume
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
 from core.io.plausibility import flow_gaps, flow_refusal, frame_gaps_in_manoeuvres, gaps_in_manoeuvres
 from core.io.session import SessionError, SessionFile
+from core.limits import Refusal
 
 
 @dataclass
@@ -24,7 +25,7 @@ class SessionReport:
     flow_volume: tuple[np.ndarray, np.ndarray] | None  # (seconds from the first frame, litres)
     optical: SessionValues | None = None
     optical_volume: tuple[np.ndarray, np.ndarray] | None = None  # (seconds from the first frame, litres)
-    flow_refused: str | None = None  # why none of the flow sensor's values are given (core/io/plausibility.py)
+    flow_refused: Refusal | None = None  # why none of the flow sensor's values are given (core/io/plausibility.py)
     optical_label: str | None = None  # what the optical litres are (core/analysis/optical_litres.py)
 
 
@@ -53,7 +54,7 @@ class SessionFlow:
     t_s: np.ndarray
     volume_l: np.ndarray
     stamps_ns: np.ndarray
-    refused: str | None = None
+    refused: Refusal | None = None
 
 
 def session_flow_volume(s: SessionFile, events: list[tuple[float, str]] | None = None) -> SessionFlow | None:

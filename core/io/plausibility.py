@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.limits import Refusal
+
 # Past any human expiration (adult PEF rarely exceeds 16 L/s; ISO 26782 asks a range of 14 L/s).
 MAX_FLOW_LPS = 20.0
 # A gap in the flow samples longer than this inside a manoeuvre refuses that manoeuvre's values:
@@ -67,6 +69,12 @@ def head_intrinsics_problems(head) -> list[str]:
     return intrinsics_problems(head.width, head.height, head.fx, head.fy, head.cx, head.cy, head.pixel_size_mm)
 
 
+# What the operator or engineer does about a flow refusal
+RECALIBRATE_FLOW = "calibrate the flow sensor again (the spirometer wizard) and record the session again"
+CHECK_FLOW_SETUP = "check the rig file's flow sensor (its adc_bits) against the device"
+CHECK_FLOW_CLOCK = "the flow sensor and the cameras must share one clock: check the rig's wiring and record again"
+
+
 def adc_range(bits: int) -> tuple[int, int]:
     """The counts a converter of `bits` can give, either convention (signed or not) allowed."""
     return -(2 ** (bits - 1)), 2 ** bits - 1
@@ -74,37 +82,41 @@ def adc_range(bits: int) -> tuple[int, int]:
 
 def flow_refusal(adc: np.ndarray, timestamp_ns: np.ndarray, adc_bits: int, sample_rate_hz: float,
                  gain_lps: float | None, offset_lps: float | None,
-                 frame_span_ns: tuple[int, int] | None) -> str | None:
+                 frame_span_ns: tuple[int, int] | None) -> Refusal | None:
     """Why none of the flow sensor's values may be given (None when its signal is plausible)."""
     if gain_lps is not None:
         if not (math.isfinite(gain_lps) and gain_lps > 0):
-            return f"the flow calibration's gain is {gain_lps:g} L/s per count: it must be positive (recalibrate)"
+            return Refusal("flow-gain", f"the flow calibration's gain is {gain_lps:g} L/s per count: it must be "
+                           "positive", RECALIBRATE_FLOW)
         if offset_lps is None or not math.isfinite(offset_lps):
-            return f"the flow calibration's offset is {offset_lps}: it must be a finite number"
+            return Refusal("flow-offset", f"the flow calibration's offset is {offset_lps}: it must be a finite number",
+                           RECALIBRATE_FLOW)
     if not 1 <= adc_bits <= 31:
-        return f"adc_bits = {adc_bits}: a converter has 1 to 31 bits"
+        return Refusal("flow-adc-bits", f"adc_bits = {adc_bits}: a converter has 1 to 31 bits", CHECK_FLOW_SETUP)
     if len(adc) == 0:
         return None
     low, high = adc_range(adc_bits)
     outside = np.flatnonzero((adc < low) | (adc > high))
     if len(outside):
         k = int(outside[0])
-        return (f"{len(outside)} sample(s) outside what a {adc_bits}-bit converter gives ({low} to {high}), "
-                f"the first {int(adc[k])} at sample {k}")
+        return Refusal("flow-adc-range", f"{len(outside)} sample(s) outside what a {adc_bits}-bit converter gives "
+                       f"({low} to {high}), the first {int(adc[k])} at sample {k}", CHECK_FLOW_SETUP)
     if gain_lps is not None:
         flow = gain_lps * adc.astype(float) + offset_lps
         peak = float(np.max(np.abs(flow)))
         if peak > MAX_FLOW_LPS:
-            return f"the flow reaches {peak:.1f} L/s, past any breath ({MAX_FLOW_LPS:g} L/s): check its calibration"
+            return Refusal("flow-past-breath", f"the flow reaches {peak:.1f} L/s, past any breath "
+                           f"({MAX_FLOW_LPS:g} L/s)", RECALIBRATE_FLOW)
     if len(timestamp_ns) > 1 and np.any(np.diff(timestamp_ns) <= 0):
-        return "its timestamps do not increase"
+        return Refusal("flow-timestamps", "its timestamps do not increase", CHECK_FLOW_CLOCK)
     if frame_span_ns is not None:
         slack = FLOW_CLOCK_SLACK_S * 1e9
         first, last = int(timestamp_ns[0]), int(timestamp_ns[-1])
         if first < frame_span_ns[0] - slack or last > frame_span_ns[1] + slack:
-            return (f"its samples run from {(first - frame_span_ns[0]) / 1e9:+.2f} s to "
-                    f"{(last - frame_span_ns[1]) / 1e9:+.2f} s of the cameras' first and last frames "
-                    f"(at most {FLOW_CLOCK_SLACK_S:g} s outside): its clock is not the cameras'")
+            return Refusal("flow-clock", f"its samples run from {(first - frame_span_ns[0]) / 1e9:+.2f} s to "
+                           f"{(last - frame_span_ns[1]) / 1e9:+.2f} s of the cameras' first and last frames "
+                           f"(at most {FLOW_CLOCK_SLACK_S:g} s outside): its clock is not the cameras'",
+                           CHECK_FLOW_CLOCK)
     return None
 
 

@@ -304,7 +304,7 @@ class ResultsWriter:
         self.out.attrs[key] = value
 
     def refuse(self, what: str, refusal: Refusal) -> None:
-        """Why `what` ("optical": the optical volume; "distance": the subject distance) is not given:
+        """Why `what` ("optical": the optical volume; "distance": the subject distance; "flow": the flow sensor's values) is not given:
         /@<what>_refused in words (what was measured, then what to do), /@<what>_refused_code the rule."""
         self.out.attrs[f"{what}_refused"] = str(refusal)
         self.out.attrs[f"{what}_refused_code"] = refusal.code

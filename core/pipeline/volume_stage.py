@@ -204,6 +204,8 @@ def write_parameters(session_path: str | os.PathLike, results: ResultsWriter) ->
     report = analyse_session(session_path, optical_volume=results.written_volume(),
                              optical_label=None if label is None else str(label),
                              optical_peak_flow=results.written_peak_flow_volume())
+    if report.flow_refused is not None:
+        results.refuse("flow", report.flow_refused)
     if report.optical is not None:
         results.volume_parameters(report.optical.parameters())
     if report.flow_sensor is not None:

@@ -190,15 +190,17 @@ def _shifted(path):
     _rewrite_flow(path, stamps=stamps + 5_000_000_000)
 
 
-@pytest.mark.parametrize("damage, validate_says, refusal", [
+@pytest.mark.parametrize("damage, validate_says, refusal, code", [
     (_saturated, "outside what a 12-bit converter gives (-2048 to 4095), the first 2147483647",
-     "flow sensor values refused"),
-    (_negative_gain, "gain is -0.0075 L/s per count: it must be positive", "flow sensor values refused"),
-    (_gap, "301 ms of flow samples missing inside the tidal manoeuvre", "the tidal values not given"),
-    (_shifted, "its clock is not the cameras'", "flow sensor values refused"),
+     "flow sensor values refused", "flow-adc-range"),
+    (_negative_gain, "gain is -0.0075 L/s per count: it must be positive", "flow sensor values refused", "flow-gain"),
+    (_gap, "301 ms of flow samples missing inside the tidal manoeuvre", "the tidal values not given", None),
+    (_shifted, "its clock is not the cameras'", "flow sensor values refused", "flow-clock"),
 ])
 def test_impossible_flow_data_refuses_its_values_not_the_session(breathing, tmp_path, capsys, damage,
-                                                                 validate_says, refusal):
+                                                                 validate_says, refusal, code):
+    from core.io.plausibility import CHECK_FLOW_CLOCK, CHECK_FLOW_SETUP, RECALIBRATE_FLOW
+
     path = tmp_path / "s.h5"
     path.write_bytes(breathing.read_bytes())
     assert main(["analyze", "--json", str(path)]) == 0
@@ -210,8 +212,11 @@ def test_impossible_flow_data_refuses_its_values_not_the_session(breathing, tmp_
     out = capsys.readouterr().out
     assert refusal in out
     assert main(["analyze", "--json", str(path)]) == 0
-    values = json.loads(capsys.readouterr().out)["values"]
-    assert "TV_l" not in values.get("flow sensor", {})
+    analysed = json.loads(capsys.readouterr().out)
+    assert "TV_l" not in analysed["values"].get("flow sensor", {})
+    assert analysed["flow_refused_code"] == code  # the rule, for programs; the words say what to do
+    actions = (RECALIBRATE_FLOW, CHECK_FLOW_SETUP, CHECK_FLOW_CLOCK)
+    assert code is None or any(analysed["flow_refused"].endswith(action) for action in actions)
     fhir = tmp_path / "s.json"
     assert main(["export", str(path), "--fhir", str(fhir)]) == 0
     kinds = [e["resource"]["resourceType"] for e in json.loads(fhir.read_text())["entry"]]
