@@ -9,6 +9,8 @@ applies the profiles in force whenever the rig is opened (`gui`, `record`), so e
 
 from __future__ import annotations
 
+import json
+import os
 import re
 import shutil
 from dataclasses import dataclass
@@ -127,9 +129,6 @@ SYRINGE_LOG = "syringe-checks.jsonl"
 def log_syringe_check(rig_name: str, check, flow_from: str, records: Records | None = None) -> dict:
     """Append a 3 L syringe check to the rig's log (one JSON line each, never rewritten) and to
     the records' audit trail; returns the entry."""
-    import json
-    import os
-
     entry = {"time": datetime.now().astimezone().isoformat(timespec="seconds"), "passed": check.passed,
              "syringe_l": check.syringe_l, "volumes_l": [round(s.volume_l, 4) for s in check.strokes],
              "verdict": check.verdict(), "flow_calibration": flow_from}
@@ -146,8 +145,6 @@ def log_syringe_check(rig_name: str, check, flow_from: str, records: Records | N
 
 def syringe_checks(rig_name: str) -> list[dict]:
     """The rig's syringe checks, oldest first (a line that cannot be read is skipped)."""
-    import json
-
     path = calibration_dir(rig_name) / SYRINGE_LOG
     if not path.is_file():
         return []

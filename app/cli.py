@@ -14,6 +14,8 @@ from app.errors import UserError
 from core.io.outputs import OutputError, clear_stop, request_stop, requested_stop
 from core.io.session import SessionError
 
+# A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
+
 log = logging.getLogger("photopft")
 
 class Terminated(KeyboardInterrupt):

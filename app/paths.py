@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 import tomllib
 from pathlib import Path
 
@@ -51,7 +52,5 @@ def state_dir() -> Path:
 
 def resources_dir() -> Path:
     """The shipped resources: beside the packages in a checkout, inside the bundle when frozen."""
-    import sys
-
     bundle = getattr(sys, "_MEIPASS", None)
     return Path(bundle) / "resources" if bundle else Path(__file__).resolve().parents[1] / "resources"

@@ -13,19 +13,18 @@ import h5py
 import numpy as np
 
 from app.records import Patient, Records, ReportState
-from core.analysis.values import SessionValues, analyse_volume, tidal_breaths, tidal_stretches
-from core.reconstruction.pipeline import ReconstructionSettings
-from core.io.results import processed_distance_mm, processed_light_gains
-from core.pipeline.head_maps import maps_at
-from core.io.results import ResultsFile, optical_inputs, optical_refusal, session_of_results
-from core.io.hdf5_probe import probe
-from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
-                                 bronchodilator_statement, interpret)
-from core.io.results import READ_ERRORS, RESULTS_FORMAT, check_results
-from core.analysis.reference import Reference, ReferenceUnavailable, reference
 from core.analysis import registry
-from core.io.session import SessionError, SessionFile
+from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
+                                          bronchodilator_statement, interpret)
+from core.analysis.reference import Reference, ReferenceUnavailable, reference
 from core.analysis.session_analysis import analyse_session
+from core.analysis.values import ANALYSIS_RATE_HZ, SessionValues, analyse_volume, tidal_breaths, tidal_stretches
+from core.io.hdf5_probe import probe
+from core.io.results import (READ_ERRORS, RESULTS_FORMAT, ResultsFile, check_results, optical_inputs, optical_refusal,
+                             processed_distance_mm, processed_light_gains, session_of_results)
+from core.io.session import SessionError, SessionFile
+from core.pipeline.head_maps import maps_at
+from core.reconstruction.pipeline import ReconstructionSettings
 from core.volume.maps import body_aligned_displacement, normalised_gradient_volume, torso_rows, trunk_regions
 
 OPTICAL = "optical"
@@ -228,8 +227,6 @@ def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tupl
 
 
 def _manoeuvres(values: SessionValues) -> list[Manoeuvre]:
-    from core.analysis.values import ANALYSIS_RATE_HZ
-
     if values.forced is None:
         return []
     out = []

@@ -15,6 +15,11 @@ from typing import Callable
 
 from app.records import Records, RecordsError
 from app.report_data import OPTICAL, build_report
+from core.io.outputs import is_session_file
+from core.io.recovery import recover_session
+from core.io.results import is_results_file, optical_refusal
+from core.io.session import SessionError
+from core.pipeline.process import process_session
 
 RESULTS_SUFFIX = "-results.h5"
 
@@ -38,10 +43,6 @@ def process_visit(records: Records, session_id: int, progress: Callable[[float],
                   cancelled: Callable[[], bool] | None = None) -> ProcessedVisit:
     """Process the visit's session and store its values; `cancelled` is asked at each step of the
     processing, and a True leaves nothing written (ProcessingCancelled)."""
-    from core.io.outputs import is_session_file
-    from core.io.results import is_results_file, optical_refusal
-    from core.pipeline.process import process_session
-
     visit = records.session(session_id)
     session = visit.session_path
     if not session.is_file():
@@ -84,9 +85,6 @@ def recover_visit(records: Records, session_id: int) -> str:
     """`photopft recover` on the visit's file (the original kept as NAME.crashed.h5), the visit then
     marked recovered; a file that needs no recovery (it was closed, the application died after) is
     marked recorded. Returns what was done, in words."""
-    from core.io.recovery import recover_session
-    from core.io.session import SessionError
-
     visit = records.session(session_id)
     if not visit.session_path.exists():
         raise RecordsError(f"{visit.session_path}: the visit's session file is missing: discard the visit")

@@ -7,12 +7,18 @@ from __future__ import annotations
 
 import sys
 from contextlib import ExitStack
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+from core.calibration.rig_profile import load_profile as load_lights
+from core.calibration.spirometer import CalibrationProfileError, FlowCalibration, load_profile as load_flow
 from core.rig import Rig
+from drivers.camera import AravisCamera, bandwidth_advice
+from drivers.flowsensor import FlowSensor, FlowSensorEmulator
 from drivers.light_phase import LightPhase
-from drivers.rig import RigConfig
+from drivers.rig import RigConfig, camera_head
+from drivers.sequencer import Sequencer, SequencerEmulator
+from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
 
 
 @dataclass
@@ -37,6 +43,7 @@ def simulated_rig_config(heads: tuple[str, ...] = ("front", "back"), scale: floa
                          protocol: str = "tidal", seconds: float = 1800.0, frame_rate_hz: float = 110.0):
     """The simulated rig's scene (core.sim.simulate.SimConfig): the subject, and the heads and LEDs as built,
     which the sphere wizard's simulated captures share (simulated_sphere_config)."""
+    # the simulator (numba kernels) only where the simulated rig needs it
     from core.sim.breathing import Subject, Sway
     from core.sim.simulate import SimConfig
 
@@ -49,8 +56,6 @@ def simulated_sphere_config(rig_config, index: int, radius_mm: float, finish: st
     """One placement of the sphere wizard's simulated sphere (index 0: the centre of the view) on the
     simulated rig whose scene is `rig_config` (simulated_rig_config): the same heads and LEDs as built,
     so the lights it calibrates are the lights that then run."""
-    from dataclasses import replace
-
     return replace(rig_config, scene=f"{finish}-sphere", protocol="static", seconds=None, sway=None,
                    placement_only=index, sphere_radius_mm=radius_mm)
 
@@ -63,10 +68,6 @@ def simulated_rig(heads: tuple[str, ...] = ("front", "back"), scale: float = 0.2
     `lights_known` the LEDs as built (a perfect sphere calibration: benches and tests of what comes
     after it). `loop_cycles`: that many light cycles rendered once and delivered over and over
     (drivers/simulated.py)."""
-    from dataclasses import replace
-
-    from drivers.simulated import SimCamera, SimFlowSensor, SimulatedRigState
-
     config = simulated_rig_config(heads, scale, seed, protocol, seconds, frame_rate_hz)
     state = SimulatedRigState.build(config)
     cameras = {h: SimCamera(state, h, loop_cycles=loop_cycles) for h in heads}
@@ -86,11 +87,6 @@ def simulated_rig(heads: tuple[str, ...] = ("front", "back"), scale: float = 0.2
 def hardware_rig(config: RigConfig, stack: ExitStack) -> AssembledRig:
     """The rig's cameras, flow sensor and sequencer, opened and configured; the sequencer armed,
     started by the returned LightPhase once the cameras wait for its triggers."""
-    from drivers.camera import AravisCamera, bandwidth_advice
-    from drivers.flowsensor import FlowSensor, FlowSensorEmulator
-    from drivers.rig import camera_head
-    from drivers.sequencer import Sequencer, SequencerEmulator
-
     settings = config.camera
     cameras, heads = {}, {}
     for head, identifier in config.cameras.items():
@@ -137,10 +133,6 @@ def assemble_rig(config: RigConfig, stack: ExitStack, scale: float | None = None
     `flow_profile` (the calibration wizards' profiles in force), else the rig file's own
     `calibration` and flow line. Raises ProfileError or CalibrationProfileError for a profile that
     cannot be used, the device errors for a device that cannot be opened."""
-    from core.calibration.spirometer import FlowCalibration
-    from core.calibration.spirometer import load_profile as load_flow
-    from core.calibration.rig_profile import load_profile as load_lights
-
     if config.simulated:
         sim = config.simulation
         assembled = simulated_rig(tuple(config.cameras), scale or float(sim.get("scale", 0.25)),
@@ -157,8 +149,6 @@ def assemble_rig(config: RigConfig, stack: ExitStack, scale: float | None = None
     if flow_profile is not None and assembled.flow is not None:
         flow = load_flow(flow_profile)
         if not isinstance(flow, FlowCalibration):
-            from core.calibration.spirometer import CalibrationProfileError
-
             raise CalibrationProfileError(f"{flow_profile}: a volume calibration, not a flow sensor's")
         assembled.flow_calibration = (flow.gain_lps, flow.offset_lps)
         assembled.flow_from = f"{Path(flow_profile).name} of {flow.created[:16].replace('T', ' ')}"

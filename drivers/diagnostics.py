@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from drivers.camera import CameraError, find_aravis_device
 from drivers.rig import RigConfig
 
 
@@ -39,8 +40,6 @@ def seen_cameras() -> list[str]:
 
 
 def check_rig(config: RigConfig) -> list[DeviceCheck]:
-    from drivers.camera import CameraError, find_aravis_device
-
     checks = []
     for head, identifier in config.cameras.items():
         name = f"{head} camera"

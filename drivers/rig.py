@@ -6,6 +6,7 @@ real (a camera's id, serial number or address; a serial port's path).
 
 from __future__ import annotations
 
+import difflib
 import os
 import tomllib
 from dataclasses import dataclass, field
@@ -14,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from core.io.session import FRAME_COMPRESSION
 from core.rig import Head, thesis_head
 from drivers.camera import CameraSettings
 
@@ -44,8 +46,6 @@ _TABLES = ("camera", "heads", "heads.front", "heads.back", "sequencer", "flowsen
 def _check_keys(path: Path, data: dict, table: str = "") -> None:
     """Every key known, every table a table: a misspelt key is refused with the nearest valid one,
     never silently ignored."""
-    import difflib
-
     known = KNOWN_KEYS[table]
     for key, value in data.items():
         where = f"[{table}] " if table else ""
@@ -145,6 +145,7 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
     if "seed" in simulation:
         _number(path, "simulation", "seed", simulation["seed"], 0, 2**32 - 1, integer=True)
     if "protocol" in simulation:
+        # the simulator (numba kernels) only where the simulated rig needs it
         from core.sim.breathing import PROTOCOLS
 
         if simulation["protocol"] not in PROTOCOLS:
@@ -154,7 +155,6 @@ def load_rig_config(path: str | os.PathLike | None = None) -> RigConfig:
     mains = data.get("mains_hz", 50.0)
     if mains not in (50, 60):
         raise RigConfigError(f"{path}: mains_hz must be 50 or 60 (the room's mains frequency), found {mains!r}")
-    from core.io.session import FRAME_COMPRESSION
 
     compression = data.get("recording", {}).get("compression", "blosc-lz4")
     if compression not in FRAME_COMPRESSION:

@@ -7,10 +7,12 @@ clock (paced in real time by default), with frame ids and sample counters.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from core.analysis.reference import ReferenceUnavailable, reference
+from core.rig import thesis_rig
 from drivers.camera import CameraSettings, CameraStats, Frame, frame_due_within
 from drivers.flowsensor import FlowBlock
 
@@ -29,9 +31,7 @@ class SimulatedRigState:
 
     @classmethod
     def build(cls, config, realtime_start_ns: int | None = None) -> "SimulatedRigState":
-        from dataclasses import replace
-
-        from core.rig import thesis_rig
+        # the simulator (numba kernels) only where the simulated rig needs it
         from core.sim.simulate import as_built_heads, build_scene, sim_digitisers
 
         rig = replace(thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz),
@@ -51,9 +51,7 @@ class SimulatedRigState:
         volumes at the GLI Global predicted values the report uses, so a demonstration reads near
         100 % of predicted; the quiet breathing is theirs from half a second on. The body's shape
         stays the one the scene was built with."""
-        from dataclasses import replace
-
-        from core.analysis.reference import ReferenceUnavailable, reference
+        # the simulator (numba kernels) only where the simulated rig needs it
         from core.sim.breathing import Subject, tidal
 
         age = min(max(float(age_years), 3.0), 100.0)
@@ -75,6 +73,7 @@ class SimulatedRigState:
         """The simulated subject does what the operator asks, from now: "vc" (slow vital capacity)
         or "forced" (a forced expiration, `blow` a core.sim.breathing.ForcedBlow), then breathes quietly.
         Returns the seconds until the manoeuvre is over."""
+        # the simulator (numba kernels) only where the simulated rig needs it
         from core.sim.breathing import RATE_HZ, ForcedBlow, forced, slow_vc, tidal
 
         if self.waveform is None:
@@ -131,6 +130,7 @@ class SimCamera:
         self._running = True
 
     def _render(self, i: int) -> np.ndarray:
+        # the simulator (numba kernels) only where the simulated rig needs it
         from core.sim.scene import noise_key
 
         s = self.state

@@ -10,6 +10,8 @@ from pathlib import Path
 from app.errors import UserError
 from core.analysis import registry
 
+# A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
+
 
 def add_analyze(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("analyze", help="pulmonary function values of a session or a waveform file",

@@ -20,6 +20,8 @@ import h5py
 
 from app.errors import UserError
 
+# A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
+
 RESULTS_SUFFIX = "-results.h5"
 
 

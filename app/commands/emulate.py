@@ -7,6 +7,8 @@ import time
 
 from app.args import finite, positive
 
+# A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
+
 
 def add_emulate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("emulate", help="run a serial device emulator on a pseudo-terminal",

@@ -10,6 +10,8 @@ import numpy as np
 from app.args import add_force, positive
 from app.errors import UserError
 
+# A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
+
 
 def _frame_list(text: str) -> list[int]:
     try:

@@ -13,6 +13,8 @@ from app.errors import UserError
 from core.io.session import file_write_failed
 from app.progress import Progress
 
+# A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
+
 
 def add_record(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("record", help="record a session from a rig (the simulated rig by default)",

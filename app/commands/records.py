@@ -9,6 +9,8 @@ from pathlib import Path
 from app.args import add_force, positive
 from app.errors import UserError
 
+# A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
+
 
 def _records_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--records", type=Path, help="patient records database (default: the user's data folder)")

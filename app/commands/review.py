@@ -9,6 +9,8 @@ from pathlib import Path
 
 from app.errors import UserError
 
+# A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
+
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--records", type=Path, help="patient records database (default: the site's, else the user's "

@@ -13,6 +13,8 @@ from app.errors import UserError
 from core.io.outputs import check_output
 from core.io.session import SessionFile, validate_session
 
+# A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
+
 BLOW_KINDS = ("good", "slow-start", "early-stop", "cough", "weak")
 
 

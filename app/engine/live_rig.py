@@ -14,31 +14,34 @@ import logging
 import os
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from core.reconstruction.binning import binned_head, working_binning
-from core.limits import Refusal
-from core.pipeline.live_checks import LiveOpticalChecks
-from core.volume.flow_sensor import btps_factor
-from core.analysis.optical_litres import ESTIMATE_UNCERTAINTY, POPULATION_GAIN, estimate_label
-from core.volume.metric import LiveMetricVolume
-from core.volume.subject_calibration import MOUTHPIECE_OFF, REDO as CALIBRATION_REDO, regional_signals
-from core.volume.sides import side_profile_mm
-from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
-from core.pipeline.head_maps import use_threads
-from core.io.session import SubjectRecord
-from drivers.camera import CameraError, Frame, capture_frames
-from drivers.flowsensor import FlowBlock
-from drivers.light_phase import LightPhaseError
-from drivers.recorder import Recorder, RecordSummary
-from app.engine.feeds import WINDOW_S, EngineInfo, HeadView, Rate, Snapshot
 from app.engine.cycle_buffer import CycleBuffer
+from app.engine.feeds import WINDOW_S, EngineInfo, HeadView, Rate, Snapshot
 from app.engine.flow_display import FlowDisplay
 from app.engine.flow_record import FlowRecord
 from app.engine.head_stream import HeadStream
 from app.engine.sources import Source
+from core.analysis.optical_litres import ESTIMATE_UNCERTAINTY, POPULATION_GAIN, estimate_label
+from core.analysis.values import analyse_volume, tidal_windows
+from core.io.session import SubjectRecord
+from core.limits import Refusal
+from core.pipeline.head_maps import use_threads
+from core.pipeline.live_checks import LiveOpticalChecks
+from core.reconstruction.binning import binned_head, working_binning
+from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
+from core.volume.flow_sensor import btps_factor, flow_sensor_volume
+from core.volume.metric import LiveMetricVolume
+from core.volume.sides import side_profile_mm
+from core.volume.subject_calibration import (MOUTHPIECE_OFF, REDO as CALIBRATION_REDO, SubjectCalibration,
+                                             fit_subject_calibration, regional_signals)
+from drivers.camera import CameraError, Frame, capture_frames
+from drivers.flowsensor import FlowBlock
+from drivers.light_phase import LightPhaseError
+from drivers.recorder import Recorder, RecordSummary
 
 log = logging.getLogger(__name__)
 
@@ -170,8 +173,6 @@ class LiveRig:
     def start_recording(self, path: str | Path, subject: SubjectRecord | None, kind: str = "patient",
                         root_attrs: dict | None = None, heads: list[str] | None = None) -> None:
         """Record every head (or only `heads`: a front-only session) and the flow sensor."""
-        from dataclasses import replace
-
         if self.source.replay:
             raise ValueError("a replayed session cannot be recorded again")
         heads = heads or list(self.source.cameras)
@@ -215,8 +216,6 @@ class LiveRig:
         """The subject's calibration (core/volume/subject_calibration.py) on the recording's flow sensor
         volume and the live regional signals from `start_ns` (a mark) to now; the live volume takes it
         when it is not refused. Returns the SubjectCalibration, refused or not."""
-        from core.volume.subject_calibration import SubjectCalibration, fit_subject_calibration
-
         recorded = self._recorded_volume()
         with self._lock:
             curve = list(self._regional_curve)
@@ -258,8 +257,6 @@ class LiveRig:
         """The pulmonary function values of the recording so far, from the flow sensor, by the same
         analysis as the report (core.analysis.values): for feedback after each manoeuvre. None without a
         calibrated flow sensor."""
-        from core.analysis.values import analyse_volume
-
         if self._mouthpiece_off:  # the cameras alone, through the subject's calibration
             with self._lock:
                 optical = np.array(self._recorded_optical, dtype=float).reshape(-1, 2)
@@ -278,9 +275,6 @@ class LiveRig:
     def _recorded_volume(self):
         """(the flow sensor's volume of the recording so far, its first stamp, the events in s from
         it), with the drift removed as the report removes it; None without a calibrated flow sensor."""
-        from core.analysis.values import tidal_windows
-        from core.volume.flow_sensor import flow_sensor_volume
-
         if self.source.flow_calibration is None or self._recorder is None:
             return None
         with self._lock:
@@ -301,8 +295,6 @@ class LiveRig:
         manoeuvre's mark, for the forced-blow screen: the flow sensor's from the recording (about
         100 samples a second; the sensor's drift as the report will remove it, taken once from the
         recording up to the mark) and the optical metric volume."""
-        from core.volume.flow_sensor import flow_sensor_volume
-
         out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         from_ns = mark_ns - int(before_s * 1e9)
         if self._blow_drift is None or self._blow_drift[0] != mark_ns:

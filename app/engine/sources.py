@@ -3,14 +3,18 @@ in force) or a recorded session played back (drivers/replay.py)."""
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from core.rig import Rig
+from app.calibration_store import in_force
 from core.io.session import SessionError, SessionFile
+from core.rig import Rig
+from drivers.assembly import assemble_rig, simulated_rig
 from drivers.light_phase import LightPhase, RecordedLights
 from drivers.replay import FileCamera, FileFlow, ReplayClock
+from drivers.rig import load_rig_config
 
 
 @dataclass
@@ -41,8 +45,6 @@ def simulated_source(scale: float = 0.25, heads: tuple[str, ...] = ("front", "ba
     `loop_cycles`: that many light cycles rendered once and delivered over and over
     (drivers/simulated.py), for measuring the live view at a rate the renderer cannot reach on the
     same cores."""
-    from drivers.assembly import simulated_rig
-
     return _source(simulated_rig(heads, scale, seed, protocol, seconds, loop_cycles=loop_cycles, lights_known=True),
                    f"simulated rig (scale {scale:g})")
 
@@ -85,12 +87,6 @@ def replay_source(path: str | Path, speed: float = 1.0) -> Source:
 def rig_source(config_path: str | Path | None = None, scale: float | None = None) -> Source:
     """The rig a configuration names (resources/rigs/simulated.toml by default), with the
     calibration profiles in force for it (app/calibration_store.py)."""
-    from contextlib import ExitStack
-
-    from app.calibration_store import in_force
-    from drivers.assembly import assemble_rig
-    from drivers.rig import load_rig_config
-
     config = load_rig_config(config_path)
     profiles = in_force(config.name)
     stack = ExitStack()

@@ -10,6 +10,8 @@ from pathlib import Path
 
 from app.args import finite, positive
 
+# A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
+
 
 def add_gui(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("gui", help="the desktop application (live view, patient sessions, calibrations)",

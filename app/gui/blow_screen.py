@@ -6,12 +6,14 @@ bar to fill."""
 
 from __future__ import annotations
 
+from datetime import datetime, timezone
+
 import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import Qt
-from PySide6.QtWidgets import (QGridLayout, QLabel, QProgressBar, QTableWidget, QTableWidgetItem, QVBoxLayout,
-                               QWidget)
+from PySide6.QtWidgets import QGridLayout, QLabel, QProgressBar, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget
 
+from app.report_data import references_on
 from core.analysis.blow_monitor import LiveBlow, best_blow, live_blow
 from core.analysis.spirometry import SessionGrade, repeatability_tolerance_l
 
@@ -193,10 +195,6 @@ def repeatability_text(grade: SessionGrade, age_years: float | None) -> str:
 
 def predicted_fvc_l(patient, day=None) -> float | None:
     """The patient's predicted FVC (GLI) for the loop, None where there is no equation for them."""
-    from datetime import datetime, timezone
-
-    from app.report_data import references_on
-
     if patient is None:
         return None
     reference = references_on(patient, day or datetime.now(timezone.utc), "gli-global").get("FVC")

@@ -8,6 +8,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QDialog, QDialogButtonBox, QHB
                                QTableWidget, QTableWidgetItem, QVBoxLayout)
 
 from app.records import Records, RecordsError
+from app.session_processing import discard_visit, recover_visit
 
 
 class CutOffVisitsDialog(QDialog):
@@ -54,8 +55,6 @@ class CutOffVisitsDialog(QDialog):
             button.setEnabled(bool(self.visits))
 
     def _act(self, what: str) -> None:
-        from app.session_processing import discard_visit, recover_visit
-
         rows = self.table.selectionModel().selectedRows()
         if not rows:
             return

@@ -10,12 +10,12 @@ from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (QHBoxLayout, QHeaderView, QLabel, QPushButton, QTableWidget, QTableWidgetItem,
                                QVBoxLayout, QWidget)
 
+from drivers.diagnostics import check_rig
+from drivers.rig import RigConfigError, load_rig_config
+
 
 def device_checks(rig_config: Path | None):
     """The rig's devices, checked (drivers/diagnostics.py), or why the rig file cannot be read."""
-    from drivers.diagnostics import check_rig
-    from drivers.rig import RigConfigError, load_rig_config
-
     try:
         return check_rig(load_rig_config(rig_config)), ""
     except RigConfigError as exc:

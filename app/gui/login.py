@@ -8,16 +8,17 @@ the window (the live view goes on behind). Each wrong password is in the audit t
 from __future__ import annotations
 
 from PySide6.QtCore import QEvent, QObject, QTimer
-from PySide6.QtWidgets import (QApplication, QDialog, QDialogButtonBox, QFormLayout, QLabel, QLineEdit,
+from PySide6.QtWidgets import (QApplication, QDialog, QDialogButtonBox, QFormLayout, QInputDialog, QLabel, QLineEdit,
                                QVBoxLayout, QWidget)
+
+from app.auth import AuthenticationError, forget, proven_user
+from app.records import Records, RecordsError, default_path
 
 IDLE_MINUTES = 10.0  # a workstation left in a clinic room; the settings' security/idle_minutes overrides it
 
 
 def login_needed() -> bool:
     """The records have users with passwords: who acts must sign in."""
-    from app.records import Records, RecordsError, default_path
-
     try:
         path = default_path()
         if not path.exists():
@@ -55,8 +56,6 @@ class LoginDialog(QDialog):
         (self.password if name else self.name).setFocus()
 
     def try_sign_in(self) -> None:
-        from app.records import Records, RecordsError
-
         name = self.name.text().strip()
         try:
             with Records(user=name) as records:
@@ -88,8 +87,6 @@ class IdleLock(QObject):
         return False
 
     def lock(self) -> None:
-        from app.auth import forget, proven_user
-
         name = proven_user() or ""
         forget()
         self.locked = True
@@ -105,10 +102,6 @@ class IdleLock(QObject):
 
 def ask_in_dialog(user: str) -> str:
     """auth's asker in the application: the password in a dialog over the active window."""
-    from PySide6.QtWidgets import QInputDialog
-
-    from app.auth import AuthenticationError
-
     text, given = QInputDialog.getText(QApplication.activeWindow(), "photopft: password",
                                        f"This needs the password of {user}:", QLineEdit.EchoMode.Password)
     if not given:

@@ -7,20 +7,39 @@ import logging
 import resource
 import sys
 import time
+import traceback
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from functools import partial
 from pathlib import Path
 from typing import Callable
 
 from PySide6.QtCore import QByteArray, QObject, QRunnable, QSettings, Qt, QThreadPool, QTimer, Signal
 from PySide6.QtGui import QAction, QKeySequence
-from PySide6.QtWidgets import QApplication, QFileDialog, QLabel, QMainWindow, QMessageBox
+from PySide6.QtWidgets import QApplication, QDialog, QFileDialog, QLabel, QMainWindow, QMessageBox
 
+from app.audit import UNREGISTERED, login_name
+from app.calibration_store import calibration_audit, calibration_dir, syringe_status
+from app.engine.feeds import EngineInfo
+from app.engine.process import EngineProcess
+from app.engine.sources import Source, replay_source, rig_source
+from app.gui.cut_off import CutOffVisitsDialog
+from app.gui.diagnostics_page import DiagnosticsPage
 from app.gui.errors import file_problem, show_error
 from app.gui.live_view import LiveView
-from app.engine.process import EngineProcess
-from app.engine.feeds import EngineInfo
-from app.engine.sources import Source, replay_source, rig_source
+from app.gui.processing import ProcessingPanel
+from app.gui.profiles_view import ProfilesWindow
+from app.gui.records_view import AuditWindow, RecordsWindow
+from app.gui.settings_dialog import SettingsDialog
+from app.gui.syringe_check import RigSyringe, SimulatedSyringe, SyringeCheckDialog
+from app.gui.wizards.patient_session import PatientSessionWizard
+from app.gui.wizards.sphere import SphereCalibrationWizard, capture_from_rig
+from app.gui.wizards.spirometer import RigFlowBench, SimulatedFlowBench, SpirometerCalibrationWizard
+from app.records import Records, RecordsError, default_path
+from app.report_access import log_report, never_ask, report_for
+from app.report_pdf import write_report
+from app.session_processing import cut_off_visits
+from core.io.session import SessionError
 
 log = logging.getLogger("photopft.gui")
 
@@ -29,13 +48,10 @@ DISPLAY_INTERVAL_MS = 33  # about 30 display updates per second
 
 def calibration_in_force(info: EngineInfo) -> str:
     """The calibrations in force on the source, and the age of the lights' (a replay: as recorded)."""
-    from datetime import datetime, timezone
-
     stamps = {h.calibrated for h in info.rig.heads.values() if h.calibrated}
     if info.replay:
         return (f"as recorded (lights calibrated {min(stamps)[:10]})" if stamps
                 else "as recorded (lights not calibrated)")
-    from app.calibration_store import syringe_status
 
     text = info.calibration or "lights as the rig file gives them"
     if info.flow_calibration is not None:
@@ -61,9 +77,6 @@ class Stall:
 
 def acting_user_text() -> str:
     """Who the records will say acted, and their role (roles are enforced once users are registered)."""
-    from app.audit import UNREGISTERED, login_name
-    from app.records import Records, RecordsError, default_path
-
     name, role, enforced = login_name(), UNREGISTERED, False
     if default_path().exists():
         try:
@@ -137,8 +150,6 @@ class Job(QRunnable):
         self.signals = _JobSignals()
 
     def run(self) -> None:
-        import traceback
-
         try:
             self.signals.done.emit(self.work())
         except Exception as exc:  # every failure of a job reaches the user as a dialog
@@ -183,7 +194,6 @@ class MainWindow(QMainWindow):
         self.statusBar().addPermanentWidget(self.status_label)
         self.user_label = QLabel(acting_user_text())
         self.statusBar().addPermanentWidget(self.user_label)
-        from app.gui.processing import ProcessingPanel
 
         self.processing = ProcessingPanel(self)  # a visit processed after its recording (app/session_processing.py)
         self.processing.finished.connect(lambda _: self.statusBar().showMessage(self.processing.last_message, 15000))
@@ -286,8 +296,6 @@ class MainWindow(QMainWindow):
         self.statusBar().showMessage(f"Showing {self.info.name}", 5000)
 
     def show_diagnostics(self, problem: str) -> None:
-        from app.gui.diagnostics_page import DiagnosticsPage
-
         self.diagnostics = DiagnosticsPage(problem, self.rig_config, self.retry_source,
                                            lambda: self.try_source(partial(rig_source, None)), self.open_session)
         self.setCentralWidget(self.diagnostics)
@@ -326,8 +334,6 @@ class MainWindow(QMainWindow):
 
     # menu actions
     def new_patient_session(self) -> None:
-        from app.gui.wizards.patient_session import PatientSessionWizard
-
         if not self.has_engine():
             return
         if self.info.replay:
@@ -347,8 +353,6 @@ class MainWindow(QMainWindow):
             self.replay(Path(path))
 
     def replay(self, path: Path, speed: float = 1.0) -> None:
-        from core.io.session import SessionError
-
         try:
             self.use_source(partial(replay_source, path, speed))
         except (SessionError, OSError) as exc:
@@ -373,10 +377,6 @@ class MainWindow(QMainWindow):
 
     def run_report(self, path: Path, output: Path) -> Job:
         def work() -> Path:
-            from app.records import Records
-            from app.report_access import log_report, never_ask, report_for
-            from app.report_pdf import write_report
-
             with Records() as records:
                 data, _ = report_for(path, records, str(self.settings.value("reference/equations", "gli-global")),
                                      ask=never_ask)
@@ -398,9 +398,6 @@ class MainWindow(QMainWindow):
 
     def _may_calibrate(self) -> bool:
         """Only engineers calibrate where roles are enforced: said before the wizard's work starts."""
-        from app.calibration_store import calibration_audit
-        from app.records import RecordsError
-
         try:
             records = calibration_audit()
         except RecordsError as exc:
@@ -411,8 +408,6 @@ class MainWindow(QMainWindow):
         return True
 
     def sphere_calibration(self) -> None:
-        from app.gui.wizards.sphere import SphereCalibrationWizard, capture_from_rig
-
         if not self.has_engine():
             return
         if not self._may_calibrate():
@@ -426,8 +421,6 @@ class MainWindow(QMainWindow):
             self.calibration_changed(f"Rig calibration saved and in force: {wizard.saved_to}")
 
     def spirometer_calibration(self) -> None:
-        from app.gui.wizards.spirometer import RigFlowBench, SimulatedFlowBench, SpirometerCalibrationWizard
-
         if self._on_the_rig("The spirometer is calibrated") and self._may_calibrate():
             bench = SimulatedFlowBench() if self.info.simulated else RigFlowBench(self.engine)
             wizard = SpirometerCalibrationWizard(self, bench, profile_dir=self.profile_dir())
@@ -445,8 +438,6 @@ class MainWindow(QMainWindow):
         return True
 
     def profile_dir(self) -> Path:
-        from app.calibration_store import calibration_dir
-
         return calibration_dir(self.info.rig.name)
 
     def calibration_changed(self, message: str) -> None:
@@ -462,8 +453,6 @@ class MainWindow(QMainWindow):
         self.statusBar().showMessage(message, 10000)
 
     def syringe_check(self) -> None:
-        from app.gui.syringe_check import RigSyringe, SimulatedSyringe, SyringeCheckDialog
-
         if not self._on_the_rig("The syringe check is done"):
             return
         bench = SimulatedSyringe() if self.info.simulated else RigSyringe(self.engine)
@@ -473,8 +462,6 @@ class MainWindow(QMainWindow):
             self.statusBar().showMessage(f"Syringe check logged: {dialog.saved['verdict']}", 10000)
 
     def open_profiles(self) -> None:
-        from app.gui.profiles_view import ProfilesWindow
-
         if not self.has_engine():
             return
         window = ProfilesWindow(self, self.info.rig.name, self.info.calibration if not self.info.replay else "")
@@ -483,9 +470,6 @@ class MainWindow(QMainWindow):
             self.calibration_changed(window.outcome)
 
     def open_records(self) -> None:
-        from app.gui.records_view import RecordsWindow
-        from app.records import Records, RecordsError
-
         try:
             records = Records()
         except RecordsError as exc:
@@ -496,9 +480,6 @@ class MainWindow(QMainWindow):
                           processing=self.processing).exec()
 
     def open_audit(self) -> None:
-        from app.gui.records_view import AuditWindow
-        from app.records import Records, RecordsError, default_path
-
         if not default_path().exists():
             show_error(self, "There is no audit trail yet.", "It starts with the first patient put on record.")
             return
@@ -511,8 +492,6 @@ class MainWindow(QMainWindow):
             AuditWindow(self, records).exec()
 
     def open_settings(self) -> None:
-        from app.gui.settings_dialog import SettingsDialog
-
         dialog = SettingsDialog(self.settings, self)
         if dialog.exec():
             rig = self.settings.value("rig/config", "")
@@ -526,10 +505,6 @@ class MainWindow(QMainWindow):
 
     def offer_cut_off_visits(self) -> None:
         """At start-up: visits whose recording never ended, with Recover and Discard."""
-        from app.gui.cut_off import CutOffVisitsDialog
-        from app.records import Records, RecordsError, default_path
-        from app.session_processing import cut_off_visits
-
         try:
             if not default_path().exists():
                 return
@@ -544,10 +519,6 @@ class MainWindow(QMainWindow):
         """SIGTERM or SIGINT (app/gui/shutdown.py): every dialog closed (a recording in the patient
         session finished and its visit marked cancelled), the processing cancelled, the engine
         stopped, and the application quits with 0, asking nothing."""
-        from PySide6.QtWidgets import QDialog
-
-        from app.gui.wizards.patient_session import PatientSessionWizard
-
         log.warning("signal %s: shutting down", signum)
         self._shutting_down = True
         for widget in QApplication.topLevelWidgets():

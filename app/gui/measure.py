@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from PySide6.QtCore import QEventLoop, QTimer
+
 from app.memory import rss_mb
 from drivers.recorder import RecordSummary
 
@@ -42,8 +44,6 @@ def measure_live_view(window, seconds: float, record_to: Path | None = None, sub
     `until_every_head_maps_s` longer until every head has made a map within the measurement (a short
     window on a loaded machine may see none from a head that makes one every second or two), stop
     the recording, close the window and return the figures."""
-    from PySide6.QtCore import QEventLoop, QTimer
-
     waited = time.monotonic()
     figures = LiveFigures(first_maps_s=float("nan"))
     start: dict = {}

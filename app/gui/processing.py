@@ -8,11 +8,15 @@ optical volume was refused.
 
 from __future__ import annotations
 
+import logging
 import threading
 import traceback
 
 from PySide6.QtCore import QObject, QRunnable, QThreadPool, Signal
 from PySide6.QtWidgets import QHBoxLayout, QLabel, QProgressBar, QPushButton, QWidget
+
+from app.records import Records
+from app.session_processing import ProcessingCancelled, process_visit
 
 
 class _Signals(QObject):
@@ -35,9 +39,6 @@ class _ProcessingJob(QRunnable):
             self.cancel.set()
 
     def run(self) -> None:
-        from app.records import Records
-        from app.session_processing import ProcessingCancelled, process_visit
-
         try:
             with Records(self.records_path) as records:
                 outcome = process_visit(records, self.session_id, lambda share: self._emit(self.signals.progress, share),
@@ -109,8 +110,6 @@ class ProcessingPanel(QWidget):
         self.finished.emit(outcome)
 
     def _failed(self, message: str, detail: str) -> None:
-        import logging
-
         self._job = None
         self.last_message = message
         if detail:

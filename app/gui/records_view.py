@@ -16,9 +16,18 @@ from PySide6.QtWidgets import (QAbstractItemView, QComboBox, QDialog, QDialogBut
                                QHBoxLayout, QLabel, QLineEdit, QListWidget, QListWidgetItem, QMenu, QPlainTextEdit,
                                QPushButton, QSplitter, QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
+from app.export import values_csv, volume_csv
+from app.fhir_export import write_fhir
+from app.gdt_export import write_gdt
+from app.gui.errors import show_error
+from app.gui.processing import ProcessingPanel
 from app.records import Patient, Records, RecordsError, SessionRecord
-from app.report_data import TREND_VALUES, source_values, stored_interpretation, trend_points
+from app.report_access import log_report, never_ask, report_for
+from app.report_data import TREND_VALUES, build_report, source_values, stored_interpretation, trend_points
+from app.report_pdf import write_report
+from app.session_processing import NOT_A_VISIT
 from core.analysis.registry import BY_KEY
+from core.io.outputs import OutputError, check_output
 
 TREND_PENS = {"FEV1": pg.mkPen("#1f5fa8", width=2), "FVC": pg.mkPen("#b85c00", width=2, style=Qt.PenStyle.DashLine),
               "FEV1_FVC": pg.mkPen("#333333", width=1.5, style=Qt.PenStyle.DotLine)}
@@ -98,14 +107,6 @@ EXPORTS = {"pdf": "Report (PDF)", "fhir": "FHIR bundle (pseudonymous)", "fhir-id
 def export_visit(records: Records, visit: SessionRecord, kind: str, output: Path, equations: str) -> str:
     """One visit's export as the command line's `report` and `export` make it: who may, asked and
     logged alike (app/report_access.py; FHIR and CSV a clinician's, identified ones with the password)."""
-    from app.export import values_csv, volume_csv
-    from app.fhir_export import write_fhir
-    from app.gdt_export import write_gdt
-    from app.report_access import log_report, never_ask, report_for
-    from app.report_data import build_report
-    from app.report_pdf import write_report
-    from core.io.outputs import check_output
-
     source = visit.results_path if visit.results_path and visit.results_path.exists() else visit.session_path
     if kind == "pdf":
         check_output(output, [source, visit.session_path, records.path], force=True)
@@ -173,7 +174,6 @@ class RecordsWindow(QDialog):
         self.amend = QPushButton("Add amendment", clicked=self._amend)
         self.pre = QComboBox()
         self.link = QPushButton("Link as post-bronchodilator", clicked=self._link)
-        from app.gui.processing import ProcessingPanel
 
         self.processing = processing or ProcessingPanel(self)
         self.processing.finished.connect(self._processed)
@@ -300,7 +300,6 @@ class RecordsWindow(QDialog):
             lines.append(f"Post-bronchodilator visit of {pre.recorded:%Y-%m-%d %H:%M}.")
         self.signed.setText("\n".join(lines))
         self.pre.clear()
-        from app.session_processing import NOT_A_VISIT
 
         for earlier in self.visits:
             if earlier.recorded < visit.recorded and earlier.status not in NOT_A_VISIT:
@@ -338,9 +337,6 @@ class RecordsWindow(QDialog):
     def export_to(self, kind: str, output: Path) -> str | None:
         """The chosen visit exported (EXPORTS), logged in the audit trail; what was written, in words,
         also shown under the values (None and a dialog where it was refused)."""
-        from app.gui.errors import show_error
-        from core.io.outputs import OutputError
-
         visit = self._visit()
         if visit is None:
             return None

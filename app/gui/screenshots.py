@@ -8,11 +8,26 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
+from datetime import datetime, timezone
 from functools import partial
 from pathlib import Path
 
 from PySide6.QtCore import QTimer
 from PySide6.QtWidgets import QApplication, QWidget
+
+from app.engine.sources import rig_source, simulated_source
+from app.gui.cut_off import CutOffVisitsDialog
+from app.gui.login import LoginDialog
+from app.gui.main_window import MainWindow
+from app.gui.profiles_view import ProfilesWindow
+from app.gui.records_view import AuditWindow, RecordsWindow
+from app.gui.settings_dialog import SettingsDialog
+from app.gui.syringe_check import SimulatedSyringe, SyringeCheckDialog
+from app.gui.wizards.patient_session import PatientSessionWizard
+from app.gui.wizards.sphere import SphereCalibrationWizard
+from app.gui.wizards.spirometer import SpirometerCalibrationWizard
+from app.records import Records
+from app.session_processing import CUT_OFF, cut_off_visits
 
 
 def _wait(app: QApplication, seconds: float, until=None) -> None:
@@ -43,10 +58,6 @@ def _fill_screen(window: QWidget) -> None:
 def _records_windows(app, records, folder: Path, out: Path) -> None:
     """The records window on the patient just recorded, with two earlier visits made up for the
     picture (values only, no session files) so that the trend has points."""
-    from datetime import datetime, timezone
-
-    from app.gui.records_view import AuditWindow, RecordsWindow
-
     patient = records.find_patients("Nowak")[0]
     for year, fev1, fvc in ((2024, 2.95, 3.72), (2025, 2.81, 3.66)):
         sid = records.add_session(patient.id, folder / f"earlier-{year}.h5",
@@ -68,13 +79,6 @@ def _records_windows(app, records, folder: Path, out: Path) -> None:
 
 
 def main(out: Path) -> int:
-    from app.gui.main_window import MainWindow
-    from app.gui.wizards.patient_session import PatientSessionWizard
-    from app.gui.wizards.sphere import SphereCalibrationWizard
-    from app.gui.wizards.spirometer import SpirometerCalibrationWizard
-    from app.engine.sources import simulated_source
-    from app.records import Records
-
     out.mkdir(parents=True, exist_ok=True)
     app = QApplication.instance() or QApplication(sys.argv[:1])
     window = MainWindow(partial(simulated_source, scale=0.25))
@@ -196,15 +200,6 @@ def main(out: Path) -> int:
 
 def _dialogs(app, window, records, folder: Path, out: Path) -> None:
     """Sign-in, settings, profiles, the syringe check and the cut-off recordings offered at start-up."""
-    from datetime import datetime, timezone
-
-    from app.gui.cut_off import CutOffVisitsDialog
-    from app.gui.login import LoginDialog
-    from app.gui.profiles_view import ProfilesWindow
-    from app.gui.settings_dialog import SettingsDialog
-    from app.gui.syringe_check import SimulatedSyringe, SyringeCheckDialog
-    from app.session_processing import CUT_OFF, cut_off_visits
-
     login = LoginDialog(window, "dr.keller", "Signing a report needs a clinician's password.")
     login.show()
     _wait(app, 0.3)
@@ -241,9 +236,6 @@ def _dialogs(app, window, records, folder: Path, out: Path) -> None:
 
 def _diagnostics(app, folder: Path, out: Path) -> None:
     """The window on a rig whose front camera and sequencer are not connected."""
-    from app.gui.main_window import MainWindow
-    from app.engine.sources import rig_source
-
     rig = folder / "clinic.toml"
     rig.write_text('name = "clinic"\n[camera]\n[heads.front]\ncamera = "192.168.10.21"\n[heads.back]\n'
                    'camera = "192.168.10.22"\n[sequencer]\nport = "/dev/ttyACM0"\n[flowsensor]\nport = "emulator"\n')

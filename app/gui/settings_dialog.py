@@ -8,6 +8,8 @@ from PySide6.QtCore import QSettings
 from PySide6.QtWidgets import (QComboBox, QDialog, QDialogButtonBox, QFileDialog, QFormLayout, QHBoxLayout, QLabel,
                                QLineEdit, QPushButton, QWidget)
 
+from drivers.rig import RigConfigError, load_rig_config
+
 EQUATIONS = {"gli-global": "GLI Global 2022 (race-neutral)", "gli-2012": "GLI-2012"}
 PAGE_SIZES = {"a4": "A4", "letter": "US Letter"}
 
@@ -51,8 +53,6 @@ class SettingsDialog(QDialog):
             self.rig.setText(path)
 
     def accept(self) -> None:
-        from drivers.rig import RigConfigError, load_rig_config
-
         text = self.rig.text().strip()
         if text:
             try:

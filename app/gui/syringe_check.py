@@ -12,7 +12,11 @@ from PySide6.QtGui import QColor
 from PySide6.QtWidgets import (QDialog, QDialogButtonBox, QHBoxLayout, QLabel, QPushButton, QTableWidget,
                                QTableWidgetItem, QVBoxLayout)
 
+from app.calibration_store import log_syringe_check
+from app.gui.errors import show_error
+from app.records import RecordsError, existing_records
 from core.calibration.syringe import SYRINGE_L, TOLERANCE, SyringeCheck, quiet_samples, syringe_strokes
+from core.sim.flowsensor import FlowSensorModel
 
 
 class RigSyringe:
@@ -38,8 +42,6 @@ class SimulatedSyringe:
     label = "a simulated 3 L syringe through the simulated sensor (no hardware is read)"
 
     def __init__(self, seed: int = 1) -> None:
-        from core.sim.flowsensor import FlowSensorModel
-
         self.model = FlowSensorModel()
         self.seed = seed
 
@@ -121,8 +123,6 @@ class SyringeCheckDialog(QDialog):
         self.verdict.setText("Pump the syringe now: in and out, three times.")
 
     def _stop(self) -> None:
-        from app.gui.errors import show_error
-
         self.stop.setEnabled(False)
         self.start.setEnabled(True)
         self.start.setText("Start again")
@@ -154,10 +154,6 @@ class SyringeCheckDialog(QDialog):
         self.buttons.button(QDialogButtonBox.StandardButton.Save).setEnabled(bool(check.strokes))
 
     def _save(self) -> None:
-        from app.calibration_store import log_syringe_check
-        from app.gui.errors import show_error
-        from app.records import RecordsError, existing_records
-
         try:
             records = existing_records(None, None, may="syringe check")
         except RecordsError as exc:

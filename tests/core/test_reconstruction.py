@@ -399,7 +399,7 @@ def test_process_gives_no_subject_distance_where_an_arm_hides_the_trunk_s_sides(
     `process` says why it gives none (on the console and in /@distance_refused), and refuses the
     optical volume for the arm; the rule itself is on per-map shares like the volume's."""
     from app.cli import main
-    from app.commands.demo import volume_summary
+    from app.volume_summary import volume_summary
     from core.io.results import ResultsFile
     from core.pipeline.quality import geometric_distance_refusal
     from core.sim.bodies import body_named

@@ -11,7 +11,6 @@ simulated subject follows the prompts.
 from __future__ import annotations
 
 import logging
-
 import time
 from datetime import date, datetime, timezone
 from pathlib import Path
@@ -19,20 +18,24 @@ from pathlib import Path
 import numpy as np
 from PySide6.QtCore import QDate, Qt, QTimer
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QDateEdit, QDoubleSpinBox, QFormLayout, QGroupBox, QHBoxLayout,
-                               QLabel, QLineEdit, QListWidget, QListWidgetItem, QPushButton, QSpinBox, QTextEdit,
-                               QVBoxLayout, QWizard, QWizardPage)
+                               QLabel, QLineEdit, QListWidget, QListWidgetItem, QMessageBox, QPushButton, QSpinBox,
+                               QTextEdit, QVBoxLayout, QWizard, QWizardPage)
 
-from app.gui.errors import show_error
-from app.gui.volume_trace import SHOWN_S, VolumeTrace, plateau
-from core.pipeline.quality import WORKING_RANGE_MM
+from app.audit import login_name
 from app.engine.protocol import LiveEngine
+from app.gui.blow_screen import BlowScreen, predicted_fvc_l
+from app.gui.errors import show_error
+from app.gui.live_view import HeadMapView
+from app.gui.volume_trace import SHOWN_S, VolumeTrace, plateau
 from app.paths import data_dir
 from app.records import Patient, Records, RecordsError
+from app.report_data import main_table_rows, references_on, stored_interpretation
+from core.analysis.protocol_feedback import (MAX_BLOWS, MAX_VC, MIN_TIDAL_BREATHS, forced_feedback, tidal_extension_s,
+                                             vc_feedback)
 from core.io.outputs import next_free_path
 from core.io.session import SubjectRecord
+from core.pipeline.quality import WORKING_RANGE_MM
 from core.volume.subject_calibration import MOUTHPIECE_OFF
-from core.analysis.protocol_feedback import (MAX_BLOWS, MAX_VC, MIN_TIDAL_BREATHS, forced_feedback, tidal_extension_s,
-                                    vc_feedback)
 
 CENTRED_FRACTION = 0.12  # the subject's centre within 12 % of the image width of its centre
 
@@ -46,8 +49,6 @@ def _instructions(text: str) -> QLabel:
 
 class PatientPage(QWizardPage):
     def __init__(self, records: Records, operator: str = "") -> None:
-        from app.audit import login_name
-
         super().__init__()
         self.records = records
         self.setTitle("Patient")
@@ -147,7 +148,6 @@ class PositioningPage(QWizardPage):
         self.timer.timeout.connect(self._check)
 
     def initializePage(self) -> None:  # noqa: N802
-        from app.gui.live_view import HeadMapView
 
         for head in self.wizard().heads():
             if head not in self.maps:
@@ -485,7 +485,6 @@ class ManoeuvrePage(QWizardPage):
         self._mark_ns = 0
 
     def initializePage(self) -> None:  # noqa: N802
-        from app.gui.blow_screen import BlowScreen, predicted_fvc_l
 
         if self.kind != "forced" or self.screen is not None:
             return
@@ -571,8 +570,6 @@ class ManoeuvrePage(QWizardPage):
         return feedback.text
 
     def _assess_vc(self, values) -> str:
-        from app.gui.blow_screen import predicted_fvc_l
-
         feedback = vc_feedback(values, self.count, predicted_fvc_l(self.wizard().patient_page.patient()))
         self.finished = feedback.finished
         return feedback.text
@@ -606,8 +603,6 @@ class ManoeuvrePage(QWizardPage):
 def review_html(parameters: dict, problems: list[str], patient: Patient | None, source: str) -> str:
     """The values of `source` as the report names them, with predicted values, z-scores and the
     ERS/ATS 2022 interpretation, which names the source."""
-    from app.report_data import main_table_rows, references_on, stored_interpretation
-
     now = datetime.now(timezone.utc)
     references = references_on(patient, now, "gli-global") if patient else {}
     rows = ["<tr><th align=left>Value</th><th>Unit</th><th>Measured</th><th>Predicted</th><th>LLN</th><th>z</th></tr>"]
@@ -742,8 +737,6 @@ class PatientSessionWizard(QWizard):
 
     def _confirm_cancel(self) -> bool:
         """Cancel during a recording asks first: what was recorded is kept either way, marked cancelled."""
-        from PySide6.QtWidgets import QMessageBox
-
         answer = QMessageBox.question(
             self, "Cancel the session?",
             "Stop the recording and end this patient session?\n\nWhat was recorded so far is kept in the "

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import shutil
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +24,16 @@ from PySide6.QtWidgets import (QComboBox, QDoubleSpinBox, QFormLayout, QHBoxLayo
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWizard, QWizardPage)
 
 from app.calibration_store import RIG_PROFILE, calibration_audit, calibration_dir, keep_previous, log_calibration
-from app.records import RecordsError
 from app.gui.errors import show_error
+from app.records import RecordsError
+from core.calibration.light_sessions import (CAPTURE_SECONDS, DEFAULT_MAX_RESIDUAL_MM, advice, calibrate_lights,
+                                             placement_images, specular_placements)
+from core.calibration.rig_profile import ProfileError, load_profile
+from core.calibration.sphere_geometry import CalibrationError, detect_sphere
 from core.io.outputs import next_free_path
+from core.io.session import SessionFile
+from core.sim.simulate import simulate
+from drivers.assembly import simulated_rig_config, simulated_sphere_config
 
 MIN_CAPTURES = 3
 # The matte sphere's shading places the lights only when each placement's distance can be told from
@@ -39,9 +47,6 @@ def capture_simulated(folder: Path, index: int, scale: float, heads: tuple[str, 
                       finish: str = "specular", seed: int = 1) -> Path:
     """One placement of the simulated specular or matte sphere (index 0: the centre of the view), on the
     simulated rig that runs (its LEDs as built: drivers/assembly.py, simulated_sphere_config)."""
-    from core.sim.simulate import simulate
-    from drivers.assembly import simulated_rig_config, simulated_sphere_config
-
     path = next_free_path(folder / f"{finish}-{index + 1:02d}.h5")
     simulate(path, simulated_sphere_config(simulated_rig_config(heads, scale, seed), index, radius_mm, finish))
     return path
@@ -49,10 +54,6 @@ def capture_simulated(folder: Path, index: int, scale: float, heads: tuple[str, 
 
 def capture_from_rig(window):
     """A capture on a real rig: CAPTURE_SECONDS of the sphere recorded from the live engine."""
-    import time
-
-    from core.calibration.light_sessions import CAPTURE_SECONDS
-
     def capture(folder: Path, index: int, finish: str = "specular") -> Path:
         wizard = window.findChild(SphereCalibrationWizard)
         radius = wizard.intro.radius.value() if wizard is not None else 75.0
@@ -73,10 +74,6 @@ def capture_from_rig(window):
 def detect_capture(path: Path, head_name: str):
     """(summed image, sphere fit, {light: highlight}, problems) of one capture's head; a matte sphere has
     no highlights."""
-    from core.calibration.light_sessions import placement_images, specular_placements
-    from core.calibration.sphere_geometry import detect_sphere
-    from core.io.session import SessionFile
-
     with SessionFile(path) as session:
         radius = float(session.attrs["sphere_radius_mm"])
         if session.attrs.get("sphere_finish") == "matte":
@@ -97,7 +94,6 @@ class IntroPage(QWizardPage):
                       "3. Each capture shows the sphere's outline and the four highlights: all four must be found.")
         text.setWordWrap(True)
         self.radius = QDoubleSpinBox(minimum=10.0, maximum=300.0, value=75.0, suffix=" mm", decimals=2)
-        from core.calibration.light_sessions import DEFAULT_MAX_RESIDUAL_MM
 
         self.threshold = QDoubleSpinBox(minimum=0.5, maximum=100.0, value=DEFAULT_MAX_RESIDUAL_MM, suffix=" mm",
                                         decimals=1)
@@ -278,8 +274,6 @@ class CapturePage(QWizardPage):
 
 def previous_profile(path: Path):
     """(the light calibration in force, a sentence on it) for the comparison, (None, why) without one."""
-    from core.calibration.rig_profile import ProfileError, load_profile
-
     if not path.is_file():
         return None, "There is no earlier calibration to compare with."
     try:
@@ -307,8 +301,6 @@ class ResultPage(QWizardPage):
         self._runs = 0  # the newest calibration started: an older one's result is not shown
 
     def initializePage(self) -> None:  # noqa: N802
-        from core.calibration.light_sessions import calibrate_lights
-        from core.calibration.sphere_geometry import CalibrationError
 
         wizard = self.wizard()
         captures = list(wizard.capture_page.captures) + list(wizard.matte_page.captures)
@@ -383,8 +375,6 @@ class ResultPage(QWizardPage):
 
 def _refinement_notes(reports) -> list[str]:
     """What placed each head's lights along their highlight rays, in the wizard's words."""
-    from core.calibration.light_sessions import advice
-
     notes = []
     for report in reports:
         how = f"refined on {report.refined_on}" if report.refined_on else "triangulated from the highlights only"

@@ -15,12 +15,15 @@ from PySide6.QtWidgets import (QCheckBox, QDoubleSpinBox, QFileDialog, QFormLayo
 
 from app.calibration_store import (FLOW_PROFILE, VOLUME_PROFILE, calibration_audit, calibration_dir, keep_previous,
                                    log_calibration)
-from app.records import RecordsError
+from app.commands.reconstruction import regression_samples
+from app.errors import UserError
 from app.gui.errors import show_error
+from app.records import RecordsError
 from core.calibration.spirometer import CalibrationProfileError, fit_flow, fit_volume
-from core.volume.flow_sensor import btps_factor
 from core.io.outputs import write_text_atomic
 from core.io.session import now_iso
+from core.sim.flowsensor import FlowSensorModel
+from core.volume.flow_sensor import btps_factor
 
 
 class RigFlowBench:
@@ -42,8 +45,6 @@ class SimulatedFlowBench:
     label = "the simulated flow bench (the simulated rig's sensor model; no hardware is read)"
 
     def __init__(self, seed: int = 1) -> None:
-        from core.sim.flowsensor import FlowSensorModel
-
         self.model = FlowSensorModel()
         self.seed = seed
         self.reads = 0
@@ -146,9 +147,6 @@ class FlowPage(QWizardPage):
 def fit_regression(files: list[Path]):
     """(calibration, features, volumes, None) of the thesis' regression on results files, or
     (None, None, None, why not)."""
-    from app.errors import UserError
-    from app.commands.reconstruction import regression_samples
-
     try:
         samples = [regression_samples(p) for p in files]
         features = np.vstack([s[0] for s in samples])
