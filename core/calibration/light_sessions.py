@@ -20,11 +20,7 @@ from core.io.session import SessionFile, now_iso
 DEFAULT_MAX_RESIDUAL_MM = 25.0
 DEFAULT_PRIOR_SIGMA_MM = 15.0
 CAPTURE_SECONDS = 1.0  # how long each placement is recorded: 22 light cycles at 110 frames/s
-# The matte fit's size: a sphere 75 mm in radius at 2 m covers about 86 000 pixels at 1400 x 1024.
-# Binned to at most this many, the fit takes a few seconds and uses every pixel's light; taking
-# every n-th pixel instead (4 000 per placement) threw three quarters of the light away at half
-# resolution and 19 in 20 at full, and left the subject's distance several mm off at 2.2 m
-# (docs/reconstruction.md).
+# The matte fit binned to at most this many bins a placement, every pixel's light kept (docs/constants.md)
 MATTE_BINS_PER_PLACEMENT = 16000
 # LEDs whose fitted falloff is below this are point sources to within 1 % over +-15 degrees
 # (cos(15 deg)^0.25 = 0.991): the isotropic model, with fewer unknowns, places them better
@@ -34,28 +30,14 @@ ISOTROPIC_MU = 0.25
 HIGHLIGHT_CLEARANCE_WIDTHS = 6.0
 # ... and only where it stands this many times above a pixel's noise (a mirror ball has no shading).
 DIFFUSE_MIN_SNR = 3.0
-# The shading places the lights along their highlights' rays through the inverse square of the placements'
-# distances, which holds only while each LED's output stays as it was from one placement to the next. Where it
-# changed (LEDs warming between the wizard's captures) the fit moves the lights along their rays by tens
-# of mm, and leaving out one placement moves them as much. The shading is taken only while that
-# jackknife standard error stays within this many times the triangulation's own. Measured on the clinic
-# world at 700 x 512 with the wizard's captures 15 s apart (docs/reconstruction.md), the worst light of a
-# head (two rigs of each): steady LEDs 0.7-1.7 times on the matte sphere, 3.8-9.2 on the glossy sphere's
-# shading (1.4-2.4 in the simulated rig's own wizard, spheres under 40 px); LEDs drifting by 0.1 % over
-# minutes 2.7-6.4 on the matte sphere (which then places them within 4.6 mm) and 4.3-8.0 on the glossy one
-# (up to 10 mm off: below), by 0.3 % 12-16, by 2 % 19-82.
+# The shading is taken only while leaving out one placement moves the lights by at most this many times the
+# triangulation's standard error: else the LEDs' output changed between captures (docs/constants.md)
 MAX_SHADING_LEAVE_ONE_OUT = 8.0
 LEDS_THAT_CHANGED = "as when the LEDs' output changes between captures"
 LEDS_THAT_CHANGE_ADVICE = ("Where the LEDs' output changed between captures: switch them on some minutes before "
                            "calibrating and capture one place after the other without pausing")
-# A glossy sphere's diffuse shading, a tenth of a matte sphere's and read only away from the highlights,
-# places the lights less surely than that: with the LEDs' output changing by 0.1 % between captures it put
-# one light 10.0 mm off (triangulated 2.1 mm) while leaving out a placement moved it no more than on steady
-# LEDs. Its positions are taken only where each light stays within this many of the triangulation's own
-# standard errors (per axis, in quadrature) of where the highlights put it. Measured as above, the worst
-# light of a head: steady LEDs 0.6-3.1 (one head of four over 3, its lights then 0.9-2.8 mm off for
-# 0.6-1.8); 0.1 % of drift 1.2-6.0 (the two heads over 3 were those 8-10 mm off, now 2.1 and 2.9)
-# (docs/history/reconstruction-log.md, "The wizard's captures on LEDs that drift").
+# A glossy sphere's shading is taken only where each light stays within this many of the triangulation's
+# standard errors of where its highlights put it (docs/constants.md)
 MAX_SHADING_FROM_HIGHLIGHTS = 3.0
 
 

@@ -48,15 +48,8 @@ class SphereFit:
     background_noise: float = 0.0  # rms of the image around the sphere (its units)
 
 
-# The sphere's shading inside its outline, which each profile's half level refers to, is read between
-# OUTLINE_INSIDE_PX[1] and [0] pixels inside the edge as last found, and carried to the edge along a
-# line; nearer the edge the samples hold the pixels the edge crosses. The line holds where the limb's
-# darkening is straight over those pixels, so on spheres at least OUTLINE_MIN_RADIUS_PX in radius:
-# at scale 0.5 (a 75 mm sphere 2 m away is 60 px in radius) the spheres' centres came within 1.1 mm
-# of the truth (3-4 mm too near before), at scale 1 within 0.6 mm (0.3-1.9 mm too far). At scale
-# 0.25 (28 px) the limb bends within them: the centres came within 2.8 mm and the LEDs triangulated
-# from the wizard's simulated sphere 21-28 mm off (2-12 mm before), so smaller spheres keep the level
-# of the sample one pixel inside the outermost one (docs/reconstruction.md, Light calibration).
+# The sphere's shading read between OUTLINE_INSIDE_PX[1] and [0] pixels inside its last edge and carried to
+# the edge along a line, on spheres at least OUTLINE_MIN_RADIUS_PX in radius (docs/constants.md)
 OUTLINE_INSIDE_PX = (3.0, 1.5)
 OUTLINE_MIN_RADIUS_PX = 40.0
 OUTLINE_LEVEL_ITERATIONS = 4
@@ -335,9 +328,7 @@ COARSE_BINS_PER_PLACEMENT = 400
 # at least this many placements each LED's intensity is fitted as a line in time, which the placements'
 # spread in time and space tells from the inverse square of their distances (docs/reconstruction.md)
 MIN_PLACEMENTS_FOR_DRIFT = 3
-# Each leave-one-out refit starts from the whole fit's solution and stops after this many evaluations:
-# where the LEDs were steady it has converged in a few, where their output changed it has already
-# wandered far (tens of mm); the refits left to converge took 13-106 evaluations there
+# Each leave-one-out refit starts from the whole fit's solution and stops after this many evaluations
 LEAVE_ONE_OUT_MAX_NFEV = 12
 
 
