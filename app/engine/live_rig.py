@@ -22,24 +22,21 @@ import numpy as np
 from app.engine.cycle_buffer import CycleBuffer
 from app.engine.feeds import WINDOW_S, EngineInfo, HeadView, Rate, Snapshot
 from app.engine.flow_display import FlowDisplay
-from app.engine.flow_record import FlowRecord
 from app.engine.head_stream import HeadStream
+from app.engine.recording import NO_LIMIT_NS, SubjectRecording
 from app.engine.sources import Source
 from core.analysis.optical_litres import ESTIMATE_UNCERTAINTY, POPULATION_GAIN, estimate_label
-from core.analysis.values import analyse_volume, tidal_windows
 from core.io.session import SubjectRecord
 from core.limits import Refusal
 from core.pipeline.head_maps import use_threads
 from core.pipeline.live_checks import LiveOpticalChecks
 from core.reconstruction.binning import binned_head, working_binning
 from core.reconstruction.pipeline import HeadMap, HeadReconstructor, ReconstructionSettings
-from core.volume.flow_sensor import btps_factor, flow_sensor_volume
+from core.volume.flow_sensor import btps_factor
 from core.volume.metric import LiveMetricVolume
 from core.volume.sides import side_profile_mm
-from core.volume.subject_calibration import (MOUTHPIECE_OFF, REDO as CALIBRATION_REDO, SubjectCalibration,
-                                             fit_subject_calibration, regional_signals)
+from core.volume.subject_calibration import REDO as CALIBRATION_REDO, SubjectCalibration, regional_signals
 from drivers.camera import CameraError, Frame, capture_frames
-from drivers.flowsensor import FlowBlock
 from drivers.light_phase import LightPhaseError
 from drivers.recorder import Recorder, RecordSummary
 
@@ -48,7 +45,6 @@ log = logging.getLogger(__name__)
 CALIBRATION_WINDOW_S = 180.0  # the longest calibration through the flow sensor the live view can fit
 WORKER_NICENESS = 10
 SIMULATED_CAMERA_NICENESS = 14
-NO_LIMIT_NS = 2**63 - 1
 
 
 
@@ -59,7 +55,7 @@ class LiveRig:
         self.settings = settings or ReconstructionSettings(track=True)
         self._stop = threading.Event()
         self._lock = threading.Lock()
-        self._recorder: Recorder | None = None
+        self._recording: SubjectRecording | None = None
         self._buffers = {h: CycleBuffer(self.rig) for h in source.cameras}
         self._views = {h: HeadView() for h in source.cameras}
         self._rates = {h: Rate() for h in source.cameras}
@@ -77,11 +73,7 @@ class LiveRig:
         # for the subject's calibration through the flow sensor; the calibration once it is made
         self._regional_curve: collections.deque = collections.deque(
             maxlen=int(CALIBRATION_WINDOW_S * self.rig.frame_rate_hz / self.rig.cycle_length) + 10)
-        self._calibration = None
-        self._mouthpiece_off = False
-        self._mouthpiece_off_ns: int | None = None
         self._recent_flow: collections.deque = collections.deque(maxlen=9000)  # (arrival ns, block), ~90 s
-        self._blow_drift: tuple[int, float] | None = None  # (a blow's mark, the flow sensor's drift there, L/s)
         self._problems: list[str] = []
         self._t0: int | None = None
         self._latest_ns = 0
@@ -123,7 +115,7 @@ class LiveRig:
         self._threads.append(thread)
 
     def stop(self) -> RecordSummary | None:
-        summary = self.stop_recording() if self._recorder is not None else None
+        summary = self.stop_recording() if self._recording is not None else None
         self._stop.set()
         for buffer in self._buffers.values():
             buffer.wake()
@@ -187,131 +179,59 @@ class LiveRig:
             self.source.simulated.follow(subject.sex, subject.age_years, subject.height_cm, subject.weight_kg,
                                          subject.id)
         recorder.begin()
+        recording = SubjectRecording(recorder, self.source.flow_calibration, self._btps, self.source.flow is not None)
         with self._lock:
-            self._recorder = recorder
-            self._recorded_flow = FlowRecord()
-            self._recorded_events: list[tuple[int, str]] = []
-            self._calibration = None  # a new recording is a new subject's
-            self._mouthpiece_off = False
-            self._mouthpiece_off_ns: int | None = None
-            self._recorded_optical: list[tuple[int, float]] = []  # (stamp, calibrated litres) once calibrated
+            self._recording = recording  # a new recording is a new subject's: not calibrated
 
     def mark(self, label: str, stamp_ns: int | None = None) -> int:
         """A protocol event now (or at `stamp_ns`), on the session clock: the system's monotonic clock,
         which stamps frames and flow samples in every process (not the newest frame's time, which
         lags when capture falls behind)."""
         stamp = time.monotonic_ns() if stamp_ns is None else stamp_ns
-        with self._lock:
-            recorder = self._recorder
-        if recorder is not None:
-            recorder.submit_event(stamp, label)
-            with self._lock:
-                self._recorded_events.append((stamp, label))
-                if label == MOUTHPIECE_OFF:  # the flow sensor's samples end here
-                    self._mouthpiece_off = True
-                    self._mouthpiece_off_ns = stamp
+        recording = self._recording
+        if recording is not None:
+            recording.mark(stamp, label)
         return stamp
 
-    def calibrate_on_subject(self, start_ns: int):
-        """The subject's calibration (core/volume/subject_calibration.py) on the recording's flow sensor
-        volume and the live regional signals from `start_ns` (a mark) to now; the live volume takes it
-        when it is not refused. Returns the SubjectCalibration, refused or not."""
-        recorded = self._recorded_volume()
+    def calibrate_on_subject(self, start_ns: int) -> SubjectCalibration:
+        """The subject's calibration on the recording's flow sensor volume and the live regional signals
+        from `start_ns` (a mark) to now (SubjectRecording.calibrate); the live volume takes it when it
+        is not refused. Returns the SubjectCalibration, refused or not."""
         with self._lock:
             curve = list(self._regional_curve)
             t0 = self._t0
-        if recorded is None or t0 is None or not curve:
+            recording = self._recording
+        if recording is None:
             return SubjectCalibration({}, (0.0, 0.0), float("nan"), float("nan"), float("nan"),
-                                      refused=Refusal("calibration-no-signal", "no flow sensor volume or no optical "
-                                                      "signal recorded to calibrate on", CALIBRATION_REDO))
-        volume, start, _ = recorded
-        map_t = (t0 + np.array([t for t, _ in curve]) * 1e9 - start) / 1e9
-        names = list(curve[-1][1])
-        signals = {n: np.array([sig.get(n, np.nan) for _, sig in curve], dtype=float) for n in names}
-        flow_t = (volume.timestamp_ns - start) / 1e9
-        calibration = fit_subject_calibration(map_t, signals, flow_t, volume.volume_l,
-                                              ((start_ns - start) / 1e9, float(flow_t[-1])))
-        if "fit_t_s" in calibration.extra:  # the fitted curve on seconds from the mark, as blow_trace has them
-            calibration.extra["fit_t_s"] = calibration.extra["fit_t_s"] - (start_ns - start) / 1e9
-        with self._lock:
-            if calibration.refused is None:
-                self._calibration = calibration
-        return calibration
+                                      refused=Refusal("calibration-no-signal", "nothing is being recorded to "
+                                                      "calibrate on", CALIBRATION_REDO))
+        return recording.calibrate(start_ns, curve, t0)
 
     def flow_reaches(self, timestamp_ns: int) -> bool:
-        """Whether the volume the recording's values come from reaches `timestamp_ns` (_flow_until_ns)."""
-        with self._lock:
-            return self._flow_until_ns() >= timestamp_ns
+        """Whether the volume the recording's values come from reaches `timestamp_ns`
+        (SubjectRecording.flow_until_ns)."""
+        return self._flow_until_ns() >= timestamp_ns
 
     def _flow_until_ns(self) -> int:
-        """How far the volume the recording's values come from reaches: the flow sensor's samples, or
-        after `mouthpiece-off` the calibrated optical volume's maps (which lag the frames that stamp
-        the events by their reconstruction)."""
-        if self._mouthpiece_off and self._recorder is not None and self._calibration is not None:
-            return int(self._recorded_optical[-1][0]) if self._recorded_optical else 0
-        if self.source.flow is None or self._recorder is None or self._mouthpiece_off:
-            return NO_LIMIT_NS
-        return self._recorded_flow.last_ns
+        recording = self._recording
+        return recording.flow_until_ns() if recording is not None else NO_LIMIT_NS
 
     def recorded_values(self, age_years: float | None = None):
-        """The pulmonary function values of the recording so far, from the flow sensor, by the same
-        analysis as the report (core.analysis.values): for feedback after each manoeuvre. None without a
-        calibrated flow sensor."""
-        if self._mouthpiece_off:  # the cameras alone, through the subject's calibration
-            with self._lock:
-                optical = np.array(self._recorded_optical, dtype=float).reshape(-1, 2)
-                events = list(self._recorded_events)
-            if len(optical) < 10:
-                return None
-            start = int(optical[0, 0])
-            marks = sorted(((t - start) / 1e9, label) for t, label in events)
-            return analyse_volume((optical[:, 0] - start) / 1e9, optical[:, 1], marks, age_years, fitted=True)
-        recorded = self._recorded_volume()
-        if recorded is None:
-            return None
-        volume, start, marks = recorded
-        return analyse_volume((volume.timestamp_ns - start) / 1e9, volume.volume_l, marks, age_years)
-
-    def _recorded_volume(self):
-        """(the flow sensor's volume of the recording so far, its first stamp, the events in s from
-        it), with the drift removed as the report removes it; None without a calibrated flow sensor."""
-        if self.source.flow_calibration is None or self._recorder is None:
-            return None
-        with self._lock:
-            adc, stamps = self._recorded_flow.samples()
-            events = list(self._recorded_events)
-        if len(adc) < 2:
-            return None
-        start = int(stamps[0])
-        end_s = (int(stamps[-1]) - start) / 1e9
-        # the flow sensor's newest samples arrive a little after the frames that stamp the events
-        marks = sorted((min((t - start) / 1e9, end_s) if (t - start) / 1e9 - end_s < 0.5 else (t - start) / 1e9,
-                        label) for t, label in events)
-        gain, offset = self.source.flow_calibration
-        return flow_sensor_volume(adc, stamps, gain, offset, self._btps, tidal_windows(marks, end_s)), start, marks
+        """The pulmonary function values of the recording so far (SubjectRecording.values): for
+        feedback after each manoeuvre. None without a volume to read them from."""
+        recording = self._recording
+        return recording.values(age_years) if recording is not None else None
 
     def blow_trace(self, mark_ns: int, before_s: float = 2.5) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """The volume curves (s from the mark, L positive inhaled, BTPS) since `before_s` before a
-        manoeuvre's mark, for the forced-blow screen: the flow sensor's from the recording (about
-        100 samples a second; the sensor's drift as the report will remove it, taken once from the
-        recording up to the mark) and the optical metric volume."""
+        manoeuvre's mark, for the forced-blow screen: the flow sensor's from the recording
+        (SubjectRecording.flow_trace) and the optical metric volume."""
         out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        from_ns = mark_ns - int(before_s * 1e9)
-        if self._blow_drift is None or self._blow_drift[0] != mark_ns:
-            recorded = self._recorded_volume()
-            self._blow_drift = (mark_ns, float(recorded[0].drift_lps[-1]) if recorded is not None else 0.0)
+        recording = self._recording
+        if recording is not None and (flow := recording.flow_trace(mark_ns, before_s)) is not None:
+            out["flow sensor"] = flow
         with self._lock:
-            adc, stamps = self._recorded_flow.samples() if self._recorder is not None else (np.zeros(0), np.zeros(0))
             metric = np.array(self._metric_curve, dtype=float).reshape(-1, 2)
-        if self.source.flow_calibration is not None and len(stamps):
-            keep = stamps >= from_ns
-            adc, stamps = adc[keep], stamps[keep]
-            if len(stamps) > 20:
-                gain, offset = self.source.flow_calibration
-                drift = self._blow_drift[1]
-                volume = flow_sensor_volume(adc, stamps, gain, offset - drift / self._btps, self._btps, drift_degree=0)
-                step = max(1, len(stamps) // max(1, int((stamps[-1] - stamps[0]) / 1e7)))  # about 100 per second
-                out["flow sensor"] = ((volume.timestamp_ns[::step] - mark_ns) / 1e9, volume.volume_l[::step])
         if self._t0 is not None and len(metric):
             t = metric[:, 0] - (mark_ns - self._t0) / 1e9
             keep = t >= -before_s
@@ -319,17 +239,17 @@ class LiveRig:
         return out
 
     def stop_recording(self) -> RecordSummary:
-        with self._lock:
-            recorder, self._recorder = self._recorder, None
-            self._calibration = None  # the subject's: whoever stands in the rig next is not calibrated
-        if recorder is None:
+        with self._lock:  # the calibration was the subject's: whoever stands in the rig next is not calibrated
+            recording, self._recording = self._recording, None
+        if recording is None:
             raise ValueError("not recording")
+        recorder = recording.recorder
         return recorder.end({h: c.stats for h, c in recorder.cameras.items()},
                             int(getattr(self.source.flow, "lost_samples", 0)) if self.source.flow else 0)
 
     @property
     def recording(self) -> bool:
-        return self._recorder is not None
+        return self._recording is not None
 
     @property
     def checks(self) -> LiveOpticalChecks:
@@ -347,9 +267,9 @@ class LiveRig:
         self._latest_ns = max(self._latest_ns, frame.timestamp_ns)
         if self._t0 is None:
             self._t0 = frame.timestamp_ns
-        recorder = self._recorder
-        if recorder is not None and head in recorder.cameras:
-            recorder.submit_frame(head, frame)
+        recording = self._recording
+        if recording is not None and head in recording.recorder.cameras:
+            recording.recorder.submit_frame(head, frame)
         self._rates[head].tick()
         try:
             self.source.lights.observe(head, frame.frame_id, frame.image)
@@ -364,16 +284,9 @@ class LiveRig:
                 block = self.source.flow.read()
                 if len(block.adc):
                     self._recent_flow.append((time.monotonic_ns(), block))
-                    recorder = self._recorder
-                    off_ns = self._mouthpiece_off_ns
-                    if recorder is not None and off_ns is not None:  # what came before the mouthpiece came off
-                        before = block.timestamp_ns <= off_ns
-                        block = FlowBlock(block.adc[before], block.counter[before], block.timestamp_ns[before],
-                                          block.lost if before.any() else 0)
-                    if recorder is not None and len(block.adc):
-                        recorder.submit_flow(block)
-                        with self._lock:
-                            self._recorded_flow.append(block)
+                    recording = self._recording
+                    if recording is not None:
+                        recording.take_flow(block)
                     if gain is not None:
                         self._flow_display.add(block, gain, offset, self._t0)
                 time.sleep(0.01)
@@ -426,18 +339,20 @@ class LiveRig:
             self._gradient[head] = float(result.gradient_volume)
             if head == next(iter(self.source.cameras)) and t_s is not None:  # one clock for the curves
                 self._optical.append((t_s, sum(self._gradient.values())))
+                recording = self._recording
+                calibration = recording.calibration if recording is not None else None
                 regions = self._metric.head_regions()
                 if regions:
                     signals = regional_signals(regions)
                     self._regional_curve.append((t_s, signals))
-                    if self._calibration is not None:
-                        litres = float(self._calibration.volume_l(signals))
-                if self._calibration is None:
+                    if calibration is not None:
+                        litres = float(calibration.volume_l(signals))
+                if calibration is None:
                     litres *= POPULATION_GAIN
                 if np.isfinite(litres):
                     self._metric_curve.append((t_s, litres))
-                    if self._recorder is not None and self._calibration is not None:
-                        self._recorded_optical.append((stamp, litres))
+                    if calibration is not None:
+                        recording.take_optical(stamp, litres)
 
     def _look(self, head: str, t_s: float, result: HeadMap, reconstructor: HeadReconstructor, cycle: tuple) -> None:
         """What `process` checks on a map made at the geometric distance: its sides along the height
@@ -469,10 +384,11 @@ class LiveRig:
             optical = np.array(self._optical, dtype=float).reshape(-1, 2)
             flow = self._flow_display.curve()
             metric = np.array(self._metric_curve, dtype=float).reshape(-1, 2)
-            recorder = self._recorder
+            recording = self._recording
+            recorder = recording.recorder if recording is not None else None
             problems = list(self._problems) + (recorder.problems if recorder is not None else [])
             flow_until = self._flow_until_ns()
-            calibration = self._calibration
+            calibration = recording.calibration if recording is not None else None
         snapshot = Snapshot(heads, optical[:, 0], optical[:, 1], flow[:, 0], flow[:, 1],
                             recorder.path if recorder is not None else None,
                             recorder.frames_written() if recorder is not None else {},
