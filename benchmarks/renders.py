@@ -24,7 +24,7 @@ from typing import Callable
 
 MARK = "rendered.json"
 # what sets a rendered session besides its arguments: the simulator, the rig and the file it writes
-SIMULATOR_SOURCES = ("core/sim", "core/rig.py", "core/io/session.py", "core/io/outputs.py")
+SIMULATOR_SOURCES = ("core/sim", "core/rig.py", "core/io/session.py", "core/io/errors.py", "core/io/outputs.py")
 
 
 # what sets a light calibration besides its sphere sessions: the calibration, the reconstruction it runs

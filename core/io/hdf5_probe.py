@@ -15,7 +15,7 @@ from pathlib import Path
 
 import h5py
 
-from core.io.session import SessionError
+from core.io.errors import SessionError
 
 PROBE_TIMEOUT_S = 20.0
 _probed: set[tuple[str, int, int]] = set()

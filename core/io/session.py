@@ -21,6 +21,10 @@ import hdf5plugin  # noqa: F401  (registers the Blosc filters: frames recorded c
 import numpy as np
 
 from core import __version__
+from core.io.errors import SessionError
+from core.io.hdf5_probe import probe
+from core.io.plausibility import (flow_gaps, flow_refusal, frame_gaps_in_manoeuvres, gaps_in_manoeuvres,
+                                  head_intrinsics_problems)
 from core.rig import DARK, Head, Rig, light_position_problems
 
 FORMAT = "photopft-session"
@@ -29,10 +33,6 @@ KINDS = ("patient", "sphere-calibration", "flow-calibration", "simulation")
 SOFTWARE = f"photopft {__version__}"
 HEAD_NAMES = ("front", "back")
 SEXES = ("male", "female")
-
-
-class SessionError(Exception):
-    """A session file that cannot be read or written as the spec says; the message names the item."""
 
 
 def now_iso() -> str:
@@ -811,9 +811,6 @@ def _check_truth(c: _Checker, f: h5py.File, heads: dict[str, tuple[int, int, int
 def session_plausibility(path: str | os.PathLike) -> list[str]:
     """What in a session that follows the format no instrument could have recorded (core/io/plausibility.py):
     each problem refuses the values it touches, not the session. Call on a file validate_session passes."""
-    from core.io.plausibility import (flow_gaps, flow_refusal, frame_gaps_in_manoeuvres, gaps_in_manoeuvres,
-                                      head_intrinsics_problems)
-
     problems = []
     with SessionFile(path, check=False) as s:
         for name, head in s.rig.heads.items():
@@ -836,8 +833,6 @@ def session_plausibility(path: str | os.PathLike) -> list[str]:
 
 def validate_session(path: str | os.PathLike) -> list[str]:
     """Every way the file departs from the spec, each naming the item; empty when it conforms."""
-    from core.io.hdf5_probe import probe
-
     path = Path(path)
     if not path.exists():
         return [f"{path}: no such file"]
