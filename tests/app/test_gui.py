@@ -4,13 +4,14 @@ rig: the live view, replay, each wizard page by page, a whole patient session, e
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import replace
 from functools import partial
 
 import numpy as np
 import pytest
 from PySide6.QtCore import QTimer
-from PySide6.QtWidgets import QApplication, QWizard
+from PySide6.QtWidgets import QApplication, QMessageBox, QWizard
 
 from app.gui.main_window import MainWindow
 from app.engine.process import EngineProcess
@@ -21,13 +22,16 @@ from core.io.session import SessionFile, validate_session
 pytestmark = pytest.mark.slow
 
 
-def _close_when_shown(qtbot, seen: list[str]):
-    """Close the next modal dialog (an error message) and keep its text."""
+def _close_when_shown(qtbot, seen: list[str], within_s: float = 60.0):
+    """Close the next message box shown within `within_s` (an error message) and keep its text; a test
+    whose message never came leaves no timer behind to close another test's dialog."""
+    deadline = time.monotonic() + within_s
 
     def close() -> None:
         dialog = QApplication.activeModalWidget()
-        if dialog is None:
-            QTimer.singleShot(50, close)
+        if not isinstance(dialog, QMessageBox):
+            if time.monotonic() < deadline:
+                QTimer.singleShot(50, close)
             return
         seen.append(dialog.text() + " " + dialog.informativeText())
         dialog.close()
