@@ -103,6 +103,23 @@ def _config(subject: VirtualSubject, scale: float, world: str = WORLD, **changes
                    **changes)
 
 
+def session_config(subject: VirtualSubject, scale: float, world: str, protocol: str, seconds: float | None):
+    """The subject's session as the bench renders it: its standard blow, its breathing's variability, and
+    written as the recorder writes (Blosc LZ4, bit-shuffle): a subject's short protocol at the camera's
+    full 1400 x 1024 is about 40 GB of raw frames, 17 GB compressed (docs/benchmarks.md, Compression)."""
+    from core.analysis.spirometry import read_waveform
+    from core.sim.breathing import ForcedBlow, standard_curve
+
+    blows = None
+    if subject.standard is not None:
+        standard = read_waveform(subject.standard)
+        curve = standard_curve(standard.volume_l, standard.rate_hz)
+        blows = [ForcedBlow(effort=e, standard=curve) for e in (1.0, 0.97, 1.02)]
+    config = _config(subject, scale, world, protocol=protocol, seconds=seconds, distance_mm=subject.distance_mm,
+                     distance_back_mm=subject.distance_mm, blows=blows, compression=RECORDING_COMPRESSION)
+    return replace(config, subject=replace(config.subject, rate_variability=0.15, sigh_every=12))
+
+
 def population_body(name: str, seed: int):
     """A subject's body: a preset as it is, a random body with its arms held away from the trunk, as the
     guided session's positioning tells every patient (issue 74)."""
@@ -283,9 +300,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     from core.io.session import SessionFile
     from core.analysis.session_analysis import analyse_session
     from core.sim.truth import truth_values
-    from core.sim.breathing import ForcedBlow, standard_curve
     from core.sim.simulate import simulate
-    from core.analysis.spirometry import read_waveform
     from core.calibration.rig_profile import ProfileError, load_profile
     from core.analysis.optical_litres import CALIBRATED
 
@@ -319,17 +334,8 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     for name, head in thesis_rig(scale).heads.items():  # lights in mm: the profile serves the subject's pixels too
         calibration.heads[name].extra.update(width=head.width, height=head.height)
     started = time.perf_counter() - sum(stages.values())
-    blows = None
-    if subject.standard is not None:
-        standard = read_waveform(subject.standard)
-        curve = standard_curve(standard.volume_l, standard.rate_hz)
-        blows = [ForcedBlow(effort=e, standard=curve) for e in (1.0, 0.97, 1.02)]
     session, results = work / f"{subject.index}-session.h5", work / f"{subject.index}-results.h5"
-    # written as the recorder writes (Blosc LZ4, bit-shuffle): a subject's short protocol at the camera's
-    # full 1400 x 1024 is about 40 GB of raw frames, 17 GB compressed (docs/benchmarks.md, Compression)
-    config = _config(subject, scale, world, protocol=protocol, seconds=seconds, distance_mm=subject.distance_mm,
-                     distance_back_mm=subject.distance_mm, blows=blows, compression=RECORDING_COMPRESSION)
-    config = replace(config, subject=replace(config.subject, rate_variability=0.15, sigh_every=12))
+    config = session_config(subject, scale, world, protocol, seconds)
     if renders is not None:
         what = {"kind": "session", "subject": _render_subject(subject), "scale": scale, "world": world,
                 "protocol": protocol, "seconds": seconds, "config": _config_digest(config)}

@@ -1,0 +1,34 @@
+"""photopft bench visible: the share of a breath the heads see, read on true maps of both populations."""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks.visible import SIGNALS, VisibleRow, visible_table
+
+pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
+
+
+def test_the_table_gives_each_body_its_shares_and_each_population_its_range():
+    shares = {s: {"front": 0.6, "back": 0.2, "both": 0.8} for s in SIGNALS}
+    low = {s: {"front": 0.3, "back": 0.1, "both": 0.4} for s in SIGNALS}
+    rows = [VisibleRow("parametric", "random", 4.0, shares, 1.0), VisibleRow("mesh", "mesh:101000", 5.0, shares, 1.0),
+            VisibleRow("mesh", "mesh:101001", 3.0, low, 1.0)]
+    text = visible_table(rows)
+    assert "| mesh | mesh:101001 | 3.00 | 0.30, 0.10, **0.40** |" in text
+    assert "- mesh (2 bodies), both heads: plain 0.60 (0.40 to 0.80)" in text
+    assert "- parametric (1 bodies), both heads: plain 0.80 (0.80 to 0.80)" in text
+
+
+def test_the_heads_see_most_of_a_breath_but_not_the_flanks_on_either_population(capsys):
+    from app.cli import main
+
+    assert main(["bench", "visible", "--subjects", "1", "--scale", "0.1", "--no-write"]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith(("- parametric", "- mesh"))]
+    assert len(lines) == 2
+    for line in lines:
+        plain = float(line.split("plain ")[1].split(" ")[0])
+        assert 0.6 < plain < 1.0, line  # the flanks move too: never the whole breath, never a small part of it
+    parametric = lines[0]
+    levelled = float(parametric.split("; levelled ")[1].split(" ")[0])
+    assert abs(levelled - float(parametric.split("plain ")[1].split(" ")[0])) < 0.15  # the level keeps its breath
