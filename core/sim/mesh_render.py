@@ -2,9 +2,12 @@
 core/sim/render.py (the same LEDs, skin reflectance, sensor noise and digitisation).
 
 Each frame, every triangle facing the camera is met by the rays of the pixels its projection may
-cover (Moller-Trumbore; the nearest hit wins), then each pixel is shaded with the normal
-interpolated from the vertices' (Phong). The height-field renderer knows nothing of this one: a body
-rendered here has flanks, arms and a neck as a mesh has them.
+cover (Moller-Trumbore; the nearest hit wins), then each pixel is shaded with its triangle's own
+normal: the surface the pixel's depth lies on. Normals interpolated from the vertices' (Phong) are
+smooth, but disagree with the flat triangles' depth by millimetres near the silhouette, where
+breathing slides the contour across them: integrated, they kept -0.19 to 0.24 of a mesh body's
+breath where its depth kept 0.37-0.64 (`bench visible`, docs/simulator.md). The height-field
+renderer knows nothing of this one: a body rendered here has flanks, arms and a neck as a mesh has them.
 """
 
 from __future__ import annotations
@@ -34,6 +37,22 @@ def vertex_normals(verts, quads, out):
         n = np.sqrt(out[v, 0] ** 2 + out[v, 1] ** 2 + out[v, 2] ** 2)
         if n > 0.0:
             out[v] /= n
+
+
+@njit(cache=True, nogil=True)
+def face_normals(verts, tris, out):
+    """Each triangle's unit normal by its winding (outward on the closed mesh)."""
+    for t in range(tris.shape[0]):
+        a, b, c = verts[tris[t, 0]], verts[tris[t, 1]], verts[tris[t, 2]]
+        e1x, e1y, e1z = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        e2x, e2y, e2z = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+        nx = e1y * e2z - e1z * e2y
+        ny = e1z * e2x - e1x * e2z
+        nz = e1x * e2y - e1y * e2x
+        n = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if n > 0.0:
+            nx, ny, nz = nx / n, ny / n, nz / n
+        out[t, 0], out[t, 1], out[t, 2] = nx, ny, nz
 
 
 @njit(cache=True, nogil=True, fastmath=_FAST)
@@ -97,26 +116,31 @@ def rasterise(verts, tris, ray_u, ray_v, fx, fy, cx, cy, margin, depth, tri_id, 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=_FAST)
 def shade(out, depth, tri_id, bary, tris, normals, ray_u, ray_v, vignette, albedo, spec, shin, light, lit,
-          gain, ambient_e, background_e, read_e, dn_per_e, max_dn, key0, want_maps, depth_out, normal_out):
+          gain, ambient_e, background_e, read_e, dn_per_e, max_dn, key0, want_maps, depth_out, normal_out,
+          per_face=False):
     """Each pixel's grey level: the hit point's radiance under `light` (when `lit`) and the room's,
-    or the background; noise and digitisation as core/sim/render.py."""
+    or the background; noise and digitisation as core/sim/render.py. `normals`: the triangles' own
+    (per_face, face_normals) or the vertices', interpolated (vertex_normals)."""
     height, width = out.shape
     for i in prange(height):
         for j in range(width):
             t = tri_id[i, j]
             key = key0 + np.uint64(i * width + j)
             if t >= 0:
-                w1 = bary[i, j, 0]
-                w2 = bary[i, j, 1]
-                w0 = 1.0 - w1 - w2
-                n0, n1, n2 = normals[tris[t, 0]], normals[tris[t, 1]], normals[tris[t, 2]]
-                nx = w0 * n0[0] + w1 * n1[0] + w2 * n2[0]
-                ny = w0 * n0[1] + w1 * n1[1] + w2 * n2[1]
-                nz = w0 * n0[2] + w1 * n1[2] + w2 * n2[2]
-                norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-                nx /= norm
-                ny /= norm
-                nz /= norm
+                if per_face:
+                    nx, ny, nz = normals[t, 0], normals[t, 1], normals[t, 2]
+                else:
+                    w1 = bary[i, j, 0]
+                    w2 = bary[i, j, 1]
+                    w0 = 1.0 - w1 - w2
+                    n0, n1, n2 = normals[tris[t, 0]], normals[tris[t, 1]], normals[tris[t, 2]]
+                    nx = w0 * n0[0] + w1 * n1[0] + w2 * n2[0]
+                    ny = w0 * n0[1] + w1 * n1[1] + w2 * n2[1]
+                    nz = w0 * n0[2] + w1 * n1[2] + w2 * n2[2]
+                    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+                    nx /= norm
+                    ny /= norm
+                    nz /= norm
                 z = depth[i, j]
                 px = z * ray_u[i, j]
                 py = z * ray_v[i, j]

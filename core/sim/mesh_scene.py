@@ -16,7 +16,7 @@ from core.sim.breathing import RATE_HZ, Waveform
 from core.sim.makehuman import MeshBody, MeshData, triangles
 from core.sim.mesh_breathing import (MODES, VolumePolynomial, amplitudes_for, breathing_modes, chest_share_curve,
                                      trunk_frame)
-from core.sim.mesh_render import distortion_margin_px, rasterise, shade, vertex_normals
+from core.sim.mesh_render import distortion_margin_px, face_normals, rasterise, shade
 from core.sim.render import pack_lights
 from core.sim.scene import Digitiser, RenderedMaps, Scene, _empty_maps, _Optics
 
@@ -27,7 +27,6 @@ class MeshScene(Scene):
                  shininess: float = 20.0) -> None:
         verts = body.vertices_mm(data)
         self.body = body
-        self.quads = np.ascontiguousarray(data.quads)
         self.tris = np.ascontiguousarray(triangles(data.quads))
         self.modes = breathing_modes(verts, data, body)
         self.polynomial = VolumePolynomial.fit(verts, self.tris, self.modes)
@@ -54,7 +53,7 @@ class MeshScene(Scene):
         self._flow_lps = np.gradient(self._volume_l) * RATE_HZ
         self._optics = _Optics()
         self._margins: dict[str, float] = {}
-        self._normals = np.empty_like(verts)
+        self._normals = np.empty((len(self.tris), 3))
         self.root_attrs = {"simulated_scene": "torso", "simulated_body": body.name, "compartments": ",".join(MODES)}
 
     def sway_mm(self, t_s: np.ndarray) -> np.ndarray:
@@ -75,7 +74,7 @@ class MeshScene(Scene):
         else:  # the back camera looks back along the axis from the baseline
             camera = np.column_stack([-world[:, 0], world[:, 1], self.baseline_mm - world[:, 2]])
         camera = np.ascontiguousarray(camera)
-        vertex_normals(camera, self.quads, self._normals)
+        face_normals(camera, self.tris, self._normals)
         u, v, vignette = self._optics.of(head)
         margin = self._margin(head, u, v)
         depth = np.empty(head.shape)
@@ -86,7 +85,7 @@ class MeshScene(Scene):
         depth_out, normal_out = _empty_maps(head, want_maps)
         shade(out, depth, tri_id, bary, self.tris, self._normals, u, v, vignette, self.albedo, self.specular,
               self.shininess, pack_lights(head)[max(light, 0)], light >= 0, *digitiser.args(), key, want_maps,
-              depth_out, normal_out)
+              depth_out, normal_out, True)
         return out, (RenderedMaps(depth_out, normal_out) if want_maps else None)
 
     def _margin(self, head: Head, u: np.ndarray, v: np.ndarray) -> float:
