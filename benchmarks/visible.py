@@ -132,7 +132,27 @@ def visible_table(rows: list[VisibleRow]) -> str:
         both = {s: np.array([r.shares[s]["both"] for r in rows if r.population == population]) for s in SIGNALS}
         lines.append(f"- {population} ({len(both[SIGNALS[0]])} bodies), both heads: " + "; ".join(
             f"{s} {b.mean():.2f} ({b.min():.2f} to {b.max():.2f})" for s, b in both.items()))
+    from core.analysis.optical_litres import ESTIMATE_UNCERTAINTY, POPULATION_GAIN
+
+    errors = estimate_errors(rows)
+    lines.append("")
+    lines.append(f"An uncalibrated estimate (the levelled, integrated signal times POPULATION_GAIN {POPULATION_GAIN:.2f}) "
+                 "would read, before any noise or reconstruction error: " + "; ".join(
+                     f"{p} {100 * e.min():+.0f} to {100 * e.max():+.0f} %" for p, e in errors.items())
+                 + f". The largest, {100 * max(np.abs(e).max() for e in errors.values()):.0f} %, is the least "
+                 f"uncertainty an estimate can be printed with (ESTIMATE_UNCERTAINTY {100 * ESTIMATE_UNCERTAINTY:.0f} %).")
     return "\n".join(lines)
+
+
+def estimate_errors(rows: list[VisibleRow]) -> dict[str, np.ndarray]:
+    """Per population, each body's error of the uncalibrated estimate on its true surfaces: the
+    levelled, integrated share times POPULATION_GAIN, less one."""
+    from core.analysis.optical_litres import POPULATION_GAIN
+
+    out: dict[str, list[float]] = {}
+    for row in rows:
+        out.setdefault(row.population, []).append(POPULATION_GAIN * row.shares["levelled, integrated"]["both"] - 1.0)
+    return {p: np.array(e) for p, e in out.items()}
 
 
 def run_visible_bench(subjects: int, scale: float, seed: int, world: str) -> tuple[str, list[VisibleRow]]:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from benchmarks.visible import SIGNALS, VisibleRow, visible_table
+from benchmarks.visible import SIGNALS, VisibleRow, estimate_errors, visible_table
+from core.analysis.optical_litres import ESTIMATE_UNCERTAINTY, POPULATION_GAIN
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 
@@ -18,13 +19,19 @@ def test_the_table_gives_each_body_its_shares_and_each_population_its_range():
     assert "| mesh | mesh:101001 | 3.00 | 0.30, 0.10, **0.40** |" in text
     assert "- mesh (2 bodies), both heads: plain 0.60 (0.40 to 0.80)" in text
     assert "- parametric (1 bodies), both heads: plain 0.80 (0.80 to 0.80)" in text
+    errors = estimate_errors(rows)
+    assert errors["mesh"] == pytest.approx([POPULATION_GAIN * 0.8 - 1, POPULATION_GAIN * 0.4 - 1])
+    assert f"mesh {100 * (POPULATION_GAIN * 0.4 - 1):+.0f} to {100 * (POPULATION_GAIN * 0.8 - 1):+.0f} %" in text
 
 
 def test_the_heads_see_most_of_a_breath_but_not_the_flanks_on_either_population(capsys):
     from app.cli import main
 
     assert main(["bench", "visible", "--subjects", "1", "--scale", "0.1", "--no-write"]) == 0
-    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith(("- parametric", "- mesh"))]
+    out = capsys.readouterr().out
+    largest = float(out.split("The largest, ")[1].split(" %")[0])
+    assert largest <= 100 * ESTIMATE_UNCERTAINTY  # the estimate is never printed surer than it measures
+    lines = [line for line in out.splitlines() if line.startswith(("- parametric", "- mesh"))]
     assert len(lines) == 2
     for line in lines:
         plain = float(line.split("plain ")[1].split(" ")[0])
