@@ -41,8 +41,9 @@ def forced_feedback(values: SessionValues, count: int, age_years: float | None) 
     """After blow number `count` (the blows kept so far)."""
     grade = values.forced
     if grade is None:
-        return Feedback(f"Blow {count}: not analysable ({'; '.join(values.problems[-1:])}); do another.",
-                        count >= MAX_BLOWS)
+        why = [p for p in values.problems if p.startswith("forced expiration")][-1:] or values.problems[-1:]
+        return Feedback(f"Blow {count}: not analysable ({'; '.join(why) or 'no forced expiration found'}); "
+                        "do another.", count >= MAX_BLOWS)
     last = grade.manoeuvres[-1]
     verdict = "acceptable" if last.fvc_acceptable else ("FEV1 acceptable" if last.fev1_acceptable
                                                         else "not acceptable")

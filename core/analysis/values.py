@@ -381,6 +381,17 @@ def _windows(events: list[tuple[float, str]], start_label: str,
 
 
 MANOEUVRE_STARTS = ("tidal-start", "vc-start", "forced-start")
+# Fewest volume samples a slow VC or a forced expiration's lead-in is read from, and a blow from its top
+MIN_MANOEUVRE_SAMPLES = 10
+MIN_BLOW_SAMPLES = 20
+
+
+def too_few_samples(what: str, at_s: float, samples: int, span_s: float, needed: int = MIN_MANOEUVRE_SAMPLES,
+                    where: str = "") -> str:
+    """Why a manoeuvre was not read: the volume came too sparsely (a slow stream of maps, or maps left out)."""
+    place = f" {where}" if where else ""
+    return (f"{what} at {at_s:.1f} s: {samples} volume sample(s) in its {span_s:.1f} s{place}, at least {needed} "
+            "needed; the maps came too slowly or were left out")
 
 
 def _rejected(events: list[tuple[float, str]], end: float) -> bool:
@@ -452,7 +463,8 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
 
     for a, b in vc_windows:
         inside = (t >= a) & (t <= b + 0.5)
-        if inside.sum() < 10:
+        if inside.sum() < MIN_MANOEUVRE_SAMPLES:
+            result.problems.append(too_few_samples("slow VC", a, int(inside.sum()), b + 0.5 - a))
             continue
         note_missing("slow VC", a, a, b + 0.5)
         if not np.all(np.isfinite(v[inside])):
@@ -478,7 +490,8 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         # The blow starts from the full inspiration (TLC): the highest volume from just before the
         # operator's mark (marked at the blow) to the manoeuvre's end (marked at the inspiration).
         before = (t >= a - 2.0) & (t <= b)
-        if before.sum() < 10:
+        if before.sum() < MIN_MANOEUVRE_SAMPLES:
+            result.problems.append(too_few_samples("forced expiration", a, int(before.sum()), b + 2.0 - a))
             continue
         if not np.all(np.isfinite(v[(t >= a - 2.0) & (t <= b + 0.5)])):
             result.problems.append(f"forced expiration at {a:.1f} s: the curve holds non-finite samples (NaN or "
@@ -487,7 +500,9 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         i_top = int(np.nonzero(before)[0][np.argmax(v[before])])
         stop = min(b + 0.5, end_s)
         blow = (t >= t[i_top]) & (t <= stop)
-        if blow.sum() < 20:
+        if blow.sum() < MIN_BLOW_SAMPLES:
+            result.problems.append(too_few_samples("forced expiration", a, int(blow.sum()), stop - t[i_top],
+                                                   MIN_BLOW_SAMPLES, "after its full inspiration"))
             continue
         note_missing("forced expiration", a, a - 2.0, b + 0.5)
         missing_near_peak = bool(np.any((missing_t >= t[i_top]) & (missing_t <= t[i_top] + PEAK_FLOW_WITHIN_S)))

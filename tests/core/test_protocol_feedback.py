@@ -31,3 +31,19 @@ def test_tidal_breathing_goes_on_while_breaths_are_too_few():
     assert tidal_extension_s(5, 0.0) == 0.0
     assert tidal_extension_s(None, 0.0) == 0.0  # no flow sensor: counted when processed
     assert tidal_extension_s(2, MAX_TIDAL_EXTENSION_S) == 0.0
+
+
+def test_a_blow_sampled_too_sparsely_says_why_it_was_not_read():
+    """A renderer or a stream that falls behind gives a blow a few volume samples: the operator is told
+    that, not an empty reason."""
+    w = protocol_waveform(Subject(), "full", None, 1)
+    t = np.arange(len(w.volume_l)) / RATE_HZ
+    blows = [(at, label) for at, label in w.events if label == "forced-start"]
+    sparse = np.ones(len(t), dtype=bool)
+    for at, _ in blows:  # one sample every 0.5 s from 2 s before each blow to 8 s after
+        near = (t >= at - 2.0) & (t <= at + 8.0)
+        sparse[near] = np.isclose((t[near] - at) % 0.5, 0.0, atol=0.5 / RATE_HZ)
+    values = analyse_volume(t[sparse], w.volume_l[sparse], w.events, 40.0)
+    assert values.forced is None
+    feedback = forced_feedback(values, 1, 40.0)
+    assert "volume sample(s)" in feedback.text and "too slowly" in feedback.text and "()" not in feedback.text
