@@ -27,7 +27,6 @@ from app.engine.recording import NO_LIMIT_NS, SubjectRecording
 from app.engine.sources import Source
 from core.analysis.optical_litres import ESTIMATE_UNCERTAINTY, POPULATION_GAIN, estimate_label
 from core.io.session import SubjectRecord
-from core.limits import Refusal
 from core.pipeline.head_maps import use_threads
 from core.pipeline.live_checks import LiveOpticalChecks
 from core.reconstruction.binning import binned_head, working_binning
@@ -35,7 +34,7 @@ from core.reconstruction.pipeline import HeadMap, HeadReconstructor, Reconstruct
 from core.volume.flow_sensor import btps_factor
 from core.volume.metric import LiveMetricVolume
 from core.volume.sides import side_profile_mm
-from core.volume.subject_calibration import REDO as CALIBRATION_REDO, SubjectCalibration, regional_signals
+from core.volume.subject_calibration import SubjectCalibration, regional_signals
 from drivers.camera import CameraError, Frame, capture_frames
 from drivers.light_phase import LightPhaseError
 from drivers.recorder import Recorder, RecordSummary
@@ -202,9 +201,7 @@ class LiveRig:
             t0 = self._t0
             recording = self._recording
         if recording is None:
-            return SubjectCalibration({}, (0.0, 0.0), float("nan"), float("nan"), float("nan"),
-                                      refused=Refusal("calibration-no-signal", "nothing is being recorded to "
-                                                      "calibrate on", CALIBRATION_REDO))
+            return SubjectCalibration.refused_for("calibration-no-signal", "nothing is being recorded to calibrate on")
         return recording.calibrate(start_ns, curve, t0)
 
     def flow_reaches(self, timestamp_ns: int) -> bool:

@@ -11,10 +11,8 @@ import numpy as np
 
 from app.engine.flow_record import FlowRecord
 from core.analysis.values import analyse_volume, tidal_windows
-from core.limits import Refusal
 from core.volume.flow_sensor import flow_sensor_volume
-from core.volume.subject_calibration import (MOUTHPIECE_OFF, REDO as CALIBRATION_REDO, SubjectCalibration,
-                                             fit_subject_calibration)
+from core.volume.subject_calibration import MOUTHPIECE_OFF, SubjectCalibration, fit_subject_calibration
 from drivers.flowsensor import FlowBlock
 from drivers.recorder import Recorder
 
@@ -85,9 +83,8 @@ class SubjectRecording:
         mark) to now; kept for the live volume when it is not refused."""
         recorded = self.flow_volume()
         if recorded is None or t0_ns is None or not curve:
-            return SubjectCalibration({}, (0.0, 0.0), float("nan"), float("nan"), float("nan"),
-                                      refused=Refusal("calibration-no-signal", "no flow sensor volume or no optical "
-                                                      "signal recorded to calibrate on", CALIBRATION_REDO))
+            return SubjectCalibration.refused_for("calibration-no-signal", "no flow sensor volume or no optical "
+                                                  "signal recorded to calibrate on")
         volume, start, _ = recorded
         map_t = (t0_ns + np.array([t for t, _ in curve]) * 1e9 - start) / 1e9
         names = list(curve[-1][1])

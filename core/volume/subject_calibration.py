@@ -87,6 +87,13 @@ class SubjectCalibration:
     def label(self) -> str:
         return f"optical, calibrated on the subject (residual {1000 * self.residual_l:.0f} mL)"
 
+    @classmethod
+    def refused_for(cls, code: str, reason: str, names: tuple[str, ...] = (),
+                    segment_s: tuple[float, float] = (0.0, 0.0)) -> SubjectCalibration:
+        """A calibration that gave no fit: its gains NaN, why, and what the operator should do (REDO)."""
+        return cls({n: float("nan") for n in names}, segment_s, float("nan"), float("nan"), float("nan"),
+                   refused=Refusal(code, reason, REDO))
+
 
 # Maps further apart than this (a step or an arm left them out: core/volume/steps.py) start a new stretch
 # with its own offset in the fit: the optical signal's level across such a gap is not known (a mesh
@@ -141,8 +148,8 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
     inside &= (t >= flow_t[0]) & (t <= flow_t[-1]) if len(flow_t) else np.zeros(len(t), bool)
     empty = SubjectCalibration({n: float("nan") for n in names}, segment_s, float("nan"), float("nan"), float("nan"))
     if not names:
-        empty.refused = Refusal("calibration-no-signal", "no regional optical signal to calibrate", REDO)
-        return empty
+        return SubjectCalibration.refused_for("calibration-no-signal", "no regional optical signal to calibrate",
+                                              segment_s=segment_s)
     if inside.sum() < MIN_FIT_MAPS:
         empty.refused = Refusal("calibration-few-maps", f"only {int(inside.sum())} maps with every region in "
                                 f"view during the calibration (at least {MIN_FIT_MAPS}): the trunk hidden or the "

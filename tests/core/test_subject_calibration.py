@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.volume.subject_calibration import (MAX_RESIDUAL_SHARE, MOUTHPIECE_OFF, calibration_segment,
-                                             fit_subject_calibration, regional_signals)
+from core.volume.subject_calibration import (MAX_RESIDUAL_SHARE, MOUTHPIECE_OFF, REDO, SubjectCalibration,
+                                             calibration_segment, fit_subject_calibration, regional_signals)
 
 RATE_HZ = 22.0
 
@@ -106,3 +106,12 @@ def test_a_step_s_offset_in_the_optical_signal_is_not_taken_for_breath():
     assert calibration.refused is None, calibration.refused
     assert calibration.gains["front chest"] == pytest.approx(1.2, rel=0.01)
     assert calibration.residual_l < 0.005
+
+
+def test_nothing_to_calibrate_on_is_refused_with_what_to_do():
+    t = np.linspace(0.0, 30.0, 300)
+    calibration = fit_subject_calibration(t, {}, t, np.sin(t), (0.0, 30.0))
+    assert calibration.refused.code == "calibration-no-signal" and calibration.refused.action == REDO
+    assert calibration.segment_s == (0.0, 30.0) and np.isnan(calibration.residual_l)
+    live = SubjectCalibration.refused_for("calibration-no-signal", "nothing is being recorded to calibrate on")
+    assert str(live.refused) == f"nothing is being recorded to calibrate on; {REDO}" and live.gains == {}
