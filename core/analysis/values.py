@@ -441,7 +441,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
     if fitted and peak_flow_volume is None and len(t) > 1 and float(np.median(np.diff(t))) <= MAX_FRAME_STEP_S:
         peak_flow_volume = (t, v)
     result = SessionValues()
-    end_s = float(t[-1])
+    start_s, end_s = float(t[0]), float(t[-1])
     ordered = sorted(events)
     result.tidal = tidal_values(tidal_stretches(t, v, ordered))
     if result.tidal is None:
@@ -463,6 +463,8 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
 
     for a, b in vc_windows:
         inside = (t >= a) & (t <= b + 0.5)
+        if a < start_s:  # before this curve begins (the live volume after the subject's calibration)
+            continue
         if inside.sum() < MIN_MANOEUVRE_SAMPLES:
             result.problems.append(too_few_samples("slow VC", a, int(inside.sum()), b + 0.5 - a))
             continue
@@ -490,6 +492,8 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         # The blow starts from the full inspiration (TLC): the highest volume from just before the
         # operator's mark (marked at the blow) to the manoeuvre's end (marked at the inspiration).
         before = (t >= a - 2.0) & (t <= b)
+        if a < start_s:
+            continue
         if before.sum() < MIN_MANOEUVRE_SAMPLES:
             result.problems.append(too_few_samples("forced expiration", a, int(before.sum()), b + 2.0 - a))
             continue

@@ -47,3 +47,16 @@ def test_a_blow_sampled_too_sparsely_says_why_it_was_not_read():
     assert values.forced is None
     feedback = forced_feedback(values, 1, 40.0)
     assert "volume sample(s)" in feedback.text and "too slowly" in feedback.text and "()" not in feedback.text
+
+
+def test_a_manoeuvre_before_the_curve_begins_is_not_a_problem_of_the_curve():
+    """The live volume starts after the subject's calibration: the calibration's slow VC is not in it."""
+    w = protocol_waveform(Subject(), "full", None, 1)
+    t = np.arange(len(w.volume_l)) / RATE_HZ
+    events = sorted(w.events)
+    vc_start = next(at for at, label in events if label == "vc-start")
+    vc_end = next(at for at, label in events if label == "maneuver-end" and at > vc_start)
+    later = t > vc_end + 0.5 - 4.0 / RATE_HZ  # the curve begins with the VC's last few samples
+    values = analyse_volume(t[later], w.volume_l[later], w.events, 40.0)
+    assert not [p for p in values.problems if p.startswith("slow VC")]
+    assert values.forced is not None and len(values.forced.manoeuvres) == 3
