@@ -82,14 +82,15 @@ def signal_shares(depths: dict[str, list[np.ndarray]], normals: dict[str, list[n
 def visible_row(population: str, subject, scale: float, world: str, span_maps: int = SPAN_MAPS) -> VisibleRow:
     """One subject's true maps through its slow VC, read by each signal."""
     from benchmarks.population import session_config
+    from core.sim.breathing import Sway
     from core.sim.simulate import build_scene, sim_digitisers, thesis_rig
 
     started = time.perf_counter()
-    config = session_config(subject, scale, world, "clinical", None)
+    # the signals' share of a breath, not their sway: the world's sway and steps left out
+    config = replace(session_config(subject, scale, world, "clinical", None), sway=Sway(0.0, 0.0, 0.0), steps=0)
     rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
     scene, waveform = build_scene(config, rig)
     rig = replace(rig, baseline_mm=float(scene.baseline_mm))
-    scene._sway = lambda t: np.zeros(3)  # the signals' share of a breath, not their sway
     digitisers = sim_digitisers(config, rig)
     low, high = vc_span_s(scene, waveform)
     times = np.linspace(max(0.0, low - SPAN_MARGIN_S), min(waveform.duration_s, high + SPAN_MARGIN_S), span_maps)

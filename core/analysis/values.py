@@ -462,9 +462,9 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
                                    f"{1000 * MAX_BRIDGED_GAP_S:.0f} ms)")
 
     for a, b in vc_windows:
-        inside = (t >= a) & (t <= b + 0.5)
         if a < start_s:  # before this curve begins (the live volume after the subject's calibration)
             continue
+        inside = (t >= a) & (t <= b + 0.5)
         if inside.sum() < MIN_MANOEUVRE_SAMPLES:
             result.problems.append(too_few_samples("slow VC", a, int(inside.sum()), b + 0.5 - a))
             continue
@@ -491,9 +491,9 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
     for a, b in forced_windows:
         # The blow starts from the full inspiration (TLC): the highest volume from just before the
         # operator's mark (marked at the blow) to the manoeuvre's end (marked at the inspiration).
-        before = (t >= a - 2.0) & (t <= b)
         if a < start_s:
             continue
+        before = (t >= a - 2.0) & (t <= b)
         if before.sum() < MIN_MANOEUVRE_SAMPLES:
             result.problems.append(too_few_samples("forced expiration", a, int(before.sum()), b + 2.0 - a))
             continue
