@@ -31,6 +31,7 @@ def _positive(kind):
 
 
 positive = _positive(float)
+positive_count = _positive(int)
 
 
 def add_force(p: argparse.ArgumentParser) -> None:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from app.args import WORLD_NAMES, positive
+from app.args import WORLD_NAMES, positive, positive_count
 from benchmarks.common import SHARED, publish
 
 SIGNALS = ("plain", "levelled", "levelled, integrated")
@@ -178,7 +178,7 @@ def add(what: argparse._SubParsersAction) -> None:
 
     p = what.add_parser("visible", help="how much of a breath the heads see, and each optical signal keeps, "
                                         "on true surfaces of both populations")
-    p.add_argument("--subjects", type=int, default=SUBSET_SUBJECTS, help="subjects of each population")
+    p.add_argument("--subjects", type=positive_count, default=SUBSET_SUBJECTS, help="subjects of each population")
     p.add_argument("--scale", type=positive, default=SUBSET_SCALE)
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--world", choices=WORLD_NAMES, default="clinic-widening",
@@ -186,7 +186,13 @@ def add(what: argparse._SubParsersAction) -> None:
     p.add_argument("--no-write", action="store_true", help="print only")
 
     def run(args: argparse.Namespace) -> int:
-        text, _ = run_visible_bench(args.subjects, args.scale, args.seed, args.world)
+        from app.errors import UserError
+        from core.sim.makehuman import MeshDataError
+
+        try:
+            text, _ = run_visible_bench(args.subjects, args.scale, args.seed, args.world)
+        except MeshDataError as exc:  # the test population's bodies need ../shared/data/makehuman
+            raise UserError(str(exc)) from exc
         return publish(args, "visible", f"Visible share (`photopft bench visible --subjects {args.subjects} "
                                         f"--scale {args.scale}`)", text)
 

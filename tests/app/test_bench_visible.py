@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import pytest
 
 from benchmarks.visible import SIGNALS, VisibleRow, estimate_errors, visible_table
@@ -43,3 +47,19 @@ def test_the_heads_see_most_of_a_breath_but_not_the_flanks_on_either_population(
     # (interpolated vertex normals gave 0.20 here where the depth gave 0.42)
     levelled = float(mesh.split("; levelled ")[1].split(" ")[0])
     assert abs(float(mesh.split("levelled, integrated ")[1].split(" ")[0]) - levelled) < 0.05
+
+
+def test_no_subjects_or_no_body_data_gets_one_line(capsys, tmp_path):
+    from app.cli import main
+
+    with pytest.raises(SystemExit) as stopped:
+        main(["bench", "visible", "--subjects", "0", "--no-write"])
+    assert stopped.value.code == 2
+    assert capsys.readouterr().err.strip().endswith("must be a positive finite number, got 0")
+    # a process of its own: the mesh data, once read, are kept for the process's life
+    run = subprocess.run([sys.executable, "-m", "app", "bench", "visible", "--subjects", "1", "--scale", "0.1",
+                          "--no-write"], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "PHOTOPFT_SHARED": str(tmp_path)})
+    assert run.returncode == 2
+    err = run.stderr.strip()
+    assert "the MakeHuman body mesh is not there" in err and "\n" not in err
