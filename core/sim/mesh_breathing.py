@@ -153,6 +153,25 @@ def manoeuvre_of(t_s: np.ndarray, events: list[tuple[float, str]]) -> np.ndarray
 
 
 RAMP_S = 1.0  # the rib cage's share changes from one manoeuvre's to the next over this long
+REST_SEARCH_S = 3.0  # how far before its start and after its end a manoeuvre's share reaches, to the rest volume
+
+
+def at_rest(t_s: np.ndarray, lung_l: np.ndarray, events: list[tuple[float, str]]) -> list[tuple[float, str]]:
+    """The manoeuvres' starts and ends moved, within REST_SEARCH_S, to where the lung volume is nearest its
+    rest (the inspiration before a blow starts there; the recovery after it ends there): a share changed at
+    TLC or RV would trade volume between rib cage and abdomen while the lung volume holds (a litre and more
+    at a blow's start)."""
+    lung = np.abs(np.asarray(lung_l, dtype=float))
+    out = []
+    for at, label in events:
+        if label in ("vc-start", "forced-start"):
+            near = (t_s >= at - REST_SEARCH_S) & (t_s <= at)
+        elif label == "maneuver-end":
+            near = (t_s >= at) & (t_s <= at + REST_SEARCH_S)
+        else:
+            near = np.zeros(len(t_s), dtype=bool)
+        out.append((float(t_s[near][np.argmin(lung[near])]) if near.any() else at, label))
+    return out
 
 
 def chest_share_curve(t_s: np.ndarray, events: list[tuple[float, str]], shares: dict[str, float]) -> np.ndarray:

@@ -14,8 +14,8 @@ import numpy as np
 from core.rig import Head
 from core.sim.breathing import RATE_HZ, Waveform
 from core.sim.makehuman import MeshBody, MeshData, triangles
-from core.sim.mesh_breathing import (MODES, VolumePolynomial, amplitudes_for, breathing_modes, chest_share_curve,
-                                     trunk_frame)
+from core.sim.mesh_breathing import (MODES, VolumePolynomial, amplitudes_for, at_rest, breathing_modes,
+                                     chest_share_curve, trunk_frame)
 from core.sim.mesh_render import distortion_margin_px, face_normals, rasterise, shade
 from core.sim.render import pack_lights
 from core.sim.scene import Digitiser, RenderedMaps, Scene, _empty_maps, _Optics
@@ -42,8 +42,8 @@ class MeshScene(Scene):
         self.events = list(waveform.events)
         self.kind = "simulation"
         t = np.arange(len(waveform.volume_l)) / RATE_HZ
-        share = chest_share_curve(t, self.events, body.chest_share)
         lung = waveform.volume_l - waveform.volume_l[0]
+        share = chest_share_curve(t, at_rest(t, lung, self.events), body.chest_share)
         lagged = np.interp(np.clip(t - body.abdomen_lag_s, 0.0, None), t, lung)
         rib_l, abdomen_l = share * lung, (1.0 - share) * lagged
         self._t = t

@@ -12,7 +12,7 @@ import pytest
 
 from core.sim.makehuman import (Macros, MeshDataError, age_parameter, closed_volume_mm3,
                                 load_mesh_data, mesh_body, target_weights, triangles)
-from core.sim.mesh_breathing import (VolumePolynomial, amplitudes_for, breathing_modes, chest_share_curve,
+from core.sim.mesh_breathing import (VolumePolynomial, amplitudes_for, at_rest, breathing_modes, chest_share_curve,
                                      trunk_frame)
 
 
@@ -98,6 +98,23 @@ def test_the_rib_cage_share_follows_the_manoeuvre():
     at = lambda s: share[int(s * 100)]  # noqa: E731
     assert at(5) == pytest.approx(0.3) and at(14) == pytest.approx(0.6) and at(25) == pytest.approx(0.7)
     assert at(20) == pytest.approx(0.3) and 0.3 < at(10.0) < 0.6  # blended over a second
+
+
+def test_a_blows_share_changes_where_the_lung_volume_is_at_rest():
+    """The forced manoeuvre's share holds from its inspiration's start to its recovery's end, so the
+    compartments do not trade volume at TLC (where the blow's event is) or at RV (where it ends)."""
+    t = np.arange(0, 20, 0.01)
+    # as core/sim/breathing.py's forced: a 1.6 s inspiration and a 0.4 s hold before the blow's event
+    lung = np.interp(t, [0, 6, 7.6, 8, 12, 13.5, 20], [0.0, 0.0, 3.0, 3.0, -1.0, 0.0, 0.0])
+    events = [(0.0, "tidal-start"), (8.0, "forced-start"), (12.0, "maneuver-end")]
+    moved = at_rest(t, lung, events)
+    assert 5.0 <= moved[1][0] <= 6.0 and 13.5 <= moved[2][0] <= 15.0
+    share = chest_share_curve(t, moved, {"tidal": 0.3, "vc": 0.6, "forced": 0.7})
+    inspiration_to_recovery = (t >= 6.6) & (t <= 13.0)
+    assert np.ptp(share[inspiration_to_recovery]) < 1e-12 and share[800] == pytest.approx(0.7)
+    top = (t >= 7.6) & (t <= 8.0)  # the inspiration held at TLC, the blow's start
+    naive = chest_share_curve(t, events, {"tidal": 0.3, "vc": 0.6, "forced": 0.7}) * lung
+    assert np.ptp(naive[top]) > 0.5  # what the blow's own times did: a litre's trade at TLC
 
 
 def _plane_mesh(z_mid: float, tilt_x_deg: float, tilt_y_deg: float, step: float = 20.0):
