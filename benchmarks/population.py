@@ -293,7 +293,8 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     profile, the session, the results) so that a run stopped midway goes on from the last one:
     a subject at the camera's full resolution takes longer than a working session.
     With `renders`, the sphere sessions and the subject's session are taken from there, or rendered
-    into it (benchmarks/renders.py)."""
+    into it (benchmarks/renders.py). With `resume`, the results are kept beside the folder
+    (`<folder>.results.h5` for `<folder>.stages`)."""
     from core.pipeline.process import process_session
     from core.io.results import ResultsFile, optical_inputs, optical_refusal
     from core.rig import thesis_rig
@@ -387,6 +388,8 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     out["distance_errors_mm"] = [] if out["distance_refused"] else _distance_errors(session, results, after_cycles=10)
     stages["analyse"] = time.perf_counter() - started - sum(stages.values())
     out["seconds"] = sum(stages.values())
+    if resume:  # the results kept beside the row, for reading other signals off them without processing again
+        os.replace(results, work.with_suffix(".results.h5"))
     for path in (results,) if renders is not None else (session, results):
         path.unlink(missing_ok=True)
     if stages_done:
@@ -888,7 +891,8 @@ def add(what: argparse._SubParsersAction) -> None:
                     help="the development population (parametric trunks, the default) or the test population "
                          "(MakeHuman body meshes from ../shared/data/makehuman, ray-cast; no method is tuned on it)")
     po.add_argument("--keep", type=Path, default=None,
-                    help="keep each finished subject here and, run again, go on from them (long runs)")
+                    help="keep each finished subject here (its row, and its results file to read other "
+                         "signals off without processing again) and, run again, go on from them (long runs)")
     po.add_argument("--renders", type=Path, default=None, metavar="DIR",
                     help="keep the subjects' rendered sessions here and reuse them while the simulator's code is "
                          "unchanged: a rerun after a change to the reconstruction or the analysis costs "

@@ -8,6 +8,7 @@ import pytest
 
 from benchmarks.common import SHARED
 from benchmarks.population import agreement, run_population_bench
+from core.io.results import ResultsFile
 
 
 @pytest.mark.slow
@@ -28,6 +29,11 @@ def test_the_quick_population_runs_end_to_end_and_reports_what_it_found(tmp_path
         assert row["body"]["name"] in ("average-woman", "arms-close")
     analysed = [r for r in rows if "truth" in r]
     assert analysed, "no subject reached the analysis"
+    # each analysed subject's results are kept beside its row, to read other signals off without processing
+    assert len(list(kept.glob("*.results.h5"))) == len(analysed) and not list(kept.glob("*.stages"))
+    for row in analysed:
+        with ResultsFile(next(kept.glob(f"subject-{row['subject']['seed']}-*.results.h5"))) as r:
+            assert (r.metric_volume() is not None) == bool(row["optical"])
     sources = {(label, source) for label, _, source, *_ in agreement(rows)}
     # an optical value refused counts as one; 8 s hold no slow VC to calibrate on: the litres are estimates
     assert ("TV", "flow") in sources and ("TV", "estimate") in sources
