@@ -8,7 +8,6 @@ import os
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
-import h5py
 import numpy as np
 
 from core.analysis.compartments import tidal_compartments
@@ -127,7 +126,7 @@ def write_volume(results: ResultsWriter, session: SessionFile, plan: ProcessPlan
         results.metric_volume(gapped.timestamp_ns, gapped.volume_l, gapped.scale_from, gapped.heads,
                               gapped.side_distance_mm, gapped.regions, compartments, gapped.head_regions)
     if volume_calibration is not None:
-        write_regression_volume(results, results.out, plan.names, volume_calibration)
+        write_regression_volume(results, plan.names, volume_calibration)
     elif in_view:
         results.volume(gapped.timestamp_ns, litres.volume_l(gapped), litres.method,
                        metric_scale_from=gapped.scale_from, **litres.attrs())
@@ -218,9 +217,9 @@ def write_parameters(session_path: str | os.PathLike, results: ResultsWriter) ->
                            + " and no optical volume in litres", {})
 
 
-def write_regression_volume(results: ResultsWriter, out: h5py.File, heads: list[str], calibration) -> None:
+def write_regression_volume(results: ResultsWriter, heads: list[str], calibration) -> None:
     """/volume from the thesis' regression (eqs 5.1-5.3) on the gradient volume, pixels and distance."""
-    t, features = regression_features(lambda head, name: out[f"heads/{head}/{name}"][:], heads)
+    t, features = regression_features(lambda head, name: results.out[f"heads/{head}/{name}"][:], heads)
     results.volume(t, calibration.volume_l(features),
                    "thesis regression (eqs 5.1-5.3) on gradient volume, valid pixels and distance",
                    calibration_created=calibration.created, calibration_sessions=",".join(calibration.sessions))
