@@ -60,6 +60,7 @@ class OpticalLitres:
             out.update(calibration_residual_l=c.residual_l, calibration_range_l=c.range_l,
                        calibration_expected_error=c.expected_error,
                        calibration_segment_s=np.asarray(c.segment_s, dtype=float),
+                       calibration_grouping=c.extra.get("grouping", ""), calibration_curvature_per_l=c.curvature_per_l,
                        **{f"calibration_gain_{n.replace(' ', '_')}": g for n, g in c.gains.items()})
         else:
             out.update(population_gain=POPULATION_GAIN, estimate_uncertainty=ESTIMATE_UNCERTAINTY,

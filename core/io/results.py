@@ -375,6 +375,8 @@ class ResultsWriter:
         g.attrs["maps"] = np.int64(calibration.samples)
         g.attrs["signals"] = list(calibration.gains)
         g.attrs["gains"] = np.array(list(calibration.gains.values()), dtype=float)
+        g.attrs["curvature_per_l"] = float(calibration.curvature_per_l)
+        g.attrs["grouping"] = str(calibration.extra.get("grouping", ""))
         if calibration.refused:
             g.attrs["refused"] = str(calibration.refused)
             g.attrs["refused_code"] = calibration.refused.code

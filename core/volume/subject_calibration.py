@@ -66,7 +66,8 @@ def calibration_segment(events: list[tuple[float, str]], flow_end_s: float) -> t
 
 @dataclass
 class SubjectCalibration:
-    """Litres = sum of gains x regional signals (signals of one group share a gain: GROUPINGS).
+    """Litres = sum of gains x regional signals (signals of one group share a gain: GROUPINGS), plus
+    curvature_per_l x the square of the signals' plain sum (0 unless a curved fit was chosen: CURVED).
     residual_l: rms of the fit over the segment; range_l: the flow sensor's over it; expected_error: the
     rms of the segment's parts' excursion errors predicted from fits on the other parts, as a share of
     range_l (0.02 = 2 %)."""
@@ -78,11 +79,15 @@ class SubjectCalibration:
     expected_error: float
     refused: Refusal | None = None
     samples: int = 0
+    curvature_per_l: float = 0.0
     # fit_t_s, fit_l: the fitted curve over the segment, to show; grouping: the GROUPINGS key chosen
     extra: dict = field(default_factory=dict)
 
     def volume_l(self, signals: dict[str, np.ndarray]) -> np.ndarray:
-        return sum(g * np.asarray(signals[name], dtype=float) for name, g in self.gains.items())
+        linear = sum(g * np.asarray(signals[name], dtype=float) for name, g in self.gains.items())
+        if not self.curvature_per_l:
+            return linear
+        return linear + self.curvature_per_l * sum(np.asarray(signals[name], dtype=float) for name in self.gains) ** 2
 
     def label(self) -> str:
         return f"optical, calibrated on the subject (residual {1000 * self.residual_l:.0f} mL)"
@@ -119,10 +124,11 @@ def _design(t_s: np.ndarray, signals: np.ndarray) -> np.ndarray:
     return np.column_stack([signals, offsets, centred])
 
 
-def _fit(t_s: np.ndarray, signals: np.ndarray, flow_l: np.ndarray) -> np.ndarray:
-    """Gains (non-negative) then each stretch's offset and the trend, least squares."""
+def _fit(t_s: np.ndarray, signals: np.ndarray, flow_l: np.ndarray, gains: int | None = None) -> np.ndarray:
+    """The first `gains` columns' coefficients (non-negative; default: every signal's), the other signals'
+    (a curvature: either sign), then each stretch's offset and the trend, least squares."""
     design = _design(t_s, signals)
-    k = signals.shape[1]
+    k = signals.shape[1] if gains is None else gains
     lower = np.r_[np.zeros(k), np.full(design.shape[1] - k, -np.inf)]
     upper = np.full(design.shape[1], np.inf)
     return lsq_linear(design, flow_l, bounds=(lower, upper), method="bvls").x
@@ -132,14 +138,20 @@ def _fit(t_s: np.ndarray, signals: np.ndarray, flow_l: np.ndarray) -> np.ndarray
 GROUPINGS = {"one gain": lambda name: "all", "chest and abdomen": lambda name: name.split()[-1],
              "each head": lambda name: name.split()[0], "each region": lambda name: name}
 SELECTION_MARGIN = 0.9
+# Each grouping is tried straight and curved: with a term in the square of the signals' plain sum. The
+# level at the trunk's sides moves more per litre near TLC than below it on a trunk that widens, so the
+# signal keeps 0.53 of the first half litre of a VC and 0.66 of 3.5 L (docs/volume.md, "Curved").
+CURVED = ", curved"
 
 
 def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray], flow_t_s: np.ndarray,
                             flow_volume_l: np.ndarray, segment_s: tuple[float, float],
-                            groupings: tuple[str, ...] = tuple(GROUPINGS)) -> SubjectCalibration:
+                            groupings: tuple[str, ...] = tuple(GROUPINGS), curved: bool = True) -> SubjectCalibration:
     """The least squares of the flow sensor's volume on the regional signals over `segment_s` (times in
-    seconds on one clock), in the grouping of `groupings` (GROUPINGS' names, simplest first) that predicts
-    the segment's parts left out of the fit best. Refused (the reason in `refused`) where the fit is poor."""
+    seconds on one clock), in the grouping of `groupings` (GROUPINGS' names, simplest first), straight or,
+    with `curved`, with a curvature (CURVED), that predicts the segment's parts left out of the fit best;
+    a curve that would not rise with the signals over the segment is not taken. Refused (the reason in
+    `refused`) where the fit is poor."""
     names = list(signals)
     t = np.asarray(map_t_s, dtype=float)
     x = np.column_stack([np.asarray(signals[n], dtype=float) for n in names]) if names else np.zeros((len(t), 0))
@@ -158,6 +170,7 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
     t, x = t[inside], x[inside]
     y = np.interp(t, flow_t, np.asarray(flow_volume_l, dtype=float))
     range_l = float(np.ptp(y))
+    square = x.sum(axis=1, keepdims=True) ** 2
     chosen, tried = None, set()
     for grouping in groupings:
         group_of = GROUPINGS[grouping]
@@ -166,22 +179,38 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
         if members.tobytes() in tried:  # one head: its chest and abdomen are its regions
             continue
         tried.add(members.tobytes())
-        held_out, expected = _held_out(t, x @ members, y, range_l)
-        if chosen is None or held_out < SELECTION_MARGIN * chosen[3]:
-            chosen = (grouping, members, groups, held_out, expected)
-    grouping, members, groups, _, expected = chosen
-    grouped = x @ members
-    coefficients = _fit(t, grouped, y)
-    fitted = _design(t, grouped) @ coefficients
+        for bend in (False, True) if curved else (False,):
+            columns = np.column_stack([x @ members, square]) if bend else x @ members
+            if bend and not _rises(t, columns, y, len(groups), x.sum(axis=1)):
+                continue
+            held_out, expected = _held_out(t, columns, y, range_l, len(groups))
+            if chosen is None or held_out < SELECTION_MARGIN * chosen[4]:
+                chosen = (grouping + (CURVED if bend else ""), members, groups, columns, held_out, expected)
+    grouping, members, groups, columns, _, expected = chosen
+    coefficients = _fit(t, columns, y, len(groups))
+    fitted = _design(t, columns) @ coefficients
     residual = float(np.sqrt(np.mean((y - fitted) ** 2)))
     gains = {n: float(members[k] @ coefficients[:len(groups)]) for k, n in enumerate(names)}
+    curvature = float(coefficients[len(groups)]) if columns.shape[1] > len(groups) else 0.0
     calibration = SubjectCalibration(gains, segment_s, residual, range_l, expected, samples=len(t),
+                                     curvature_per_l=curvature,
                                      extra={"fit_t_s": t, "fit_l": fitted, "grouping": grouping})
     calibration.refused = calibration_refusal(calibration)
     return calibration
 
 
-def _held_out(t: np.ndarray, x: np.ndarray, y: np.ndarray, range_l: float) -> tuple[float, float]:
+def _rises(t: np.ndarray, columns: np.ndarray, y: np.ndarray, gains: int, plain_sum: np.ndarray) -> bool:
+    """Whether the curved fit (its last column the plain sum's square) rises with the plain sum over
+    the whole span the segment's plain sum covers: its slope along the plain sum positive at both ends."""
+    coefficients = _fit(t, columns, y, gains)
+    straight = columns[:, :gains] @ coefficients[:gains]
+    slope = float(np.polyfit(plain_sum, straight, 1)[0])
+    curvature = float(coefficients[gains])
+    return all(slope + 2.0 * curvature * end > 0 for end in (plain_sum.min(), plain_sum.max()))
+
+
+def _held_out(t: np.ndarray, x: np.ndarray, y: np.ndarray, range_l: float,
+              gains: int | None = None) -> tuple[float, float]:
     """Each of LEAVE_OUT_PARTS contiguous parts of the segment predicted from a fit on the others: (the rms
     of the predictions' errors about each part's own level, L; the rms of the parts' excursion errors as a
     share of the flow sensor's range over the segment, the expected error of a slow VC's worth)."""
@@ -191,7 +220,7 @@ def _held_out(t: np.ndarray, x: np.ndarray, y: np.ndarray, range_l: float) -> tu
         held = (t >= a) & (t <= b)
         if held.sum() < 10 or (~held).sum() < MIN_FIT_MAPS:
             continue
-        predicted = x[held] @ _fit(t[~held], x[~held], y[~held])[:x.shape[1]]
+        predicted = x[held] @ _fit(t[~held], x[~held], y[~held], gains)[:x.shape[1]]
         error = predicted - y[held]
         residuals.append(error - error.mean())
         excursions.append((np.ptp(predicted) - np.ptp(y[held])) / range_l)

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from app.cli import main
+from core.volume.subject_calibration import CURVED, GROUPINGS
 
 pytestmark = pytest.mark.slow
 
@@ -30,6 +32,8 @@ def test_a_clinical_session_gives_calibrated_litres_after_the_mouthpiece_comes_o
         label = r.optical_label()
     assert "refused" not in calibration and calibration["segment_s"][1] == pytest.approx(off_s, abs=0.01)
     assert calibration["residual_l"] < 0.05 * calibration["range_l"]
+    assert calibration["grouping"].split(", ")[0] in GROUPINGS and np.isfinite(calibration["curvature_per_l"])
+    assert (calibration["curvature_per_l"] != 0.0) == calibration["grouping"].endswith(CURVED)
     assert label.startswith("optical, calibrated on the subject (residual ")
 
     capsys.readouterr()
