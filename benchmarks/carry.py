@@ -24,8 +24,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from app.args import WORLD_NAMES, positive, positive_count
-from benchmarks.common import SHARED, publish
+from benchmarks.common import SHARED
 
 SIGNALS = ("levelled", "plain")
 VALUES = ("TV", "VC", "FVC", "FEV1")
@@ -209,25 +208,9 @@ def run_carry_bench(subjects: int, scale: float, seed: int, world: str) -> tuple
 
 def add(what: argparse._SubParsersAction) -> None:
     """`photopft bench carry`: its arguments and what it runs."""
-    from benchmarks.population import SUBSET_SCALE, SUBSET_SUBJECTS
+    from benchmarks.visible import add_subset_arguments, run_on_subsets
 
     p = what.add_parser("carry", help="how the subject's calibration carries to the later manoeuvres, on true "
                                       "surfaces of both populations")
-    p.add_argument("--subjects", type=positive_count, default=SUBSET_SUBJECTS, help="subjects of each population")
-    p.add_argument("--scale", type=positive, default=SUBSET_SCALE)
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--world", choices=WORLD_NAMES, default="clinic-widening", help="the simulated world")
-    p.add_argument("--no-write", action="store_true", help="print only")
-
-    def run(args: argparse.Namespace) -> int:
-        from app.errors import UserError
-        from core.sim.makehuman import MeshDataError
-
-        try:
-            text, _ = run_carry_bench(args.subjects, args.scale, args.seed, args.world)
-        except MeshDataError as exc:  # the test population's bodies need ../shared/data/makehuman
-            raise UserError(str(exc)) from exc
-        return publish(args, "carry", f"Calibration carried (`photopft bench carry --subjects {args.subjects} "
-                                      f"--scale {args.scale}`)", text)
-
-    p.set_defaults(run=run)
+    add_subset_arguments(p, "the simulated world")
+    p.set_defaults(run=lambda args: run_on_subsets(args, "carry", "Calibration carried", run_carry_bench))

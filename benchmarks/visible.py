@@ -172,28 +172,33 @@ def run_visible_bench(subjects: int, scale: float, seed: int, world: str) -> tup
     return text, rows
 
 
-def add(what: argparse._SubParsersAction) -> None:
-    """`photopft bench visible`: its arguments and what it runs."""
+def add_subset_arguments(p: argparse.ArgumentParser, world_help: str) -> None:
+    """The arguments of a bench on true surfaces of both populations' subsets (visible, carry)."""
     from benchmarks.population import SUBSET_SCALE, SUBSET_SUBJECTS
 
-    p = what.add_parser("visible", help="how much of a breath the heads see, and each optical signal keeps, "
-                                        "on true surfaces of both populations")
     p.add_argument("--subjects", type=positive_count, default=SUBSET_SUBJECTS, help="subjects of each population")
     p.add_argument("--scale", type=positive, default=SUBSET_SCALE)
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--world", choices=WORLD_NAMES, default="clinic-widening",
-                   help="the simulated world (its sway left out)")
+    p.add_argument("--world", choices=WORLD_NAMES, default="clinic-widening", help=world_help)
     p.add_argument("--no-write", action="store_true", help="print only")
 
-    def run(args: argparse.Namespace) -> int:
-        from app.errors import UserError
-        from core.sim.makehuman import MeshDataError
 
-        try:
-            text, _ = run_visible_bench(args.subjects, args.scale, args.seed, args.world)
-        except MeshDataError as exc:  # the test population's bodies need ../shared/data/makehuman
-            raise UserError(str(exc)) from exc
-        return publish(args, "visible", f"Visible share (`photopft bench visible --subjects {args.subjects} "
-                                        f"--scale {args.scale}`)", text)
+def run_on_subsets(args: argparse.Namespace, name: str, title: str, bench) -> int:
+    """`bench(subjects, scale, seed, world)` -> (text, rows), published under `name` with `title` followed by
+    the command's arguments; a missing body mesh one line."""
+    from app.errors import UserError
+    from core.sim.makehuman import MeshDataError
 
-    p.set_defaults(run=run)
+    try:
+        text, _ = bench(args.subjects, args.scale, args.seed, args.world)
+    except MeshDataError as exc:  # the test population's bodies need ../shared/data/makehuman
+        raise UserError(str(exc)) from exc
+    return publish(args, name, f"{title} (`photopft bench {name} --subjects {args.subjects} --scale {args.scale}`)", text)
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench visible`: its arguments and what it runs."""
+    p = what.add_parser("visible", help="how much of a breath the heads see, and each optical signal keeps, "
+                                        "on true surfaces of both populations")
+    add_subset_arguments(p, "the simulated world (its sway left out)")
+    p.set_defaults(run=lambda args: run_on_subsets(args, "visible", "Visible share", run_visible_bench))
