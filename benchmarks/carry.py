@@ -81,8 +81,8 @@ def regional_series(scene, rig, config, digitisers, times: np.ndarray) -> dict[s
     distance the true one (the sway's axial part followed)."""
     from core.reconstruction.pipeline import trunk_mask
     from core.volume.maps import DisplacementTracker, head_volume_l
+    from core.volume.subject_calibration import ABDOMEN, CHEST
 
-    chest = ("upper left", "upper right")
     out: dict[str, dict[str, list[float]]] = {s: {} for s in SIGNALS}
     trackers = {name: DisplacementTracker(head) for name, head in rig.heads.items()}
     for t in times:
@@ -93,8 +93,7 @@ def regional_series(scene, rig, config, digitisers, times: np.ndarray) -> dict[s
             subject = np.isfinite(maps.depth_mm) & np.isfinite(maps.normals[..., 2])
             trunk = trunk_mask(subject, np.nan_to_num(maps.normals))
             sums = trackers[name].add(np.where(trunk, maps.depth_mm, np.nan), trunk, subject, distances[name])
-            for part, regions in (("chest", chest), ("abdomen", tuple(r for r in sums.reference
-                                                                       if r.startswith("lower")))):
+            for part, regions in (("chest", CHEST), ("abdomen", ABDOMEN)):
                 inside = [r for r in regions if r in sums.reference]
                 levelled = sum(head_volume_l(sums.reference[r], sums.current[r], 1.0, 1.0) for r in inside)
                 plain = -1e-6 * sum(sums.displaced[r] for r in inside)

@@ -170,7 +170,8 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
     t, x = t[inside], x[inside]
     y = np.interp(t, flow_t, np.asarray(flow_volume_l, dtype=float))
     range_l = float(np.ptp(y))
-    square = x.sum(axis=1, keepdims=True) ** 2
+    plain_sum = x.sum(axis=1)
+    square = plain_sum[:, None] ** 2
     chosen, tried = None, set()
     for grouping in groupings:
         group_of = GROUPINGS[grouping]
@@ -181,7 +182,7 @@ def fit_subject_calibration(map_t_s: np.ndarray, signals: dict[str, np.ndarray],
         tried.add(members.tobytes())
         for bend in (False, True) if curved else (False,):
             columns = np.column_stack([x @ members, square]) if bend else x @ members
-            if bend and not _rises(t, columns, y, len(groups), x.sum(axis=1)):
+            if bend and not _rises(t, columns, y, len(groups), plain_sum):
                 continue
             held_out, expected = _held_out(t, columns, y, range_l, len(groups))
             if chosen is None or held_out < SELECTION_MARGIN * chosen[4]:
