@@ -71,10 +71,12 @@ def _file_size_limit(limit_bytes: int):
 
 
 def test_a_full_disk_stops_the_recording_cleanly_and_keeps_the_data(tmp_path):
-    """The file-size limit makes every write past 150 MB (a few seconds) fail as a full disk does."""
+    """The file-size limit makes every write past 150 MB (a few seconds) fail as a full disk does. The
+    recording asks for far longer than that takes: on a busy machine the simulated rig renders fewer
+    frames a second, and a 20 s recording ended whole under the limit (2026-12-06)."""
     out = tmp_path / "full.h5"
-    run = subprocess.run([sys.executable, "-m", "app", "record", "-o", str(out), "--seconds", "20"],
-                         preexec_fn=_file_size_limit(150_000_000), capture_output=True, text=True, timeout=120)
+    run = subprocess.run([sys.executable, "-m", "app", "record", "-o", str(out), "--seconds", "300"],
+                         preexec_fn=_file_size_limit(150_000_000), capture_output=True, text=True, timeout=400)
     assert run.returncode == 1, run.stderr
     assert "the recording stopped" in run.stderr and f"photopft recover {out}" in run.stderr
     assert "Traceback" not in run.stderr
