@@ -164,6 +164,9 @@ GRAZING_NZ = 0.35
 ARM_SHARE_OF_TRUNK_ROWS = 0.25
 # An arm held away may stay joined to the trunk on up to this share of its rows from its top (the armpit)
 ARM_JOINED_SHARE = 0.25
+# An occluding contour hides a side when at least this share of the row faces the camera beyond it, an
+# arm's width: an arm held close leaves 0.16-0.18, a silhouette's edge pixels 0.01-0.03 (docs/constants.md)
+MIN_BEYOND_CONTOUR_SHARE = 0.05
 
 
 def trunk_mask(mask: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -243,17 +246,24 @@ def _largest_part(flags: np.ndarray) -> np.ndarray:
 
 def occluded_side_share(mask: np.ndarray, normals: np.ndarray) -> float:
     """The share of the trunk's rows crossed by an occluding contour inside the silhouette: near-grazing
-    normals (GRAZING_NZ) between the row's first and last pixels facing the camera. An arm held
-    against the trunk puts one along most of its height (measured on simulated bodies: 0.5-0.8 of
-    the rows with arms close, at most 0.02 without: folds under the breasts or belly run across
-    rows, not down them). Where one runs, the trunk's sides the volume is referred to are hidden."""
+    normals (GRAZING_NZ) with at least MIN_BEYOND_CONTOUR_SHARE of the row's width facing the camera on
+    either side of them. An arm held against the trunk puts one along most of its height (measured on
+    simulated bodies: 0.5-0.8 of the rows with arms close, at most 0.02 without: folds under the
+    breasts or belly run across rows, not down them). Where one runs, the trunk's sides the volume is
+    referred to are hidden. A pixel or two facing the camera at the silhouette's very edge, outside a
+    grazing one (a mesh body's facets, a map's noise there), is no arm."""
     rows = mask.any(axis=1)
     if not rows.any():
         return float("nan")
     grazing = mask & (np.abs(np.nan_to_num(normals[..., 2])) < GRAZING_NZ)
     facing = mask & ~grazing
-    inside = (np.cumsum(facing, axis=1) > 0) & (np.cumsum(facing[:, ::-1], axis=1)[:, ::-1] > 0)
-    return float(np.sum((grazing & inside).any(axis=1)) / np.sum(rows))
+    before = np.cumsum(facing, axis=1)
+    after = before[:, -1:] - before
+    first = np.argmax(facing, axis=1)
+    last = mask.shape[1] - 1 - np.argmax(facing[:, ::-1], axis=1)
+    least = np.maximum(MIN_BEYOND_CONTOUR_SHARE * (last - first + 1), 1)[:, None]  # the row's facing width
+    hidden = grazing & (before >= least) & (after >= least)
+    return float(np.sum(hidden.any(axis=1)) / np.sum(rows))
 
 
 def side_out_of_view_share(mask: np.ndarray) -> float:

@@ -351,6 +351,9 @@ def test_an_arm_against_the_trunk_is_an_occluding_contour_down_it_and_a_fold_is_
     arm = normals.copy()
     arm[40:90, 30:32] = [1.0, 0.0, -0.1]  # between an arm and the trunk, down 50 of 80 rows
     assert occluded_side_share(mask, arm) == pytest.approx(50 / 80)
+    edge = _facing(mask.shape)
+    edge[10:90, 21] = [1.0, 0.0, -0.1]  # a grazing pixel one in from the silhouette, its edge pixel facing
+    assert occluded_side_share(mask, edge) == 0.0
 
 
 def test_a_trunk_cut_off_by_the_image_s_edge_has_its_side_out_of_view():
