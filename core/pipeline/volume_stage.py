@@ -24,7 +24,7 @@ from core.pipeline.quality import (geometric_distance_refusal, maps_left_out_wor
                                    sides_shown, volume_refusal)
 from core.reconstruction.photometric import CycleWindow
 from core.volume.maps import REGIONS
-from core.volume.metric import HeadDisplacements, MetricVolume, metric_volume, side_targets
+from core.volume.metric import HeadDisplacements, MetricVolume, arm_in_outline, metric_volume, side_targets
 from core.volume.sides import paired_tilts
 from core.volume.steps import maps_in_steps
 
@@ -54,6 +54,7 @@ class Verdict:
     bent: Refusal | None  # the shading's refusal, which a subject calibration takes the scale of
     sides: dict[str, np.ndarray]  # per head, the maps whose sides no arm hides
     in_step: dict[str, np.ndarray]  # per head, the maps made while the subject stepped
+    arm_in_outline: dict[str, np.ndarray]  # per head, the maps whose trunk outline took in an arm
     shown: dict[str, np.ndarray]  # per head, the maps the volume is made of
 
 
@@ -71,8 +72,9 @@ def judge(results: ResultsWriter, plan: ProcessPlan, maps: SessionMaps) -> Verdi
         results.refuse("optical", refused)
     sides = {name: sides_shown(maps.occluded[name]) for name in maps.displacements}
     in_step = {name: maps_in_steps(d.timestamp_ns, d.body_shift_mm) for name, d in maps.displacements.items()}
-    shown = {name: sides[name] & ~in_step[name] for name in maps.displacements}
-    return Verdict(distance_refused, refused, shading_refusal(maps.sheen, tilts), sides, in_step, shown)
+    arm = {name: arm_in_outline(d.outline_excess) for name, d in maps.displacements.items()}
+    shown = {name: sides[name] & ~in_step[name] & ~arm[name] for name in maps.displacements}
+    return Verdict(distance_refused, refused, shading_refusal(maps.sheen, tilts), sides, in_step, arm, shown)
 
 
 def write_displacement_sums(results: ResultsWriter, plan: ProcessPlan, maps: SessionMaps, verdict: Verdict) -> None:
@@ -120,7 +122,7 @@ def write_volume(results: ResultsWriter, session: SessionFile, plan: ProcessPlan
                        litres)
     if in_view:
         compartments = tidal_compartments(session, metric)
-        left_out = maps_left_out_words(displacements, verdict.sides, verdict.in_step)
+        left_out = maps_left_out_words(displacements, verdict.sides, verdict.in_step, verdict.arm_in_outline)
         if left_out:
             results.attr("maps_left_out", left_out)
         results.metric_volume(gapped.timestamp_ns, gapped.volume_l, gapped.scale_from, gapped.heads,
@@ -182,8 +184,8 @@ def peak_flow_pass(results: ResultsWriter, session: SessionFile, jobs: dict[str,
         sums = list(main.sums) + list(r.sums[1:])
         occluded = np.concatenate([main.occluded_side_share, r.occluded_side_share[1:]])
         order = np.argsort(t, kind="stable")
-        shown = sides_shown(occluded[order])
-        heads[r.name] = HeadDisplacements(t[order], [sums[i] for i in order]).of_maps(shown)
+        both = HeadDisplacements(t[order], [sums[i] for i in order])
+        heads[r.name] = both.of_maps(sides_shown(occluded[order]) & ~arm_in_outline(both.outline_excess))
     if not all(len(h.timestamp_ns) for h in heads.values()):
         return
     dense = metric_volume({n: heads[n] for n in jobs}, jobs[next(iter(jobs))].rig.baseline_mm,

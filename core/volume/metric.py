@@ -52,6 +52,16 @@ MAX_MAP_NOISE_L = 0.05
 JUMP_WINDOW_S = 0.4
 JUMP_L = 0.1
 MAX_JUMP_SHARE = 0.01
+# A map whose trunk is this much wider than its rows' median ratio to the reference says has an arm
+# taken into its outline on some rows, and is left out (docs/constants.md)
+MAX_OUTLINE_EXCESS = 0.03
+
+
+def arm_in_outline(outline_excess: np.ndarray) -> np.ndarray:
+    """Per map (or for one), whether an arm was taken into the trunk's outline: its excess width
+    (HeadDisplacements.outline_excess) over MAX_OUTLINE_EXCESS. Such a map's trunk sides, and the level
+    they give, are the arm's on those rows. A map without the excess measured (NaN) counts as clear."""
+    return np.asarray(outline_excess, dtype=float) > MAX_OUTLINE_EXCESS
 
 
 def jump_share(timestamp_ns: np.ndarray, volume_l: np.ndarray) -> tuple[float, float]:
@@ -114,19 +124,40 @@ class HeadDisplacements:
         return np.array([s.side_mm for s in self.sums], dtype=float)
 
     @property
+    def _mean_width_px(self) -> np.ndarray:
+        return np.array([s.width_px for s in self.sums], dtype=float)
+
+    @property
+    def _width_ratio(self) -> np.ndarray:
+        return np.array([s.width_ratio for s in self.sums], dtype=float)
+
+    @property
+    def _reference_width_each_map_px(self) -> np.ndarray:
+        """Per map, its mean trunk width over its width_ratio: the reference's width as that map gives it."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self._mean_width_px / self._width_ratio
+
+    @property
     def width_px(self) -> np.ndarray:
         """Each map's trunk width (px) as the reference's width times the map's width_ratio: the median
         of its rows' ratios, which an arm joining the trunk on some rows does not move. The
         reference's width is the median over the maps of their mean width over their ratio, so an
         arm on the reference map itself moves none of them either. A map without a ratio keeps
         its mean width."""
-        mean = np.array([s.width_px for s in self.sums], dtype=float)
-        ratio = np.array([s.width_ratio for s in self.sums], dtype=float)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            per_map = mean / ratio
+        mean, ratio, per_map = self._mean_width_px, self._width_ratio, self._reference_width_each_map_px
         if not np.isfinite(per_map).any():
             return mean
         return np.where(np.isfinite(ratio), ratio * np.nanmedian(per_map), mean)
+
+    @property
+    def outline_excess(self) -> np.ndarray:
+        """Per map, how much wider its trunk's mean width is than the median of its rows' ratios to the
+        reference says (0 within the noise): an arm taken into the outline widens its own rows only,
+        breathing and sway widen all of them alike. NaN without a ratio."""
+        per_map = self._reference_width_each_map_px
+        if not np.isfinite(per_map).any():
+            return np.full(len(per_map), np.nan)
+        return per_map / np.nanmedian(per_map) - 1.0
 
 
 @dataclass
@@ -443,10 +474,17 @@ class LiveMetricVolume:
                 target = self._smoothed(name, t_s, frame_distance, LIVE_WIDTH_TIME_CONSTANT_S)
         sums = tracker.add(depth_mm, mask, silhouette, frame_distance, row_widths)
         with self._lock:
+            arm = False
             if np.isfinite(sums.width_ratio) and np.isfinite(sums.width_px) and sums.width_ratio > 0:
-                self._reference_widths[name].append(sums.width_px / sums.width_ratio)
-                self._robust_width[name] = sums.width_ratio * float(np.median(self._reference_widths[name]))
-            if self._steps[name].moving(t_s, sums.body_shift_mm):  # the other head's sum too, until it ends
+                widths = self._reference_widths[name]
+                each = sums.width_px / sums.width_ratio
+                arm = bool(widths) and bool(arm_in_outline(each / float(np.median(widths)) - 1.0))
+                if not arm:
+                    widths.append(each)
+                    self._robust_width[name] = sums.width_ratio * float(np.median(widths))
+            # a step's maps, and a map with an arm in its outline (as `process` leaves them out), give no
+            # volume: the other head's sum too, until they end
+            if self._steps[name].moving(t_s, sums.body_shift_mm) or arm:
                 self._volume[name] = float("nan")
                 self._regions[name] = {r: float("nan") for r in REGIONS}
                 return float("nan")

@@ -298,6 +298,47 @@ def test_an_arm_joining_the_trunk_on_some_rows_moves_neither_width_nor_distance(
     assert distances["front"] == pytest.approx(np.full(len(arm), RIM_MM), abs=4.0)
 
 
+@pytest.mark.parametrize("arm_on_reference", [False, True])
+def test_maps_whose_outline_took_in_an_arm_are_found_and_breathing_is_not_taken_for_one(arm_on_reference):
+    """Such a map's sides, and the level they give, are the arm's on its rows: a mesh subject's front
+    maps read 8-37 mm off in level and its volume jumped by up to 344 mL. They are the maps whose
+    mean width exceeds what their rows' median ratio says; a trunk that widens on every row (ribs
+    moving sideways, sway towards the head) is not one of them."""
+    from core.pipeline.quality import maps_left_out_words
+    from core.volume.metric import arm_in_outline
+
+    front = thesis_head("front", scale=0.25)
+    clean = _trunk_map(front, 0.0)
+    width = clean[1].any(axis=0).sum()
+    arm = [arm_on_reference, False, True, False, False, True, False, False, False]
+    tracker = DisplacementTracker(front)
+    maps = [_arm_joined(clean, int(round(0.25 * width))) if joined
+            else _widened(clean, k % 3) if k else clean for k, joined in enumerate(arm)]
+    displacements = HeadDisplacements(np.arange(len(arm), dtype=np.int64) * 50_000_000,
+                                      [tracker.add(*m) for m in maps])
+    assert np.abs(displacements.outline_excess[~np.array(arm)]).max() < 0.01
+    assert list(arm_in_outline(displacements.outline_excess)) == arm
+    words = maps_left_out_words({"front": displacements}, {"front": np.ones(len(arm), bool)},
+                                {"front": np.zeros(len(arm), bool)}, {"front": arm_in_outline(displacements.outline_excess)})
+    assert "an arm was taken into the trunk's outline: head front" in words
+
+
+def test_the_live_volume_gives_no_value_for_a_map_whose_outline_took_in_an_arm():
+    """As `process` leaves such maps out, the live view gives them no volume; the maps after them do."""
+    from core.volume.metric import LiveMetricVolume
+
+    front, back = thesis_head("front", scale=0.25), thesis_head("back", scale=0.25)
+    live = LiveMetricVolume({"front": front, "back": back}, 2 * RIM_MM)
+    clean_front, clean_back = _trunk_map(front, 0.0), _trunk_map(back, 0.0)
+    joined = _arm_joined(clean_front, int(round(0.25 * clean_front[1].any(axis=0).sum())))
+    volumes = []
+    for k in range(9):
+        live.add("back", 0.05 * k, *clean_back)
+        volumes.append(live.add("front", 0.05 * k, *(joined if k in (4, 7) else clean_front)))
+    assert np.isnan(volumes[4]) and np.isnan(volumes[7])
+    assert np.abs(np.array(volumes)[[2, 3, 5, 6, 8]]).max() < 1e-3
+
+
 def test_a_known_distance_keeps_the_flanks_lost_pixels_out_of_the_body_frame():
     """The bulged map loses the outermost pixel of every row (a flank steepening past the
     integrator's grazing limit): the trunk's widths then take the map for one farther away and
