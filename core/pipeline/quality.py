@@ -177,6 +177,19 @@ def occlusion_refusal(occluded_share: dict[str, np.ndarray], out_of_view_share: 
     return None
 
 
+def outline_refusal(arm_in_outline: dict[str, np.ndarray]) -> Refusal | None:
+    """Why the optical volume cannot be reported from heads whose trunk outline took in an arm
+    (core/volume/metric.py, arm_in_outline) in more than MAX_HIDDEN_MAPS of their maps, or None: such
+    maps are left out, and a volume of the few left would be mostly gaps."""
+    for name, arm in arm_in_outline.items():
+        share = float(np.mean(arm)) if len(arm) else 0.0
+        if share > MAX_HIDDEN_MAPS:
+            return Refusal("arm-in-outline", f"head {name}: an arm was taken into the trunk's outline in "
+                           f"{_share_of_maps(share, MAX_HIDDEN_MAPS)} % of the maps (at most "
+                           f"{100 * MAX_HIDDEN_MAPS:.0f} %), and the trunk's sides with it", HOLD_ARMS_AWAY)
+    return None
+
+
 def geometric_distance_refusal(occluded_share: dict[str, np.ndarray]) -> Refusal | None:
     """Why the two heads' geometry cannot give the subject's distance, or None: it is measured
     between the trunk's sides, and an arm against the trunk in one head's view hides them from both.

@@ -20,8 +20,8 @@ from core.io.session import SessionFile
 from core.limits import Refusal
 from core.pipeline.head_maps import HeadJob, HeadResult, HeadWorkers
 from core.pipeline.plan import ProcessPlan
-from core.pipeline.quality import (geometric_distance_refusal, maps_left_out_words, session_refusal, shading_refusal,
-                                   sides_shown, volume_refusal)
+from core.pipeline.quality import (geometric_distance_refusal, maps_left_out_words, outline_refusal, session_refusal,
+                                   shading_refusal, sides_shown, volume_refusal)
 from core.reconstruction.photometric import CycleWindow
 from core.volume.maps import REGIONS
 from core.volume.metric import HeadDisplacements, MetricVolume, arm_in_outline, metric_volume, side_targets
@@ -67,12 +67,13 @@ def judge(results: ResultsWriter, plan: ProcessPlan, maps: SessionMaps) -> Verdi
     distance_refused = geometric_distance_refusal(maps.occluded) if plan.geometry else None
     if distance_refused is not None:
         results.refuse("distance", distance_refused)
-    refused = session_refusal(maps.mean_distance_mm, maps.trunk_area_m2, maps.occluded, maps.out_of_view)
+    arm = {name: arm_in_outline(d.outline_excess) for name, d in maps.displacements.items()}
+    refused = (session_refusal(maps.mean_distance_mm, maps.trunk_area_m2, maps.occluded, maps.out_of_view)
+               or outline_refusal(arm))
     if refused is not None:
         results.refuse("optical", refused)
     sides = {name: sides_shown(maps.occluded[name]) for name in maps.displacements}
     in_step = {name: maps_in_steps(d.timestamp_ns, d.body_shift_mm) for name, d in maps.displacements.items()}
-    arm = {name: arm_in_outline(d.outline_excess) for name, d in maps.displacements.items()}
     shown = {name: sides[name] & ~in_step[name] & ~arm[name] for name in maps.displacements}
     return Verdict(distance_refused, refused, shading_refusal(maps.sheen, tilts), sides, in_step, arm, shown)
 

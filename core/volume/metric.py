@@ -55,6 +55,9 @@ MAX_JUMP_SHARE = 0.01
 # A map whose trunk is this much wider than its rows' median ratio to the reference says has an arm
 # taken into its outline on some rows, and is left out (docs/constants.md)
 MAX_OUTLINE_EXCESS = 0.03
+# An arm only widens the outline: the trunk's own width is read on the narrower maps, this percentile
+# of them, so an arm in up to three quarters of the maps is still found
+OUTLINE_REFERENCE_PERCENTILE = 25.0
 
 
 def arm_in_outline(outline_excess: np.ndarray) -> np.ndarray:
@@ -152,12 +155,13 @@ class HeadDisplacements:
     @property
     def outline_excess(self) -> np.ndarray:
         """Per map, how much wider its trunk's mean width is than the median of its rows' ratios to the
-        reference says (0 within the noise): an arm taken into the outline widens its own rows only,
-        breathing and sway widen all of them alike. NaN without a ratio."""
+        reference says (0 within the noise), against the narrower maps (OUTLINE_REFERENCE_PERCENTILE):
+        an arm taken into the outline widens its own rows only, breathing and sway widen all of them
+        alike. NaN without a ratio."""
         per_map = self._reference_width_each_map_px
         if not np.isfinite(per_map).any():
             return np.full(len(per_map), np.nan)
-        return per_map / np.nanmedian(per_map) - 1.0
+        return per_map / np.nanpercentile(per_map, OUTLINE_REFERENCE_PERCENTILE) - 1.0
 
 
 @dataclass

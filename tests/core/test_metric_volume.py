@@ -323,6 +323,28 @@ def test_maps_whose_outline_took_in_an_arm_are_found_and_breathing_is_not_taken_
     assert "an arm was taken into the trunk's outline: head front" in words
 
 
+def test_an_arm_in_most_maps_outlines_is_still_found_and_the_volume_refused_with_what_to_do():
+    """An arm that rests in the trunk's outline for most of the session widens most maps: measured
+    against the narrower maps it is still found, and the volume is refused with the operator's remedy
+    rather than for the jumps its maps would make."""
+    from core.pipeline.quality import HOLD_ARMS_AWAY, outline_refusal
+    from core.volume.metric import arm_in_outline
+
+    front = thesis_head("front", scale=0.25)
+    clean = _trunk_map(front, 0.0)
+    joined = _arm_joined(clean, int(round(0.25 * clean[1].any(axis=0).sum())))
+    arm = [False, True, True, False, True, True, True, False, True, True]
+    tracker = DisplacementTracker(front)
+    displacements = HeadDisplacements(np.arange(len(arm), dtype=np.int64) * 50_000_000,
+                                      [tracker.add(*(joined if a else clean)) for a in arm])
+    found = arm_in_outline(displacements.outline_excess)
+    assert list(found) == arm
+    refused = outline_refusal({"front": found})
+    assert refused is not None and refused.code == "arm-in-outline" and refused.action == HOLD_ARMS_AWAY
+    assert "70 % of the maps" in refused.reason
+    assert outline_refusal({"front": np.array([False, True, False, False, False])}) is None
+
+
 def test_the_live_volume_gives_no_value_for_a_map_whose_outline_took_in_an_arm():
     """As `process` leaves such maps out, the live view gives them no volume; the maps after them do."""
     from core.volume.metric import LiveMetricVolume
