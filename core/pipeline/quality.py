@@ -131,7 +131,7 @@ def sides_shown(hidden_share: np.ndarray) -> np.ndarray:
 
 
 def maps_left_out_words(displacements: dict, sides: dict[str, np.ndarray], in_step: dict[str, np.ndarray],
-                        arm_in_outline: dict[str, np.ndarray] | None = None) -> str:
+                        arm_in_outline: dict[str, np.ndarray]) -> str:
     """What the volume left out and why, for /@maps_left_out: the maps an arm hid the sides of, the
     maps whose trunk outline took in an arm (core/volume/metric.py, arm_in_outline) and the maps in a
     step (core/volume/steps.py), each head's share; "" when none."""
@@ -141,7 +141,7 @@ def maps_left_out_words(displacements: dict, sides: dict[str, np.ndarray], in_st
     parts = []
     if any((~m).any() for m in sides.values()):
         parts.append("an arm against the trunk hid its sides: " + shares({n: ~m for n, m in sides.items()}))
-    if arm_in_outline and any(m.any() for m in arm_in_outline.values()):
+    if any(m.any() for m in arm_in_outline.values()):
         parts.append("an arm was taken into the trunk's outline: " + shares(arm_in_outline))
     if any(m.any() for m in in_step.values()):
         first = next(iter(displacements))

@@ -126,15 +126,15 @@ class HeadDisplacements:
     def side_mm(self) -> np.ndarray:
         return np.array([s.side_mm for s in self.sums], dtype=float)
 
-    @property
+    @cached_property
     def _mean_width_px(self) -> np.ndarray:
         return np.array([s.width_px for s in self.sums], dtype=float)
 
-    @property
+    @cached_property
     def _width_ratio(self) -> np.ndarray:
         return np.array([s.width_ratio for s in self.sums], dtype=float)
 
-    @property
+    @cached_property
     def _reference_width_each_map_px(self) -> np.ndarray:
         """Per map, its mean trunk width over its width_ratio: the reference's width as that map gives it."""
         with np.errstate(invalid="ignore", divide="ignore"):
