@@ -307,16 +307,19 @@ def tidal_breaths(stretches: list[tuple[np.ndarray, np.ndarray]], min_breath_s: 
 def tidal_stretches(t_s: np.ndarray, volume_l: np.ndarray,
                     events: list[tuple[float, str]]) -> list[tuple[np.ndarray, np.ndarray]]:
     """The curve's stretches of quiet breathing (see tidal_windows), each cut where the curve has no
-    value (an optical map left out: core/pipeline/quality.py, MAX_HIDDEN_MAPS): a breath is read
-    only where it was measured, and one missing map no longer loses the whole stretch."""
+    value for longer than MAX_BRIDGED_GAP_S (optical maps left out: core/pipeline/quality.py): a
+    breath is read only where it was measured, and read across a map missing here and there as the
+    manoeuvres are, without the missing samples."""
     out = []
     finite = np.isfinite(volume_l)
+    read = finite | short_gaps(t_s, volume_l, MAX_BRIDGED_GAP_S)
     for a, b in tidal_windows(sorted(events), float(t_s[-1])):
-        inside = (t_s >= a) & (t_s <= b) & finite
+        inside = (t_s >= a) & (t_s <= b) & read
         edges = np.flatnonzero(np.diff(np.concatenate(([0], inside.astype(np.int8), [0]))))
         for start, stop in zip(edges[::2], edges[1::2]):
-            if stop - start > 10:
-                out.append((t_s[start:stop], volume_l[start:stop]))
+            kept = finite[start:stop]
+            if kept.sum() > 10:
+                out.append((t_s[start:stop][kept], volume_l[start:stop][kept]))
     return out
 
 

@@ -184,6 +184,25 @@ def test_a_tidal_stretch_with_maps_left_out_is_read_on_either_side_of_the_gap():
     assert len(stretches) == 2 and all(np.isfinite(v).all() for _, v in stretches)
 
 
+def test_quiet_breathing_is_read_across_a_map_missing_here_and_there():
+    """The same eight breaths with one map in 30 left out (a map whose outline took in an arm, as on the
+    test population's mesh 101002: 12 of 462 front maps in its first 21 s) and one gap of two maps: every
+    breath is read, as the manoeuvres are read across such gaps (MAX_BRIDGED_GAP_S). Until 2026-12-06 each
+    missing map cut the stretch, and a breath that spanned one was lost: that session read 2 of 11."""
+    t = np.arange(0, 32, 1 / 22.0)
+    v = 0.25 * (1 - np.cos(2 * np.pi * t / 4.0))
+    events = [(0.0, "tidal-start")]
+    whole = analyse_volume(t, v, events).tidal
+    missing = (np.arange(len(t)) % 30 == 7) | ((t > 20.0) & (t < 20.1))
+    values = analyse_volume(t, np.where(missing, np.nan, v), events).tidal
+    assert values is not None and values.breaths == whole.breaths
+    assert values.tidal_volume_l == pytest.approx(whole.tidal_volume_l, abs=0.005)
+    assert values.respiratory_rate_bpm == pytest.approx(15.0, abs=0.2)
+    stretches = tidal_stretches(t, np.where(missing, np.nan, v), events)
+    assert len(stretches) == 1 and np.isfinite(stretches[0][1]).all()
+    assert len(stretches[0][0]) == len(t) - missing.sum()
+
+
 def test_an_unfinished_manoeuvre_is_left_out_and_named():
     t = np.arange(0, 12, 0.01)
     v = np.where(t > 8, (t - 8) * 0.8, 0.0)  # inhaling towards TLC when the recording stops
