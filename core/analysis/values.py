@@ -412,19 +412,27 @@ def _rejected(events: list[tuple[float, str]], end: float) -> bool:
 
 def tidal_windows(events: list[tuple[float, str]], end_s: float) -> list[tuple[float, float]]:
     """Stretches of quiet breathing: from `tidal-start`, and between a manoeuvre's end (plus 3 s
-    of recovery) and the next manoeuvre."""
-    out = []
+    of recovery) and the next manoeuvre; where two overlap (a `tidal-start` after a manoeuvre's
+    recovery, as the clinical protocol's `mouthpiece-off` has it), their union, so that no breath is
+    read twice."""
+    windows = []
     ordered = sorted(events)
     starts = [t for t, label in ordered if label in ("vc-start", "forced-start")]
     for t, label in ordered:
         if label == "tidal-start":
             stop = next((t2 for t2, l2 in ordered if t2 > t and l2 in ("maneuver-end", "vc-start", "forced-start")),
                         end_s)
-            out.append((t, stop))
+            windows.append((t, stop))
         elif label == "maneuver-end":
             stop = next((s for s in starts if s >= t), end_s)
             if stop - (t + 3.0) > 4.0:
-                out.append((t + 3.0, stop))
+                windows.append((t + 3.0, stop))
+    out: list[tuple[float, float]] = []
+    for a, b in sorted(windows):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
     return out
 
 

@@ -203,6 +203,22 @@ def test_quiet_breathing_is_read_across_a_map_missing_here_and_there():
     assert len(stretches[0][0]) == len(t) - missing.sum()
 
 
+def test_the_clinical_protocols_quiet_breathing_is_read_once():
+    """The clinical protocol's events (mesh 101002's session): the quiet breathing after the calibration's
+    slow VC and the `tidal-start` at `mouthpiece-off` lie in one stretch, read once. Until 2026-12-06 the
+    recovery's window and the tidal-start's overlapped and the breaths after mouthpiece-off were counted
+    twice, in the truth and the optical values alike (11 breaths for the 8 breathed)."""
+    events = [(0.0, "tidal-start"), (21.08, "maneuver-end"), (21.08, "vc-start"), (33.98, "maneuver-end"),
+              (41.53, "mouthpiece-off"), (41.53, "tidal-start"), (55.67, "maneuver-end"), (55.67, "vc-start"),
+              (68.57, "maneuver-end"), (70.57, "forced-start"), (79.49, "maneuver-end")]
+    windows = tidal_windows(events, 90.0)
+    assert windows == [(0.0, 21.08), (pytest.approx(36.98), 55.67), (pytest.approx(82.49), 90.0)]
+    t = np.arange(0, 55.67, 1 / 22.0)
+    v = 0.25 * (1 - np.cos(2 * np.pi * t / 4.0))
+    values = tidal_values(tidal_stretches(t, v, events[:8]))
+    assert values.breaths == 5 + 4  # 0-21 s and 37-55.7 s at 15/min, each breath once
+
+
 def test_an_unfinished_manoeuvre_is_left_out_and_named():
     t = np.arange(0, 12, 0.01)
     v = np.where(t > 8, (t - 8) * 0.8, 0.0)  # inhaling towards TLC when the recording stops
