@@ -17,6 +17,8 @@ from core.analysis import registry
 from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
                                           bronchodilator_statement, interpret)
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
+from core.analysis.quiet_breathing import quiet_breathing_gain, with_quiet_breathing_gain
+from core.analysis.optical_labels import calibrated_on_subject
 from core.analysis.session_analysis import analyse_session
 from core.analysis.values import ANALYSIS_RATE_HZ, SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.io.hdf5_probe import probe
@@ -195,9 +197,11 @@ def _gradient_correlation(results: Path, start_ns: int, t_flow: np.ndarray, v_fl
 
 
 def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tuple[float, str]],
-             results: Path | None, start_ns: int, optical: SessionValues | None = None) -> Comparison | None:
+             results: Path | None, start_ns: int, optical: SessionValues | None = None,
+             quiet_gain: float = 1.0) -> Comparison | None:
     """optical: the optical values as given; where they have no tidal volume its breaths are not paired
-    with the flow sensor's either."""
+    with the flow sensor's either. quiet_gain: the factor its tidal volumes were read with
+    (core/analysis/quiet_breathing.py), on each optical breath too."""
     if FLOW_SENSOR not in curves:
         return None
     t_flow, v_flow = curves[FLOW_SENSOR]
@@ -222,7 +226,7 @@ def _compare(curves: dict[str, tuple[np.ndarray, np.ndarray]], events: list[tupl
     for b in breaths:
         match = min(flow, key=lambda f: abs(f[6] - b[6]), default=None)
         if match is not None and abs(match[6] - b[6]) < 1.0:
-            pairs.append((float(b[0]), float(match[0])))
+            pairs.append((quiet_gain * float(b[0]), float(match[0])))
     return Comparison(r, pairs, gradient, f"optical {withheld}" if withheld else "")
 
 
@@ -445,10 +449,14 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
         curves: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         inputs = optical_inputs(results_path)
         optical = _in_seconds(inputs.get("optical_volume"), start)
+        quiet_gain = None
         if optical is not None:
             curves[OPTICAL] = optical
             analysed_optical = analyse_volume(*optical, events, subject.age_years if subject else None, fitted=True,
                                               peak_flow_volume=_in_seconds(inputs["optical_peak_flow"], start))
+            if analysed.flow_volume is not None and calibrated_on_subject(inputs.get("optical_label")):
+                quiet_gain = quiet_breathing_gain(*analysed.flow_volume, *optical, events)
+                analysed_optical = with_quiet_breathing_gain(analysed_optical, quiet_gain)
             sources[OPTICAL] = analysed_optical
         elif results_path is not None and (refused := optical_refusal(results_path)):
             if analysed.flow_sensor is None:  # with one, the comparison with it says why (_compare), once
@@ -516,7 +524,9 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
                                                   "height_cm": subject.height_cm, "weight_kg": subject.weight_kg},
             patient=_patient(records, subject), equations=equations, sources=sources, curves=curves,
             main_source=main, rows=rows, tidal_rows=tidal_rows, manoeuvres=manoeuvres,
-            comparison=_compare(curves, events, results_path, start, sources.get(OPTICAL)), maps=maps,
+            comparison=_compare(curves, events, results_path, start, sources.get(OPTICAL),
+                                quiet_gain.factor if quiet_gain is not None and quiet_gain.plausible else 1.0),
+            maps=maps,
             breath_times_s=breath, notes=notes,
             interpretation=_interpretation(main, sources, analysed.references),
             optical_manoeuvres=_manoeuvres(sources[OPTICAL]) if OPTICAL in sources and main != OPTICAL else [],

@@ -403,6 +403,7 @@ def grouping_values(session: Path, results: Path) -> dict[str, dict]:
     (core/volume/subject_calibration.py, GROUPINGS) and as the calibration chooses ("chosen"), all read
     from the light cycles' maps alike (no maps at every frame through the blows): which grouping carries
     from the calibration to the later manoeuvres, measured on both populations. {} without a calibration."""
+    from core.analysis.quiet_breathing import quiet_breathing_gain, with_quiet_breathing_gain
     from core.analysis.session_analysis import session_flow_volume
     from core.analysis.values import analyse_volume
     from core.io.results import ResultsFile
@@ -427,8 +428,10 @@ def grouping_values(session: Path, results: Path) -> dict[str, dict]:
     out = {}
     for name, groupings in [("chosen", tuple(GROUPINGS))] + [(g, (g,)) for g in GROUPINGS]:
         calibration = fit_subject_calibration(t, signals, flow.t_s, flow.volume_l, segment, groupings)
-        values = {} if calibration.refused else _numbers(
-            analyse_volume(t, calibration.volume_l(signals), events, age, fitted=True).parameters())
+        curve = calibration.volume_l(signals)
+        values = {} if calibration.refused else _numbers(with_quiet_breathing_gain(
+            analyse_volume(t, curve, events, age, fitted=True),
+            quiet_breathing_gain(flow.t_s, flow.volume_l, t, curve, events)).parameters())
         out[name] = {"values": values, "refused": calibration.refused and str(calibration.refused),
                      "gains": calibration.gains,
                      "grouping": calibration.extra.get("grouping"), "expected_error": calibration.expected_error}

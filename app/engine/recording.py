@@ -10,6 +10,7 @@ import threading
 import numpy as np
 
 from app.engine.flow_record import FlowRecord
+from core.analysis.quiet_breathing import QuietBreathingGain, quiet_breathing_gain, with_quiet_breathing_gain
 from core.analysis.values import analyse_volume, tidal_windows
 from core.volume.flow_sensor import flow_sensor_volume
 from core.volume.subject_calibration import MOUTHPIECE_OFF, SubjectCalibration, fit_subject_calibration
@@ -34,6 +35,7 @@ class SubjectRecording:
         self._flow = FlowRecord()
         self._events: list[tuple[int, str]] = []
         self.calibration: SubjectCalibration | None = None  # the subject's, once made and not refused
+        self.quiet_gain: QuietBreathingGain | None = None  # its quiet breathing's (core/analysis/quiet_breathing.py)
         self._mouthpiece_off_ns: int | None = None
         self._optical: list[tuple[int, float]] = []  # (stamp, calibrated litres) after mouthpiece-off
         self._blow_drift: tuple[int, float] | None = None  # (a blow's mark, the flow sensor's drift there, L/s)
@@ -85,7 +87,7 @@ class SubjectRecording:
         if recorded is None or t0_ns is None or not curve:
             return SubjectCalibration.refused_for("calibration-no-signal", "no flow sensor volume or no optical "
                                                   "signal recorded to calibrate on")
-        volume, start, _ = recorded
+        volume, start, marks = recorded
         map_t = (t0_ns + np.array([t for t, _ in curve]) * 1e9 - start) / 1e9
         names = list(curve[-1][1])
         signals = {n: np.array([sig.get(n, np.nan) for _, sig in curve], dtype=float) for n in names}
@@ -95,8 +97,11 @@ class SubjectRecording:
         if "fit_t_s" in calibration.extra:  # the fitted curve on seconds from the mark, as blow_trace has them
             calibration.extra["fit_t_s"] = calibration.extra["fit_t_s"] - (start_ns - start) / 1e9
         if calibration.refused is None:
+            gain = quiet_breathing_gain(flow_t, volume.volume_l, map_t, calibration.volume_l(signals), marks,
+                                        ((start_ns - start) / 1e9, float(flow_t[-1])))
             with self._lock:
                 self.calibration = calibration
+                self.quiet_gain = gain
         return calibration
 
     def values(self, age_years: float | None = None):
@@ -111,7 +116,9 @@ class SubjectRecording:
                 return None
             start = int(optical[0, 0])
             marks = sorted(((t - start) / 1e9, label) for t, label in events)
-            return analyse_volume((optical[:, 0] - start) / 1e9, optical[:, 1], marks, age_years, fitted=True)
+            return with_quiet_breathing_gain(
+                analyse_volume((optical[:, 0] - start) / 1e9, optical[:, 1], marks, age_years, fitted=True),
+                self.quiet_gain)
         recorded = self.flow_volume()
         if recorded is None:
             return None

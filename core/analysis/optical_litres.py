@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.analysis.optical_labels import CALIBRATED, ESTIMATE
 from core.analysis.session_analysis import session_flow_volume
 from core.io.session import SessionFile
 from core.volume.metric import MetricVolume
@@ -22,8 +23,6 @@ from core.volume.subject_calibration import (SubjectCalibration, calibration_seg
 # the estimate makes on either population's true surfaces (bench visible; docs/constants.md)
 POPULATION_GAIN = 1.20
 ESTIMATE_UNCERTAINTY = 0.55
-CALIBRATED = "optical, calibrated on the subject"
-ESTIMATE = "optical estimate, not calibrated"
 
 
 @dataclass

@@ -48,6 +48,9 @@ def test_a_clinical_session_gives_calibrated_litres_after_the_mouthpiece_comes_o
 
     data = build_report(results, with_maps=False)
     assert data.main_source == OPTICAL and data.interpretation is not None and data.optical_label == label
+    # its tidal volumes read with the quiet breathing's own gain, alike in the results, the analysis and the report
+    assert any("quiet-breathing gain" in p for p in data.sources[OPTICAL].problems)
+    assert not any("analyses the same curves differently" in n for n in data.notes), data.notes
     bundle = fhir_bundle(data)
     methods = {e["resource"].get("method", {}).get("text") for e in bundle["entry"]}
     assert f"optical (near-light photometric stereo, photopft): {label}" in methods
