@@ -15,6 +15,7 @@ import argparse
 import functools
 import json
 import os
+import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass, replace
@@ -296,14 +297,10 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     into it (benchmarks/renders.py). With `resume`, the results are kept beside the folder
     (`<folder>.results.h5` for `<folder>.stages`)."""
     from core.pipeline.process import process_session
-    from core.io.results import ResultsFile, optical_inputs, optical_refusal
     from core.rig import thesis_rig
     from core.io.session import SessionFile
-    from core.analysis.session_analysis import analyse_session
-    from core.sim.truth import truth_values
     from core.sim.simulate import simulate
     from core.calibration.rig_profile import ProfileError, load_profile
-    from core.analysis.optical_litres import CALIBRATED
 
     started = time.perf_counter()
     work = Path(folder)
@@ -364,15 +361,37 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
             stages["process"] = time.perf_counter() - started - sum(stages.values())
             if stages_done:
                 stages_done.finish("process", stages)
-        report = analyse_session(session, **optical_inputs(results))
+        out.update(read_results(session, results))
     except Exception as exc:
         out["refused"] = f"process: {exc}"
         return out
+    stages["analyse"] = time.perf_counter() - started - sum(stages.values())
+    out["seconds"] = sum(stages.values())
+    if resume:  # the results kept beside the row, for reading other signals off them without processing again
+        os.replace(results, work.with_suffix(".results.h5"))
+    for path in (results,) if renders is not None else (session, results):
+        path.unlink(missing_ok=True)
+    if stages_done:
+        stages_done.clear()
+        work.rmdir()
+    return out
+
+
+def read_results(session: Path, results: Path) -> dict:
+    """A processed subject's row fields read off its session and results file by this commit's analysis:
+    the truth, the flow sensor's and the optical values, the calibration, the groupings, the distances."""
+    from core.analysis.optical_labels import calibrated_on_subject
+    from core.analysis.session_analysis import analyse_session
+    from core.io.results import ResultsFile, optical_inputs, optical_refusal
+    from core.sim.truth import truth_values
+
+    out: dict = {}
+    report = analyse_session(session, **optical_inputs(results))
     out["truth"] = _numbers(truth_values(session).parameters())
     out["flow"] = _numbers(report.flow_sensor.parameters()) if report.flow_sensor is not None else {}
     out["optical"] = _numbers(report.optical.parameters()) if report.optical is not None else {}
     out["optical_label"] = report.optical_label
-    calibrated = bool(report.optical_label and report.optical_label.startswith(CALIBRATED))
+    calibrated = calibrated_on_subject(report.optical_label)
     out["calibrated"] = out["optical"] if calibrated else {}
     out["estimate"] = out["optical"] if report.optical is not None and not calibrated else {}
     out["optical_problems"] = list(report.optical.problems) if report.optical is not None else []
@@ -386,16 +405,21 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
         out["estimate"] = _numbers(estimate_values(session, metric).parameters())
     out["groupings"] = grouping_values(session, results)
     out["distance_errors_mm"] = [] if out["distance_refused"] else _distance_errors(session, results, after_cycles=10)
-    stages["analyse"] = time.perf_counter() - started - sum(stages.values())
-    out["seconds"] = sum(stages.values())
-    if resume:  # the results kept beside the row, for reading other signals off them without processing again
-        os.replace(results, work.with_suffix(".results.h5"))
-    for path in (results,) if renders is not None else (session, results):
-        path.unlink(missing_ok=True)
-    if stages_done:
-        stages_done.clear()
-        work.rmdir()
     return out
+
+
+def reread_row(row: dict, results: Path) -> dict:
+    """A kept row read again by this commit's analysis off the results file kept beside it (`bench
+    population --reread`): the same session and maps, the values as this commit reads them;
+    `processed_by` names the commit that processed them. Raises SessionError where the session is gone."""
+    from core.io.results import session_of_results
+
+    started = time.perf_counter()
+    fresh = read_results(session_of_results(results), results)
+    for key in ("refused", "optical_refused", "distance_refused"):
+        row.pop(key, None)
+    return {**row, **fresh, "processed_by": row.get("processed_by", row.get("commit", "unknown")),
+            "commit": source_commit(), "reread_seconds": time.perf_counter() - started}
 
 
 def grouping_values(session: Path, results: Path) -> dict[str, dict]:
@@ -637,10 +661,13 @@ def _keep(path: Path | None, row: dict) -> None:
 def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, workers: int,
                          standards: Path | None, images: Path | None,
                          max_sheen: float = MAX_SHEEN, keep: Path | None = None, world: str = WORLD,
-                         bodies: str = "parametric", renders: RenderCache | None = None) -> tuple[str, list[dict]]:
+                         bodies: str = "parametric", renders: RenderCache | None = None,
+                         reread: bool = False) -> tuple[str, list[dict]]:
     """The bench's table and rows. With `keep`, each finished subject's row is kept there and a
     later run with the same arguments takes it instead of running the subject again. With `renders`,
-    the subjects' rendered sessions are taken from there or kept there (benchmarks/renders.py)."""
+    the subjects' rendered sessions are taken from there or kept there (benchmarks/renders.py). With
+    `reread`, no subject is run: each kept row whose results file is kept beside it is read again by
+    this commit's analysis (reread_row) and kept so, and the table is made of the kept rows."""
     from app.progress import Progress
     from core.pipeline.head_maps import use_threads
     from core.sim.simulate import WORLDS
@@ -656,7 +683,9 @@ def run_population_bench(subjects: int, scale: float, seed: int, quick: bool, wo
         if path is not None and path.is_file():
             row = json.loads(path.read_text())
             if row.get("subject") == asdict(s):
-                done[s.index] = row
+                done[s.index] = _reread_kept(row, path) if reread else row
+    if reread:
+        population = [s for s in population if s.index in done]
     with tempfile.TemporaryDirectory() as tmp, Progress("bench population") as progress:
         # with `keep`, each subject's finished stages are kept beside its row until the row is written;
         # one subject at a time processes its two heads at once (a Pool's workers cannot start their own)
@@ -694,6 +723,24 @@ def population_section(scale: float, max_sheen: float, world: str, bodies: str =
     """The bench's name in docs/benchmarks.md and its plots' stem."""
     return (f"population-{scale:g}" + ("" if max_sheen == MAX_SHEEN else f"-sheen{max_sheen:g}") + _world_suffix(world)
             + ("-mesh" if bodies == "mesh" else ""))
+
+
+def _reread_kept(row: dict, path: Path) -> dict:
+    """A kept row read again off the results file kept beside it (`<row>.results.h5`), and kept so; the
+    row as it was where there is no results file (refused before processing) or its session is gone."""
+    from core.io.errors import SessionError
+
+    results = path.with_suffix(".results.h5")
+    if not results.is_file():
+        return row
+    try:
+        fresh = reread_row(row, results)
+    except SessionError as exc:
+        print(f"{path.name}: not read again, kept as processed at {row.get('commit', 'unknown')}: {exc}",
+              file=sys.stderr)
+        return row
+    _keep(path, fresh)
+    return fresh
 
 
 def _run_job(job: tuple) -> dict:
@@ -816,7 +863,10 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
               + f". Run time {elapsed:.0f} s with "
               f"{workers} subject(s) at once on {os.cpu_count()} cores"
               + (f" ({resumed} subjects kept from an earlier run of the same bench)" if resumed else "")
-              + (f"; subjects processed at commit(s) {', '.join(sorted({r.get('commit', 'unknown') for r in rows}))}")
+              + (f"; subjects processed at commit(s) "
+                 f"{', '.join(sorted({r.get('processed_by', r.get('commit', 'unknown')) for r in rows}))}")
+              + (f", read again at {', '.join(sorted({r['commit'] for r in rows if 'processed_by' in r}))} "
+                 "(`--reread`)" if any("processed_by" in r for r in rows) else "")
               + (f", rendered at {', '.join(sorted({r['rendered_by'] for r in rows if 'rendered_by' in r}))}"
                  if any("rendered_by" in r for r in rows) else "")
               + (f"; {np.median(subject_seconds):.0f} s per subject (median)." if subject_seconds else ".")]
@@ -905,6 +955,10 @@ def add(what: argparse._SubParsersAction) -> None:
     po.add_argument("--subset", action="store_true",
                     help=f"the fixed subset for use between full runs: the population's first {SUBSET_SUBJECTS} "
                          f"subjects at scale {SUBSET_SCALE:g} (overrides --subjects and --scale)")
+    po.add_argument("--reread", action="store_true",
+                    help="run no subject: read each subject kept in --keep again off the results file kept "
+                         "beside its row, with this commit's analysis (after a change to the analysis only), "
+                         "and make the table of the kept rows")
     po.add_argument("--no-write", action="store_true", help="print only")
 
     def run_population(args: argparse.Namespace) -> int:
@@ -916,6 +970,9 @@ def add(what: argparse._SubParsersAction) -> None:
             raise UserError(f"{args.keep}: --keep must be a folder (the finished subjects are kept in it), this is a file")
         if args.subset:
             args.subjects, args.scale = SUBSET_SUBJECTS, SUBSET_SCALE
+        if args.reread and (args.keep is None or not args.keep.is_dir()):
+            raise UserError(f"--reread reads the subjects kept in --keep FOLDER again"
+                            f"{'' if args.keep is None else f': {args.keep} is not a folder'}")
         if args.renders is not None and args.renders.exists() and not args.renders.is_dir():
             raise UserError(f"{args.renders}: --renders must be a folder (the rendered sessions are kept in it), "
                             "this is a file")
@@ -925,7 +982,7 @@ def add(what: argparse._SubParsersAction) -> None:
         sheen = MAX_SHEEN if args.max_sheen is None else args.max_sheen
         renders = RenderCache(args.renders, args.renders_max_gb * 1e9) if args.renders is not None else None
         text, _ = run_population_bench(subjects, args.scale, args.seed, args.quick, workers, args.waveforms, images,
-                                       sheen, args.keep, args.world, args.bodies, renders)
+                                       sheen, args.keep, args.world, args.bodies, renders, args.reread)
         suffix = ("" if sheen == MAX_SHEEN else f" --max-sheen {sheen:g}") + (
             "" if args.world == WORLD else f" --world {args.world}") + (
             " --bodies mesh" if args.bodies == "mesh" else "")

@@ -3,11 +3,14 @@ processing and analysis in the clinic world; the table, the per-subject lines an
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import pytest
 
 from benchmarks.common import SHARED
 from benchmarks.population import agreement, run_population_bench
+from benchmarks.renders import RenderCache
 from core.io.results import ResultsFile
 
 
@@ -15,7 +18,8 @@ from core.io.results import ResultsFile
 def test_the_quick_population_runs_end_to_end_and_reports_what_it_found(tmp_path, shared_data):
     # scale 0.1: at 0.08 the specular sphere's highlights are too small to triangulate in the clinic's light
     waveforms, kept = SHARED / "data" / "spirometry-waveforms", tmp_path / "kept"
-    text, rows = run_population_bench(2, 0.1, 1, True, 1, waveforms, tmp_path, keep=kept)
+    renders = RenderCache(tmp_path / "renders", 1e12)  # the sessions kept, for --reread below
+    text, rows = run_population_bench(2, 0.1, 1, True, 1, waveforms, tmp_path, keep=kept, renders=renders)
     assert len(rows) == 2
     for row in rows:
         # each subject either gave its values or says at which stage and why it stopped
@@ -51,6 +55,27 @@ def test_the_quick_population_runs_end_to_end_and_reports_what_it_found(tmp_path
     again, rows_again = run_population_bench(2, 0.1, 1, True, 1, waveforms, None, keep=kept)
     assert "2 subjects kept from an earlier run" in again
     assert [r.get("truth") for r in rows_again] == [r.get("truth") for r in rows]
+    # after a change to the analysis only: --reread reads the kept results again, processes nothing, and
+    # says which commit processed and which read them; a subject without its results file stays as it was
+    import benchmarks.population as population
+    import core.pipeline.process as process
+
+    def no_processing(*args, **kwargs):
+        raise AssertionError("processed again")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(process, "process_session", no_processing)
+        patch.setattr(population, "source_commit", lambda: "analysis-change")
+        missing = next(kept.glob(f"subject-{analysed[-1]['subject']['seed']}-*.results.h5"))
+        missing.rename(tmp_path / "aside.h5")
+        reread_text, reread_rows = run_population_bench(2, 0.1, 1, True, 1, waveforms, None, keep=kept, reread=True)
+    read_again = [r for r in reread_rows if r.get("processed_by")]
+    assert len(read_again) == len(analysed) - 1 and all(r["commit"] == "analysis-change" for r in read_again)
+    assert all(r["processed_by"] == rows[0]["commit"] for r in read_again)
+    assert [r.get("truth") for r in reread_rows] == [r.get("truth") for r in rows]
+    assert "read again at analysis-change (`--reread`)" in reread_text
+    assert json.loads(next(kept.glob(f"subject-{read_again[0]['subject']['seed']}-*.json")).read_text())[
+        "commit"] == "analysis-change"  # kept so
 
 
 def test_wrong_arguments_get_one_line_before_any_subject_runs(tmp_path, capsys):
@@ -65,6 +90,11 @@ def test_wrong_arguments_get_one_line_before_any_subject_runs(tmp_path, capsys):
     assert err == f"photopft bench: error: {not_a_folder}: --keep must be a folder (the finished subjects are kept in it), this is a file"
     assert main(["bench", "population", "--subjects", "0", "--no-write"]) == 2
     assert capsys.readouterr().err.strip() == "photopft bench: error: --subjects must be 1 or more"
+    assert main(["bench", "population", "--reread", "--no-write"]) == 2
+    assert capsys.readouterr().err.strip() == "photopft bench: error: --reread reads the subjects kept in --keep FOLDER again"
+    assert main(["bench", "population", "--reread", "--keep", str(tmp_path / "none"), "--no-write"]) == 2
+    assert capsys.readouterr().err.strip() == (f"photopft bench: error: --reread reads the subjects kept in --keep "
+                                               f"FOLDER again: {tmp_path / 'none'} is not a folder")
 
 
 def test_the_table_tallies_why_the_optical_values_were_refused():
