@@ -17,8 +17,7 @@ from core.analysis import registry
 from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
                                           bronchodilator_statement, interpret)
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
-from core.analysis.quiet_breathing import quiet_breathing_gain, with_quiet_breathing_gain
-from core.analysis.optical_labels import calibrated_on_subject
+from core.analysis.quiet_breathing import calibrated_tidal_values
 from core.analysis.session_analysis import analyse_session
 from core.analysis.values import ANALYSIS_RATE_HZ, SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.io.hdf5_probe import probe
@@ -454,9 +453,8 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             curves[OPTICAL] = optical
             analysed_optical = analyse_volume(*optical, events, subject.age_years if subject else None, fitted=True,
                                               peak_flow_volume=_in_seconds(inputs["optical_peak_flow"], start))
-            if analysed.flow_volume is not None and calibrated_on_subject(inputs.get("optical_label")):
-                quiet_gain = quiet_breathing_gain(*analysed.flow_volume, *optical, events)
-                analysed_optical = with_quiet_breathing_gain(analysed_optical, quiet_gain)
+            analysed_optical, quiet_gain = calibrated_tidal_values(analysed_optical, inputs.get("optical_label"),
+                                                                   analysed.flow_volume, optical, events)
             sources[OPTICAL] = analysed_optical
         elif results_path is not None and (refused := optical_refusal(results_path)):
             if analysed.flow_sensor is None:  # with one, the comparison with it says why (_compare), once
@@ -525,7 +523,7 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             patient=_patient(records, subject), equations=equations, sources=sources, curves=curves,
             main_source=main, rows=rows, tidal_rows=tidal_rows, manoeuvres=manoeuvres,
             comparison=_compare(curves, events, results_path, start, sources.get(OPTICAL),
-                                quiet_gain.factor if quiet_gain is not None and quiet_gain.plausible else 1.0),
+                                quiet_gain.factor if quiet_gain is not None else 1.0),
             maps=maps,
             breath_times_s=breath, notes=notes,
             interpretation=_interpretation(main, sources, analysed.references),

@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from core.analysis.optical_labels import calibrated_on_subject
 from core.analysis.values import SessionValues, tidal_stretches, tidal_values
 from core.volume.subject_calibration import calibration_segment
 
@@ -84,3 +85,16 @@ def with_quiet_breathing_gain(values: SessionValues, gain: QuietBreathingGain | 
     tidal = replace(t, tidal_volume_l=t.tidal_volume_l * gain.factor,
                     minute_ventilation_lpm=t.minute_ventilation_lpm * gain.factor)
     return replace(values, tidal=tidal, problems=[*values.problems, gain.note()])
+
+
+def calibrated_tidal_values(values: SessionValues, optical_label: str | None,
+                            flow_curve: tuple[np.ndarray, np.ndarray] | None,
+                            optical_curve: tuple[np.ndarray, np.ndarray],
+                            events: list[tuple[float, str]]) -> tuple[SessionValues, QuietBreathingGain | None]:
+    """An optical curve's values (read off `optical_curve`, (s, L)) with the quiet-breathing gain where
+    its label says it is calibrated on the subject and the flow sensor's curve (s, L) is there; and the
+    gain taken (None where none was)."""
+    if flow_curve is None or not calibrated_on_subject(optical_label):
+        return values, None
+    gain = quiet_breathing_gain(*flow_curve, *optical_curve, events)
+    return with_quiet_breathing_gain(values, gain), gain

@@ -9,8 +9,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from core.analysis.optical_labels import calibrated_on_subject
-from core.analysis.quiet_breathing import quiet_breathing_gain, with_quiet_breathing_gain
+from core.analysis.quiet_breathing import calibrated_tidal_values
 from core.analysis.values import SessionValues, analyse_volume, tidal_windows
 from core.volume.flow_sensor import btps_factor, flow_sensor_volume
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
@@ -121,9 +120,7 @@ through the flow sensor (core/analysis/quiet_breathing.py)."""
             dense = None if optical_peak_flow is None else (
                 (np.asarray(optical_peak_flow[0], dtype=np.int64) - start) / 1e9, np.asarray(optical_peak_flow[1], float))
             optical_values = analyse_volume(t, volume, events, age, fitted=True, peak_flow_volume=dense)
-            if flow_volume is not None and calibrated_on_subject(optical_label):
-                optical_values = with_quiet_breathing_gain(optical_values,
-                                                           quiet_breathing_gain(*flow_volume, t, volume, events))
+            optical_values, _ = calibrated_tidal_values(optical_values, optical_label, flow_volume, (t, volume), events)
             frame_times = {h: s.timestamp_ns(h) for h in s.heads if s.n_frames(h)}
             optical_values = without_gapped_manoeuvres(optical_values,
                                                        frame_gaps_in_manoeuvres(frame_times, s.events(), start))
