@@ -182,9 +182,10 @@ def trunk_mask(mask: np.ndarray, normals: np.ndarray) -> np.ndarray:
        divides, with the grazing pixels nearer to it than to any part it was divided from (an
        occluding contour between arm and trunk);
     3. above where each side's arm leaves the trunk (its first row with background between them,
-       within ARM_JOINED_SHARE of its rows; else its top row), nothing beyond the trunk's side there
-       (the arm's top and the shoulder's tip over it, which one head may see joined to the trunk and
-       the other not, and one map of a head but not the next).
+       within ARM_JOINED_SHARE of its rows; else its top row; then the first row with the whole arm
+       beyond the trunk's side), nothing beyond the trunk's side there (the arm's top and the
+       shoulder's tip over it, which one head may see joined to the trunk and the other not, and one
+       map of a head but not the next).
     An arm held close, lying on the trunk's side with nothing between, stays."""
     if not mask.any():
         return mask
@@ -214,13 +215,17 @@ def trunk_mask(mask: np.ndarray, normals: np.ndarray) -> np.ndarray:
         upper = arm_rows[:int(np.ceil(ARM_JOINED_SHARE * len(arm_rows)))]
         top = next((int(r) for r in upper if _apart(mask[r, side], trunk[r, side], arms[r] == label, left)),
                    int(arm_rows[0]))
-        on_row = np.nonzero(trunk[top, side])[0]
-        if len(on_row) == 0:
+        # the trunk's side on the first row from there with the whole arm beyond it: the arm as the trunk
+        # leaves it may begin with a contour's pixels on rows where the trunk still runs out along its top
+        beside = next((int(r) for r in arm_rows if r >= top and _beyond(trunk[r, side], arms[r] == label, left)),
+                      None)
+        if beside is None:
             continue
+        on_row = np.nonzero(trunk[beside, side])[0]
         if left:
-            trunk[:top, :on_row[0]] = False
+            trunk[:beside, :on_row[0]] = False
         else:
-            trunk[:top, middle + on_row[-1] + 1:] = False
+            trunk[:beside, middle + on_row[-1] + 1:] = False
     return _largest_part(trunk)
 
 
@@ -231,6 +236,14 @@ def _apart(subject: np.ndarray, trunk: np.ndarray, arm: np.ndarray, left: bool) 
         return False
     inner, outer = (arm_cols[-1], trunk_cols[0]) if left else (trunk_cols[-1], arm_cols[0])
     return bool(outer - inner > 1 and not subject[inner + 1:outer].all())
+
+
+def _beyond(trunk: np.ndarray, arm: np.ndarray, left: bool) -> bool:
+    """Whether on a row (one side's columns) the whole arm lies beyond the trunk's side."""
+    trunk_cols, arm_cols = np.nonzero(trunk)[0], np.nonzero(arm)[0]
+    if len(trunk_cols) == 0 or len(arm_cols) == 0:
+        return False
+    return bool(arm_cols[-1] < trunk_cols[0]) if left else bool(arm_cols[0] > trunk_cols[-1])
 
 
 def _largest_label(labels: np.ndarray) -> int:
