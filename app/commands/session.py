@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -92,15 +93,16 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
                         "drift, mains flicker, oily skin, lens distortion and vignetting, steps, lost frames); "
                         "clinic-polarised: the clinic behind crossed polarisers on the LEDs and lenses; "
                         "clinic-widening: that, with a --body's trunk widening as it breathes; "
-                        "the world's values replace the options below")
+                        "an option below given explicitly wins over the world's value")
     c.add_argument("--skin-type", type=int, choices=range(1, 7), metavar="1-6",
                    help="Fitzpatrick skin type of a --body's bare skin (default: albedo 0.45)")
     c.add_argument("--clothing", choices=("tshirt", "skin"), default="tshirt")
-    c.add_argument("--specular", type=finite, default=0.0, help="specular weight of the torso's surface")
-    c.add_argument("--led-offset-mm", type=finite, default=0.0, help="as built: LEDs this far from the drawing")
-    c.add_argument("--led-intensity-spread", type=finite, default=0.0, help="as built: relative intensities 1 +- this")
-    c.add_argument("--led-mu", type=finite, default=0.0, help="LED anisotropy exponent (0 = isotropic)")
-    c.add_argument("--drop-rate", type=finite, default=0.0, help="fraction of frames lost (gaps in frame_id)")
+    c.add_argument("--specular", type=finite, help="specular weight of the torso's surface (default 0)")
+    c.add_argument("--led-offset-mm", type=finite, help="as built: LEDs this far from the drawing (default 0)")
+    c.add_argument("--led-intensity-spread", type=finite,
+                   help="as built: relative intensities 1 +- this (default 0)")
+    c.add_argument("--led-mu", type=finite, help="LED anisotropy exponent (default 0: isotropic)")
+    c.add_argument("--drop-rate", type=finite, help="fraction of frames lost, gaps in frame_id (default 0)")
     c.add_argument("--no-flow", action="store_true", help="no flow sensor recording")
     c.add_argument("--created", type=_iso_time, help="the session's recording time, ISO 8601 with a time zone "
                                                      "(default now), for a simulated patient history")
@@ -111,6 +113,10 @@ def add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace an existing file that is not a session (a recorded session is never replaced)")
     p.set_defaults(run=run_simulate)
+
+
+# the options a --world also sets: given explicitly, they win over the world's value
+WORLD_OPTIONS = ("specular", "led_offset_mm", "led_intensity_spread", "led_mu", "drop_rate")
 
 
 def _iso_time(text: str) -> str:
@@ -141,7 +147,8 @@ def run_simulate(args: argparse.Namespace) -> int:
         raise UserError("simulate needs -o/--output FILE.h5")
     if args.placements < 2:
         raise UserError("--placements must be 2 or more")
-    if not 0.0 <= args.drop_rate < 0.5:
+    given = {k: getattr(args, k) for k in WORLD_OPTIONS if getattr(args, k) is not None}
+    if not 0.0 <= given.get("drop_rate", 0.0) < 0.5:
         raise UserError(f"--drop-rate must be in [0, 0.5), got {args.drop_rate}")
     try:
         subject = Subject(id=args.subject_id, sex=args.sex, age_years=args.age, height_cm=args.height,
@@ -175,12 +182,11 @@ def run_simulate(args: argparse.Namespace) -> int:
         scene=args.scene, body=body, protocol=args.protocol, seconds=args.seconds, scale=args.scale, seed=args.seed,
         heads=("front",) if args.heads == "front" else ("front", "back"), distance_mm=args.distance_mm,
         distance_back_mm=args.distance_back_mm, sway=sway, subject=subject, blows=blows, bit_depth=args.bits,
-        frame_rate_hz=args.fps, clothing=args.clothing, specular=args.specular, led_offset_mm=args.led_offset_mm,
-        led_intensity_spread=args.led_intensity_spread, led_mu=args.led_mu,
-        flow_sensor=None if args.no_flow else FlowSensorModel(), drop_rate=args.drop_rate,
+        frame_rate_hz=args.fps, clothing=args.clothing,
+        flow_sensor=None if args.no_flow else FlowSensorModel(),
         truth_maps_at=args.truth_maps_at, sphere_radius_mm=args.sphere_radius_mm, placements=args.placements,
         skin_type=args.skin_type, created=args.created)
-    config = in_world(config, args.world)
+    config = replace(in_world(config, args.world), **given)
     from app.progress import Progress
 
     check_output(args.output, force=args.force)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -110,6 +111,16 @@ def test_the_world_choices_are_the_simulators_worlds():
     from core.sim.simulate import WORLDS
 
     assert WORLD_NAMES == tuple(WORLDS)
+
+
+def test_an_option_given_explicitly_wins_over_the_world_s_value(tmp_path):
+    path = tmp_path / "plane.h5"
+    assert main(["simulate", "-o", str(path), "--scene", "plane", "--seconds", "0.1", "--scale", "0.05",
+                 "--world", "clinic", "--specular", "0.02", "--drop-rate", "0"]) == 0
+    with h5py.File(path, "r") as f:
+        world = json.loads(f["truth"].attrs["world"])
+    assert world["specular"] == 0.02 and world["drop_rate"] == 0.0  # given
+    assert world["led_mu"] == 2.0 and world["led_offset_mm"] == 10.0  # the clinic's
 
 
 def test_numba_as_the_application_configures_it():
