@@ -147,11 +147,11 @@ class SubjectRecording:
         """The flow sensor's volume (s from the mark, L, BTPS, about 100 samples a second) since `before_s`
         before a manoeuvre's mark, its drift as the report will remove it, taken once from the recording
         up to the mark; None without enough samples or a calibration."""
+        if self._flow_calibration is None:
+            return None
         if self._blow_drift is None or self._blow_drift[0] != mark_ns:
             recorded = self.flow_volume()
             self._blow_drift = (mark_ns, float(recorded[0].drift_lps[-1]) if recorded is not None else 0.0)
-        if self._flow_calibration is None:
-            return None
         with self._lock:
             adc, stamps = self._flow.samples()
         keep = stamps >= mark_ns - int(before_s * 1e9)
