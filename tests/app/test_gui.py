@@ -365,7 +365,7 @@ def test_a_whole_patient_session(qtbot, tmp_path):
 
     outcome = process_visit(records, wizard.session_id)
     (row,) = records.history(patient.id)
-    label = row.summary[OPTICAL]["label"]
+    label = row.summary[OPTICAL].get("label", "")
     assert label.startswith("optical, calibrated on the subject (residual "), row.summary
     assert row.summary[OPTICAL]["FVC_l"] > 2.0 and "FVC_l" not in row.summary["flow sensor"]
     assert row.summary[OPTICAL]["VC_manoeuvres"] == labels.count("vc-start") - 1  # the rejected one left out
