@@ -504,16 +504,26 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         # operator's mark (marked at the blow) to the manoeuvre's end (marked at the inspiration).
         if a < start_s:
             continue
-        before = (t >= a - 2.0) & (t <= b)
+        finite = np.isfinite(v)
+        before = (t >= a - 2.0) & (t <= b) & finite
         if before.sum() < MIN_MANOEUVRE_SAMPLES:
             result.problems.append(too_few_samples("forced expiration", a, int(before.sum()), b + 2.0 - a))
             continue
-        if not np.all(np.isfinite(v[(t >= a - 2.0) & (t <= b + 0.5)])):
-            result.problems.append(f"forced expiration at {a:.1f} s: the curve holds non-finite samples (NaN or "
-                                   "infinity: e.g. optical maps left out where an arm hid the trunk's sides): left out")
-            continue
         i_top = int(np.nonzero(before)[0][np.argmax(v[before])])
+        if i_top > 0 and not finite[i_top - 1] and t[i_top - 1] >= a - 2.0:
+            result.problems.append(f"forced expiration at {a:.1f} s: maps are missing just before its full "
+                                   "inspiration, which may lie among them: left out")
+            continue
+        # Across a longer gap the level is not kept (a step moves it by up to 0.15 L: docs/volume.md): the
+        # blow is read from its top, seen after the last gap before it, up to the first gap after it.
+        gaps = np.nonzero(~finite & (t >= a - 2.0) & (t <= b + 0.5))[0]
+        index = np.arange(len(t))
+        cut_at = gaps[gaps > i_top]
+        before &= index > (gaps[gaps < i_top].max() if (gaps < i_top).any() else -1)
         stop = min(b + 0.5, end_s)
+        if len(cut_at):
+            before &= index < cut_at[0]
+            stop = float(t[cut_at[0] - 1])
         blow = (t >= t[i_top]) & (t <= stop)
         if blow.sum() < MIN_BLOW_SAMPLES:
             result.problems.append(too_few_samples("forced expiration", a, int(blow.sum()), stop - t[i_top],
@@ -535,6 +545,13 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         except ValueError as exc:
             result.problems.append(f"forced expiration at {a:.1f} s: {exc}")
             continue
+        if len(cut_at):
+            if m.time_zero_s + 1.0 > (len(exhaled) - 1) / ANALYSIS_RATE_HZ:
+                result.problems.append(f"forced expiration at {a:.1f} s: maps are missing from {stop:.1f} s, less "
+                                       "than a second after its time zero (before FEV1): left out")
+                continue
+            result.problems.append(f"forced expiration at {a:.1f} s: read to {stop:.1f} s, where maps are missing "
+                                   f"for longer than {1000 * MAX_BRIDGED_GAP_S:.0f} ms (not read across)")
         if fitted:
             fitted_pef_lps = m.pef_lps
             _peak_flow_read_straight(m, t[blow], v[blow])

@@ -770,14 +770,20 @@ def maps_within(seconds: np.ndarray, window_s: float) -> int:
     return max(3, int(round(window_s / step)) | 1) if step > 0 else 3
 
 
-def smooth_in_time(t_s: np.ndarray, values: np.ndarray, sigma_s: float) -> np.ndarray:
+def smooth_in_time(t_s: np.ndarray, values: np.ndarray, sigma_s: float, apart_s: float | None = None) -> np.ndarray:
     """Gaussian smoothing of a series in time (sigma in s); NaNs bridged by interpolation. On (nearly)
     even steps a Gaussian filter over the samples; on a series that holds a stretch of samples much
     closer together than the rest (maps at every frame beside maps at every light cycle: uneven_steps)
     each sample the value at it of the line fitted, with Gaussian weights in time, to the samples within
     4 sigma of it: on even steps the same as the Gaussian's mean, and where the samples crowd on one
-    side it is not pulled to their side."""
+    side it is not pulled to their side. apart_s: a gap between samples longer than this divides the
+    series into pieces smoothed each on its own (maps left out for a step: the body is elsewhere after it)."""
     t, x = np.asarray(t_s, float), np.asarray(values, float)
+    if apart_s is not None and len(t) > 1:
+        cuts = np.flatnonzero(np.diff(t) > apart_s) + 1
+        if len(cuts):
+            return np.concatenate([smooth_in_time(tp, xp, sigma_s)
+                                   for tp, xp in zip(np.split(t, cuts), np.split(x, cuts))])
     good = np.isfinite(x)
     if good.sum() < 2:
         return x.copy()

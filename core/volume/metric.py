@@ -43,6 +43,8 @@ WIDTH_SMOOTHING_S = 0.3
 LIVE_WIDTH_TIME_CONSTANT_S = 1.0
 LIVE_REFERENCE_MAPS = 200  # the maps whose median gives the live view the reference's trunk width
 SIDE_SMOOTHING_S = 3.0
+# No series of the maps is smoothed across a longer gap between them: a step's (docs/constants.md)
+MAX_SMOOTHED_GAP_S = 0.15
 VOLUME_SMOOTHING_S = 0.03  # the maps' own noise; a forced expiration's volume curve has little above 5 Hz
 # A head's map scale this far from 1: the two views' trunk sides are not the same (docs/volume.md).
 MAX_SCALE_MISMATCH = 0.08
@@ -222,10 +224,10 @@ def side_targets(heads: dict[str, HeadDisplacements], baseline_mm: float | None)
         t = front.timestamp_ns.astype(float) / 1e9
         back_width = np.interp(t, back.timestamp_ns.astype(float) / 1e9, _bridged(back.width_px))
         d_front, _ = two_head_distances(_bridged(front.width_px), back_width, baseline_mm)
-        d_front = smooth_in_time(t, d_front, WIDTH_SMOOTHING_S)
+        d_front = smooth_in_time(t, d_front, WIDTH_SMOOTHING_S, MAX_SMOOTHED_GAP_S)
         d_back = np.interp(back.timestamp_ns.astype(float) / 1e9, t, baseline_mm - d_front)
         return {names[0]: d_front, names[1]: d_back}, "trunk widths and the baseline"
-    return ({n: smooth_in_time(h.timestamp_ns.astype(float) / 1e9, h.side_mm, SIDE_SMOOTHING_S)
+    return ({n: smooth_in_time(h.timestamp_ns.astype(float) / 1e9, h.side_mm, SIDE_SMOOTHING_S, MAX_SMOOTHED_GAP_S)
              for n, h in heads.items()}, "each head's side depth, smoothed")
 
 
@@ -292,7 +294,7 @@ def steady_breathing(seconds: np.ndarray, halves: np.ndarray) -> np.ndarray:
     """(maps, 2): the mean of the two halves' breathing (maps, 2) despiked (despiked), and their
     difference smoothed over BREATHING_SMOOTHING_S; the same span as the halves themselves."""
     mean = despiked(seconds, halves.mean(axis=1), DESPIKE_WINDOW_S, DESPIKE_MADS)
-    difference = smooth_in_time(seconds, halves[:, 0] - halves[:, 1], BREATHING_SMOOTHING_S)
+    difference = smooth_in_time(seconds, halves[:, 0] - halves[:, 1], BREATHING_SMOOTHING_S, MAX_SMOOTHED_GAP_S)
     return np.stack([mean, difference], axis=1)
 
 
@@ -399,7 +401,7 @@ def metric_volume(heads: dict[str, HeadDisplacements], baseline_mm: float | None
     seconds = t.astype(float) / 1e9
 
     def smooth(values: np.ndarray) -> np.ndarray:
-        return smooth_in_time(seconds, values, smoothing_s) if smoothing_s > 0 else values
+        return smooth_in_time(seconds, values, smoothing_s, MAX_SMOOTHED_GAP_S) if smoothing_s > 0 else values
 
     per_head = {name: smooth(v) for name, v in per_head.items()}
     volume = sum(per_head.values())
