@@ -386,6 +386,10 @@ def _windows(events: list[tuple[float, str]], start_label: str,
 MANOEUVRE_STARTS = ("tidal-start", "vc-start", "forced-start")
 # Fewest volume samples a slow VC or a forced expiration's lead-in is read from, and a blow from its top
 MIN_MANOEUVRE_SAMPLES = 10
+# A blow whose top is the first map after a gap is read when it has exhaled less than this (the least
+# back-extrapolated volume any blow is allowed) over the next HELD_SEEN_S: the breath was still held
+HELD_EXHALED_L = 0.100
+HELD_SEEN_S = 0.1
 MIN_BLOW_SAMPLES = 20
 
 
@@ -504,26 +508,27 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         # operator's mark (marked at the blow) to the manoeuvre's end (marked at the inspiration).
         if a < start_s:
             continue
+        # Across a longer gap the level is not kept (a step moves it by up to 0.15 L: docs/volume.md): the
+        # blow is read between the last such gap before the mark and the first after it
         finite = np.isfinite(v)
-        before = (t >= a - 2.0) & (t <= b) & finite
+        index = np.arange(len(t))
+        gaps = index[~finite & (t >= a - 2.0) & (t <= b + 0.5)]
+        after_gap = 0
+        if (t[gaps] < a).any():  # the first finite sample after the last gap that starts before the mark
+            later = index[finite & (index > gaps[t[gaps] < a].max())]
+            after_gap = int(later[0]) if len(later) else len(t)
+        cut_at = gaps[gaps > after_gap]
+        before = (t >= a - 2.0) & (t <= b) & (index >= after_gap) & (index < (cut_at[0] if len(cut_at) else len(t)))
         if before.sum() < MIN_MANOEUVRE_SAMPLES:
             result.problems.append(too_few_samples("forced expiration", a, int(before.sum()), b + 2.0 - a))
             continue
-        i_top = int(np.nonzero(before)[0][np.argmax(v[before])])
-        if i_top > 0 and not finite[i_top - 1] and t[i_top - 1] >= a - 2.0:
-            result.problems.append(f"forced expiration at {a:.1f} s: maps are missing just before its full "
-                                   "inspiration, which may lie among them: left out")
+        i_top = int(index[before][np.argmax(v[before])])
+        if i_top == after_gap and after_gap > 0 and float(
+                v[i_top] - np.interp(t[i_top] + HELD_SEEN_S, t[before], v[before])) >= HELD_EXHALED_L:
+            result.problems.append(f"forced expiration at {a:.1f} s: the blow was under way when the maps came back "
+                                   "after a gap: its start is not seen, left out")
             continue
-        # Across a longer gap the level is not kept (a step moves it by up to 0.15 L: docs/volume.md): the
-        # blow is read from its top, seen after the last gap before it, up to the first gap after it.
-        gaps = np.nonzero(~finite & (t >= a - 2.0) & (t <= b + 0.5))[0]
-        index = np.arange(len(t))
-        cut_at = gaps[gaps > i_top]
-        before &= index > (gaps[gaps < i_top].max() if (gaps < i_top).any() else -1)
-        stop = min(b + 0.5, end_s)
-        if len(cut_at):
-            before &= index < cut_at[0]
-            stop = float(t[cut_at[0] - 1])
+        stop = float(t[cut_at[0] - 1]) if len(cut_at) else min(b + 0.5, end_s)
         blow = (t >= t[i_top]) & (t <= stop)
         if blow.sum() < MIN_BLOW_SAMPLES:
             result.problems.append(too_few_samples("forced expiration", a, int(blow.sum()), stop - t[i_top],
