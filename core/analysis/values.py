@@ -508,7 +508,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         # operator's mark (marked at the blow) to the manoeuvre's end (marked at the inspiration).
         if a < start_s:
             continue
-        # Across a longer gap the level is not kept (a step moves it by up to 0.15 L: docs/volume.md): the
+        # Across a longer gap the level is not kept (a step moved it by up to 0.16 L: docs/volume.md): the
         # blow is read between the last such gap before the mark and the first after it
         finite = np.isfinite(v)
         index = np.arange(len(t))

@@ -358,7 +358,7 @@ def test_an_optical_curve_is_read_across_one_missing_map_and_not_across_more(sha
 
 def test_a_blow_is_read_up_to_a_step_s_gap_and_from_its_top_after_one(shared_data):
     """A step leaves out half a second of maps, and the level after it is not the level before (up to
-    0.15 L on the subsets' subjects). Until 2026-12-07 a blow with such a gap anywhere from 2 s before
+    0.16 L on the subsets' subjects). Until 2026-12-07 a blow with such a gap anywhere from 2 s before
     its mark to its end was left out: subject 4 of both subsets kept one blow of three. Now a gap 3 s
     into the first blow ends its reading there (FEV1 as without the gap, the note says where), and one
     at the full inspiration before the second leaves that blow whole, read from its top after it (the
