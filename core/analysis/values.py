@@ -386,11 +386,11 @@ def _windows(events: list[tuple[float, str]], start_label: str,
 MANOEUVRE_STARTS = ("tidal-start", "vc-start", "forced-start")
 # Fewest volume samples a slow VC or a forced expiration's lead-in is read from, and a blow from its top
 MIN_MANOEUVRE_SAMPLES = 10
+MIN_BLOW_SAMPLES = 20
 # A blow whose top is the first map after a gap is read when it has exhaled less than this (the least
 # back-extrapolated volume any blow is allowed) over the next HELD_SEEN_S: the breath was still held
 HELD_EXHALED_L = 0.100
 HELD_SEEN_S = 0.1
-MIN_BLOW_SAMPLES = 20
 
 
 def too_few_samples(what: str, at_s: float, samples: int, span_s: float, needed: int = MIN_MANOEUVRE_SAMPLES,

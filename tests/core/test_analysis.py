@@ -356,15 +356,17 @@ def test_an_optical_curve_is_read_across_one_missing_map_and_not_across_more(sha
     assert values.pef_refused.startswith("PEF not given: a map is missing within 600 ms of the top of the blow")
     assert values.forced.manoeuvres[0].fev1_l == pytest.approx(truth["FEV1_l"], rel=0.03)
 
+
 def test_a_blow_is_read_up_to_a_step_s_gap_and_from_its_top_after_one(shared_data):
     """A step leaves out half a second of maps, and the level after it is not the level before (up to
     0.16 L on the subsets' subjects). Until 2026-12-07 a blow with such a gap anywhere from 2 s before
     its mark to its end was left out: subject 4 of both subsets kept one blow of three. Now a gap 3 s
     into the first blow ends its reading there (FEV1 as without the gap, the note says where), and one
     at the full inspiration before the second leaves that blow whole, read from its top after it (the
-    breath still held there); a blow already under way when the maps come back is left out. A gap read across would carry the step into
-    the FVC: here the level after the first gap is raised by 0.15 L, after the second lowered (the
-    highest sample before the mark is then before the gap, where the blow does not start)."""
+    breath still held there); a blow already under way when the maps come back is left out. A gap
+    read across would carry the step into the FVC: here the level after the first gap is raised by
+    0.15 L, after the second lowered (the highest sample before the mark is then before the gap,
+    where the blow does not start)."""
     truth, t, v, events = _optical_maps(shared_data / "spirometry-waveforms" / "ATS24/2415.wf", 0.008, 0)
     whole = analyse_volume(t, v, events, fitted=True)
     first, second = [when for when, name in events if name == "forced-start"][:2]
