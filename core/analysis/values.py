@@ -501,6 +501,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
     blows: list[ForcedValues] = []
     peak_missing: list[float] = []  # the blows with a map missing where their peak flow is
     forced_windows, forced_unfinished = _windows(ordered, "forced-start", end_s)
+    finite, index = np.isfinite(v), np.arange(len(t))  # the curve as the blows read it, gaps and all
     result.problems += [f"forced expiration from {t:.1f} s not finished before the recording ended: left out"
                         for t in forced_unfinished]
     for a, b in forced_windows:
@@ -510,8 +511,6 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
             continue
         # Across a longer gap the level is not kept (a step moved it by up to 0.16 L: docs/volume.md): the
         # blow is read between the last such gap before the mark and the first after it
-        finite = np.isfinite(v)
-        index = np.arange(len(t))
         gaps = index[~finite & (t >= a - 2.0) & (t <= b + 0.5)]
         after_gap = 0
         if (t[gaps] < a).any():  # the first finite sample after the last gap that starts before the mark
