@@ -26,6 +26,7 @@ import numpy as np
 
 from app.args import WORLD_NAMES, finite, positive
 from benchmarks.common import DOCS, SHARED, in_checkout, publish
+from benchmarks.kept_session import keep_without_frames
 from benchmarks.renders import RenderCache
 
 
@@ -368,6 +369,7 @@ def run_subject(subject: VirtualSubject, scale: float, protocol: str, folder: st
     stages["analyse"] = time.perf_counter() - started - sum(stages.values())
     out["seconds"] = sum(stages.values())
     if resume:  # the results kept beside the row, for reading other signals off them without processing again
+        keep_without_frames(session, work.with_suffix(".session.h5"))
         os.replace(results, work.with_suffix(".results.h5"))
     for path in (results,) if renders is not None else (session, results):
         path.unlink(missing_ok=True)
@@ -408,14 +410,12 @@ def read_results(session: Path, results: Path) -> dict:
     return out
 
 
-def reread_row(row: dict, results: Path) -> dict:
+def reread_row(row: dict, results: Path, session: Path) -> dict:
     """A kept row read again by this commit's analysis off the results file kept beside it (`bench
     population --reread`): the same session and maps, the values as this commit reads them;
-    `processed_by` names the commit that processed them. Raises SessionError where the session is gone."""
-    from core.io.results import session_of_results
-
+    `processed_by` names the commit that processed them."""
     started = time.perf_counter()
-    fresh = read_results(session_of_results(results), results)
+    fresh = read_results(session, results)
     for key in ("refused", "optical_refused", "distance_refused"):
         row.pop(key, None)
     return {**row, **fresh, "processed_by": row.get("processed_by", row.get("commit", "unknown")),
@@ -726,15 +726,26 @@ def population_section(scale: float, max_sheen: float, world: str, bodies: str =
 
 
 def _reread_kept(row: dict, path: Path) -> dict:
-    """A kept row read again off the results file kept beside it (`<row>.results.h5`), and kept so; the
-    row as it was where there is no results file (refused before processing) or its session is gone."""
+    """A kept row read again off the results file kept beside it (`<row>.results.h5`) and its session,
+    as rendered or else the copy without frames kept beside it (`<row>.session.h5`, made here where an
+    older run kept none), and kept so; the row as it was where there is no results file (refused before
+    processing) or no session."""
     from core.io.errors import SessionError
+    from core.io.results import session_of_results
 
-    results = path.with_suffix(".results.h5")
+    results, copy = path.with_suffix(".results.h5"), path.with_suffix(".session.h5")
     if not results.is_file():
         return row
     try:
-        fresh = reread_row(row, results)
+        try:
+            session = session_of_results(results)
+        except SessionError:
+            if not copy.is_file():
+                raise
+            session = copy
+        if not copy.is_file():
+            keep_without_frames(session, copy)
+        fresh = reread_row(row, results, session)
     except SessionError as exc:
         print(f"{path.name}: not read again, kept as processed at {row.get('commit', 'unknown')}: {exc}",
               file=sys.stderr)
@@ -944,8 +955,9 @@ def add(what: argparse._SubParsersAction) -> None:
                     help="the development population (parametric trunks, the default) or the test population "
                          "(MakeHuman body meshes from ../shared/data/makehuman, ray-cast; no method is tuned on it)")
     po.add_argument("--keep", type=Path, default=None,
-                    help="keep each finished subject here (its row, and its results file to read other "
-                         "signals off without processing again) and, run again, go on from them (long runs)")
+                    help="keep each finished subject here (its row, its results file and its session without "
+                         "the frames, to read it again without processing or renders) and, run again, go on "
+                         "from them (long runs)")
     po.add_argument("--renders", type=Path, default=None, metavar="DIR",
                     help="keep the subjects' rendered sessions here and reuse them while the simulator's code is "
                          "unchanged: a rerun after a change to the reconstruction or the analysis costs "

@@ -4,6 +4,7 @@ processing and analysis in the clinic world; the table, the per-subject lines an
 from __future__ import annotations
 
 import json
+import shutil
 
 import cv2
 import pytest
@@ -76,6 +77,20 @@ def test_the_quick_population_runs_end_to_end_and_reports_what_it_found(tmp_path
     assert "read again at analysis-change (`--reread`)" in reread_text
     assert json.loads(next(kept.glob(f"subject-{read_again[0]['subject']['seed']}-*.json")).read_text())[
         "commit"] == "analysis-change"  # kept so
+    # the renders gone (pruned, or a run longer than a disk keeps): read again off the sessions kept
+    # beside the rows without their frames, to the same values
+    shutil.rmtree(tmp_path / "renders")
+    copies = sorted(kept.glob("*.session.h5"))
+    assert len(copies) == len(analysed) and all(c.stat().st_size < 5e6 for c in copies)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(process, "process_session", no_processing)
+        patch.setattr(population, "source_commit", lambda: "later")
+        _, without_renders = run_population_bench(2, 0.1, 1, True, 1, waveforms, None, keep=kept, reread=True)
+    later = [r for r in without_renders if r.get("commit") == "later"]
+    assert read_again and len(later) == len(read_again)
+    for before, after in zip(read_again, later):
+        assert (after["calibrated"], after["estimate"], after["truth"]) == (
+            before["calibrated"], before["estimate"], before["truth"])
 
 
 def test_wrong_arguments_get_one_line_before_any_subject_runs(tmp_path, capsys):
