@@ -248,7 +248,7 @@ def test_a_whole_patient_session(qtbot, tmp_path):
     mouthpiece off tidal breathing, slow VCs and forced blows on the calibrated live optical volume."""
     from app.gui.wizards.patient_session import CalibrationPage, ManoeuvrePage, PatientSessionWizard
 
-    engine = EngineProcess(partial(simulated_source, scale=0.1))
+    engine = EngineProcess(partial(simulated_source, scale=0.05))
     records = Records(tmp_path / "records.sqlite3")
     wizard = PatientSessionWizard(None, engine, records, sessions_dir=tmp_path / "sessions", operator="op1")
     qtbot.addWidget(wizard)
