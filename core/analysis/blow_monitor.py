@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.analysis.values import ANALYSIS_RATE_HZ, resample
-from core.analysis.spirometry import PLATEAU_L, ForcedValues, forced_values
+from core.analysis.spirometry import PLATEAU_L, ForcedValues, cough_not_judged, forced_values
+from core.analysis.values import ANALYSIS_RATE_HZ, MAX_PEF_NOISE_RATIO, pef_noise_ratio, resample
 
 START_FLOW_LPS = 0.5  # the blow has started once the exhaled flow exceeds this after the full inspiration
 
@@ -71,6 +71,9 @@ def live_blow(t_s: np.ndarray, volume_l: np.ndarray, mark_s: float) -> LiveBlow:
             values = forced_values(exhaled, ANALYSIS_RATE_HZ)
         except ValueError:
             values = None
+        blow = t >= grid[top]
+        if values is not None and blow.sum() >= 3:  # the report's rule: a cough the noise could make is not one
+            cough_not_judged(values, pef_noise_ratio(t[blow], v[blow], values.pef_lps), MAX_PEF_NOISE_RATIO)
     if values is not None:
         times = times - values.time_zero_s
     return LiveBlow(times, exhaled, flow, values, now)

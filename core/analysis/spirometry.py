@@ -21,6 +21,7 @@ PLATEAU_L = 0.025  # end of forced expiration: less than this in the last second
 END_OF_EXHALATION_L = 0.001
 REPEATABILITY_L = 0.150
 COUGH_REBOUND_OF_PEF = 0.2  # flow rising again after PEF by this fraction of PEF, in the first second
+COUGH = "cough or glottic closure in the first second"
 
 
 @dataclass
@@ -46,6 +47,8 @@ class ForcedValues:
     # maps at every frame (core/analysis/values.py, analyse_volume's peak_flow_volume)
     pef_step_s: float = float("nan")
     pef_smoothing_s: float = float("nan")  # the Gaussian's sigma those samples were smoothed over first
+    # False where the curve's noise could have made the cough the check found (cough_not_judged)
+    cough_judged: bool = True
     problems: list[str] = field(default_factory=list)
 
     @property
@@ -146,10 +149,24 @@ def forced_values(volume_l: np.ndarray, rate_hz: float) -> ForcedValues:
         values.problems.append(f"back-extrapolated volume {bev:.3f} L over the limit {values.bev_limit_l:.3f} L "
                                "(hesitant start)")
     if cough:
-        values.problems.append("cough or glottic closure in the first second")
+        values.problems.append(COUGH)
     if not values.eofe:
         values.problems.append(f"no plateau: {plateau:.3f} L in the last second, FET {fet:.1f} s (early stop?)")
     return values
+
+
+def cough_not_judged(values: ForcedValues, noise_ratio: float, limit: float) -> None:
+    """Take back a cough the curve's noise could have made: where one sample step's flow noise is
+    over `limit` of the peak flow (`noise_ratio`, as a PEF within 10 % needs it), a rebound of
+    COUGH_REBOUND_OF_PEF of the peak is not told from the noise. The blow is then graded on its other
+    criteria and says so; the operator, who watched it, rejects a blow that was coughed."""
+    if not values.cough_in_first_second or not noise_ratio > limit:
+        return
+    values.cough_in_first_second, values.cough_judged = False, False
+    values.problems = [p for p in values.problems if p != COUGH] + [
+        f"cough in the first second not judged: the flow's noise from one sample to the next is "
+        f"{100 * noise_ratio:.0f} % of the peak flow (at most {100 * limit:.0f} % to tell a rebound of "
+        f"{100 * COUGH_REBOUND_OF_PEF:.0f} % of it from the noise)"]
 
 
 @dataclass

@@ -14,7 +14,7 @@ from scipy import ndimage
 from scipy.signal import find_peaks
 
 from core.analysis.fitted_curve import smoothed_on_grid
-from core.analysis.spirometry import ForcedValues, SessionGrade, forced_values, grade_session
+from core.analysis.spirometry import ForcedValues, SessionGrade, cough_not_judged, forced_values, grade_session
 from core.volume.noise import curve_noise_l
 
 ANALYSIS_RATE_HZ = 200.0
@@ -559,6 +559,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         if fitted:
             fitted_pef_lps = m.pef_lps
             _peak_flow_read_straight(m, t[blow], v[blow])
+            cough_not_judged(m, m.pef_noise_ratio, MAX_PEF_NOISE_RATIO)  # the cough is read on the maps' curve
         drawn, frames = exhaled[: i_low + 1], None
         if fitted and peak_flow_volume is not None:
             frames = peak_flow_of_frames(m, *peak_flow_volume, float(tw[i_fitted_top]), stop, fitted_pef_lps)
