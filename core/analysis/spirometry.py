@@ -164,9 +164,8 @@ def cough_not_judged(values: ForcedValues, noise_ratio: float, limit: float) -> 
         return
     values.cough_in_first_second, values.cough_judged = False, False
     values.problems = [p for p in values.problems if p != COUGH] + [
-        f"cough in the first second not judged: the flow's noise from one sample to the next is "
-        f"{100 * noise_ratio:.0f} % of the peak flow (at most {100 * limit:.0f} % to tell a rebound of "
-        f"{100 * COUGH_REBOUND_OF_PEF:.0f} % of it from the noise)"]
+        f"cough in the first second not judged: the flow's noise is {100 * noise_ratio:.0f} % of its peak "
+        f"(at most {100 * limit:.0f} %)"]
 
 
 @dataclass
