@@ -38,13 +38,16 @@ def tidal_extension_s(breaths: int | None, extended_s: float) -> float:
 
 
 def forced_feedback(values: SessionValues, count: int, age_years: float | None) -> Feedback:
-    """After blow number `count` (the blows kept so far)."""
+    """After blow number `count` (the blows kept so far): the verdict on the last blow marked, never
+    on an earlier one where the last was left out (its maps not there yet, too few of them)."""
     grade = values.forced
-    if grade is None:
-        why = [p for p in values.problems if p.startswith("forced expiration")][-1:] or values.problems[-1:]
+    marked = values.forced_marks_s[-1] if values.forced_marks_s else None
+    last = None if grade is None else next((m for m in grade.manoeuvres if m.mark_s == marked), None)
+    if last is None:
+        forced = [p for p in values.problems if p.startswith("forced expiration")]
+        why = ([p for p in forced if marked is not None and f"{marked:.1f} s" in p] or forced or values.problems)[-1:]
         return Feedback(f"Blow {count}: not analysable ({'; '.join(why) or 'no forced expiration found'}); "
                         "do another.", count >= MAX_BLOWS)
-    last = grade.manoeuvres[-1]
     verdict = "acceptable" if last.fvc_acceptable else ("FEV1 acceptable" if last.fev1_acceptable
                                                         else "not acceptable")
     text = (f"Blow {count}: FVC {last.fvc_l:.2f} L, FEV1 {last.fev1_l:.2f} L, PEF {last.pef_lps:.1f} L/s: "

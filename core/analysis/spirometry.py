@@ -49,6 +49,7 @@ class ForcedValues:
     pef_smoothing_s: float = float("nan")  # the Gaussian's sigma those samples were smoothed over first
     # False where the curve's noise could have made the cough the check found (cough_not_judged)
     cough_judged: bool = True
+    mark_s: float = float("nan")  # the operator's mark of the blow on the session's clock, where known
     problems: list[str] = field(default_factory=list)
 
     @property

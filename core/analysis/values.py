@@ -97,6 +97,8 @@ class SessionValues:
     forced_curves: list[np.ndarray] = field(default_factory=list)
     # why the curve's samples are too far apart for a peak flow (MAX_PEF_SAMPLE_INTERVAL_S), else None
     pef_refused: str | None = None
+    # the operator's mark (s) of every forced blow on the curve that was not rejected, read or left out
+    forced_marks_s: list[float] = field(default_factory=list)
 
     def parameters(self) -> dict[str, float | str | int]:
         """Flat values for the results file's /parameters attributes."""
@@ -504,6 +506,8 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
     finite, index = np.isfinite(v), np.arange(len(t))  # the curve as the blows read it, gaps and all
     result.problems += [f"forced expiration from {t:.1f} s not finished before the recording ended: left out"
                         for t in forced_unfinished]
+    result.forced_marks_s = sorted([a for a, _ in forced_windows] + forced_unfinished)
+    result.forced_marks_s = [a for a in result.forced_marks_s if a >= start_s]
     for a, b in forced_windows:
         # The blow starts from the full inspiration (TLC): the highest volume from just before the
         # operator's mark (marked at the blow) to the manoeuvre's end (marked at the inspiration).
@@ -567,6 +571,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
                 drawn = drawn_through_frames(drawn, float(tw[i_fitted_top]), *frames)
         if missing_near_peak and frames is None:  # maps at every frame that hold the peak need no other
             peak_missing.append(a)
+        m.mark_s = a
         blows.append(m)
         result.forced_curves.append(drawn)
     if blows:

@@ -60,3 +60,27 @@ def test_a_manoeuvre_before_the_curve_begins_is_not_a_problem_of_the_curve():
     values = analyse_volume(t[later], w.volume_l[later], w.events, 40.0)
     assert not [p for p in values.problems if p.startswith("slow VC")]
     assert values.forced is not None and len(values.forced.manoeuvres) == 3
+
+
+def test_each_blow_s_feedback_is_about_that_blow():
+    """A loaded machine's maps lag the marks: when the operator ends blow 2, the curve may stop inside
+    it. The feedback said "Blow 2" with blow 1's values; it says blow 2 is not read yet, and why. A blow
+    left out before a good one does not take the good one's verdict either."""
+    w = protocol_waveform(Subject(), "full", None, 1)
+    t = np.arange(len(w.volume_l)) / RATE_HZ
+    marks = sorted(at for at, label in w.events if label == "forced-start")
+    ended = min(at for at, label in w.events if label == "maneuver-end" and at > marks[1])
+    so_far = [(at, label) for at, label in w.events if at <= ended]  # the marks made when blow 2 ends
+    lagging = t < marks[1] + 1.0  # the maps reach one second into blow 2
+    values = analyse_volume(t[lagging], w.volume_l[lagging], so_far, 40.0)
+    (first,) = values.forced.manoeuvres
+    second = forced_feedback(values, 2, 40.0).text
+    assert second.startswith("Blow 2: not analysable (forced expiration from") and "not finished" in second
+    assert f"FVC {first.fvc_l:.2f} L" not in second
+    sparse = np.ones(len(t), dtype=bool)
+    near = (t >= marks[1] - 2.0) & (t <= marks[1] + 8.0)
+    sparse[near] = np.isclose((t[near] - marks[1]) % 0.5, 0.0, atol=0.5 / RATE_HZ)  # blow 2 left out
+    values = analyse_volume(t[sparse], w.volume_l[sparse], w.events, 40.0)
+    assert len(values.forced.manoeuvres) == 2
+    third = forced_feedback(values, 3, 40.0).text
+    assert third.startswith("Blow 3: FVC") and f"FVC {values.forced.manoeuvres[1].fvc_l:.2f} L" in third
