@@ -15,7 +15,7 @@ from PySide6.QtWidgets import QGridLayout, QLabel, QProgressBar, QTableWidget, Q
 
 from app.report_data import references_on
 from core.analysis.blow_monitor import LiveBlow, best_blow, live_blow
-from core.analysis.spirometry import SessionGrade, repeatability_tolerance_l
+from core.analysis.spirometry import ForcedValues, SessionGrade, repeatability_tolerance_l
 
 SOURCES = {"flow sensor": (31, 119, 180), "optical": (230, 120, 20)}
 CHILD_AGE_YEARS = 12  # younger patients get the incentive bar
@@ -158,16 +158,15 @@ class BlowScreen(QWidget):
         best = best_blow(blows)
         self.table.setRowCount(len(blows))
         for row, b in enumerate(blows):
-            verdict = "acceptable" if b.fvc_acceptable else ("FEV1 acceptable" if b.fev1_acceptable else
-                                                             "rejected: " + "; ".join(b.problems))
             cells = (f"{row + 1}", f"{b.fvc_l:.2f}", f"{b.fev1_l:.2f}", f"{b.pef_lps:.1f}", f"{b.fet_s:.1f}",
-                     f"{1000 * b.bev_l:.0f}", verdict, "★ best" if row == best else "")
+                     f"{1000 * b.bev_l:.0f}", blow_verdict(b), "★ best" if row == best else "")
             for column, text in enumerate(cells):
                 item = QTableWidgetItem(text)
                 item.setFlags(item.flags() & ~Qt.ItemFlag.ItemIsEditable)
                 if column == 6:
                     item.setForeground(pg.mkColor("#1b7f3b" if b.fvc_acceptable else
                                                   "#b26a00" if b.fev1_acceptable else "#b00020"))
+                    item.setToolTip("; ".join(b.problems))
                 self.table.setItem(row, column, item)
         self.table.resizeColumnsToContents()
         for k, (loop, volume_time) in enumerate(self.earlier):
@@ -177,6 +176,16 @@ class BlowScreen(QWidget):
             loop.setPen(pen)
             volume_time.setPen(pen)
         self.repeatability.setText(repeatability_text(grade, self.age_years))
+
+
+def blow_verdict(blow: ForcedValues) -> str:
+    """The blow table's verdict in a few words; the problems in full are its tooltip and the feedback
+    under the table (a 1366 px screen showed a tenth of them)."""
+    if blow.fvc_acceptable:
+        return "acceptable"
+    failed = [reason for reason, fails in (("hesitant start", not blow.bev_ok), ("cough", blow.cough_in_first_second),
+                                           ("no plateau", not blow.eofe)) if fails]
+    return ("FEV1 acceptable" if blow.fev1_acceptable else "rejected") + f" ({', '.join(failed)})"
 
 
 def repeatability_text(grade: SessionGrade, age_years: float | None) -> str:

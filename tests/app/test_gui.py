@@ -812,3 +812,25 @@ def test_a_verdict_at_its_threshold_does_not_flicker(qtbot):
     assert k / 30 >= VERDICT_HOLD_S - 0.05
     assert line.text() == "not valid now: hold the arms away from the body" and "b00020" in line.styleSheet()
     assert line.toolTip() == "an arm against the trunk hides its side; hold the arms away from the body"
+
+
+def test_the_blow_table_says_why_a_blow_failed_in_a_few_words(qtbot):
+    """Each blow's verdict names the criteria it failed (hesitant start, cough, no plateau); the
+    problems in full are its tooltip (a 1366 px screen showed a tenth of them in the cell)."""
+    from app.gui.blow_screen import BlowScreen
+    from core.analysis.spirometry import forced_values, grade_session
+
+    t = np.arange(0.0, 8.0, 0.01)
+    good = 4.0 * (1.0 - np.exp(-t / 0.5))
+    hesitant = np.interp(t - 0.4, t, good, left=0.0) + np.where(t < 0.4, 0.6 * t, 0.24)  # slow start
+    stopped = np.minimum(good, 3.0)  # stops short at 3 L: the last second is flat at once ...
+    stopped[t > 7.0] += 0.08 * (t[t > 7.0] - 7.0)  # ... and still rising in its last second
+    blows = [forced_values(curve, 100.0) for curve in (good, hesitant, stopped)]
+    screen = BlowScreen(40.0, 4.2)
+    qtbot.addWidget(screen)
+    screen.show_grade(grade_session(blows, 40.0))
+    verdicts = [screen.table.item(r, 6).text() for r in range(3)]
+    assert verdicts[0] == "acceptable"
+    assert verdicts[1].startswith("rejected (hesitant start") and verdicts[2] == "FEV1 acceptable (no plateau)"
+    assert screen.table.item(1, 6).toolTip() == "; ".join(blows[1].problems)
+    assert "back-extrapolated volume" in screen.table.item(1, 6).toolTip()
