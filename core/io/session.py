@@ -388,7 +388,7 @@ class SessionFile(_OwnsFile):
     def __init__(self, path: str | os.PathLike, *, check: bool = True) -> None:
         self.path = Path(path)
         if check:
-            problems = validate_session(self.path)
+            problems = _validated(self.path)
             if problems:
                 raise SessionError(f"{self.path} is not a valid session file: " + "; ".join(problems[:5])
                                    + (f" (and {len(problems) - 5} more)" if len(problems) > 5 else ""))
@@ -828,6 +828,29 @@ def session_plausibility(path: str | os.PathLike) -> list[str]:
             else:
                 problems += [f"/flow: {g.reason} (its values refused)"
                              for g in gaps_in_manoeuvres(flow_gaps(stamps), s.events(), s.start_ns())]
+    return problems
+
+
+# files this process found valid, by (path, size, modification time): a session opened again by the same
+# command (analysis, report, review) is not read through a second time for its checksums
+_VALID: dict[tuple[str, int, int], bool] = {}
+_VALID_KEPT = 64
+
+
+def _validated(path: Path) -> list[str]:
+    """validate_session, once for each version of a file in this process."""
+    try:
+        status = path.stat()
+        key = (str(path.resolve()), status.st_size, status.st_mtime_ns)
+    except OSError:
+        return validate_session(path)
+    if key in _VALID:
+        return []
+    problems = validate_session(path)
+    if not problems:
+        if len(_VALID) >= _VALID_KEPT:
+            _VALID.pop(next(iter(_VALID)))
+        _VALID[key] = True
     return problems
 
 
