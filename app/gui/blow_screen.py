@@ -16,6 +16,7 @@ from PySide6.QtWidgets import QGridLayout, QLabel, QProgressBar, QTableWidget, Q
 from app.report_data import references_on
 from core.analysis.blow_monitor import LiveBlow, best_blow, live_blow
 from core.analysis.spirometry import ForcedValues, SessionGrade, repeatability_tolerance_l
+from core.analysis.values import pef_not_given
 
 SOURCES = {"flow sensor": (31, 119, 180), "optical": (230, 120, 20)}
 CHILD_AGE_YEARS = 12  # younger patients get the incentive bar
@@ -158,7 +159,9 @@ class BlowScreen(QWidget):
         best = best_blow(blows)
         self.table.setRowCount(len(blows))
         for row, b in enumerate(blows):
-            cells = (f"{row + 1}", f"{b.fvc_l:.2f}", f"{b.fev1_l:.2f}", f"{b.pef_lps:.1f}", f"{b.fet_s:.1f}",
+            why_no_pef = pef_not_given(b)
+            cells = (f"{row + 1}", f"{b.fvc_l:.2f}", f"{b.fev1_l:.2f}", f"{b.pef_lps:.1f}" if why_no_pef is None else "—",
+                     f"{b.fet_s:.1f}",
                      f"{1000 * b.bev_l:.0f}", blow_verdict(b), "★ best" if row == best else "")
             for column, text in enumerate(cells):
                 item = QTableWidgetItem(text)
@@ -167,6 +170,8 @@ class BlowScreen(QWidget):
                     item.setForeground(pg.mkColor("#1b7f3b" if b.fvc_acceptable else
                                                   "#b26a00" if b.fev1_acceptable else "#b00020"))
                     item.setToolTip("; ".join(b.problems))
+                if column == 3 and why_no_pef is not None:
+                    item.setToolTip(f"PEF not given: {why_no_pef}")
                 self.table.setItem(row, column, item)
         self.table.resizeColumnsToContents()
         for k, (loop, volume_time) in enumerate(self.earlier):

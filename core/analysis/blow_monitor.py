@@ -72,8 +72,10 @@ def live_blow(t_s: np.ndarray, volume_l: np.ndarray, mark_s: float) -> LiveBlow:
         except ValueError:
             values = None
         blow = t >= grid[top]
-        if values is not None and blow.sum() >= 3:  # the report's rule: a cough the noise could make is not one
-            cough_not_judged(values, pef_noise_ratio(t[blow], v[blow], values.pef_lps), MAX_PEF_NOISE_RATIO)
+        if values is not None and blow.sum() >= 3:  # the report's rules: its PEF and its cough weighed by its noise
+            values.pef_noise_ratio = pef_noise_ratio(t[blow], v[blow], values.pef_lps)
+            values.samples_step_s = float(np.median(np.diff(t[blow])))
+            cough_not_judged(values, values.pef_noise_ratio, MAX_PEF_NOISE_RATIO)
     if values is not None:
         times = times - values.time_zero_s
     return LiveBlow(times, exhaled, flow, values, now)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from core.analysis.values import VC_REPEATABILITY_L, SessionValues, vc_repeatability_l
+from core.analysis.values import VC_REPEATABILITY_L, SessionValues, pef_not_given, vc_repeatability_l
 from core.analysis.spirometry import repeatability_tolerance_l
 
 MAX_BLOWS = 8
@@ -50,7 +50,9 @@ def forced_feedback(values: SessionValues, count: int, age_years: float | None) 
                         "do another.", count >= MAX_BLOWS)
     verdict = "acceptable" if last.fvc_acceptable else ("FEV1 acceptable" if last.fev1_acceptable
                                                         else "not acceptable")
-    text = (f"Blow {count}: FVC {last.fvc_l:.2f} L, FEV1 {last.fev1_l:.2f} L, PEF {last.pef_lps:.1f} L/s: "
+    why_no_pef = pef_not_given(last)
+    pef = f"PEF {last.pef_lps:.1f} L/s" if why_no_pef is None else f"PEF not given ({why_no_pef})"
+    text = (f"Blow {count}: FVC {last.fvc_l:.2f} L, FEV1 {last.fev1_l:.2f} L, {pef}: "
             f"{verdict}" + (f" ({'; '.join(last.problems)})" if last.problems else "") + ".")
     repeatable = grade.fvc_grade in ("A", "B") and grade.fev1_grade in ("A", "B")  # two acceptable, within tolerance
     finished = count >= MAX_BLOWS or (count >= MIN_BLOWS and repeatable)

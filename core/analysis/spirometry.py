@@ -47,6 +47,8 @@ class ForcedValues:
     # maps at every frame (core/analysis/values.py, analyse_volume's peak_flow_volume)
     pef_step_s: float = float("nan")
     pef_smoothing_s: float = float("nan")  # the Gaussian's sigma those samples were smoothed over first
+    # the median step (s) of the curve's own samples through the blow, where its noise was weighed
+    samples_step_s: float = float("nan")
     # False where the curve's noise could have made the cough the check found (cough_not_judged)
     cough_judged: bool = True
     mark_s: float = float("nan")  # the operator's mark of the blow on the session's clock, where known

@@ -602,6 +602,20 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
 MAX_PEF_NOISE_RATIO = 0.05
 
 
+def pef_not_given(m: ForcedValues) -> str | None:
+    """Why one blow's PEF is not given, in a few words (the rule the session's PEF is refused by, on the
+    samples it was read on); None where it is given. A flow sensor's blow (no noise weighed) always is."""
+    step = m.pef_step_s if np.isfinite(m.pef_step_s) else m.samples_step_s
+    if not np.isfinite(step):
+        return None
+    if step > MAX_PEF_SAMPLE_INTERVAL_S:
+        return f"a map every {1000 * step:.0f} ms, at least one every {1000 * MAX_PEF_SAMPLE_INTERVAL_S:.0f} ms needed"
+    limit = MAX_PEF_NOISE_RATIO_FRAMES if step <= MAX_FRAME_STEP_S else MAX_PEF_NOISE_RATIO
+    if not m.pef_noise_ratio <= limit:
+        return f"the noise from map to map is {100 * m.pef_noise_ratio:.0f} % of the peak flow (at most {100 * limit:.0f} %)"
+    return None
+
+
 def _peak_flow_read_straight(m: ForcedValues, t_s: np.ndarray, volume_l: np.ndarray) -> None:
     """Give a fitted blow the PEF of its samples read straight, and the noise ratio it is judged by.
 
@@ -612,6 +626,7 @@ def _peak_flow_read_straight(m: ForcedValues, t_s: np.ndarray, volume_l: np.ndar
     exhaled = straight[0] - straight
     peak = int(np.argmax(exhaled))
     m.pef_noise_ratio = pef_noise_ratio(t_s, volume_l, m.pef_lps)
+    m.samples_step_s = float(np.median(np.diff(t_s))) if len(t_s) > 1 else float("nan")
     if peak >= 1:
         m.pef_lps = float(np.gradient(exhaled[: peak + 1], 1.0 / ANALYSIS_RATE_HZ).max())
 

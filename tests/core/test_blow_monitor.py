@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.analysis.values import ANALYSIS_RATE_HZ, resample
+from core.analysis.values import ANALYSIS_RATE_HZ, pef_not_given, resample
 from core.analysis.blow_monitor import best_blow, live_blow
 from core.analysis.spirometry import forced_values
 
@@ -75,3 +75,5 @@ def test_the_live_blow_does_not_call_the_maps_noise_a_cough():
         values = live_blow(maps_s, clean + 0.030 * noise / noise.std(), 0.0).values
         assert not values.cough_in_first_second and not values.cough_judged
         assert values.problems[-1].startswith("cough in the first second not judged")
+        assert values.samples_step_s == pytest.approx(1.0 / 22.0, rel=0.01)  # nor is its PEF given
+        assert pef_not_given(values).startswith(f"the noise from map to map is {100 * values.pef_noise_ratio:.0f} %")

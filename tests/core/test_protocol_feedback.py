@@ -4,6 +4,7 @@ manoeuvre is done (core/analysis/protocol_feedback.py): the ATS/ERS rules outsid
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from core.analysis.values import analyse_volume
 from core.analysis.protocol_feedback import (MAX_TIDAL_EXTENSION_S, TIDAL_EXTENSION_S, forced_feedback, tidal_extension_s,
@@ -84,3 +85,20 @@ def test_each_blow_s_feedback_is_about_that_blow():
     assert len(values.forced.manoeuvres) == 2
     third = forced_feedback(values, 3, 40.0).text
     assert third.startswith("Blow 3: FVC") and f"FVC {values.forced.manoeuvres[1].fvc_l:.2f} L" in third
+
+
+def test_a_blow_s_pef_is_given_only_where_the_maps_noise_allows():
+    """The report's rule, per blow: a PEF read on maps a light cycle apart whose noise from map to map
+    is over 5 % of it is not given, and the feedback says why instead of a number the noise made."""
+    w = protocol_waveform(Subject(), "full", None, 1)
+    every_cycle = np.arange(0, len(w.volume_l), 45)  # 45 ms: a map a light cycle at 110 frames/s
+    t = every_cycle / RATE_HZ
+    clean = analyse_volume(t, w.volume_l[every_cycle], w.events, 40.0, fitted=True)
+    noisy = analyse_volume(t, w.volume_l[every_cycle] + np.random.default_rng(0).normal(0, 0.03, len(t)),
+                           w.events, 40.0, fitted=True)
+    given, refused = forced_feedback(clean, 1, 40.0).text, forced_feedback(noisy, 3, 40.0).text
+    assert "L/s:" in given and "PEF not given" not in given
+    last = noisy.forced.manoeuvres[-1]
+    assert last.pef_noise_ratio > 0.05 and last.samples_step_s == pytest.approx(0.045, abs=0.001)
+    assert f"PEF not given (the noise from map to map is {100 * last.pef_noise_ratio:.0f} % of the peak flow" in refused
+    assert f"PEF {last.pef_lps:.1f} L/s" not in refused
