@@ -18,7 +18,7 @@ from core.analysis.interpretation import (BronchodilatorChange, Interpretation, 
                                           bronchodilator_statement, interpret)
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
 from core.analysis.quiet_breathing import calibrated_tidal_values
-from core.analysis.session_analysis import analyse_session
+from core.analysis.session_analysis import analyse_session, optical_read_from_s
 from core.analysis.values import ANALYSIS_RATE_HZ, SessionValues, analyse_volume, tidal_breaths, tidal_stretches
 from core.io.hdf5_probe import probe
 from core.io.results import (READ_ERRORS, RESULTS_FORMAT, ResultsFile, check_results, optical_inputs, optical_refusal,
@@ -451,7 +451,10 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
         quiet_gain = None
         if optical is not None:
             curves[OPTICAL] = optical
-            analysed_optical = analyse_volume(*optical, events, subject.age_years if subject else None, fitted=True,
+            flow_end_s = None if analysed.flow_volume is None else float(analysed.flow_volume[0][-1])
+            read = optical[0] >= optical_read_from_s(inputs.get("optical_label"), flow_end_s, events)
+            analysed_optical = analyse_volume(optical[0][read], optical[1][read], events,
+                                              subject.age_years if subject else None, fitted=True,
                                               peak_flow_volume=_in_seconds(inputs["optical_peak_flow"], start))
             analysed_optical, quiet_gain = calibrated_tidal_values(analysed_optical, inputs.get("optical_label"),
                                                                    analysed.flow_volume, optical, events)

@@ -395,6 +395,8 @@ def read_results(session: Path, results: Path) -> dict:
     out["optical_label"] = report.optical_label
     calibrated = calibrated_on_subject(report.optical_label)
     out["calibrated"] = out["optical"] if calibrated else {}
+    if calibrated:  # read over the span the calibrated values are read over: after the calibration
+        out["truth_calibrated"] = _numbers(truth_values(session, report.optical_from_s).parameters())
     out["estimate"] = out["optical"] if report.optical is not None and not calibrated else {}
     out["optical_problems"] = list(report.optical.problems) if report.optical is not None else []
     out["optical_refused"] = optical_refusal(results)
@@ -453,8 +455,9 @@ def grouping_values(session: Path, results: Path) -> dict[str, dict]:
     for name, groupings in [("chosen", tuple(GROUPINGS))] + [(g, (g,)) for g in GROUPINGS]:
         calibration = fit_subject_calibration(t, signals, flow.t_s, flow.volume_l, segment, groupings)
         curve = calibration.volume_l(signals)
+        read = t >= segment[1]  # after the calibration, as the analysis reads the calibrated curve
         values = {} if calibration.refused else _numbers(with_quiet_breathing_gain(
-            analyse_volume(t, curve, events, age, fitted=True),
+            analyse_volume(t[read], curve[read], events, age, fitted=True),
             quiet_breathing_gain(flow.t_s, flow.volume_l, t, curve, events)).parameters())
         out[name] = {"values": values, "refused": calibration.refused and str(calibration.refused),
                      "gains": calibration.gains,
@@ -533,6 +536,15 @@ def within(value: float, truth: float, absolute: float, relative: float) -> bool
     return abs(value - truth) <= max(absolute, relative * abs(truth))
 
 
+def truth_for(row: dict, source: str) -> dict:
+    """The truth a source's values are compared with: for the values calibrated on the subject, the truth
+    read from the end of the calibration on, as they are (rows before 2026-12-07 have only the whole
+    session's)."""
+    if source == "calibrated" and "truth_calibrated" in row:
+        return row["truth_calibrated"]
+    return row.get("truth", {})
+
+
 def _pairs(rows: list[dict], source: str, key: str) -> tuple[np.ndarray, np.ndarray, int]:
     """(measured, truth) over subjects that gave the value, and how many did not."""
     measured, truth, missing = [], [], 0
@@ -548,7 +560,7 @@ def _pairs(rows: list[dict], source: str, key: str) -> tuple[np.ndarray, np.ndar
             else:
                 missing += 1
             continue
-        true_value = row.get("truth", {}).get(key)
+        true_value = truth_for(row, source).get(key)
         value = row.get(source, {}).get(key)
         if true_value is None:
             continue
@@ -850,7 +862,7 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
         s = row["subject"]
         body = row.get("body", {})
         led = max((max(v) for v in row.get("led_error_mm", {}).values()), default=float("nan"))
-        truth, optical = row.get("truth", {}), row.get("optical", {})
+        truth, optical = truth_for(row, "calibrated" if row.get("calibrated") else "optical"), row.get("optical", {})
         errors = row.get("distance_errors_mm") or []
         cells = [(f"{optical[k]:.3f}" if k in optical else "none") + (f" / {truth[k]:.3f}" if k in truth else "")
                  for k in ("TV_l", "FVC_l")]
@@ -908,8 +920,8 @@ def grouping_lines(rows: list[dict]) -> list[str]:
     for grouping in ("chosen", *GROUPINGS):
         cells = []
         for key in GROUPING_VALUES:
-            pairs = [(r["groupings"][grouping]["values"][key], r["truth"][key]) for r in fitted
-                     if key in r["groupings"].get(grouping, {}).get("values", {}) and key in r.get("truth", {})]
+            pairs = [(r["groupings"][grouping]["values"][key], truth_for(r, "calibrated")[key]) for r in fitted
+                     if key in r["groupings"].get(grouping, {}).get("values", {}) and key in truth_for(r, "calibrated")]
             if not pairs:
                 cells.append("none")
                 continue

@@ -104,6 +104,7 @@ def _as_json(session: Path, results: Path | None, equations: str, report, named,
                                "z": verdict.z, "statements": verdict.statements},
             "optical_refused": optical_refusal(results) if results is not None else None,
             "optical_label": report.optical_label,
+            "optical_read_from_s": report.optical_from_s if math.isfinite(report.optical_from_s) else None,
             "flow_refused": report.flow_refused and str(report.flow_refused),
             "flow_refused_code": report.flow_refused and report.flow_refused.code, "problems": problems}
 
@@ -120,9 +121,13 @@ def run_analyze_session(args: argparse.Namespace) -> int:
         session, results = open_inputs(args.session)
         report = analyse_session(session, args.equations, **optical_inputs(results))
         truth = truth_values(session)
+        # an optical curve calibrated on the subject is read after its calibration: its truth so too
+        truth_as_optical = (truth_values(session, report.optical_from_s)
+                            if truth is not None and math.isfinite(report.optical_from_s) else None)
     except (SessionError, ValueError, OSError, KeyError) as exc:
         raise UserError(str(exc) if str(args.session) in str(exc) else f"{args.session}: {exc}") from exc
-    named = (("flow sensor", report.flow_sensor), ("optical", report.optical), ("truth (simulation)", truth))
+    named = (("flow sensor", report.flow_sensor), ("optical", report.optical), ("truth (simulation)", truth),
+             (f"truth from {report.optical_from_s:.1f} s", truth_as_optical))
     sources = [(name, values.parameters()) for name, values in named if values]
     if not sources and report.flow_refused:
         raise UserError(f"{args.session}: the flow sensor's values are refused: {report.flow_refused}")
@@ -158,6 +163,9 @@ def run_analyze_session(args: argparse.Namespace) -> int:
         print(f"  no predicted values: {report.reference_problem}")
     if report.optical_label:
         print(f"  optical: {report.optical_label}")
+    if report.optical is not None and math.isfinite(report.optical_from_s):
+        print(f"  optical: read from {report.optical_from_s:.1f} s, after the subject's calibration (before it, "
+              "the flow sensor's)")
     if results is not None and (refused := optical_refusal(results)):
         print(f"  optical values refused: {refused}")
     if report.flow_refused:

@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from core.analysis.optical_labels import calibrated_on_subject
 from core.analysis.quiet_breathing import calibrated_tidal_values
 from core.analysis.values import SessionValues, analyse_volume, tidal_windows
 from core.volume.flow_sensor import btps_factor, flow_sensor_volume
@@ -16,6 +17,7 @@ from core.analysis.reference import Reference, ReferenceUnavailable, reference
 from core.io.plausibility import flow_gaps, flow_refusal, frame_gaps_in_manoeuvres, gaps_in_manoeuvres
 from core.io.session import SessionError, SessionFile
 from core.limits import Refusal
+from core.volume.subject_calibration import calibration_segment
 
 
 @dataclass
@@ -28,6 +30,9 @@ class SessionReport:
     optical_volume: tuple[np.ndarray, np.ndarray] | None = None  # (seconds from the first frame, litres)
     flow_refused: Refusal | None = None  # why none of the flow sensor's values are given (core/io/plausibility.py)
     optical_label: str | None = None  # what the optical litres are (core/analysis/optical_litres.py)
+    # where the optical values are read from (s): the end of the subject's calibration for a curve calibrated
+    # on it (its own data are the flow sensor's), else the curve's start (-inf)
+    optical_from_s: float = float("-inf")
 
 
 
@@ -85,6 +90,17 @@ def session_flow_volume(s: SessionFile, events: list[tuple[float, str]] | None =
     return SessionFlow((volume.timestamp_ns - start) / 1e9, volume.volume_l, stamps)
 
 
+def optical_read_from_s(optical_label: str | None, flow_end_s: float | None, events: list[tuple[float, str]]) -> float:
+    """Where a curve calibrated on the subject begins to be read: the end of its calibration segment
+    (flow_end_s: the flow sensor's last sample, None without its values). Its quiet breathing and slow VC
+    there are the fit's own data, read by the flow sensor; read optically they would give the fit back,
+    not the cameras' litres. -inf for any other curve."""
+    if flow_end_s is None or not calibrated_on_subject(optical_label):
+        return -np.inf
+    segment = calibration_segment(events, flow_end_s)
+    return segment[1] if segment is not None else -np.inf
+
+
 def _events(session: SessionFile, start_ns: int) -> list[tuple[float, str]]:
     return sorted(((t - start_ns) / 1e9, label) for t, label in session.events())
 
@@ -115,13 +131,16 @@ validated the file already (core/io/session.py, SessionFile)."""
             flow_values = without_gapped_manoeuvres(analyse_volume(flow.t_s, flow.volume_l, covered, age),
                                                     gaps_in_manoeuvres(flow_gaps(flow.stamps_ns), s.events(), start))
             flow_volume = (flow.t_s, flow.volume_l)
-        optical_values, optical_curve = None, None
+        optical_values, optical_curve, optical_from_s = None, None, float("-inf")
         if optical_volume is not None:
             t = (np.asarray(optical_volume[0], dtype=np.int64) - start) / 1e9
             volume = np.asarray(optical_volume[1], dtype=float)
             dense = None if optical_peak_flow is None else (
                 (np.asarray(optical_peak_flow[0], dtype=np.int64) - start) / 1e9, np.asarray(optical_peak_flow[1], float))
-            optical_values = analyse_volume(t, volume, events, age, fitted=True, peak_flow_volume=dense)
+            optical_from_s = optical_read_from_s(optical_label, None if flow_volume is None else float(flow_volume[0][-1]),
+                                                 events)
+            read = t >= optical_from_s
+            optical_values = analyse_volume(t[read], volume[read], events, age, fitted=True, peak_flow_volume=dense)
             optical_values, _ = calibrated_tidal_values(optical_values, optical_label, flow_volume, (t, volume), events)
             frame_times = {h: s.timestamp_ns(h) for h in s.heads if s.n_frames(h)}
             optical_values = without_gapped_manoeuvres(optical_values,
@@ -140,4 +159,5 @@ validated the file already (core/io/session.py, SessionFile)."""
             except ReferenceUnavailable as exc:
                 problem = str(exc)
     return SessionReport(flow_values, references, problem, flow_volume, optical_values,
-                         optical_curve, flow_refused, optical_label if optical_values is not None else None)
+                         optical_curve, flow_refused, optical_label if optical_values is not None else None,
+                         optical_from_s)

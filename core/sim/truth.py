@@ -14,8 +14,10 @@ from core.analysis.values import SessionValues, analyse_volume
 from core.io.session import SessionFile
 
 
-def truth_values(path: str | os.PathLike) -> SessionValues | None:
-    """The values of the session's true volume, read as the flow sensor's are; None without a truth."""
+def truth_values(path: str | os.PathLike, from_s: float = float("-inf")) -> SessionValues | None:
+    """The values of the session's true volume, read as the flow sensor's are; None without a truth.
+    from_s: read from that time on (s from the first frame), as an optical curve calibrated on the subject
+    is read (core/analysis/session_analysis.py, SessionReport.optical_from_s)."""
     with SessionFile(path) as s:
         if not s.has_truth:
             return None
@@ -24,4 +26,5 @@ def truth_values(path: str | os.PathLike) -> SessionValues | None:
         age = s.subject.age_years if s.subject is not None else None
         truth = s.truth()
         t = (np.asarray(truth["timestamp_ns"]) - start) / 1e9
-        return analyse_volume(t, np.asarray(truth["volume_l"]), events, age)
+        read = t >= from_s
+        return analyse_volume(t[read], np.asarray(truth["volume_l"])[read], events, age)

@@ -42,6 +42,11 @@ def test_a_clinical_session_gives_calibrated_litres_after_the_mouthpiece_comes_o
     flow, optical, truth = (analysed["values"][k] for k in ("flow sensor", "optical", "truth (simulation)"))
     assert "TV_l" in flow and "VC_l" in flow and "FVC_l" not in flow  # the blows came after the mouthpiece
     assert analysed["references"]["FVC"]["source"] == "optical" and analysed["optical_label"] == label
+    # read after the calibration: its quiet breathing and slow VC are the fit's own data and the flow sensor's
+    assert analysed["optical_read_from_s"] == pytest.approx(off_s, abs=0.01)
+    later = analysed["values"][f"truth from {analysed['optical_read_from_s']:.1f} s"]
+    assert optical["breaths"] == later["breaths"] < truth["breaths"]
+    assert optical["TV_l"] == pytest.approx(later["TV_l"], rel=0.15)
     # measured at this scale (0.05: 70 px wide maps, every other light cycle): FVC +4.8 %, FEV1 +1.1 %, VC +1.0 %
     for key in ("FVC_l", "FEV1_l", "VC_l"):
         assert optical[key] == pytest.approx(truth[key], rel=0.06), key
