@@ -368,7 +368,9 @@ def test_a_whole_patient_session(qtbot, tmp_path):
     label = row.summary[OPTICAL].get("label", "")
     assert label.startswith("optical, calibrated on the subject (residual "), row.summary
     assert row.summary[OPTICAL]["FVC_l"] > 2.0 and "FVC_l" not in row.summary["flow sensor"]
-    assert row.summary[OPTICAL]["VC_manoeuvres"] == labels.count("vc-start") - 1  # the rejected one left out
+    # the rejected one left out, and the calibration's: the flow sensor's, read by it
+    assert row.summary[OPTICAL]["VC_manoeuvres"] == labels.count("vc-start") - 2
+    assert row.summary["flow sensor"]["VC_manoeuvres"] == 1
     records.sign_report(wizard.session_id)
     data = build_report(outcome.results_path, records=records, with_maps=False)
     assert data.review.signed and data.optical_label == label and data.main_source == OPTICAL
