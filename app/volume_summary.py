@@ -74,6 +74,9 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
             lines.append(f"  forced expirations: grade {values['grade']}, {values['acceptable_FVC']} of "
                          f"{values['manoeuvres']} acceptable")
         lines += [f"  note: {problem}" for problem in report.flow_sensor.problems]
+        if optical_values and np.isfinite(report.optical_from_s):
+            lines.append(f"  note (optical): read from {report.optical_from_s:.1f} s, after the subject's calibration "
+                         "(its quiet breathing and slow VC are the flow sensor's)")
         if optical_values:
             lines += [f"  note (optical): {problem}" for problem in report.optical.problems]
     return "\n".join(lines)

@@ -47,6 +47,8 @@ def test_a_clinical_session_gives_calibrated_litres_after_the_mouthpiece_comes_o
     later = analysed["values"][f"truth from {analysed['optical_read_from_s']:.1f} s"]
     assert optical["breaths"] == later["breaths"] < truth["breaths"]
     assert optical["TV_l"] == pytest.approx(later["TV_l"], rel=0.15)
+    from app.volume_summary import volume_summary
+    assert f"read from {off_s:.1f} s, after the subject's calibration" in volume_summary(session, results)
     # measured at this scale (0.05: 70 px wide maps, every other light cycle): FVC +4.8 %, FEV1 +1.1 %, VC +1.0 %
     for key in ("FVC_l", "FEV1_l", "VC_l"):
         assert optical[key] == pytest.approx(truth[key], rel=0.06), key
