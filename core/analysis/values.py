@@ -579,7 +579,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
         step = result.forced.pef_step_s
         if not np.isfinite(step):
             step = float(np.median(np.diff(t)))
-        noise_limit = MAX_PEF_NOISE_RATIO_FRAMES if step <= MAX_FRAME_STEP_S else MAX_PEF_NOISE_RATIO
+        noise_limit = pef_noise_limit(step)
         if step > MAX_PEF_SAMPLE_INTERVAL_S:
             result.pef_refused = (f"PEF not given: the volume has a sample every {1000 * step:.0f} ms, and a peak "
                                   f"flow needs one at least every {1000 * MAX_PEF_SAMPLE_INTERVAL_S:.0f} ms (an "
@@ -602,6 +602,11 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
 MAX_PEF_NOISE_RATIO = 0.05
 
 
+def pef_noise_limit(step_s: float) -> float:
+    """The most one step's flow noise may be of the PEF for it to be given, on samples step_s apart."""
+    return MAX_PEF_NOISE_RATIO_FRAMES if step_s <= MAX_FRAME_STEP_S else MAX_PEF_NOISE_RATIO
+
+
 def pef_not_given(m: ForcedValues) -> str | None:
     """Why one blow's PEF is not given, in a few words (the rule the session's PEF is refused by, on the
     samples it was read on); None where it is given. A flow sensor's blow (no noise weighed) always is."""
@@ -610,7 +615,7 @@ def pef_not_given(m: ForcedValues) -> str | None:
         return None
     if step > MAX_PEF_SAMPLE_INTERVAL_S:
         return f"a map every {1000 * step:.0f} ms, at least one every {1000 * MAX_PEF_SAMPLE_INTERVAL_S:.0f} ms needed"
-    limit = MAX_PEF_NOISE_RATIO_FRAMES if step <= MAX_FRAME_STEP_S else MAX_PEF_NOISE_RATIO
+    limit = pef_noise_limit(step)
     if not m.pef_noise_ratio <= limit:
         return f"the noise from map to map is {100 * m.pef_noise_ratio:.0f} % of the peak flow (at most {100 * limit:.0f} %)"
     return None
