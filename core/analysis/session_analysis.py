@@ -108,17 +108,15 @@ def _events(session: SessionFile, start_ns: int) -> list[tuple[float, str]]:
 def analyse_session(path: str | os.PathLike, equations: str = "gli-global",
                     optical_volume: tuple[np.ndarray, np.ndarray] | None = None,
                     optical_label: str | None = None,
-                    optical_peak_flow: tuple[np.ndarray, np.ndarray] | None = None,
-                    check: bool = True) -> SessionReport:
+                    optical_peak_flow: tuple[np.ndarray, np.ndarray] | None = None) -> SessionReport:
     """optical_volume: (timestamp_ns, litres) on the session's clock, e.g. a results file's /volume;
     optical_label: what its litres are (core/analysis/optical_litres.py: calibrated on the subject, or
     an estimate with its uncertainty), kept in the report; optical_peak_flow:
     (timestamp_ns, litres), its volume at every frame through the forced blows' peak flows (/peak_flow_volume),
     which its PEF is read from (analyse_volume). core.io.results.optical_inputs gives all three. A curve
 calibrated on the subject has its tidal volumes read with the gain of the subject's quiet breathing
-through the flow sensor (core/analysis/quiet_breathing.py). `check`: False where the caller has
-validated the file already (core/io/session.py, SessionFile)."""
-    with SessionFile(path, check=check) as s:
+through the flow sensor (core/analysis/quiet_breathing.py)."""
+    with SessionFile(path) as s:
         start = s.start_ns()
         events = _events(s, start)
         age = s.subject.age_years if s.subject is not None else None

@@ -205,8 +205,7 @@ def write_parameters(session_path: str | os.PathLike, results: ResultsWriter) ->
     label = results.out["volume"].attrs.get("label") if results.has_volume() else None
     report = analyse_session(session_path, optical_volume=results.written_volume(),
                              optical_label=None if label is None else str(label),
-                             optical_peak_flow=results.written_peak_flow_volume(),
-                             check=False)  # process_session validated it
+                             optical_peak_flow=results.written_peak_flow_volume())
     if report.flow_refused is not None:
         results.refuse("flow", report.flow_refused)
     if report.optical is not None:
