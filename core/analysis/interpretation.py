@@ -19,7 +19,7 @@ OBSTRUCTION = "obstruction"
 PRISM = "PRISm"
 NOT_INTERPRETED = "not interpreted"
 SEVERITY_BOUNDS = ((-2.5, "mild"), (-4.0, "moderate"))  # z above the bound; below -4 severe
-USABLE_GRADES = ("A", "B", "C")  # ATS/ERS 2019: D and E may be usable with caution, F not at all
+USABLE_GRADES = ("A", "B", "C")  # ATS/ERS 2019: D, E and U may be usable with caution, F not at all
 BDR_THRESHOLD_PERCENT = 10.0
 
 
@@ -55,6 +55,9 @@ def interpret(values: dict[str, float], references: dict[str, Reference], grade:
     """Interpret FEV1, FVC and FEV1/FVC (keys FEV1_l, FVC_l, FEV1_FVC of SessionValues.parameters())
     against their references (keys FEV1, FVC, FEV1_FVC)."""
     keys = {"FEV1": "FEV1_l", "FVC": "FVC_l", "FEV1_FVC": "FEV1_FVC"}
+    if grade == "F":
+        return Interpretation(NOT_INTERPRETED, None, {}, [
+            "Not interpreted: session quality grade F, no usable manoeuvre (ATS/ERS 2019); repeat the test."])
     missing = [name for name, key in keys.items() if key not in values or name not in references]
     if missing:
         why = ", ".join(f"{name} ({'no value' if keys[name] not in values else 'no predicted value'})"
@@ -89,7 +92,8 @@ def interpret(values: dict[str, float], references: dict[str, Reference], grade:
                           f"{z['FEV1_FVC']:.2f}) within normal limits{by}.")
     if grade is not None and grade not in USABLE_GRADES:
         statements.append(f"Session quality grade {grade}: " + (
-            "not usable for interpretation (ATS/ERS 2019); repeat the test." if grade in ("F", "U") else
+            "no acceptable manoeuvre, the values are from usable ones only (ATS/ERS 2019); interpret with "
+            "caution and repeat the test when the patient can." if grade == "U" else
             "usable with caution only (ATS/ERS 2019)."))
     return Interpretation(pattern, grade_of, z, statements)
 

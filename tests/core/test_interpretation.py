@@ -57,8 +57,22 @@ def test_missing_or_unusable():
     refs = _refs()
     result = interpret({"FEV1_l": 2.5}, refs)
     assert result.pattern == NOT_INTERPRETED and "FVC (no value)" in result.statements[0]
-    graded = interpret(_values(refs, 0, 0, 0), refs, grade="F")
-    assert "not usable" in graded.statements[-1]
+    failed = interpret(_values(refs, 0, 0, 0), refs, grade="F")
+    assert failed.pattern == NOT_INTERPRETED and failed.z == {}
+    assert failed.statements == ["Not interpreted: session quality grade F, no usable manoeuvre (ATS/ERS 2019); "
+                                 "repeat the test."]
+
+
+def test_grade_u_is_interpreted_with_caution():
+    """ATS/ERS 2019 Table 10: grade U is no acceptable but at least one usable manoeuvre; its values may
+    be interpreted, with caution, and the quality line must not contradict the interpretation above it."""
+    refs = _refs()
+    usable_only = interpret(_values(refs, -3.0, -0.5, -2.5), refs, grade="U")
+    assert usable_only.pattern == OBSTRUCTION
+    assert "not usable" not in " ".join(usable_only.statements)
+    assert usable_only.statements[-1].startswith("Session quality grade U: no acceptable manoeuvre")
+    assert "caution" in usable_only.statements[-1]
+    assert interpret(_values(refs, -3.0, -0.5, -2.5), refs, grade="A").statements == usable_only.statements[:-1]
 
 
 def test_bronchodilator_response():
