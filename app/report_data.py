@@ -17,9 +17,8 @@ from core.analysis import registry
 from core.analysis.interpretation import (BronchodilatorChange, Interpretation, bronchodilator_response,
                                           bronchodilator_statement, interpret)
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
-from core.analysis.quiet_breathing import calibrated_tidal_values
-from core.analysis.session_analysis import analyse_session, optical_read_from_s
-from core.analysis.values import ANALYSIS_RATE_HZ, SessionValues, analyse_volume, tidal_breaths, tidal_stretches
+from core.analysis.session_analysis import analyse_session
+from core.analysis.values import ANALYSIS_RATE_HZ, SessionValues, tidal_breaths, tidal_stretches
 from core.io.hdf5_probe import probe
 from core.io.results import (READ_ERRORS, RESULTS_FORMAT, ResultsFile, check_results, optical_inputs, optical_refusal,
                              processed_distance_mm, processed_light_gains, session_of_results)
@@ -170,11 +169,6 @@ def open_inputs(path: str | os.PathLike) -> tuple[Path, Path | None]:
         return path, None
     check_results(path)
     return session_of_results(path), path
-
-
-def _in_seconds(volume: tuple[np.ndarray, np.ndarray] | None, start_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """A (timestamp_ns, litres) curve of a results file in s from start_ns."""
-    return None if volume is None else ((volume[0] - start_ns) / 1e9, volume[1])
 
 
 def _gradient_correlation(results: Path, start_ns: int, t_flow: np.ndarray, v_flow: np.ndarray) -> dict[str, float]:
@@ -438,7 +432,7 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
                  with_maps: bool = True, settings: ReconstructionSettings | None = None) -> ReportData:
     """Everything the report shows, for a session file or a results file."""
     session_path, results_path = open_inputs(path)
-    analysed = analyse_session(session_path, equations)
+    analysed = analyse_session(session_path, equations, **optical_inputs(results_path))
     notes: list[str] = []
     with SessionFile(session_path) as s:
         start = s.start_ns()
@@ -446,19 +440,9 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
         subject = s.subject
         sources: dict[str, SessionValues] = {}
         curves: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        inputs = optical_inputs(results_path)
-        optical = _in_seconds(inputs.get("optical_volume"), start)
-        quiet_gain = None
-        if optical is not None:
-            curves[OPTICAL] = optical
-            flow_end_s = None if analysed.flow_volume is None else float(analysed.flow_volume[0][-1])
-            read = optical[0] >= optical_read_from_s(inputs.get("optical_label"), flow_end_s, events)
-            analysed_optical = analyse_volume(optical[0][read], optical[1][read], events,
-                                              subject.age_years if subject else None, fitted=True,
-                                              peak_flow_volume=_in_seconds(inputs["optical_peak_flow"], start))
-            analysed_optical, quiet_gain = calibrated_tidal_values(analysed_optical, inputs.get("optical_label"),
-                                                                   analysed.flow_volume, optical, events)
-            sources[OPTICAL] = analysed_optical
+        if analysed.optical is not None:
+            curves[OPTICAL] = analysed.optical_volume
+            sources[OPTICAL] = analysed.optical
         elif results_path is not None and (refused := optical_refusal(results_path)):
             if analysed.flow_sensor is None:  # with one, the comparison with it says why (_compare), once
                 notes.append(f"Optical volume in litres: refused when the session was processed: {refused}.")
@@ -526,11 +510,11 @@ def build_report(path: str | os.PathLike, *, records: Records | None = None, equ
             patient=_patient(records, subject), equations=equations, sources=sources, curves=curves,
             main_source=main, rows=rows, tidal_rows=tidal_rows, manoeuvres=manoeuvres,
             comparison=_compare(curves, events, results_path, start, sources.get(OPTICAL),
-                                quiet_gain.factor if quiet_gain is not None else 1.0),
+                                analysed.optical_quiet_gain.factor if analysed.optical_quiet_gain else 1.0),
             maps=maps,
             breath_times_s=breath, notes=notes,
             interpretation=_interpretation(main, sources, analysed.references),
             optical_manoeuvres=_manoeuvres(sources[OPTICAL]) if OPTICAL in sources and main != OPTICAL else [],
-            optical_label=inputs.get("optical_label") if OPTICAL in sources else None)
+            optical_label=analysed.optical_label)
     _on_record(data, records, analysed.references)
     return data

@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from core.analysis.optical_labels import calibrated_on_subject
-from core.analysis.quiet_breathing import calibrated_tidal_values
+from core.analysis.quiet_breathing import QuietBreathingGain, calibrated_tidal_values
 from core.analysis.values import SessionValues, analyse_volume, tidal_windows
 from core.volume.flow_sensor import btps_factor, flow_sensor_volume
 from core.analysis.reference import Reference, ReferenceUnavailable, reference
@@ -33,6 +33,8 @@ class SessionReport:
     # where the optical values are read from (s): the end of the subject's calibration for a curve calibrated
     # on it (its own data are the flow sensor's), else the curve's start (-inf)
     optical_from_s: float = float("-inf")
+    # the quiet-breathing gain its tidal volumes were read with (core/analysis/quiet_breathing.py), if any
+    optical_quiet_gain: QuietBreathingGain | None = None
 
 
 
@@ -129,7 +131,7 @@ through the flow sensor (core/analysis/quiet_breathing.py)."""
             flow_values = without_gapped_manoeuvres(analyse_volume(flow.t_s, flow.volume_l, covered, age),
                                                     gaps_in_manoeuvres(flow_gaps(flow.stamps_ns), s.events(), start))
             flow_volume = (flow.t_s, flow.volume_l)
-        optical_values, optical_curve, optical_from_s = None, None, float("-inf")
+        optical_values, optical_curve, optical_from_s, quiet_gain = None, None, float("-inf"), None
         if optical_volume is not None:
             t = (np.asarray(optical_volume[0], dtype=np.int64) - start) / 1e9
             volume = np.asarray(optical_volume[1], dtype=float)
@@ -139,7 +141,8 @@ through the flow sensor (core/analysis/quiet_breathing.py)."""
                                                  events)
             read = t >= optical_from_s
             optical_values = analyse_volume(t[read], volume[read], events, age, fitted=True, peak_flow_volume=dense)
-            optical_values, _ = calibrated_tidal_values(optical_values, optical_label, flow_volume, (t, volume), events)
+            optical_values, quiet_gain = calibrated_tidal_values(optical_values, optical_label, flow_volume, (t, volume),
+                                                                 events)
             frame_times = {h: s.timestamp_ns(h) for h in s.heads if s.n_frames(h)}
             optical_values = without_gapped_manoeuvres(optical_values,
                                                        frame_gaps_in_manoeuvres(frame_times, s.events(), start))
@@ -158,4 +161,4 @@ through the flow sensor (core/analysis/quiet_breathing.py)."""
                 problem = str(exc)
     return SessionReport(flow_values, references, problem, flow_volume, optical_values,
                          optical_curve, flow_refused, optical_label if optical_values is not None else None,
-                         optical_from_s)
+                         optical_from_s, quiet_gain)

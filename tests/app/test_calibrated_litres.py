@@ -55,6 +55,9 @@ def test_a_clinical_session_gives_calibrated_litres_after_the_mouthpiece_comes_o
 
     data = build_report(results, with_maps=False)
     assert data.main_source == OPTICAL and data.interpretation is not None and data.optical_label == label
+    # the report reads the optical values of the one analysis `analyze` prints, not an analysis of its own
+    reported = data.sources[OPTICAL].parameters()
+    assert {k: reported[k] for k in optical} == pytest.approx(optical)
     # its tidal volumes read with the quiet breathing's own gain, alike in the results, the analysis and the report
     assert any("quiet-breathing gain" in p for p in data.sources[OPTICAL].problems)
     assert not any("analyses the same curves differently" in n for n in data.notes), data.notes
