@@ -131,6 +131,50 @@ def table(rows: list[Reading], every_frame: bool = False) -> str:
     return "\n".join(lines)
 
 
+def bev_by_step(folder: Path, steps_s: list[float], phases: int) -> str:
+    """The back-extrapolated volume of the standard waveforms on error-free maps `steps_s` apart, read
+    straight and fitted, against each waveform's own: how far apart the maps may be for a blow's start
+    to be judged (core.analysis.spirometry.start_not_judged)."""
+    files = sorted(p for name in ("ISO26782", "ATS24") for p in (folder / name).glob("*.wf"))
+    if not files:
+        raise FileNotFoundError(f"no standard waveforms (*.wf) under {folder}/ISO26782 or {folder}/ATS24")
+    lines = ["| map step (ms) | samplings | BEV error median / 95th percentile / largest (mL), straight "
+             "| the same, fitted | start judged as the waveform's, straight / fitted "
+             "| a good start called hesitant, straight / fitted |", "|---|---|---|---|---|---|"]
+    for step in steps_s:
+        errors: dict[str, list[float]] = {"straight": [], "fitted": []}
+        same: dict[str, list[bool]] = {"straight": [], "fitted": []}
+        false: dict[str, list[bool]] = {"straight": [], "fitted": []}
+        for path in files:
+            waveform = read_waveform(path)
+            lead = np.zeros(int(LEAD_S * waveform.rate_hz))
+            volume = np.concatenate([lead, waveform.volume_l, lead + waveform.volume_l[-1]])
+            truth = forced_values(volume, waveform.rate_hz)
+            for phase in np.arange(phases) * step / phases:
+                t, v = maps_of(volume, waveform.rate_hz, phase, step)
+                for kind, curve in (("straight", resample(t, v)[1]),
+                                    ("fitted", smoothed_on_grid(t, v, ANALYSIS_RATE_HZ)[1])):
+                    read = forced_values(curve, ANALYSIS_RATE_HZ)
+                    errors[kind].append(1000 * (read.bev_l - truth.bev_l))
+                    same[kind].append(read.bev_ok == truth.bev_ok)
+                    false[kind].append(truth.bev_ok and not read.bev_ok)
+
+        def spread(kind: str) -> str:
+            e = np.asarray(errors[kind])
+            return f"{np.median(e):+.0f} / {np.percentile(np.abs(e), 95):.0f} / {np.abs(e).max():.0f}"
+
+        def pair(shares: dict[str, list[bool]]) -> str:
+            return " / ".join(f"{100 * np.mean(shares[k]):.0f} %" for k in ("straight", "fitted"))
+
+        lines.append(f"| {1000 * step:.1f} | {len(errors['straight'])} | {spread('straight')} | {spread('fitted')} "
+                     f"| {pair(same)} | {pair(false)} |")
+    intro = (f"The {len(files)} standard waveforms (ISO 26782, ATS 24) as error-free maps of a light cycle's mean "
+             f"volume, one every map step at {phases} phases, read straight (as the live view reads a blow) and "
+             "fitted (as the analysis reads an optical blow); their back-extrapolated volume (BEV) and start "
+             "verdict (ATS/ERS 2019: BEV at most 5 % of FVC or 0.100 L) against the waveform's own.")
+    return intro + "\n\n" + "\n".join(lines)
+
+
 def run_blows_bench(folder: Path, noise_ml: list[float], phases: int, draws: int, seed: int,
                     every_frame: bool = False) -> str:
     rows = readings(folder, [n / 1000 for n in noise_ml], phases, draws, seed, every_frame)
@@ -163,6 +207,9 @@ def add(what: argparse._SubParsersAction) -> None:
                     help="the standard test waveforms (default ../shared/data/spirometry-waveforms)")
     bl.add_argument("--every-frame", action="store_true",
                     help="one map a frame (1/110 s), as process makes through the top of each forced blow")
+    bl.add_argument("--bev-steps-ms", default=None,
+                    help="instead: the blows' back-extrapolated volume on error-free maps this far apart "
+                         "(ms, comma-separated), against the waveforms' own")
     bl.add_argument("--no-write", action="store_true", help="print only")
 
     def run_blows(args: argparse.Namespace) -> int:
@@ -171,6 +218,19 @@ def add(what: argparse._SubParsersAction) -> None:
         noise = noises_ml(args.noise_ml)
         if args.phases < 1 or args.draws < 1:
             raise UserError("--phases and --draws take 1 or more")
+        if args.bev_steps_ms is not None:
+            try:
+                steps = [float(x) / 1000 for x in args.bev_steps_ms.split(",")]
+            except ValueError:
+                raise UserError(f"--bev-steps-ms takes numbers separated by commas, got {args.bev_steps_ms!r}") from None
+            if not steps or not all(np.isfinite(s) and s > 0 for s in steps):
+                raise UserError(f"--bev-steps-ms takes positive steps, got {args.bev_steps_ms!r}")
+            try:
+                text = bev_by_step(args.waveforms, steps, args.phases)
+            except (FileNotFoundError, ValueError) as exc:
+                raise UserError(str(exc)) from exc
+            return publish(args, "blows-bev", f"A blow's start on maps far apart (`photopft bench blows "
+                                              f"--bev-steps-ms {args.bev_steps_ms} --phases {args.phases}`)", text)
         try:
             text = run_blows_bench(args.waveforms, noise, args.phases, args.draws, args.seed, args.every_frame)
         except (FileNotFoundError, ValueError) as exc:

@@ -186,11 +186,12 @@ class BlowScreen(QWidget):
 def blow_verdict(blow: ForcedValues) -> str:
     """The blow table's verdict in a few words; the problems in full are its tooltip and the feedback
     under the table (a 1366 px screen showed a tenth of them)."""
+    unjudged = [] if blow.bev_judged else ["start not judged"]
     if blow.fvc_acceptable:
-        return "acceptable"
+        return "acceptable" + (f" ({unjudged[0]})" if unjudged else "")
     failed = [reason for reason, fails in (("hesitant start", not blow.bev_ok), ("cough", blow.cough_in_first_second),
                                            ("no plateau", not blow.eofe)) if fails]
-    return ("FEV1 acceptable" if blow.fev1_acceptable else "rejected") + f" ({', '.join(failed)})"
+    return ("FEV1 acceptable" if blow.fev1_acceptable else "rejected") + f" ({', '.join(failed + unjudged)})"
 
 
 def repeatability_text(grade: SessionGrade, age_years: float | None) -> str:

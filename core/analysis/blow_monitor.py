@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.analysis.spirometry import PLATEAU_L, ForcedValues, cough_not_judged, forced_values
-from core.analysis.values import ANALYSIS_RATE_HZ, MAX_PEF_NOISE_RATIO, pef_noise_ratio, resample
+from core.analysis.spirometry import PLATEAU_L, ForcedValues, cough_not_judged, forced_values, start_not_judged
+from core.analysis.values import (ANALYSIS_RATE_HZ, MAX_PEF_NOISE_RATIO, MAX_PEF_SAMPLE_INTERVAL_S, pef_noise_ratio,
+                                  resample)
 
 START_FLOW_LPS = 0.5  # the blow has started once the exhaled flow exceeds this after the full inspiration
 
@@ -41,7 +42,8 @@ class LiveBlow:
         if self.values is None:
             return "waiting for the blow: full inspiration, then blast out"
         v = self.values
-        bev = (f"BEV {1000 * v.bev_l:.0f} mL (limit {1000 * v.bev_limit_l:.0f})"
+        bev = (f"BEV not judged (a map every {1000 * v.samples_step_s:.0f} ms)" if not v.bev_judged else
+               f"BEV {1000 * v.bev_l:.0f} mL (limit {1000 * v.bev_limit_l:.0f})"
                + ("" if v.bev_ok else ": hesitant start"))
         end = ("end of test reached: plateau" if v.eofe else
                f"keep blowing: {1000 * v.plateau_l:.0f} mL in the last second (plateau under {1000 * PLATEAU_L:.0f})")
@@ -76,6 +78,7 @@ def live_blow(t_s: np.ndarray, volume_l: np.ndarray, mark_s: float) -> LiveBlow:
             values.pef_noise_ratio = pef_noise_ratio(t[blow], v[blow], values.pef_lps)
             values.samples_step_s = float(np.median(np.diff(t[blow])))
             cough_not_judged(values, values.pef_noise_ratio, MAX_PEF_NOISE_RATIO)
+            start_not_judged(values, values.samples_step_s, MAX_PEF_SAMPLE_INTERVAL_S)
     if values is not None:
         times = times - values.time_zero_s
     return LiveBlow(times, exhaled, flow, values, now)

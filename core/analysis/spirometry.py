@@ -51,6 +51,8 @@ class ForcedValues:
     samples_step_s: float = float("nan")
     # False where the curve's noise could have made the cough the check found (cough_not_judged)
     cough_judged: bool = True
+    # False where the samples were too far apart to place time zero (start_not_judged)
+    bev_judged: bool = True
     mark_s: float = float("nan")  # the operator's mark of the blow on the session's clock, where known
     problems: list[str] = field(default_factory=list)
 
@@ -64,7 +66,8 @@ class ForcedValues:
 
     @property
     def bev_ok(self) -> bool:
-        return self.bev_l <= self.bev_limit_l
+        """The start is not hesitant: the back-extrapolated volume within its limit, or not judged."""
+        return self.bev_l <= self.bev_limit_l or not self.bev_judged
 
     @property
     def fev1_acceptable(self) -> bool:
@@ -149,8 +152,7 @@ def forced_values(volume_l: np.ndarray, rate_hz: float) -> ForcedValues:
     values = ForcedValues(fvc, fev1, fev075, fev6, pef, fef2575, fet, bev, time_zero, plateau, cough)
     values.eofe = plateau < PLATEAU_L or fet >= 15.0
     if not values.bev_ok:
-        values.problems.append(f"back-extrapolated volume {bev:.3f} L over the limit {values.bev_limit_l:.3f} L "
-                               "(hesitant start)")
+        values.problems.append(hesitant_start(values))
     if cough:
         values.problems.append(COUGH)
     if not values.eofe:
@@ -169,6 +171,24 @@ def cough_not_judged(values: ForcedValues, noise_ratio: float, limit: float) -> 
     values.problems = [p for p in values.problems if p != COUGH] + [
         f"cough in the first second not judged: the flow's noise is {100 * noise_ratio:.0f} % of its peak "
         f"(at most {100 * limit:.0f} %)"]
+
+
+def hesitant_start(values: ForcedValues) -> str:
+    return (f"back-extrapolated volume {values.bev_l:.3f} L over the limit {values.bev_limit_l:.3f} L "
+            "(hesitant start)")
+
+
+def start_not_judged(values: ForcedValues, step_s: float, max_step_s: float) -> None:
+    """Leave the start unjudged where the samples are over `max_step_s` apart: joined by straight lines
+    (or a smooth fit) across the steepest part, they flatten it, and time zero and the back-extrapolated
+    volume read from it move by more than the limit's margin (docs/constants.md). The blow is then
+    graded on its other criteria and says so; the operator, who watched it, rejects a hesitant start."""
+    if not step_s > max_step_s:
+        return
+    values.problems = [p for p in values.problems if p != hesitant_start(values)] + [
+        f"start not judged: a map every {1000 * step_s:.0f} ms, at least one every {1000 * max_step_s:.0f} ms "
+        "needed to place time zero"]
+    values.bev_judged = False
 
 
 @dataclass

@@ -14,7 +14,8 @@ from scipy import ndimage
 from scipy.signal import find_peaks
 
 from core.analysis.fitted_curve import smoothed_on_grid
-from core.analysis.spirometry import ForcedValues, SessionGrade, cough_not_judged, forced_values, grade_session
+from core.analysis.spirometry import (ForcedValues, SessionGrade, cough_not_judged, forced_values, grade_session,
+                                     start_not_judged)
 from core.volume.noise import curve_noise_l
 
 ANALYSIS_RATE_HZ = 200.0
@@ -133,7 +134,8 @@ def forced_proportions(f: SessionGrade) -> dict[str, float | str | int]:
                 acceptable_FEV1=f.acceptable_fev1, acceptable_FVC=f.acceptable_fvc, manoeuvres=len(f.manoeuvres))
 
 
-# The widest sample interval a curve's PEF is given from: one map a light cycle (docs/constants.md)
+# The widest sample interval a curve's PEF is given from, and a blow's start judged on: one map a light
+# cycle (docs/constants.md)
 MAX_PEF_SAMPLE_INTERVAL_S = 0.05
 
 
@@ -564,6 +566,7 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
             fitted_pef_lps = m.pef_lps
             _peak_flow_read_straight(m, t[blow], v[blow])
             cough_not_judged(m, m.pef_noise_ratio, MAX_PEF_NOISE_RATIO)  # the cough is read on the maps' curve
+            start_not_judged(m, m.samples_step_s, MAX_PEF_SAMPLE_INTERVAL_S)
         drawn, frames = exhaled[: i_low + 1], None
         if fitted and peak_flow_volume is not None:
             frames = peak_flow_of_frames(m, *peak_flow_volume, float(tw[i_fitted_top]), stop, fitted_pef_lps)

@@ -50,3 +50,18 @@ def test_at_a_map_every_frame_the_pef_is_read_as_the_analysis_reads_maps_at_ever
     assert all(r.straight.pef_smoothing_s == 0.0 and r.given for r in clean)
     assert all(r.straight.pef_smoothing_s > 0.0 for r in noisy)
     assert all(within(r.straight.pef_lps, r.truth.pef_lps, 0.30, 0.10) for r in rows if r.given)
+
+
+def test_the_start_s_table_shows_sparse_maps_calling_good_starts_hesitant(shared_data, tmp_path, capsys):
+    """`bench blows --bev-steps-ms`: one map a light cycle judges the standard waveforms' starts as
+    their own curves do; one every 290 ms calls good starts hesitant, the reason a start on maps that
+    far apart is not judged (core.analysis.spirometry.start_not_judged)."""
+    assert main(["bench", "blows", "--bev-steps-ms", "45.5,290", "--phases", "1", "--no-write",
+                 "--waveforms", str(shared_data / "spirometry-waveforms")]) == 0
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in capsys.readouterr().out.splitlines()
+            if line.startswith("| 45.5 ") or line.startswith("| 290.0 ")}
+    assert rows["45.5"][1] == "37" and rows["45.5"][5].strip(" |") == "0 % / 0 %"
+    hesitant = [float(x.strip(" %|")) for x in rows["290.0"][5].split(" / ")]
+    assert min(hesitant) >= 5  # at phase 0 alone: 8 % straight, 5 % fitted
+    assert main(["bench", "blows", "--bev-steps-ms", "45,x", "--no-write"]) == 2
+    assert "--bev-steps-ms takes numbers" in capsys.readouterr().err

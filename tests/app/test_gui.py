@@ -820,8 +820,8 @@ def test_the_blow_table_says_why_a_blow_failed_and_why_a_pef_is_not_given(qtbot)
     """Each blow's verdict names the criteria it failed (hesitant start, cough, no plateau); the
     problems in full are its tooltip (a 1366 px screen showed a tenth of them in the cell). A PEF the
     maps' noise made (14.7 L/s for a woman of FVC 3.5 L, seen live) is a dash, the reason its tooltip."""
-    from app.gui.blow_screen import BlowScreen
-    from core.analysis.spirometry import forced_values, grade_session
+    from app.gui.blow_screen import BlowScreen, blow_verdict
+    from core.analysis.spirometry import forced_values, grade_session, start_not_judged
 
     t = np.arange(0.0, 8.0, 0.01)
     good = 4.0 * (1.0 - np.exp(-t / 0.5))
@@ -837,6 +837,9 @@ def test_the_blow_table_says_why_a_blow_failed_and_why_a_pef_is_not_given(qtbot)
     assert verdicts[1].startswith("rejected (hesitant start") and verdicts[2] == "FEV1 acceptable (no plateau)"
     assert screen.table.item(1, 6).toolTip() == "; ".join(blows[1].problems)
     assert "back-extrapolated volume" in screen.table.item(1, 6).toolTip()
+    sparse = forced_values(hesitant, 100.0)
+    start_not_judged(sparse, 0.29, 0.05)  # its maps too far apart to place time zero: not called hesitant
+    assert blow_verdict(sparse) == "acceptable (start not judged)"
     blows[2].pef_noise_ratio, blows[2].samples_step_s = 0.09, 0.045  # an optical blow's maps, too noisy for a PEF
     screen.show_grade(grade_session(blows, 40.0))
     assert screen.table.item(0, 3).text() == f"{blows[0].pef_lps:.1f}" and screen.table.item(2, 3).text() == "—"

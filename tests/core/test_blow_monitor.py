@@ -77,3 +77,30 @@ def test_the_live_blow_does_not_call_the_maps_noise_a_cough():
         assert values.problems[-1].startswith("cough in the first second not judged")
         assert values.samples_step_s == pytest.approx(1.0 / 22.0, rel=0.01)  # nor is its PEF given
         assert pef_not_given(values).startswith(f"the noise from map to map is {100 * values.pef_noise_ratio:.0f} %")
+
+
+def test_a_start_the_maps_are_too_sparse_to_place_is_not_judged():
+    """A good blow seen one map every 290 ms (a slow machine's live view): straight lines between the
+    maps flatten its steepest part, so time zero and the back-extrapolated volume would call it
+    hesitant (the standard waveforms: 20 % of good starts so, `bench blows --bev-steps-ms`). Its start
+    is not judged and it says so; one map a light cycle (45 ms) judges it."""
+    from core.sim.breathing import RATE_HZ, ForcedBlow, forced_expiration_curve
+
+    t, v = _session()
+    exhaled = forced_expiration_curve(4.0, 3.3, 8.0, ForcedBlow(), 9.0)  # the flow rising to its peak as a person's
+    blowing = t >= 0.0
+    v[blowing] = 3.0 - np.interp(t[blowing], np.arange(len(exhaled)) / RATE_HZ, exhaled)
+    fine = live_blow(t[t <= 9.0], v[t <= 9.0], 0.0)
+    assert fine.values.bev_judged and fine.values.bev_ok
+    for step_s, judged in ((0.045, True), (0.29, False)):
+        maps = np.arange(-3.0, 9.0, step_s) + 0.013
+        blow = live_blow(maps, np.interp(maps, t, v), 0.0)
+        assert blow.values.bev_judged == judged and blow.values.bev_ok
+        if judged:
+            assert blow.values.bev_l == pytest.approx(fine.values.bev_l, abs=0.04)
+            assert not any("start not judged" in p for p in blow.values.problems)
+        else:
+            assert "BEV not judged (a map every 290 ms)" in blow.status()
+            assert "start not judged: a map every 290 ms, at least one every 50 ms needed to place time zero" in \
+                blow.values.problems
+            assert not any("hesitant start" in p for p in blow.values.problems)
