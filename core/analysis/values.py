@@ -190,6 +190,50 @@ def short_gaps(t_s: np.ndarray, volume_l: np.ndarray, max_gap_s: float) -> np.nd
     return out
 
 
+# A slow VC is read inside one stretch between maps left out only where its highest and lowest volumes
+# are at least this far from the stretch's gaps (a slow manoeuvre does not turn inside a gap of half a
+# second, a step's, and come back), and no sample outside the stretch lies beyond them by more than
+# this share of its range (a level's jump across a step is smaller) (docs/constants.md)
+VC_EXTREME_FROM_GAP_S = 1.0
+VC_OUTSIDE_SHARE = 0.10
+
+
+def vc_between_gaps(t_s: np.ndarray, volume_l: np.ndarray) -> np.ndarray | None:
+    """The samples (a mask) of the stretch between non-finite samples that holds a whole slow VC, or None.
+
+    A level that jumps across a gap (a step's, docs/volume.md) must not enter the VC, so it is read
+    inside one stretch: the one of the largest range, taken only where its highest and lowest volumes
+    are at least VC_EXTREME_FROM_GAP_S from a gap (the window's own ends are no gap) and the samples
+    outside it lie within VC_OUTSIDE_SHARE of its range of them (else the VC's full inspiration or
+    expiration is elsewhere: the stretch holds breaths and half of it)."""
+    finite = np.isfinite(volume_l)
+    edges = np.diff(np.concatenate([[0], finite.astype(np.int8), [0]]))
+    best, best_range = None, -1.0
+    for first, end in zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]):
+        if end - first < MIN_MANOEUVRE_SAMPLES:
+            continue
+        span = volume_l[first:end]
+        if float(np.ptp(span)) > best_range:
+            best, best_range = (first, end), float(np.ptp(span))
+    if best is None:
+        return None
+    first, end = best
+    t = t_s[first:end]
+    extremes = t[[int(np.argmax(volume_l[first:end])), int(np.argmin(volume_l[first:end]))]]
+    if first > 0 and np.any(extremes - t[0] < VC_EXTREME_FROM_GAP_S):
+        return None
+    if end < len(t_s) and np.any(t[-1] - extremes < VC_EXTREME_FROM_GAP_S):
+        return None
+    out = np.zeros(len(t_s), dtype=bool)
+    out[first:end] = True
+    elsewhere = volume_l[finite & ~out]
+    high, low = float(np.max(volume_l[out])), float(np.min(volume_l[out]))
+    margin = VC_OUTSIDE_SHARE * (high - low)
+    if len(elsewhere) and (elsewhere.max() > high + margin or elsewhere.min() < low - margin):
+        return None
+    return out
+
+
 def resample(t_s: np.ndarray, volume_l: np.ndarray, rate_hz: float = ANALYSIS_RATE_HZ) -> tuple[np.ndarray, np.ndarray]:
     """A volume curve on an even grid at rate_hz, straight between its samples. A shape-preserving cubic
     (PCHIP) was tried for the optical curve's peak flow (one map a light cycle): on error-free curves it
@@ -489,9 +533,16 @@ def analyse_volume(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[flo
             continue
         note_missing("slow VC", a, a, b + 0.5)
         if not np.all(np.isfinite(v[inside])):
-            result.problems.append(f"slow VC at {a:.1f} s: the curve holds non-finite samples (NaN or infinity: "
-                                   "e.g. optical maps left out where an arm hid the trunk's sides): left out")
-            continue
+            run = vc_between_gaps(t[inside], v[inside])
+            if run is None:
+                result.problems.append(f"slow VC at {a:.1f} s: the curve holds non-finite samples (NaN or infinity: "
+                                       "e.g. optical maps left out where an arm hid the trunk's sides or the subject "
+                                       "stepped) between its highest and lowest volume: left out")
+                continue
+            first, last = float(t[inside][run][0]), float(t[inside][run][-1])
+            result.problems.append(f"slow VC at {a:.1f} s: read from {first:.1f} to {last:.1f} s, between maps left "
+                                   "out (not read across them)")
+            inside = inside & (t >= first) & (t <= last)
         ti, vi = smoothed_on_grid(t[inside], v[inside], ANALYSIS_RATE_HZ) if fitted else (t[inside], v[inside])
         i_low = int(np.argmin(vi))
         top, bottom = float(vi.max()), float(vi[i_low])

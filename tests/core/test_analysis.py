@@ -423,3 +423,39 @@ def test_a_cough_the_maps_noise_could_make_is_not_called_one(shared_data):
         coughed = analyse_volume(t, _with_correlated_noise(v, 0.020, seed), events, fitted=True).forced.manoeuvres
         assert all(b.cough_in_first_second and b.cough_judged for b in coughed)
     assert not_judged == 10
+
+
+def test_a_slow_vc_is_read_between_a_step_s_gap_and_not_across_it(shared_data):
+    """A step leaves out half a second of maps and moves the level after it (0.15 L here). Until
+    2026-12-07 any gap longer than a bridged one left the slow VC out, and the clinical protocol has
+    one slow VC the cameras read alone. A gap in the breaths before the full inspiration: the VC is
+    read on the stretch after it, which holds its highest and lowest volumes, as without the gap. A
+    gap between them: left out, never read across the jump."""
+    from core.analysis.values import VC_EXTREME_FROM_GAP_S, _windows
+
+    truth, t, v, events = _optical_maps(shared_data / "spirometry-waveforms" / "ATS24/2415.wf", 0.008, 0)
+    (a, b), = _windows(sorted(events), "vc-start", float(t[-1]))[0]
+    window = (t >= a) & (t <= b + 0.5)
+    t_top = t[window][np.argmax(v[window])]
+    t_low = t[window][np.argmin(v[window])]
+    assert t_top - a > VC_EXTREME_FROM_GAP_S + 1.0 and t_low > t_top  # breaths, full inspiration, slow expiration
+
+    def stepped(gap_at_s: float) -> tuple[np.ndarray, object]:
+        w = v.copy()
+        w[t >= gap_at_s + 0.5] += 0.15
+        w[(t >= gap_at_s) & (t < gap_at_s + 0.5)] = np.nan
+        return w, analyse_volume(t, w, events, fitted=True)
+
+    _, before = stepped(a + 0.3)
+    assert before.vital_capacity.vc_l == pytest.approx(truth["VC_l"], rel=0.03)
+    assert any(p.startswith(f"slow VC at {a:.1f} s: read from ") and p.endswith("between maps left out (not read "
+                                                                                 "across them)")
+               for p in before.problems)
+    # in the slow expiration, between them: and just after the full inspiration, where the stretch
+    # before it holds breaths and the inspiration, its own extremes away from the gap (population
+    # subject 1005 read its inspiratory capacity so, 27 % under its VC)
+    for gap_at_s in (0.5 * (t_top + t_low), t_top + VC_EXTREME_FROM_GAP_S + 0.2):
+        _, during = stepped(gap_at_s)
+        assert during.vital_capacity is None and during.vc_manoeuvres == []
+        assert any(p.startswith(f"slow VC at {a:.1f} s: the curve holds non-finite samples") and p.endswith(
+            "between its highest and lowest volume: left out") for p in during.problems)
