@@ -203,9 +203,9 @@ def vc_between_gaps(t_s: np.ndarray, volume_l: np.ndarray) -> np.ndarray | None:
 
     A level that jumps across a gap (a step's, docs/volume.md) must not enter the VC, so it is read
     inside one stretch: the one of the largest range, taken only where its highest and lowest volumes
-    are at least VC_EXTREME_FROM_GAP_S from a gap (the window's own ends are no gap) and the samples
-    outside it lie within VC_OUTSIDE_SHARE of its range of them (else the VC's full inspiration or
-    expiration is elsewhere: the stretch holds breaths and half of it)."""
+    are at least VC_EXTREME_FROM_GAP_S from a gap (the window's own ends are no gap) and no sample
+    outside it lies more than VC_OUTSIDE_SHARE of its range beyond them (else the VC's full
+    inspiration or expiration is elsewhere: the stretch holds breaths and half the manoeuvre)."""
     finite = np.isfinite(volume_l)
     edges = np.diff(np.concatenate([[0], finite.astype(np.int8), [0]]))
     best, best_range = None, -1.0
