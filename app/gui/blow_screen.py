@@ -38,13 +38,15 @@ class BlowScreen(QWidget):
         self.age_years = age_years
         self.loop = _plot("Flow-volume", "volume exhaled", "L", "flow", "L/s")
         self.volume_time = _plot("Volume-time", "time from time zero", "s", "volume exhaled", "L")
-        self.loop.addLegend(offset=(-10, 10))
+        # a curve is named in the legend once it is drawn: after the mouthpiece comes off there is no
+        # flow sensor's blow to name
+        self.legend = self.loop.addLegend(offset=(-10, 10))
+        self.named: set[str] = set()
         self.live = {}
         for source, colour in SOURCES.items():
             pen = pg.mkPen(colour, width=3, style=Qt.PenStyle.SolidLine if source == "flow sensor"
                            else Qt.PenStyle.DashLine)
-            self.live[source] = (self.loop.plot([], [], pen=pen, name=f"{source}, this blow"),
-                                 self.volume_time.plot([], [], pen=pen))
+            self.live[source] = (self.loop.plot([], [], pen=pen), self.volume_time.plot([], [], pen=pen))
             for item in self.live[source]:
                 item.setZValue(10)  # this blow over the earlier ones
         self.earlier: list[tuple[pg.PlotDataItem, pg.PlotDataItem]] = []
@@ -98,6 +100,7 @@ class BlowScreen(QWidget):
                 continue
             loop.setData(blow.exhaled_l, blow.flow_lps)
             volume_time.setData(blow.t_s, blow.exhaled_l)
+            self._name(source, loop, f"{source}, this blow")
             self._fit_axes(blow)
         main = self.current.get("flow sensor") or self.current.get("optical")
         if main is None:
@@ -110,6 +113,11 @@ class BlowScreen(QWidget):
         self._show_end(main)
         if self.incentive.isVisible() and main.values is not None:
             self.incentive.setValue(int(min(100.0, 100.0 * main.values.fvc_l / self.predicted_fvc_l)))
+
+    def _name(self, key: str, item: pg.PlotDataItem, name: str) -> None:
+        if key not in self.named:
+            self.named.add(key)
+            self.legend.addItem(item, name)
 
     def _fit_axes(self, blow: LiveBlow) -> None:
         """Widen the axes when a blow goes past them (never narrowed during a session)."""
@@ -161,8 +169,8 @@ class BlowScreen(QWidget):
         for row, b in enumerate(blows):
             why_no_pef = pef_not_given(b)
             cells = (f"{row + 1}", f"{b.fvc_l:.2f}", f"{b.fev1_l:.2f}", f"{b.pef_lps:.1f}" if why_no_pef is None else "—",
-                     f"{b.fet_s:.1f}",
-                     f"{1000 * b.bev_l:.0f}", blow_verdict(b), "★ best" if row == best else "")
+                     f"{b.fet_s:.1f}", f"{1000 * b.bev_l:.0f}" if b.bev_judged else "—", blow_verdict(b),
+                     "★ best" if row == best else "")
             for column, text in enumerate(cells):
                 item = QTableWidgetItem(text)
                 item.setFlags(item.flags() & ~Qt.ItemFlag.ItemIsEditable)
@@ -172,8 +180,12 @@ class BlowScreen(QWidget):
                     item.setToolTip("; ".join(b.problems))
                 if column == 3 and why_no_pef is not None:
                     item.setToolTip(f"PEF not given: {why_no_pef}")
+                if column == 5 and not b.bev_judged:
+                    item.setToolTip(next(p for p in b.problems if p.startswith("start not judged")))
                 self.table.setItem(row, column, item)
         self.table.resizeColumnsToContents()
+        if best is not None:
+            self._name("best", pg.PlotDataItem(pen=pg.mkPen((27, 127, 59), width=3)), "best blow so far")
         for k, (loop, volume_time) in enumerate(self.earlier):
             pen = (pg.mkPen((27, 127, 59), width=3) if k == best else
                    pg.mkPen((150, 150, 150), width=1) if k < len(blows) and blows[k].fvc_usable else

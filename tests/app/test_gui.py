@@ -831,7 +831,12 @@ def test_the_blow_table_says_why_a_blow_failed_and_why_a_pef_is_not_given(qtbot)
     blows = [forced_values(curve, 100.0) for curve in (good, hesitant, stopped)]
     screen = BlowScreen(40.0, 4.2)
     qtbot.addWidget(screen)
+    # the mouthpiece is off: the legend names the optical blow it draws, not a flow sensor's it has none of
+    maps = np.arange(-2.0, 6.0, 0.045)
+    screen.show_live({"optical": (maps, 4.0 - np.interp(maps, t, good, left=0.0))})
+    assert [label.text for _, label in screen.legend.items] == ["optical, this blow"]
     screen.show_grade(grade_session(blows, 40.0))
+    assert [label.text for _, label in screen.legend.items] == ["optical, this blow", "best blow so far"]
     verdicts = [screen.table.item(r, 6).text() for r in range(3)]
     assert verdicts[0] == "acceptable"
     assert verdicts[1].startswith("rejected (hesitant start") and verdicts[2] == "FEV1 acceptable (no plateau)"
@@ -840,6 +845,9 @@ def test_the_blow_table_says_why_a_blow_failed_and_why_a_pef_is_not_given(qtbot)
     sparse = forced_values(hesitant, 100.0)
     start_not_judged(sparse, 0.29, 0.05)  # its maps too far apart to place time zero: not called hesitant
     assert blow_verdict(sparse) == "acceptable (start not judged)"
+    screen.show_grade(grade_session([sparse], 40.0))
+    assert screen.table.item(0, 5).text() == "—"  # no BEV shown that was not judged; why is its tooltip
+    assert screen.table.item(0, 5).toolTip().startswith("start not judged: a map every 290 ms")
     blows[2].pef_noise_ratio, blows[2].samples_step_s = 0.09, 0.045  # an optical blow's maps, too noisy for a PEF
     screen.show_grade(grade_session(blows, 40.0))
     assert screen.table.item(0, 3).text() == f"{blows[0].pef_lps:.1f}" and screen.table.item(2, 3).text() == "—"
