@@ -124,7 +124,8 @@ def values_csv(data: ReportData, output: str | os.PathLike) -> Path:
                                  data.equations if ref else ""])
         for source in data.sources:
             p = data.parameters(source)
-            for key in ("grade", "grade_FEV1", "grade_FVC", "acceptable_FEV1", "acceptable_FVC", "manoeuvres"):
+            for key in ("grade", "grade_FEV1", "grade_FVC", "acceptable_FEV1", "acceptable_FVC", "manoeuvres",
+                        "starts_not_judged", "coughs_not_judged"):
                 if key in p:
                     writer.writerow([key, "", source, p[key], "", "", "", "", ""])
     return output

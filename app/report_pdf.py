@@ -31,6 +31,7 @@ from reportlab.platypus import (Image, KeepTogether, PageBreak, Paragraph, Simpl
 from app.paths import resources_dir
 from app.report_data import DISTANCE_REFUSED, FLOW_SENSOR, OPTICAL, HeadMaps, ReportData, best_manoeuvres
 from core import __version__
+from core.analysis.values import grade_caveat
 from core.io.outputs import atomic_output
 
 PAGE_SIZES = {"a4": A4, "letter": letter}
@@ -150,9 +151,11 @@ def _quality_lines(data: ReportData) -> list[str]:
     for source in _sources(data):
         p = data.parameters(source)
         if "grade" in p:
+            caveat = grade_caveat(p)
             lines.append(f"<b>{source.capitalize()}</b>: ATS/ERS 2019 grade <b>{p['grade']}</b> (FEV1 "
                          f"{p['grade_FEV1']}, FVC {p['grade_FVC']}); acceptable manoeuvres: {p['acceptable_FEV1']} "
-                         f"for FEV1 and {p['acceptable_FVC']} for FVC, of {p['manoeuvres']}.")
+                         f"for FEV1 and {p['acceptable_FVC']} for FVC, of {p['manoeuvres']}"
+                         + (f"; {caveat}" if caveat else "") + ".")
         else:
             lines.append(f"<b>{source.capitalize()}</b>: no forced expiration graded.")
     if OPTICAL in data.sources:

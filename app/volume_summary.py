@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from core.analysis.session_analysis import analyse_session
+from core.analysis.values import grade_caveat
 from core.io.results import ResultsFile, optical_inputs, optical_volume
 from core.io.session import SessionFile
 from core.volume.maps import gradient_volume_correlations
@@ -71,8 +72,9 @@ def volume_summary(path: Path, results: Path | None = None) -> str:
                 beside = f" {optical_values[key]:7.3f}" if key in optical_values else ""
                 lines.append(f"  {label:<9} {values[key]:7.3f}{beside} {unit}{extra}")
         if "grade" in values:
+            caveat = grade_caveat(values)
             lines.append(f"  forced expirations: grade {values['grade']}, {values['acceptable_FVC']} of "
-                         f"{values['manoeuvres']} acceptable")
+                         f"{values['manoeuvres']} acceptable" + (f"; {caveat}" if caveat else ""))
         lines += [f"  note: {problem}" for problem in report.flow_sensor.problems]
         if optical_values and np.isfinite(report.optical_from_s):
             lines.append(f"  note (optical): read from {report.optical_from_s:.1f} s, after the subject's calibration "

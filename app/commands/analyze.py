@@ -9,6 +9,7 @@ from pathlib import Path
 
 from app.errors import UserError
 from core.analysis import registry
+from core.analysis.values import grade_caveat
 
 # A verb imports its work when it runs: app/cli.py builds every verb's parser at start-up (docs/architecture.md)
 
@@ -156,9 +157,10 @@ def run_analyze_session(args: argparse.Namespace) -> int:
         print(f"  {label:<9} {unit:<6}{cells}{extra}")
     for name, values in sources:
         if "grade" in values:
+            caveat = grade_caveat(values)
             print(f"  {name}: grade {values['grade']} (FEV1 {values['grade_FEV1']}, FVC {values['grade_FVC']}), "
                   f"{values['acceptable_FEV1']} acceptable FEV1 and {values['acceptable_FVC']} acceptable FVC of "
-                  f"{values['manoeuvres']} blows")
+                  f"{values['manoeuvres']} blows" + (f"; {caveat}" if caveat else ""))
     if report.reference_problem:
         print(f"  no predicted values: {report.reference_problem}")
     if report.optical_label:

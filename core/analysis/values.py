@@ -129,9 +129,23 @@ class SessionValues:
 
 
 def forced_proportions(f: SessionGrade) -> dict[str, float | str | int]:
-    """FEV1/FVC and the blows' grades."""
+    """FEV1/FVC and the blows' grades, and how many blows were graded without their start or a cough
+    their curve could not tell (start_not_judged, cough_not_judged)."""
     return dict(FEV1_FVC=f.fev1_fvc, grade=f.grade, grade_FEV1=f.fev1_grade, grade_FVC=f.fvc_grade,
-                acceptable_FEV1=f.acceptable_fev1, acceptable_FVC=f.acceptable_fvc, manoeuvres=len(f.manoeuvres))
+                acceptable_FEV1=f.acceptable_fev1, acceptable_FVC=f.acceptable_fvc, manoeuvres=len(f.manoeuvres),
+                starts_not_judged=sum(not m.bev_judged for m in f.manoeuvres),
+                coughs_not_judged=sum(not m.cough_judged for m in f.manoeuvres))
+
+
+def grade_caveat(parameters: dict) -> str:
+    """What a session's grade was given without, in words ('' for nothing): the blows whose start the
+    maps were too far apart to judge, and those whose cough check the maps' noise could not."""
+    parts = []
+    if starts := int(parameters.get("starts_not_judged", 0)):
+        parts.append(f"the start of {starts} of {parameters['manoeuvres']} blows not judged (maps too far apart)")
+    if coughs := int(parameters.get("coughs_not_judged", 0)):
+        parts.append(f"a cough found in {coughs} not judged (the maps' noise could make one)")
+    return "; ".join(parts)
 
 
 # The widest sample interval a curve's PEF is given from, and a blow's start judged on: one map a light

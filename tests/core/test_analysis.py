@@ -459,3 +459,19 @@ def test_a_slow_vc_is_read_between_a_step_s_gap_and_not_across_it(shared_data):
         assert during.vital_capacity is None and during.vc_manoeuvres == []
         assert any(p.startswith(f"slow VC at {a:.1f} s: the curve holds non-finite samples") and p.endswith(
             "between its highest and lowest volume: left out") for p in during.problems)
+
+
+def test_a_grade_on_maps_too_sparse_for_the_start_says_so(shared_data):
+    """Blows seen one map in six light cycles (273 ms apart): their starts are not judged, and the
+    session's grade says it was given without them; at one map a light cycle nothing is left unsaid."""
+    from core.analysis.values import grade_caveat
+
+    _, t, v, events = _optical_maps(shared_data / "spirometry-waveforms" / "ATS24/2415.wf", 0.0, 0)
+    every_cycle = analyse_volume(t, v, events, fitted=True).parameters()
+    assert every_cycle["starts_not_judged"] == 0 and grade_caveat(every_cycle) == ""
+    sparse = analyse_volume(t[::6], v[::6], events, fitted=True).parameters()
+    blows = sparse["manoeuvres"]
+    assert blows >= 2 and sparse["starts_not_judged"] == blows
+    assert grade_caveat(sparse) == f"the start of {blows} of {blows} blows not judged (maps too far apart)"
+    assert grade_caveat({**sparse, "coughs_not_judged": 1}).endswith(
+        "; a cough found in 1 not judged (the maps' noise could make one)")

@@ -32,6 +32,7 @@ from app.records import Patient, Records, RecordsError
 from app.report_data import main_table_rows, references_on, stored_interpretation
 from core.analysis.protocol_feedback import (MAX_BLOWS, MAX_VC, MIN_TIDAL_BREATHS, forced_feedback, tidal_extension_s,
                                              vc_feedback)
+from core.analysis.values import grade_caveat
 from core.io.outputs import next_free_path
 from core.io.session import SubjectRecord
 from core.pipeline.quality import WORKING_RANGE_MM
@@ -617,8 +618,10 @@ def review_html(parameters: dict, problems: list[str], patient: Patient | None, 
                     f"{extra}</tr>")
     html = "<table cellspacing=0 cellpadding=3>" + "".join(rows) + "</table>"
     if "grade" in parameters:
+        caveat = grade_caveat(parameters)
         html += (f"<p>ATS/ERS 2019 grade <b>{parameters['grade']}</b>: {parameters['acceptable_FEV1']} acceptable "
-                 f"FEV1 and {parameters['acceptable_FVC']} acceptable FVC of {parameters['manoeuvres']} blows.</p>")
+                 f"FEV1 and {parameters['acceptable_FVC']} acceptable FVC of {parameters['manoeuvres']} blows"
+                 + (f"; {caveat}" if caveat else "") + ".</p>")
     if patient is not None:
         verdict = stored_interpretation(patient, parameters, now, source)
         html += f"<p><b>{verdict.summary}</b> (ERS/ATS 2022)<br>" + "<br>".join(verdict.statements) + "</p>"
