@@ -59,6 +59,21 @@ def maps_of(volume_l: np.ndarray, rate_hz: float, phase_s: float, step_s: float 
     return times, (area(times) - area(times - CYCLE_S)) / CYCLE_S
 
 
+def standard_waveforms(folder: Path) -> list[tuple[np.ndarray, float, ForcedValues]]:
+    """Each standard waveform (ISO 26782, ATS 24) with LEAD_S of flat curve before and after it: (its
+    volume, its sample rate, its own values)."""
+    files = sorted(p for name in ("ISO26782", "ATS24") for p in (folder / name).glob("*.wf"))
+    if not files:
+        raise FileNotFoundError(f"no standard waveforms (*.wf) under {folder}/ISO26782 or {folder}/ATS24")
+    out = []
+    for path in files:
+        waveform = read_waveform(path)
+        lead = np.zeros(int(LEAD_S * waveform.rate_hz))
+        volume = np.concatenate([lead, waveform.volume_l, lead + waveform.volume_l[-1]])
+        out.append((volume, waveform.rate_hz, forced_values(volume, waveform.rate_hz)))
+    return out
+
+
 def read_sampling(truth: ForcedValues, t_s: np.ndarray, volume_l: np.ndarray, every_frame: bool = False) -> Reading:
     """Read straight and fitted; at a map every frame the straight PEF is the analysis' reading of maps at
     every frame (core.analysis.values.peak_flow_of_frames: smoothed as little as its noise allows), and
@@ -75,18 +90,11 @@ def read_sampling(truth: ForcedValues, t_s: np.ndarray, volume_l: np.ndarray, ev
 
 def readings(folder: Path, noise_l: list[float], phases: int, draws: int, seed: int,
              every_frame: bool = False) -> list[Reading]:
-    files = sorted(p for name in ("ISO26782", "ATS24") for p in (folder / name).glob("*.wf"))
-    if not files:
-        raise FileNotFoundError(f"no standard waveforms (*.wf) under {folder}/ISO26782 or {folder}/ATS24")
     rng = np.random.default_rng(seed)
     out = []
-    for path in files:
-        waveform = read_waveform(path)
-        lead = np.zeros(int(LEAD_S * waveform.rate_hz))
-        volume = np.concatenate([lead, waveform.volume_l, lead + waveform.volume_l[-1]])
-        truth = forced_values(volume, waveform.rate_hz)
+    for volume, rate_hz, truth in standard_waveforms(folder):
         for phase in np.arange(phases) * CYCLE_S / phases:
-            t, clean = maps_of(volume, waveform.rate_hz, phase, FRAME_S if every_frame else CYCLE_S)
+            t, clean = maps_of(volume, rate_hz, phase, FRAME_S if every_frame else CYCLE_S)
             for noise in noise_l:
                 for _ in range(draws if noise > 0 else 1):
                     sampled = clean + rng.normal(0.0, noise, len(clean))
@@ -135,9 +143,7 @@ def bev_by_step(folder: Path, steps_s: list[float], phases: int) -> str:
     """The back-extrapolated volume of the standard waveforms on error-free maps `steps_s` apart, read
     straight and fitted, against each waveform's own: how far apart the maps may be for a blow's start
     to be judged (core.analysis.spirometry.start_not_judged)."""
-    files = sorted(p for name in ("ISO26782", "ATS24") for p in (folder / name).glob("*.wf"))
-    if not files:
-        raise FileNotFoundError(f"no standard waveforms (*.wf) under {folder}/ISO26782 or {folder}/ATS24")
+    waveforms = standard_waveforms(folder)
     lines = ["| map step (ms) | samplings | BEV error median / 95th percentile / largest (mL), straight "
              "| the same, fitted | start judged as the waveform's, straight / fitted "
              "| a good start called hesitant, straight / fitted |", "|---|---|---|---|---|---|"]
@@ -145,13 +151,9 @@ def bev_by_step(folder: Path, steps_s: list[float], phases: int) -> str:
         errors: dict[str, list[float]] = {"straight": [], "fitted": []}
         same: dict[str, list[bool]] = {"straight": [], "fitted": []}
         false: dict[str, list[bool]] = {"straight": [], "fitted": []}
-        for path in files:
-            waveform = read_waveform(path)
-            lead = np.zeros(int(LEAD_S * waveform.rate_hz))
-            volume = np.concatenate([lead, waveform.volume_l, lead + waveform.volume_l[-1]])
-            truth = forced_values(volume, waveform.rate_hz)
+        for volume, rate_hz, truth in waveforms:
             for phase in np.arange(phases) * step / phases:
-                t, v = maps_of(volume, waveform.rate_hz, phase, step)
+                t, v = maps_of(volume, rate_hz, phase, step)
                 for kind, curve in (("straight", resample(t, v)[1]),
                                     ("fitted", smoothed_on_grid(t, v, ANALYSIS_RATE_HZ)[1])):
                     read = forced_values(curve, ANALYSIS_RATE_HZ)
@@ -168,7 +170,7 @@ def bev_by_step(folder: Path, steps_s: list[float], phases: int) -> str:
 
         lines.append(f"| {1000 * step:.1f} | {len(errors['straight'])} | {spread('straight')} | {spread('fitted')} "
                      f"| {pair(same)} | {pair(false)} |")
-    intro = (f"The {len(files)} standard waveforms (ISO 26782, ATS 24) as error-free maps of a light cycle's mean "
+    intro = (f"The {len(waveforms)} standard waveforms (ISO 26782, ATS 24) as error-free maps of a light cycle's mean "
              f"volume, one every map step at {phases} phases, read straight (as the live view reads a blow) and "
              "fitted (as the analysis reads an optical blow); their back-extrapolated volume (BEV) and start "
              "verdict (ATS/ERS 2019: BEV at most 5 % of FVC or 0.100 L) against the waveform's own.")
