@@ -13,6 +13,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 from scipy.optimize import brentq
 
+from core.analysis.protocol_feedback import MIN_TIDAL_BREATHS
 from core.volume.subject_calibration import MOUTHPIECE_OFF
 
 RATE_HZ = 1000.0  # sampling of the generated waveforms
@@ -301,8 +302,17 @@ def standard_curve(volume_l: np.ndarray, rate_hz: float) -> np.ndarray:
 
 PROTOCOLS = ("tidal", "vc", "forced", "full", "short", "clinical", "static")
 TIDAL_SECONDS = {"full": 8.0, "short": 20.0, "clinical": 20.0}  # the tidal part that opens a whole protocol
-CLINICAL_TIDAL_AFTER_S = 10.0  # the clinical protocol's quiet breathing once the mouthpiece is off
+# the clinical protocol's quiet breathing once the mouthpiece is off: at least this long, and as many
+# breaths as the guided session asks for there (core/analysis/protocol_feedback.py MIN_TIDAL_BREATHS) and one
+CLINICAL_TIDAL_AFTER_S = 10.0
 CLINICAL_OFF_AFTER_S = 3.0  # and before, from the calibration's slow VC to the mouthpiece's removal
+
+
+def clinical_tidal_after_s(subject: Subject) -> float:
+    """The clinical protocol's quiet breathing without the mouthpiece: the guided session extends it
+    until MIN_TIDAL_BREATHS breaths are read (the tidal page), so the protocol breathes that many and
+    one more (10 s alone held 2-3 breaths at 12-18 /min, and a test subject's none to read)."""
+    return max(CLINICAL_TIDAL_AFTER_S, (MIN_TIDAL_BREATHS + 1) * 60.0 / subject.respiratory_rate_bpm)
 
 
 def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, seed: int,
@@ -311,9 +321,9 @@ def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, se
 
     full (57 s): 8 s tidal breathing, a slow VC, then forced expirations (three good blows by default).
     short (about 55 s): 20 s tidal breathing, a slow VC, the first two blows.
-    clinical (about 100 s, the population benchmark's): the subject's calibration through the flow sensor
-    (20 s tidal breathing, a slow VC), `mouthpiece-off`, then 10 s tidal breathing, a slow VC and the
-    forced expirations, seen by the cameras alone.
+    clinical (about 115 s, the population benchmark's): the subject's calibration through the flow sensor
+    (20 s tidal breathing, a slow VC), `mouthpiece-off`, then tidal breathing (clinical_tidal_after_s),
+    a slow VC and the forced expirations, seen by the cameras alone.
     """
     if protocol not in PROTOCOLS:
         raise ValueError(f"unknown protocol {protocol!r}: one of {', '.join(PROTOCOLS)}")
@@ -341,7 +351,7 @@ def protocol_waveform(subject: Subject, protocol: str, seconds: float | None, se
     if protocol == "clinical":  # a few quiet breaths through the mouthpiece still, while the operator
         add(tidal(subject, CLINICAL_OFF_AFTER_S, rng))  # sees the calibration's fit, then it comes off
         events.append((sum(len(p) for p in parts) / RATE_HZ, MOUTHPIECE_OFF))
-        add(tidal(subject, CLINICAL_TIDAL_AFTER_S, rng), [(0.0, "tidal-start")])
+        add(tidal(subject, clinical_tidal_after_s(subject), rng), [(0.0, "tidal-start")])
         events.append((sum(len(p) for p in parts) / RATE_HZ, "maneuver-end"))
         add(*slow_vc(subject, rng, lead_count=0))
     if protocol == "forced" or whole:

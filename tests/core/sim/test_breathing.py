@@ -96,3 +96,20 @@ def test_irregular_breathing_varies_and_sighs():
     assert 0.1 < periods.std() / periods.mean() < 0.4  # an irregular rate
     regular = tidal(Subject(tidal_volume_l=0.5), 240.0, np.random.default_rng(1))
     assert regular.max() < 1.5 * 0.5
+
+
+@pytest.mark.parametrize("rate_bpm", [10.0, 14.0, 20.0])
+def test_the_clinical_protocol_breathes_as_many_quiet_breaths_as_the_guided_session_asks(rate_bpm):
+    """Once the mouthpiece is off, the guided session's tidal page goes on until MIN_TIDAL_BREATHS
+    breaths are read; the simulated clinical protocol gives the analysis as many (10 s alone held 2-3
+    at 12-18 /min)."""
+    from core.analysis.protocol_feedback import MIN_TIDAL_BREATHS
+    from core.analysis.values import analyse_volume
+
+    wave = protocol_waveform(Subject(respiratory_rate_bpm=rate_bpm), "clinical", None, seed=4)
+    off = next(t for t, label in wave.events if label == "mouthpiece-off")
+    t = np.arange(len(wave.volume_l)) / RATE_HZ
+    after = t >= off
+    values = analyse_volume(t[after], wave.volume_l[after], [e for e in wave.events if e[0] >= off])
+    assert values.tidal.breaths >= MIN_TIDAL_BREATHS
+    assert values.tidal.respiratory_rate_bpm == pytest.approx(rate_bpm, rel=0.15)
