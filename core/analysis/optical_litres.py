@@ -19,10 +19,10 @@ from core.volume.metric import MetricVolume
 from core.volume.subject_calibration import (SubjectCalibration, calibration_segment, fit_subject_calibration,
                                              regional_signals)
 
-# The estimate's gain, from the development population's sessions; its uncertainty, the largest error
-# the estimate makes on either population's true surfaces (bench visible; docs/constants.md)
+# The estimate's gain, from the development population's sessions; its uncertainty, the widest 95 %
+# limit of the estimate's errors on either population's processed rows (docs/constants.md)
 POPULATION_GAIN = 1.20
-ESTIMATE_UNCERTAINTY = 0.55
+ESTIMATE_UNCERTAINTY = 0.60
 
 
 @dataclass

@@ -310,3 +310,25 @@ def test_kept_renders_are_keyed_by_the_simulator_and_pruned_least_recently_used(
     with pytest.raises(RuntimeError):
         cache.rendered({"subject": 9}, fails, "c6")
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # nothing half-made left
+
+
+def test_the_estimate_is_printed_no_surer_than_the_published_rows_measure():
+    """The uncertainty an uncalibrated estimate is printed with covers the widest 95 % limit of its
+    errors on both populations' published subset rows (docs/bench-rows; docs/constants.md)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from core.analysis.optical_litres import ESTIMATE_UNCERTAINTY
+
+    folder = Path(__file__).resolve().parents[2] / "docs" / "bench-rows" / "population-0.25-subset-3c3669d-reread"
+    rows = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
+    assert len(rows) == 16
+    widest = 0.0
+    for mesh in (False, True):
+        for key in ("TV_l", "VC_l", "FVC_l", "FEV1_l"):
+            errors = np.array([(r["estimate"][key] - r["truth"][key]) / r["truth"][key] for r in rows
+                               if r["subject"]["body"].startswith("mesh:") == mesh and key in (r.get("estimate") or {})])
+            assert len(errors) >= 7
+            widest = max(widest, abs(errors.mean()) + 1.96 * errors.std(ddof=1))
+    assert 0.55 < widest <= ESTIMATE_UNCERTAINTY  # test FEV1: -58.4 %
