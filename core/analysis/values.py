@@ -190,6 +190,12 @@ def peak_flow_spans_s(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[
     return spans
 
 
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(first, end) of each run of True in a mask, end exclusive."""
+    edges = np.diff(np.concatenate([[0], np.asarray(mask, dtype=np.int8), [0]]))
+    return list(zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]))
+
+
 def short_gaps(t_s: np.ndarray, volume_l: np.ndarray, max_gap_s: float) -> np.ndarray:
     """The non-finite samples of a curve that lie in a gap of at most max_gap_s between finite
     neighbours (a mask); those at either end, or in a longer gap, are not."""
@@ -197,8 +203,7 @@ def short_gaps(t_s: np.ndarray, volume_l: np.ndarray, max_gap_s: float) -> np.nd
     out = np.zeros(len(bad), dtype=bool)
     if not bad.any():
         return out
-    edges = np.diff(np.concatenate([[0], bad.astype(np.int8), [0]]))
-    for first, end in zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]):
+    for first, end in _runs(bad):
         if first > 0 and end < len(bad) and t_s[end] - t_s[first - 1] <= max_gap_s:
             out[first:end] = True
     return out
@@ -221,9 +226,8 @@ def vc_between_gaps(t_s: np.ndarray, volume_l: np.ndarray) -> np.ndarray | None:
     outside it lies more than VC_OUTSIDE_SHARE of its range beyond them (else the VC's full
     inspiration or expiration is elsewhere: the stretch holds breaths and half the manoeuvre)."""
     finite = np.isfinite(volume_l)
-    edges = np.diff(np.concatenate([[0], finite.astype(np.int8), [0]]))
     best, best_range = None, -1.0
-    for first, end in zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]):
+    for first, end in _runs(finite):
         if end - first < MIN_MANOEUVRE_SAMPLES:
             continue
         span = volume_l[first:end]
