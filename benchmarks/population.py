@@ -389,14 +389,17 @@ def read_results(session: Path, results: Path) -> dict:
 
     out: dict = {}
     report = analyse_session(session, **optical_inputs(results))
-    out["truth"] = _numbers(truth_values(session).parameters())
+    truth = truth_values(session)
+    out["truth"] = _numbers(truth.parameters())
     out["flow"] = _numbers(report.flow_sensor.parameters()) if report.flow_sensor is not None else {}
     out["optical"] = _numbers(report.optical.parameters()) if report.optical is not None else {}
     out["optical_label"] = report.optical_label
     calibrated = calibrated_on_subject(report.optical_label)
     out["calibrated"] = out["optical"] if calibrated else {}
     if calibrated:  # read over the span the calibrated values are read over: after the calibration
-        out["truth_calibrated"] = _numbers(truth_values(session, report.optical_from_s).parameters())
+        truth = truth_values(session, report.optical_from_s)
+        out["truth_calibrated"] = _numbers(truth.parameters())
+    out["blows"] = blow_pairs(report.optical, truth)
     out["estimate"] = out["optical"] if report.optical is not None and not calibrated else {}
     out["optical_problems"] = list(report.optical.problems) if report.optical is not None else []
     out["optical_refused"] = optical_refusal(results)
@@ -410,6 +413,50 @@ def read_results(session: Path, results: Path) -> dict:
     out["groupings"] = grouping_values(session, results)
     out["distance_errors_mm"] = [] if out["distance_refused"] else _distance_errors(session, results, after_cycles=10)
     return out
+
+
+BLOW_VALUES = ("FVC_l", "FEV1_l")
+SAME_MARK_S = 0.05  # the optical curve and the truth are read at the same operator's marks
+
+
+def blow_pairs(optical, truth) -> list[dict]:
+    """Each forced blow the optical curve gave values for, beside the truth's values of the same blow
+    (paired by the operator's mark): a session's FVC is the largest of its blows (ATS/ERS), and among
+    readings with errors of their own the largest is also the one read most over, which the blows one by
+    one separate from how each is read."""
+    if optical is None or optical.forced is None or truth is None or truth.forced is None:
+        return []
+    pairs = []
+    for blow in optical.forced.manoeuvres:
+        same = [m for m in truth.forced.manoeuvres if abs(m.mark_s - blow.mark_s) <= SAME_MARK_S]
+        if same:
+            pairs.append({"mark_s": float(blow.mark_s),
+                          "optical": {"FVC_l": float(blow.fvc_l), "FEV1_l": float(blow.fev1_l)},
+                          "truth": {"FVC_l": float(same[0].fvc_l), "FEV1_l": float(same[0].fev1_l)}})
+    return pairs
+
+
+def blow_lines(rows: list[dict]) -> list[str]:
+    """Each forced blow calibrated on the subject against the truth's reading of it, beside the session's
+    value (its largest acceptable blow's); [] where no row has blows read so."""
+    tolerances = {key: (absolute, relative) for key, _, _, absolute, relative in VALUES}
+    labels = {key: label for key, label, *_ in VALUES}
+    calibrated = [r for r in rows if r.get("calibrated") and r.get("blows")]
+    if not calibrated:
+        return []
+    cells = []
+    for key in BLOW_VALUES:
+        pairs = [(b["optical"][key], b["truth"][key]) for r in calibrated for b in r["blows"]]
+        errors = np.array([m - t for m, t in pairs])
+        share = np.mean([within(m, t, *tolerances[key]) for m, t in pairs])
+        sd = errors.std(ddof=1) if len(errors) > 1 else float("nan")
+        session = [c[5] for c in agreement(calibrated) if c[0] == labels[key] and c[2] == "calibrated" and c[3]]
+        cells.append(f"{labels[key]} {errors.mean():+.3f} L (95 % limits {errors.mean() - 1.96 * sd:+.3f} to "
+                     f"{errors.mean() + 1.96 * sd:+.3f}), {share:.0%} within tolerance"
+                     + (f"; the session's (its largest blow's) {session[0]:+.3f}" if session else ""))
+    blows = sum(len(r["blows"]) for r in calibrated)
+    return ["", f"Each forced blow calibrated on the subject ({blows} blows of {len(calibrated)} subjects), optical "
+            "minus the truth's reading of the same blow: " + "; ".join(cells) + "."]
 
 
 def reread_row(row: dict, results: Path, session: Path) -> dict:
@@ -893,6 +940,7 @@ def _table(rows: list[dict], scale: float, seed: int, quick: bool, blows: list[P
               + (f", rendered at {', '.join(sorted({r['rendered_by'] for r in rows if 'rendered_by' in r}))}"
                  if any("rendered_by" in r for r in rows) else "")
               + (f"; {np.median(subject_seconds):.0f} s per subject (median)." if subject_seconds else ".")]
+    lines += blow_lines(rows)
     lines += grouping_lines(rows)
     if pngs:
         lines += ["", "Bland-Altman plots: " + ", ".join(f"![{p.stem}](images/{p.name})" for p in pngs)]

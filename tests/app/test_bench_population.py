@@ -173,6 +173,52 @@ def test_the_table_sets_the_calibration_s_groupings_against_the_truth():
     assert grouping_lines([{"truth": truth}]) == []
 
 
+def _blows(shared_data, gains: list[float]):
+    """Three forced blows of a standard waveform, each exhaled `gain` times, read as the flow sensor's."""
+    import numpy as np
+
+    from core.analysis.spirometry import read_waveform
+    from core.analysis.values import analyse_volume
+
+    wave = read_waveform(shared_data / "spirometry-waveforms" / "ISO26782" / "2678201.wf")
+    rate = 100.0
+    exhaled = np.interp(np.arange(0.0, len(wave.volume_l) / wave.rate_hz, 1.0 / rate),
+                        np.arange(len(wave.volume_l)) / wave.rate_hz, wave.volume_l)
+    curve, events, level = [], [], 0.0
+    for gain in gains:
+        top = level + float(exhaled.max())
+        start = sum(map(len, curve)) / rate
+        curve += [np.full(300, level), np.linspace(level, top, 150), top - gain * exhaled]
+        curve.append(np.linspace(curve[-1][-1], curve[-1][-1] + 1.0, 200))  # breathing in again, up
+        level = float(curve[-1][-1])
+        events += [(start + 4.3, "forced-start"), (sum(map(len, curve)) / rate - 0.5, "maneuver-end")]
+    volume = np.concatenate(curve)
+    return analyse_volume(np.arange(len(volume)) / rate, volume, events, 40.0)
+
+
+def test_each_blow_is_set_beside_the_truth_s_reading_of_it(shared_data):
+    """A session's FVC is its largest blow's: read one by one, the blows show how each is read, apart from
+    which one the largest picks."""
+    from benchmarks.population import blow_lines, blow_pairs
+
+    truth, optical = _blows(shared_data, [1.0, 1.0, 1.0]), _blows(shared_data, [1.04, 0.98, 1.0])
+    pairs = blow_pairs(optical, truth)
+    assert [round(p["mark_s"], 1) for p in pairs] == [round(m.mark_s, 1) for m in truth.forced.manoeuvres]
+    fvc = [p["optical"]["FVC_l"] / p["truth"]["FVC_l"] for p in pairs]
+    assert fvc == pytest.approx([1.04, 0.98, 1.0], abs=1e-4)
+    assert blow_pairs(optical, None) == [] and blow_pairs(None, truth) == []
+
+    true_fvc = pairs[0]["truth"]["FVC_l"]
+    row = {"calibrated": {"FVC_l": optical.forced.fvc_l, "FEV1_l": optical.forced.fev1_l},
+           "truth": {"FVC_l": truth.forced.fvc_l, "FEV1_l": truth.forced.fev1_l}, "blows": pairs}
+    (line,) = [text for text in blow_lines([row, {"calibrated": {}, "truth": {}}]) if text]
+    assert line.startswith("Each forced blow calibrated on the subject (3 blows of 1 subjects)")
+    mean = (0.04 - 0.02) / 3 * true_fvc
+    assert f"FVC {mean:+.3f} L" in line and "67% within tolerance" in line  # 1.04: over 3 %
+    assert f"the session's (its largest blow's) {0.04 * true_fvc:+.3f}" in line  # the largest: the one read over
+    assert blow_lines([{"truth": {}, "calibrated": {}}]) == []
+
+
 @pytest.mark.slow
 def test_a_subject_stopped_midway_goes_on_from_its_last_finished_stage(tmp_path, shared_data, monkeypatch):
     """At the camera's full resolution a subject takes longer than a working session: with `keep`
