@@ -16,6 +16,7 @@ from scipy.signal import find_peaks
 from core.analysis.fitted_curve import smoothed_on_grid
 from core.analysis.spirometry import (ForcedValues, SessionGrade, cough_not_judged, forced_values, grade_session,
                                      start_not_judged)
+from core.runs import runs
 from core.volume.noise import curve_noise_l
 
 ANALYSIS_RATE_HZ = 200.0
@@ -190,12 +191,6 @@ def peak_flow_spans_s(t_s: np.ndarray, volume_l: np.ndarray, events: list[tuple[
     return spans
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """(first, end) of each run of True in a mask, end exclusive."""
-    edges = np.diff(np.concatenate([[0], np.asarray(mask, dtype=np.int8), [0]]))
-    return list(zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]))
-
-
 def short_gaps(t_s: np.ndarray, volume_l: np.ndarray, max_gap_s: float) -> np.ndarray:
     """The non-finite samples of a curve that lie in a gap of at most max_gap_s between finite
     neighbours (a mask); those at either end, or in a longer gap, are not."""
@@ -203,7 +198,7 @@ def short_gaps(t_s: np.ndarray, volume_l: np.ndarray, max_gap_s: float) -> np.nd
     out = np.zeros(len(bad), dtype=bool)
     if not bad.any():
         return out
-    for first, end in _runs(bad):
+    for first, end in runs(bad):
         if first > 0 and end < len(bad) and t_s[end] - t_s[first - 1] <= max_gap_s:
             out[first:end] = True
     return out
@@ -227,7 +222,7 @@ def vc_between_gaps(t_s: np.ndarray, volume_l: np.ndarray) -> np.ndarray | None:
     inspiration or expiration is elsewhere: the stretch holds breaths and half the manoeuvre)."""
     finite = np.isfinite(volume_l)
     best, best_range = None, -1.0
-    for first, end in _runs(finite):
+    for first, end in runs(finite):
         if end - first < MIN_MANOEUVRE_SAMPLES:
             continue
         span = volume_l[first:end]

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.runs import runs
+
 SYRINGE_L = 3.0
 TOLERANCE = 0.03
 MIN_STROKES = 3  # the standard asks for at least three strokes at different flows
@@ -51,14 +53,9 @@ def quiet_samples(t_s: np.ndarray, flow_lps: np.ndarray) -> np.ndarray:
     """The samples at least PAD_S away from any stroke: where the flow is the sensor's zero."""
     moving = np.abs(flow_lps) > STROKE_FLOW_LPS
     near = np.zeros(len(t_s), dtype=bool)
-    for start, end in _runs(moving):
+    for start, end in runs(moving):
         near |= (t_s >= t_s[start] - PAD_S) & (t_s <= t_s[end - 1] + PAD_S)
     return ~near
-
-
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]))
 
 
 def syringe_strokes(t_s: np.ndarray, flow_lps: np.ndarray, min_volume_l: float = 0.5) -> list[Stroke]:
@@ -69,21 +66,20 @@ def syringe_strokes(t_s: np.ndarray, flow_lps: np.ndarray, min_volume_l: float =
     if len(t) < 3:
         return []
     dt = np.diff(t, prepend=t[0])
-    runs = []
+    signed = []
     for sign in (1, -1):
-        runs += [(a, b, sign) for a, b in _runs(f * sign > STROKE_FLOW_LPS)]
-    runs.sort()
+        signed += [(a, b, sign) for a, b in runs(f * sign > STROKE_FLOW_LPS)]
+    signed.sort()
     merged: list[tuple[int, int, int]] = []
-    for a, b, sign in runs:  # noise about the threshold splits a slow stroke's ends off it
+    for a, b, sign in signed:  # noise about the threshold splits a slow stroke's ends off it
         if merged and merged[-1][2] == sign and t[a] - t[merged[-1][1] - 1] < 2 * PAD_S:
             merged[-1] = (merged[-1][0], b, sign)
         else:
             merged.append((a, b, sign))
-    runs = merged
     strokes = []
-    for k, (a, b, sign) in enumerate(runs):
-        low = t[a] - PAD_S if k == 0 else max(t[a] - PAD_S, t[runs[k - 1][1] - 1])
-        high = t[b - 1] + PAD_S if k == len(runs) - 1 else min(t[b - 1] + PAD_S, t[runs[k + 1][0]])
+    for k, (a, b, sign) in enumerate(merged):
+        low = t[a] - PAD_S if k == 0 else max(t[a] - PAD_S, t[merged[k - 1][1] - 1])
+        high = t[b - 1] + PAD_S if k == len(merged) - 1 else min(t[b - 1] + PAD_S, t[merged[k + 1][0]])
         inside = (t >= low) & (t <= high)
         volume = float(np.sum(f[inside] * dt[inside]))
         if abs(volume) >= min_volume_l:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage, signal
 
+from core.runs import runs
 from core.volume.maps import maps_within
 
 # In-plane body speed (mm/s) above which a map is in a step: over sway's, under a step's (docs/constants.md)
@@ -52,9 +53,7 @@ def maps_in_steps(timestamp_ns: np.ndarray, shift_mm: np.ndarray) -> np.ndarray:
 def step_spans_s(timestamp_ns: np.ndarray, in_step: np.ndarray) -> list[tuple[float, float]]:
     """The (start, end) times in s since the first map of each run of maps in a step."""
     seconds = (np.asarray(timestamp_ns, dtype=float) - float(timestamp_ns[0])) / 1e9 if len(timestamp_ns) else []
-    edges = np.diff(np.concatenate([[0], np.asarray(in_step, dtype=np.int8), [0]]))
-    return [(float(seconds[a]), float(seconds[b - 1])) for a, b in zip(np.flatnonzero(edges == 1),
-                                                                        np.flatnonzero(edges == -1))]
+    return [(float(seconds[a]), float(seconds[b - 1])) for a, b in runs(in_step)]
 
 
 class StepWatch:
