@@ -444,16 +444,18 @@ def blow_lines(rows: list[dict]) -> list[str]:
     calibrated = [r for r in rows if r.get("calibrated") and r.get("blows")]
     if not calibrated:
         return []
+    sessions = {label: bias for label, _, source, n, _, bias, *_ in agreement(calibrated)
+                if source == "calibrated" and n}  # each value's session bias: its largest blow's
     cells = []
     for key in BLOW_VALUES:
         pairs = [(b["optical"][key], b["truth"][key]) for r in calibrated for b in r["blows"]]
         errors = np.array([m - t for m, t in pairs])
         share = np.mean([within(m, t, *tolerances[key]) for m, t in pairs])
         sd = errors.std(ddof=1) if len(errors) > 1 else float("nan")
-        session = [c[5] for c in agreement(calibrated) if c[0] == labels[key] and c[2] == "calibrated" and c[3]]
         cells.append(f"{labels[key]} {errors.mean():+.3f} L (95 % limits {errors.mean() - 1.96 * sd:+.3f} to "
                      f"{errors.mean() + 1.96 * sd:+.3f}), {share:.0%} within tolerance"
-                     + (f"; the session's (its largest blow's) {session[0]:+.3f}" if session else ""))
+                     + (f"; the session's (its largest blow's) {sessions[labels[key]]:+.3f}"
+                        if labels[key] in sessions else ""))
     blows = sum(len(r["blows"]) for r in calibrated)
     return ["", f"Each forced blow calibrated on the subject ({blows} blows of {len(calibrated)} subjects), optical "
             "minus the truth's reading of the same blow: " + "; ".join(cells) + "."]
