@@ -1,0 +1,196 @@
+"""`photopft bench sides`: how the two heads' distance, taken from their trunk widths, moves with a forced
+blow, and what that does to each head's levelled change, on both populations' subsets.
+
+Two heads at a known baseline see the same trunk sides, so their widths in pixels give each head's
+distance (core/volume/maps.py, two_head_distances), and `process` scales every map to it. A head's
+levelled signal sums its whole relief above the sides (10-25 L), which scales with the distance
+cubed (relief and footprint), so a millimetre at 2 m is 15-40 mL. Here no sway and no steps: the
+true distance does not move, and any change of the widths' distance between a blow's top and bottom
+is breathing read as distance.
+
+For each subject of `bench population --subset` (same draws), at each forced blow's highest and
+lowest true volume, one light cycle of each head is rendered (no motion within it) and reconstructed
+with the lights as built at the true distance (HeadReconstructor, `process`'s settings). Per blow:
+the widths' front distance on the true and on the reconstructed maps at the top and the bottom, and
+both heads' levelled change less the true maps' (over the blow's true volume change) read three ways:
+the true normals integrated as the reconstruction integrates them, the reconstruction at the true
+distance, and its maps scaled to the widths' distance. Tuned on neither population: the truth is what is
+measured here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from benchmarks.common import SHARED
+
+HEADS = ("front", "back")
+
+
+@dataclass(frozen=True)
+class BlowSides:
+    population: str
+    body: str
+    blow: str
+    volume_change_l: float  # the blow's true volume change, top to bottom (its FVC)
+    true_change_l: dict[str, float]  # head -> levelled change top to bottom on the true maps
+    # where the widths put the front head's distance (mm), at the top and the bottom, on true and reconstructed maps
+    front_mm: dict[str, tuple[float, float]]
+    change_l: dict[str, dict[str, float]]  # READS -> head -> levelled change
+
+    def error(self, read: str) -> float:
+        """Both heads' levelled change read so less the true maps', over the blow's true volume change."""
+        return (sum(self.change_l[read].values()) - sum(self.true_change_l.values())) / self.volume_change_l
+
+    def moved_mm(self, maps: str) -> float:
+        top, bottom = self.front_mm[maps]
+        return bottom - top
+
+
+# the true normals integrated as the reconstruction integrates them; the reconstruction at the true distance;
+# the same maps scaled to the widths' distance, as `process` scales them
+READS = ("true normals integrated", "true distance", "widths' distance")
+
+
+def _levelled_changes(depths: list[np.ndarray], trunks: list[np.ndarray], subjects: list[np.ndarray], head,
+                      distances_mm: list[float]) -> float:
+    """The levelled change (L) from the first map to the second, each registered at its distance."""
+    from core.volume.maps import DisplacementTracker, head_volume_l
+
+    tracker = DisplacementTracker(head)
+    volumes = []
+    for depth, trunk, subject, distance in zip(depths, trunks, subjects, distances_mm):
+        sums = tracker.add(np.where(trunk, depth, np.nan), trunk, subject, distance)
+        volumes.append(head_volume_l(sums.reference["all"], sums.current["all"], 1.0, 1.0))
+    return float(volumes[0] - volumes[1])
+
+
+def blow_sides(population: str, body: str, name: str, times: tuple[float, float], scene, rig, digitisers,
+               distances_mm: dict[str, float]) -> BlowSides:
+    """One blow's top and bottom read each way (module doc)."""
+    from core.reconstruction.integrate import depth_from_normals
+    from core.reconstruction.pipeline import HeadReconstructor, trunk_mask
+    from core.volume.maps import trunk_width_px, two_head_distances
+
+    maps: dict[str, dict[str, tuple[list, list, list]]] = {"true": {}, "integrated": {}, "reconstructed": {}}
+    for head_name in HEADS:
+        head = rig.heads[head_name]
+        reconstructor = HeadReconstructor(head)
+        for kind in maps:
+            maps[kind][head_name] = ([], [], [])
+        for k, t in enumerate(times):
+            frames = []
+            for light in (0, 1, 2, 3, -1):  # -1: the dark frame
+                key = np.uint64(7919 * (k + 1) + 104729 * (light + 2) + (0 if head_name == "front" else 1))
+                image, true_maps = scene.render(head, float(t), light, key, digitisers[head_name], want_maps=True)
+                frames.append(image.astype(float))
+            dark = frames[-1]
+            subject = np.isfinite(true_maps.depth_mm) & np.isfinite(true_maps.normals[..., 2])
+            trunk = trunk_mask(subject, np.nan_to_num(true_maps.normals))
+            for store, value in zip(maps["true"][head_name], (true_maps.depth_mm, trunk, subject)):
+                store.append(value)
+            integrated = depth_from_normals(true_maps.normals, trunk, head.fx, head.fy, head.cx, head.cy,
+                                            distances_mm[head_name])
+            for store, value in zip(maps["integrated"][head_name],
+                                    (integrated, trunk & np.isfinite(integrated), subject)):
+                store.append(value)
+            made = reconstructor.reconstruct(np.stack([f - dark for f in frames[:4]]), None, dark,
+                                             distance_mm=distances_mm[head_name])
+            trunk = trunk_mask(made.mask, np.nan_to_num(made.normals)) & np.isfinite(made.depth_mm)
+            for store, value in zip(maps["reconstructed"][head_name], (made.depth_mm, trunk, made.mask)):
+                store.append(value)
+    widths_mm = {}
+    for kind, by_head in ((k, maps[k]) for k in ("true", "reconstructed")):
+        widths = {h: np.array([trunk_width_px(d, tr, rig.heads[h]) for d, tr, _ in zip(*by_head[h])]) for h in HEADS}
+        front, back = two_head_distances(widths["front"], widths["back"], rig.baseline_mm)
+        widths_mm[kind] = {"front": front, "back": back}
+    true_change = {h: _levelled_changes(*maps["true"][h], rig.heads[h], [distances_mm[h]] * 2) for h in HEADS}
+    change: dict[str, dict[str, float]] = {read: {} for read in READS}
+    for h in HEADS:
+        change[READS[0]][h] = _levelled_changes(*maps["integrated"][h], rig.heads[h], [distances_mm[h]] * 2)
+        depths, trunks, subjects = maps["reconstructed"][h]
+        change["true distance"][h] = _levelled_changes(depths, trunks, subjects, rig.heads[h], [distances_mm[h]] * 2)
+        # each map scaled about the camera as `process` scales it: by its widths' distance over the true one
+        ratio = widths_mm["reconstructed"][h] / widths_mm["true"][h][0]
+        scaled = [d * r for d, r in zip(depths, ratio)]
+        change["widths' distance"][h] = _levelled_changes(scaled, trunks, subjects, rig.heads[h],
+                                                          [distances_mm[h] * r for r in ratio])
+    front = {kind: (float(w["front"][0]), float(w["front"][1])) for kind, w in widths_mm.items()}
+    volume = np.asarray(scene.truth_volume_l(np.asarray(times, dtype=float)), dtype=float)
+    return BlowSides(population, body, name, float(volume[0] - volume[1]), true_change, front, change)
+
+
+def subject_sides(population: str, subject, scale: float, world: str) -> list[BlowSides]:
+    """Each forced blow of one subject's clinical session, without its sway and steps."""
+    from benchmarks.carry import manoeuvre_times
+    from benchmarks.population import session_config
+    from core.sim.breathing import Sway
+    from core.sim.simulate import build_scene, sim_digitisers, thesis_rig
+
+    config = replace(session_config(subject, scale, world, "clinical", None), sway=Sway(0.0, 0.0, 0.0), steps=0)
+    rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
+    scene, waveform = build_scene(config, rig)
+    rig = replace(rig, baseline_mm=float(scene.baseline_mm))
+    digitisers = sim_digitisers(config, rig)
+    _, _, _, marks = manoeuvre_times(scene, waveform)
+    distances = {"front": config.distance_mm, "back": config.distance_back_mm}
+    body = subject.body if subject.body != "random" else f"random-{subject.seed}"
+    return [blow_sides(population, body, name, (times[0], times[2]), scene, rig, digitisers, distances)
+            for name, times in marks.items() if name.startswith("blow")]
+
+
+def sides_table(rows: list[BlowSides]) -> str:
+    lines = ["| population | body | blow | FVC (L) | true maps' levelled change front, back (L) | widths' front distance "
+             "moved, true maps (mm) | reconstructed maps (mm) | " + " | ".join(READS) + " |",
+             "|---|---|---|---|---|---|---|" + "---|" * len(READS)]
+    for r in rows:
+        lines.append(f"| {r.population} | {r.body} | {r.blow} | {r.volume_change_l:.2f} | {r.true_change_l['front']:.3f}, "
+                     f"{r.true_change_l['back']:.3f} | {r.moved_mm('true'):+.1f} | {r.moved_mm('reconstructed'):+.1f} | "
+                     + " | ".join(f"{100 * r.error(read):+.1f} %" for read in READS) + " |")
+    lines.append("")
+    for population in dict.fromkeys(r.population for r in rows):
+        mine = [r for r in rows if r.population == population]
+        moved = {m: np.array([r.moved_mm(m) for r in mine]) for m in ("true", "reconstructed")}
+        parts = [f"- {population} ({len(mine)} blows): the widths' distance moved {moved['true'].mean():+.1f} mm "
+                 f"(sd {moved['true'].std():.1f}) on true maps, {moved['reconstructed'].mean():+.1f} mm "
+                 f"(sd {moved['reconstructed'].std():.1f}) on reconstructed ones"]
+        for read in READS:
+            errors = 100 * np.array([r.error(read) for r in mine])
+            # the scatter about each body's own mean: what a calibration on the subject cannot take out
+            own = np.concatenate([errors[[k for k, r in enumerate(mine) if r.body == body]]
+                                  - errors[[k for k, r in enumerate(mine) if r.body == body]].mean()
+                                  for body in dict.fromkeys(r.body for r in mine)])
+            parts.append(f"{read}: {errors.mean():+.1f} % (sd {errors.std():.1f}), "
+                         f"about each body's mean sd {own.std():.1f} %")
+        lines.append("; ".join(parts))
+    return "\n".join(lines)
+
+
+def run_sides_bench(subjects: int, scale: float, seed: int, world: str) -> tuple[str, list[BlowSides]]:
+    from benchmarks.population import BODIES, draw_subjects, standard_blows
+
+    blows = standard_blows(SHARED / "data" / "spirometry-waveforms")
+    started = time.perf_counter()
+    rows = [row for population in BODIES for subject in draw_subjects(subjects, seed, blows, bodies=population)
+            for row in subject_sides(population, subject, scale, world)]
+    text = (f"{subjects} subjects of each population (`bench population --subset`'s draws), scale {scale}, world "
+            f"{world} without its sway and steps; at each forced blow's top and bottom one light cycle a head, "
+            "reconstructed with the lights as built. The widths' distance: the two heads' trunk widths and the "
+            "baseline (two_head_distances), front head; truth: it does not move. Both heads' levelled change "
+            "less the true maps', over the blow's true volume change (the mean over a body's blows is what its "
+            "calibration takes out, the scatter about it is what it cannot). {:.0f} s.\n\n".format(time.perf_counter() - started) + sides_table(rows))
+    return text, rows
+
+
+def add(what: argparse._SubParsersAction) -> None:
+    """`photopft bench sides`: its arguments and what it runs."""
+    from benchmarks.visible import add_subset_arguments, run_on_subsets
+
+    p = what.add_parser("sides", help="how the two heads' distance from their trunk widths moves with a forced blow, "
+                                      "and what it does to the levelled change, on both populations")
+    add_subset_arguments(p, "the simulated world (its sway and steps left out)")
+    p.set_defaults(run=lambda args: run_on_subsets(args, "sides", "Distance from the sides", run_sides_bench))
