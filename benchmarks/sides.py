@@ -12,9 +12,12 @@ For each subject of `bench population --subset` (same draws), at each forced blo
 lowest true volume, one light cycle of each head is rendered (no motion within it) and reconstructed
 with the lights as built at the true distance (HeadReconstructor, `process`'s settings). Per blow:
 the widths' front distance on the true and on the reconstructed maps at the top and the bottom, and
-both heads' levelled change less the true maps' (over the blow's true volume change) read three ways:
-the true normals integrated as the reconstruction integrates them, the reconstruction at the true
-distance, and its maps scaled to the widths' distance. Tuned on neither population: the truth is what is
+both heads' levelled change over the blow's true volume change (its gain) read four ways: on the true
+maps, on the true normals integrated as the reconstruction integrates them, on the reconstruction at
+the true distance, and on its maps scaled to the widths' distance; and the plain change (no level:
+each pixel's displacement along its ray) on the true maps and on the reconstruction anchored at the
+true map's median depth. A body's mean gain is what its
+calibration takes out; each blow's gain about it is what it cannot. Tuned on neither population: the truth is what is
 measured here.
 """
 
@@ -37,36 +40,42 @@ class BlowSides:
     body: str
     blow: str
     volume_change_l: float  # the blow's true volume change, top to bottom (its FVC)
-    true_change_l: dict[str, float]  # head -> levelled change top to bottom on the true maps
     # where the widths put the front head's distance (mm), at the top and the bottom, on true and reconstructed maps
     front_mm: dict[str, tuple[float, float]]
     change_l: dict[str, dict[str, float]]  # READS -> head -> levelled change
 
-    def error(self, read: str) -> float:
-        """Both heads' levelled change read so less the true maps', over the blow's true volume change."""
-        return (sum(self.change_l[read].values()) - sum(self.true_change_l.values())) / self.volume_change_l
+    def gain(self, read: str) -> float:
+        """Both heads' levelled change read so over the blow's true volume change."""
+        return sum(self.change_l[read].values()) / self.volume_change_l
 
     def moved_mm(self, maps: str) -> float:
         top, bottom = self.front_mm[maps]
         return bottom - top
 
 
-# the true normals integrated as the reconstruction integrates them; the reconstruction at the true distance;
-# the same maps scaled to the widths' distance, as `process` scales them
-READS = ("true normals integrated", "true distance", "widths' distance")
+# the true maps; the true normals integrated as the reconstruction integrates them; the reconstruction at the
+# true distance; the same maps scaled to the widths' distance, as `process` scales them
+READS = ("true maps", "true normals integrated", "true distance", "widths' distance")
+# the same without a level: each pixel's displacement along its ray, both heads summed, on the true maps and
+# on the reconstruction anchored at the true map's median depth (what no head measures: the anchor's own
+# error moves a head's whole trunk, 0.1 L a millimetre)
+PLAIN_READS = ("plain: true maps", "plain: true median depth")
 
 
-def _levelled_changes(depths: list[np.ndarray], trunks: list[np.ndarray], subjects: list[np.ndarray], head,
-                      distances_mm: list[float]) -> float:
-    """The levelled change (L) from the first map to the second, each registered at its distance."""
+def _changes(depths: list[np.ndarray], trunks: list[np.ndarray], subjects: list[np.ndarray], head,
+             distances_mm: list[float]) -> tuple[float, float]:
+    """(levelled, plain) change (L) from the first map to the second, each registered at its distance:
+    levelled referred to the level at the trunk's sides (RimModel), plain each pixel's displacement along
+    its ray with no level."""
     from core.volume.maps import DisplacementTracker, head_volume_l
 
     tracker = DisplacementTracker(head)
-    volumes = []
+    levelled, plain = [], []
     for depth, trunk, subject, distance in zip(depths, trunks, subjects, distances_mm):
         sums = tracker.add(np.where(trunk, depth, np.nan), trunk, subject, distance)
-        volumes.append(head_volume_l(sums.reference["all"], sums.current["all"], 1.0, 1.0))
-    return float(volumes[0] - volumes[1])
+        levelled.append(head_volume_l(sums.reference["all"], sums.current["all"], 1.0, 1.0))
+        plain.append(-1e-6 * sums.displaced["all"])
+    return float(levelled[0] - levelled[1]), float(plain[0] - plain[1])
 
 
 def blow_sides(population: str, body: str, name: str, times: tuple[float, float], scene, rig, digitisers,
@@ -108,20 +117,25 @@ def blow_sides(population: str, body: str, name: str, times: tuple[float, float]
         widths = {h: np.array([trunk_width_px(d, tr, rig.heads[h]) for d, tr, _ in zip(*by_head[h])]) for h in HEADS}
         front, back = two_head_distances(widths["front"], widths["back"], rig.baseline_mm)
         widths_mm[kind] = {"front": front, "back": back}
-    true_change = {h: _levelled_changes(*maps["true"][h], rig.heads[h], [distances_mm[h]] * 2) for h in HEADS}
-    change: dict[str, dict[str, float]] = {read: {} for read in READS}
+    change: dict[str, dict[str, float]] = {read: {} for read in READS + PLAIN_READS}
     for h in HEADS:
-        change[READS[0]][h] = _levelled_changes(*maps["integrated"][h], rig.heads[h], [distances_mm[h]] * 2)
+        for read, kind in zip(READS, ("true", "integrated")):
+            change[read][h], plain = _changes(*maps[kind][h], rig.heads[h], [distances_mm[h]] * 2)
+            if kind == "true":
+                change[PLAIN_READS[0]][h] = plain
         depths, trunks, subjects = maps["reconstructed"][h]
-        change["true distance"][h] = _levelled_changes(depths, trunks, subjects, rig.heads[h], [distances_mm[h]] * 2)
+        change[READS[2]][h], _ = _changes(depths, trunks, subjects, rig.heads[h], [distances_mm[h]] * 2)
+        anchored = [d * np.median(true[both]) / np.median(d[both]) for d, true, both in
+                    ((d, true, tr & np.isfinite(true)) for d, true, tr in zip(depths, maps["true"][h][0], trunks))]
+        _, change[PLAIN_READS[1]][h] = _changes(anchored, trunks, subjects, rig.heads[h],
+                                                [float(np.nanmedian(d)) for d in anchored])
         # each map scaled about the camera as `process` scales it: by its widths' distance over the true one
         ratio = widths_mm["reconstructed"][h] / widths_mm["true"][h][0]
         scaled = [d * r for d, r in zip(depths, ratio)]
-        change["widths' distance"][h] = _levelled_changes(scaled, trunks, subjects, rig.heads[h],
-                                                          [distances_mm[h] * r for r in ratio])
+        change[READS[3]][h], _ = _changes(scaled, trunks, subjects, rig.heads[h], [distances_mm[h] * r for r in ratio])
     front = {kind: (float(w["front"][0]), float(w["front"][1])) for kind, w in widths_mm.items()}
     volume = np.asarray(scene.truth_volume_l(np.asarray(times, dtype=float)), dtype=float)
-    return BlowSides(population, body, name, float(volume[0] - volume[1]), true_change, front, change)
+    return BlowSides(population, body, name, float(volume[0] - volume[1]), front, change)
 
 
 def subject_sides(population: str, subject, scale: float, world: str) -> list[BlowSides]:
@@ -145,12 +159,13 @@ def subject_sides(population: str, subject, scale: float, world: str) -> list[Bl
 
 def sides_table(rows: list[BlowSides]) -> str:
     lines = ["| population | body | blow | FVC (L) | true maps' levelled change front, back (L) | widths' front distance "
-             "moved, true maps (mm) | reconstructed maps (mm) | " + " | ".join(READS) + " |",
-             "|---|---|---|---|---|---|---|" + "---|" * len(READS)]
+             "moved, true maps (mm) | reconstructed maps (mm) | " + " | ".join(READS + PLAIN_READS) + " |",
+             "|---|---|---|---|---|---|---|" + "---|" * len(READS + PLAIN_READS)]
     for r in rows:
-        lines.append(f"| {r.population} | {r.body} | {r.blow} | {r.volume_change_l:.2f} | {r.true_change_l['front']:.3f}, "
-                     f"{r.true_change_l['back']:.3f} | {r.moved_mm('true'):+.1f} | {r.moved_mm('reconstructed'):+.1f} | "
-                     + " | ".join(f"{100 * r.error(read):+.1f} %" for read in READS) + " |")
+        true = r.change_l[READS[0]]
+        lines.append(f"| {r.population} | {r.body} | {r.blow} | {r.volume_change_l:.2f} | {true['front']:.3f}, "
+                     f"{true['back']:.3f} | {r.moved_mm('true'):+.1f} | {r.moved_mm('reconstructed'):+.1f} | "
+                     + " | ".join(f"{r.gain(read):.3f}" for read in READS + PLAIN_READS) + " |")
     lines.append("")
     for population in dict.fromkeys(r.population for r in rows):
         mine = [r for r in rows if r.population == population]
@@ -158,14 +173,14 @@ def sides_table(rows: list[BlowSides]) -> str:
         parts = [f"- {population} ({len(mine)} blows): the widths' distance moved {moved['true'].mean():+.1f} mm "
                  f"(sd {moved['true'].std():.1f}) on true maps, {moved['reconstructed'].mean():+.1f} mm "
                  f"(sd {moved['reconstructed'].std():.1f}) on reconstructed ones"]
-        for read in READS:
-            errors = 100 * np.array([r.error(read) for r in mine])
-            # the scatter about each body's own mean: what a calibration on the subject cannot take out
-            own = np.concatenate([errors[[k for k, r in enumerate(mine) if r.body == body]]
-                                  - errors[[k for k, r in enumerate(mine) if r.body == body]].mean()
-                                  for body in dict.fromkeys(r.body for r in mine)])
-            parts.append(f"{read}: {errors.mean():+.1f} % (sd {errors.std():.1f}), "
-                         f"about each body's mean sd {own.std():.1f} %")
+        for read in READS + PLAIN_READS:
+            gains = np.array([r.gain(read) for r in mine])
+            # each blow's gain over its body's mean gain: what a calibration on the subject cannot take out
+            own = np.concatenate([gains[index] / gains[index].mean() - 1.0 for index in
+                                  ([k for k, r in enumerate(mine) if r.body == body]
+                                   for body in dict.fromkeys(r.body for r in mine))])
+            parts.append(f"{read}: gain {gains.mean():.3f} ({gains.min():.3f} to {gains.max():.3f}), "
+                         f"each blow about its body's mean sd {100 * own.std():.1f} %")
         lines.append("; ".join(parts))
     return "\n".join(lines)
 
@@ -180,9 +195,9 @@ def run_sides_bench(subjects: int, scale: float, seed: int, world: str) -> tuple
     text = (f"{subjects} subjects of each population (`bench population --subset`'s draws), scale {scale}, world "
             f"{world} without its sway and steps; at each forced blow's top and bottom one light cycle a head, "
             "reconstructed with the lights as built. The widths' distance: the two heads' trunk widths and the "
-            "baseline (two_head_distances), front head; truth: it does not move. Both heads' levelled change "
-            "less the true maps', over the blow's true volume change (the mean over a body's blows is what its "
-            "calibration takes out, the scatter about it is what it cannot). {:.0f} s.\n\n".format(time.perf_counter() - started) + sides_table(rows))
+            "baseline (two_head_distances), front head; truth: it does not move. Each read's gain: both heads' "
+            "levelled change over the blow's true volume change (a body's mean gain is what its calibration takes "
+            "out, each blow's about it what it cannot). {:.0f} s.\n\n".format(time.perf_counter() - started) + sides_table(rows))
     return text, rows
 
 
