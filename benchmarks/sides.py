@@ -16,7 +16,8 @@ both heads' levelled change over the blow's true volume change (its gain) read f
 maps, on the true normals integrated as the reconstruction integrates them, on the reconstruction at
 the true distance, and on its maps scaled to the widths' distance; and the plain change (no level:
 each pixel's displacement along its ray) on the true maps and on the reconstruction anchored at the
-true map's median depth. A body's mean gain is what its
+true map's median depth, and referred to the displacement of the trunk mask's top rows (the neck)
+on the true maps and on the reconstruction. A body's mean gain is what its
 calibration takes out; each blow's gain about it is what it cannot. Tuned on neither population: the truth is what is
 measured here.
 """
@@ -58,8 +59,13 @@ class BlowSides:
 READS = ("true maps", "true normals integrated", "true distance", "widths' distance")
 # the same without a level: each pixel's displacement along its ray, both heads summed, on the true maps and
 # on the reconstruction anchored at the true map's median depth (what no head measures: the anchor's own
-# error moves a head's whole trunk, 0.1 L a millimetre)
-PLAIN_READS = ("plain: true maps", "plain: true median depth")
+# error moves a head's whole trunk, 0.1 L a millimetre); then referred to the displacement of the trunk
+# mask's top rows, the neck (top_rows_change), on the true maps and on the reconstruction
+PLAIN_READS = ("plain: true maps", "plain: true median depth", "plain, top rows: true maps",
+               "plain, top rows: reconstructed")
+# the share of the trunk mask's rows, from the top, a map's plain change is referred to: on both populations
+# the neck (from the back also the back of the head), 28-48 px wide where the chest is 100-120 at 0.25
+ANCHOR_ROWS = 0.1
 
 
 def _changes(depths: list[np.ndarray], trunks: list[np.ndarray], subjects: list[np.ndarray], head,
@@ -76,6 +82,21 @@ def _changes(depths: list[np.ndarray], trunks: list[np.ndarray], subjects: list[
         levelled.append(head_volume_l(sums.reference["all"], sums.current["all"], 1.0, 1.0))
         plain.append(-1e-6 * sums.displaced["all"])
     return float(levelled[0] - levelled[1]), float(plain[0] - plain[1])
+
+
+def top_rows_change(depths: list[np.ndarray], trunks: list[np.ndarray], head, share: float = ANCHOR_ROWS) -> float:
+    """The plain change (L) from the first map to the second on the same pixels (no sway here), each pixel's
+    displacement less the median displacement of the top `share` of the trunk mask's rows (the neck): a shift
+    of the whole map, its anchor's error included, cancels; a neck or head that moves on its own does not."""
+    first, second = depths
+    both = trunks[0] & trunks[1] & np.isfinite(first) & np.isfinite(second)
+    rows = np.nonzero(both.any(axis=1))[0]
+    if len(rows) < 2:
+        return float("nan")
+    moved = np.where(both, second - first, np.nan)  # further at the second: exhaled
+    anchor = np.nanmedian(moved[rows[:max(2, int(round(share * len(rows))))]])
+    footprint = (first / head.fx) * (first / head.fy)
+    return 1e-6 * float(np.sum(((moved - anchor) * footprint)[both]))
 
 
 def blow_sides(population: str, body: str, name: str, times: tuple[float, float], scene, rig, digitisers,
@@ -129,6 +150,8 @@ def blow_sides(population: str, body: str, name: str, times: tuple[float, float]
                     ((d, true, tr & np.isfinite(true)) for d, true, tr in zip(depths, maps["true"][h][0], trunks))]
         _, change[PLAIN_READS[1]][h] = _changes(anchored, trunks, subjects, rig.heads[h],
                                                 [float(np.nanmedian(d)) for d in anchored])
+        change[PLAIN_READS[2]][h] = top_rows_change(maps["true"][h][0], maps["true"][h][1], rig.heads[h])
+        change[PLAIN_READS[3]][h] = top_rows_change(depths, trunks, rig.heads[h])
         # each map scaled about the camera as `process` scales it: by its widths' distance over the true one
         ratio = widths_mm["reconstructed"][h] / widths_mm["true"][h][0]
         scaled = [d * r for d, r in zip(depths, ratio)]

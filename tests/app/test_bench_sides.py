@@ -27,7 +27,7 @@ def test_each_blow_s_error_and_the_scatter_a_calibration_on_the_subject_cannot_t
     assert rows[1].gain(READS[3]) == pytest.approx((0.935 + 0.5) / 2.0)
     assert rows[0].moved_mm("true") == pytest.approx(1.0) and rows[3].moved_mm("reconstructed") == pytest.approx(-6.0)
     text = sides_table(rows)
-    assert "| parametric | random-1000 | blow 2 | 2.00 | 1.000, 0.500 | +1.0 | +8.0 | 0.750 | 0.750 | 0.675 | 0.718 | 1.000 | 1.000 |" in text
+    assert "| parametric | random-1000 | blow 2 | 2.00 | 1.000, 0.500 | +1.0 | +8.0 | 0.750 | 0.750 | 0.675 | 0.718 | 1.000 | 1.000 | 1.000 | 1.000 |" in text
     summary = next(line for line in text.splitlines() if line.startswith("- parametric"))
     # 0.75 and 0.675 (mean 0.7125), 0.9 and 0.825 (mean 0.8625): 5.3 % and 4.3 % either side of their own mean
     spread = np.std([0.075 / 1.425, -0.075 / 1.425, 0.075 / 1.725, -0.075 / 1.725])
@@ -36,6 +36,22 @@ def test_each_blow_s_error_and_the_scatter_a_calibration_on_the_subject_cannot_t
             in summary)
     assert "true maps: gain 0.750 (0.750 to 0.750), each blow about its body's mean sd 0.0 %" in summary
     assert "moved +1.0 mm (sd 0.0) on true maps, +1.0 mm (sd 5.4) on reconstructed ones" in summary
+
+
+def test_the_top_rows_take_out_a_shift_of_the_whole_map_and_keep_what_the_rest_moved():
+    from benchmarks.sides import top_rows_change
+    from core.rig import Head
+
+    head = Head(name="front", width=40, height=50, fx=100.0, fy=100.0, cx=20.0, cy=25.0, pixel_size_mm=0.01,
+                bit_depth=12, light_positions_mm=np.zeros((4, 3)))
+    first = np.full((50, 40), 2000.0)
+    trunk = np.zeros((50, 40), dtype=bool)
+    trunk[5:45, 10:30] = True
+    chest = np.zeros((50, 40))
+    chest[20:40, 12:28] = 10.0  # 320 pixels 10 mm further at the second map: 20 mm x 20 mm each
+    for shift_mm in (0.0, 7.0, -30.0):  # the subject, or a head's anchor, moved as a whole
+        second = first + chest + shift_mm
+        assert top_rows_change([first, second], [trunk, trunk], head) == pytest.approx(320 * 10 * 400 * 1e-6)
 
 
 def test_the_bench_reads_both_populations_blows_end_to_end(capsys):
