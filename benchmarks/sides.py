@@ -63,9 +63,6 @@ READS = ("true maps", "true normals integrated", "true distance", "widths' dista
 # mask's top rows, the neck (top_rows_change), on the true maps and on the reconstruction
 PLAIN_READS = ("plain: true maps", "plain: true median depth", "plain, top rows: true maps",
                "plain, top rows: reconstructed")
-# the share of the trunk mask's rows, from the top, a map's plain change is referred to: on both populations
-# the neck (from the back also the back of the head), 28-48 px wide where the chest is 100-120 at 0.25
-ANCHOR_ROWS = 0.1
 
 
 def _changes(depths: list[np.ndarray], trunks: list[np.ndarray], subjects: list[np.ndarray], head,
@@ -84,19 +81,21 @@ def _changes(depths: list[np.ndarray], trunks: list[np.ndarray], subjects: list[
     return float(levelled[0] - levelled[1]), float(plain[0] - plain[1])
 
 
-def top_rows_change(depths: list[np.ndarray], trunks: list[np.ndarray], head, share: float = ANCHOR_ROWS) -> float:
+def top_rows_change(depths: list[np.ndarray], trunks: list[np.ndarray], head) -> float:
     """The plain change (L) from the first map to the second on the same pixels (no sway here), each pixel's
-    displacement less the median displacement of the top `share` of the trunk mask's rows (the neck): a shift
-    of the whole map, its anchor's error included, cancels; a neck or head that moves on its own does not."""
+    displacement less the median displacement of the first trunk's top rows (core/volume/maps.py,
+    neck_pixels: the neck), as DisplacementSums.neck_mm refers it: a shift of the whole map, its anchor's
+    error included, cancels; a neck or head that moves on its own does not."""
+    from core.volume.maps import MIN_NECK_PIXELS, neck_pixels
+
     first, second = depths
     both = trunks[0] & trunks[1] & np.isfinite(first) & np.isfinite(second)
-    rows = np.nonzero(both.any(axis=1))[0]
-    if len(rows) < 2:
+    neck = neck_pixels(trunks[0] & np.isfinite(first)) & both
+    if neck.sum() < MIN_NECK_PIXELS:
         return float("nan")
-    moved = np.where(both, second - first, np.nan)  # further at the second: exhaled
-    anchor = np.nanmedian(moved[rows[:max(2, int(round(share * len(rows))))]])
+    moved = second - first  # further at the second: exhaled
     footprint = (first / head.fx) * (first / head.fy)
-    return 1e-6 * float(np.sum(((moved - anchor) * footprint)[both]))
+    return 1e-6 * float(np.sum(((moved - np.median(moved[neck])) * footprint)[both]))
 
 
 def blow_sides(population: str, body: str, name: str, times: tuple[float, float], scene, rig, digitisers,

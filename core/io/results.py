@@ -433,8 +433,8 @@ class ResultsWriter:
         gap is chosen, so another optical signal can be made from a results file without the maps:
         per part (`parts`, the attribute) `reference`, `current`, `areas`, `displaced` (maps x parts,
         mm^3 or mm^2); `levels_mm` (reference's, map's), `body_shift_mm`, `side_mm`, `width_px`,
-        `width_ratio`; `side_target_mm`, the distance the sides were scaled to; `shown`, whether the
-        map entered the volume."""
+        `width_ratio`, `neck_mm`; `side_target_mm`, the distance the sides were scaled to; `shown`, whether
+        the map entered the volume."""
         g = self.out.create_group(f"displacement_sums/{head}")
         g.attrs["parts"] = list(parts)
         g.create_dataset("timestamp_ns", data=np.asarray(timestamp_ns, dtype=np.int64))
@@ -443,7 +443,7 @@ class ResultsWriter:
                                                 dtype=float).reshape(len(sums), len(parts)))
         for key in ("levels_mm", "body_shift_mm"):
             g.create_dataset(key, data=np.array([getattr(s, key) for s in sums], dtype=float).reshape(len(sums), 2))
-        for key in ("side_mm", "width_px", "width_ratio"):
+        for key in ("side_mm", "width_px", "width_ratio", "neck_mm"):
             g.create_dataset(key, data=np.array([getattr(s, key) for s in sums], dtype=float))
         g.create_dataset("side_target_mm", data=np.asarray(side_target_mm, dtype=float))
         g.create_dataset("shown", data=np.asarray(shown, dtype=bool))

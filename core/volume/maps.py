@@ -270,6 +270,11 @@ def trunk_regions(mask: np.ndarray, head_name: str) -> dict[str, np.ndarray]:
 
 
 REGIONS = ("upper left", "upper right", "lower left", "lower right")
+# The share of the reference trunk mask's rows, from the top, whose displacement DisplacementSums.neck_mm
+# gives: the neck (from the back also the back of the head; 28-48 px wide where the chest is 100-120 at
+# scale 0.25) on both simulated populations
+NECK_ROWS = 0.1
+MIN_NECK_PIXELS = 5
 
 
 @dataclass(frozen=True)
@@ -297,6 +302,9 @@ class DisplacementSums:
     # the body's shift in the image plane since the reference (mm across, mm down; the body frame's
     # shift at the map's distance): what core/volume/steps.py finds steps in
     body_shift_mm: tuple[float, float] = (float("nan"), float("nan"))
+    # the median of z - Z_ref over the reference trunk's top NECK_ROWS rows (the neck), at the map's own
+    # scale: displaced - neck_mm * areas is the plain displacement referred to the neck (NaN: too few pixels)
+    neck_mm: float = float("nan")
 
 
 def _row_edges(mask: np.ndarray, width: int):
@@ -718,6 +726,7 @@ class DisplacementTracker:
             contour = contour_depth_mm(depth_mm, valid, silhouette, self.head) if silhouette is not None else float("nan")
             side = contour if np.isfinite(contour) else self._rim.side_depth_mm
             self._side_per_rim = side / rim_of_reference
+            self._neck = neck_pixels(valid)
         ref_depth, ref_mask, footprint, regions = self._reference
         if known and np.isfinite(self._reference_distance):
             frame = self._silhouette.frame(valid, row_widths, self._reference_distance / distance_mm,
@@ -737,13 +746,24 @@ class DisplacementTracker:
         parts = dict(regions, all=ref_mask)
         area = np.where(both, footprint, 0.0)
         displaced = np.where(both, footprint * (z - ref_depth), 0.0)
+        neck = self._neck & both
+        neck_mm = float(np.median((z - ref_depth)[neck])) if neck.sum() >= MIN_NECK_PIXELS else float("nan")
         sums = DisplacementSums(rim * self._side_per_rim, width, {k: float(reference[m].sum()) for k, m in parts.items()},
                                 {k: float(current[m].sum()) for k, m in parts.items()},
                                 {k: float(area[m].sum()) for k, m in parts.items()},
                                 {k: float(displaced[m].sum()) for k, m in parts.items()},
                                 (level_ref, level), self._rim.edge_statistics(z - ref_depth, both), width_ratio,
-                                body_shift_mm)
+                                body_shift_mm, neck_mm)
         return sums
+
+
+def neck_pixels(valid: np.ndarray, share: float = NECK_ROWS) -> np.ndarray:
+    """The trunk mask's pixels on its top `share` of rows (two at least): the neck."""
+    rows = np.nonzero(valid.any(axis=1))[0]
+    top = np.zeros_like(valid)
+    if len(rows):
+        top[rows[0]:rows[min(len(rows) - 1, max(2, int(round(share * len(rows)))) - 1)] + 1] = True
+    return valid & top
 
 
 def head_volume_l(reference, current, k_reference, k):
