@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import time
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 
@@ -59,48 +60,34 @@ class BlowSides:
 READS = ("true maps", "true normals integrated", "true distance", "widths' distance")
 # the same without a level: each pixel's displacement along its ray, both heads summed, on the true maps and
 # on the reconstruction anchored at the true map's median depth (what no head measures: the anchor's own
-# error moves a head's whole trunk, 0.1 L a millimetre); then referred to the displacement of the trunk
-# mask's top rows, the neck (top_rows_change), on the true maps and on the reconstruction
-PLAIN_READS = ("plain: true maps", "plain: true median depth", "plain, top rows: true maps",
-               "plain, top rows: reconstructed")
+# error moves a head's whole trunk, 0.1 L a millimetre); then less the neck's displacement
+# (DisplacementSums.neck_mm), on the true maps and on the reconstruction at the true distance
+PLAIN_READS = ("plain: true maps", "plain: true median depth", "plain, less the neck: true maps",
+               "plain, less the neck: reconstructed")
 
 
 def _changes(depths: list[np.ndarray], trunks: list[np.ndarray], subjects: list[np.ndarray], head,
-             distances_mm: list[float]) -> tuple[float, float]:
-    """(levelled, plain) change (L) from the first map to the second, each registered at its distance:
-    levelled referred to the level at the trunk's sides (RimModel), plain each pixel's displacement along
-    its ray with no level."""
+             distances_mm: list[float]) -> tuple[float, float, float]:
+    """(levelled, plain, less the neck) change (L) from the first map to the second, each registered at its
+    distance (DisplacementTracker): levelled referred to the level at the trunk's sides (RimModel), plain each
+    pixel's displacement along its ray with no level, and that less the neck's (neck_mm): a shift of the
+    whole map, its anchor's error included, cancels; a neck or head that moves on its own does not."""
     from core.volume.maps import DisplacementTracker, head_volume_l
 
     tracker = DisplacementTracker(head)
-    levelled, plain = [], []
+    levelled, plain, necked = [], [], []
     for depth, trunk, subject, distance in zip(depths, trunks, subjects, distances_mm):
         sums = tracker.add(np.where(trunk, depth, np.nan), trunk, subject, distance)
         levelled.append(head_volume_l(sums.reference["all"], sums.current["all"], 1.0, 1.0))
         plain.append(-1e-6 * sums.displaced["all"])
-    return float(levelled[0] - levelled[1]), float(plain[0] - plain[1])
-
-
-def top_rows_change(depths: list[np.ndarray], trunks: list[np.ndarray], head) -> float:
-    """The plain change (L) from the first map to the second on the same pixels (no sway here), each pixel's
-    displacement less the median displacement of the first trunk's top rows (core/volume/maps.py,
-    neck_pixels: the neck), as DisplacementSums.neck_mm refers it: a shift of the whole map, its anchor's
-    error included, cancels; a neck or head that moves on its own does not."""
-    from core.volume.maps import MIN_NECK_PIXELS, neck_pixels
-
-    first, second = depths
-    both = trunks[0] & trunks[1] & np.isfinite(first) & np.isfinite(second)
-    neck = neck_pixels(trunks[0] & np.isfinite(first)) & both
-    if neck.sum() < MIN_NECK_PIXELS:
-        return float("nan")
-    moved = second - first  # further at the second: exhaled
-    footprint = (first / head.fx) * (first / head.fy)
-    return 1e-6 * float(np.sum(((moved - np.median(moved[neck])) * footprint)[both]))
+        necked.append(-1e-6 * (sums.displaced["all"] - sums.neck_mm * sums.areas["all"]))
+    return float(levelled[0] - levelled[1]), float(plain[0] - plain[1]), float(necked[0] - necked[1])
 
 
 def blow_sides(population: str, body: str, name: str, times: tuple[float, float], scene, rig, digitisers,
-               distances_mm: dict[str, float]) -> BlowSides:
-    """One blow's top and bottom read each way (module doc)."""
+               distances_mm: dict[str, tuple[float, float]]) -> BlowSides:
+    """One blow's top and bottom read each way (module doc); distances_mm: each head's true distance at
+    the two times (the world's sway along the axis, where it has one)."""
     from core.reconstruction.integrate import depth_from_normals
     from core.reconstruction.pipeline import HeadReconstructor, trunk_mask
     from core.volume.maps import trunk_width_px, two_head_distances
@@ -123,12 +110,12 @@ def blow_sides(population: str, body: str, name: str, times: tuple[float, float]
             for store, value in zip(maps["true"][head_name], (true_maps.depth_mm, trunk, subject)):
                 store.append(value)
             integrated = depth_from_normals(true_maps.normals, trunk, head.fx, head.fy, head.cx, head.cy,
-                                            distances_mm[head_name])
+                                            distances_mm[head_name][k])
             for store, value in zip(maps["integrated"][head_name],
                                     (integrated, trunk & np.isfinite(integrated), subject)):
                 store.append(value)
             made = reconstructor.reconstruct(np.stack([f - dark for f in frames[:4]]), None, dark,
-                                             distance_mm=distances_mm[head_name])
+                                             distance_mm=distances_mm[head_name][k])
             trunk = trunk_mask(made.mask, np.nan_to_num(made.normals)) & np.isfinite(made.depth_mm)
             for store, value in zip(maps["reconstructed"][head_name], (made.depth_mm, trunk, made.mask)):
                 store.append(value)
@@ -139,49 +126,57 @@ def blow_sides(population: str, body: str, name: str, times: tuple[float, float]
         widths_mm[kind] = {"front": front, "back": back}
     change: dict[str, dict[str, float]] = {read: {} for read in READS + PLAIN_READS}
     for h in HEADS:
-        for read, kind in zip(READS, ("true", "integrated")):
-            change[read][h], plain = _changes(*maps[kind][h], rig.heads[h], [distances_mm[h]] * 2)
-            if kind == "true":
-                change[PLAIN_READS[0]][h] = plain
+        at = list(distances_mm[h])
+        change[READS[0]][h], change[PLAIN_READS[0]][h], change[PLAIN_READS[2]][h] = _changes(
+            *maps["true"][h], rig.heads[h], at)
+        change[READS[1]][h], _, _ = _changes(*maps["integrated"][h], rig.heads[h], at)
         depths, trunks, subjects = maps["reconstructed"][h]
-        change[READS[2]][h], _ = _changes(depths, trunks, subjects, rig.heads[h], [distances_mm[h]] * 2)
+        change[READS[2]][h], _, change[PLAIN_READS[3]][h] = _changes(depths, trunks, subjects, rig.heads[h], at)
         anchored = [d * np.median(true[both]) / np.median(d[both]) for d, true, both in
                     ((d, true, tr & np.isfinite(true)) for d, true, tr in zip(depths, maps["true"][h][0], trunks))]
-        _, change[PLAIN_READS[1]][h] = _changes(anchored, trunks, subjects, rig.heads[h],
-                                                [float(np.nanmedian(d)) for d in anchored])
-        change[PLAIN_READS[2]][h] = top_rows_change(maps["true"][h][0], maps["true"][h][1], rig.heads[h])
-        change[PLAIN_READS[3]][h] = top_rows_change(depths, trunks, rig.heads[h])
-        # each map scaled about the camera as `process` scales it: by its widths' distance over the true one
-        ratio = widths_mm["reconstructed"][h] / widths_mm["true"][h][0]
+        _, change[PLAIN_READS[1]][h], _ = _changes(anchored, trunks, subjects, rig.heads[h],
+                                                   [float(np.nanmedian(d)) for d in anchored])
+        # each map scaled about the camera as `process` scales it: by its widths' distance over the sides' true
+        # one (the true maps' widths' distance at the top, moved since by the true distance's sway)
+        sides = widths_mm["true"][h][0] + (np.asarray(at) - at[0])
+        ratio = widths_mm["reconstructed"][h] / sides
         scaled = [d * r for d, r in zip(depths, ratio)]
-        change[READS[3]][h], _ = _changes(scaled, trunks, subjects, rig.heads[h], [distances_mm[h] * r for r in ratio])
+        change[READS[3]][h], _, _ = _changes(scaled, trunks, subjects, rig.heads[h], [a * r for a, r in zip(at, ratio)])
     front = {kind: (float(w["front"][0]), float(w["front"][1])) for kind, w in widths_mm.items()}
     volume = np.asarray(scene.truth_volume_l(np.asarray(times, dtype=float)), dtype=float)
     return BlowSides(population, body, name, float(volume[0] - volume[1]), front, change)
 
 
-def subject_sides(population: str, subject, scale: float, world: str) -> list[BlowSides]:
-    """Each forced blow of one subject's clinical session, without its sway and steps."""
+def subject_sides(population: str, subject, scale: float, world: str, sway: bool = False) -> list[BlowSides]:
+    """Each forced blow of one subject's clinical session, without its steps and, unless `sway`, its sway."""
     from benchmarks.carry import manoeuvre_times
     from benchmarks.population import session_config
     from core.sim.breathing import Sway
     from core.sim.simulate import build_scene, sim_digitisers, thesis_rig
 
-    config = replace(session_config(subject, scale, world, "clinical", None), sway=Sway(0.0, 0.0, 0.0), steps=0)
+    config = replace(session_config(subject, scale, world, "clinical", None), steps=0)
+    if not sway:
+        config = replace(config, sway=Sway(0.0, 0.0, 0.0))
     rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
     scene, waveform = build_scene(config, rig)
     rig = replace(rig, baseline_mm=float(scene.baseline_mm))
     digitisers = sim_digitisers(config, rig)
     _, _, _, marks = manoeuvre_times(scene, waveform)
-    distances = {"front": config.distance_mm, "back": config.distance_back_mm}
     body = subject.body if subject.body != "random" else f"random-{subject.seed}"
-    return [blow_sides(population, body, name, (times[0], times[2]), scene, rig, digitisers, distances)
-            for name, times in marks.items() if name.startswith("blow")]
+    rows = []
+    for name, times in marks.items():
+        if not name.startswith("blow"):
+            continue
+        axial = np.array([float(scene.sway_mm(np.array(t))[2]) for t in (times[0], times[2])])
+        distances = {"front": tuple(config.distance_mm + axial), "back": tuple(config.distance_back_mm - axial)}
+        rows.append(blow_sides(population, body, name, (times[0], times[2]), scene, rig, digitisers, distances))
+    return rows
 
 
 def sides_table(rows: list[BlowSides]) -> str:
-    lines = ["| population | body | blow | FVC (L) | true maps' levelled change front, back (L) | widths' front distance "
-             "moved, true maps (mm) | reconstructed maps (mm) | " + " | ".join(READS + PLAIN_READS) + " |",
+    lines = ["| population | body | blow | FVC (L) | true maps' levelled change front, back (L) | "
+             "widths' front distance moved, true maps (mm) | reconstructed maps (mm) | "
+             + " | ".join(READS + PLAIN_READS) + " |",
              "|---|---|---|---|---|---|---|" + "---|" * len(READS + PLAIN_READS)]
     for r in rows:
         true = r.change_l[READS[0]]
@@ -207,19 +202,24 @@ def sides_table(rows: list[BlowSides]) -> str:
     return "\n".join(lines)
 
 
-def run_sides_bench(subjects: int, scale: float, seed: int, world: str) -> tuple[str, list[BlowSides]]:
+def run_sides_bench(subjects: int, scale: float, seed: int, world: str,
+                    sway: bool = False) -> tuple[str, list[BlowSides]]:
     from benchmarks.population import BODIES, draw_subjects, standard_blows
 
     blows = standard_blows(SHARED / "data" / "spirometry-waveforms")
     started = time.perf_counter()
     rows = [row for population in BODIES for subject in draw_subjects(subjects, seed, blows, bodies=population)
-            for row in subject_sides(population, subject, scale, world)]
+            for row in subject_sides(population, subject, scale, world, sway)]
+    scene = ("with its sway (a translation; each map at its true distance), without its steps" if sway
+             else "without its sway and steps")
+    truth = "it moves with the sway only" if sway else "it does not move"
     text = (f"{subjects} subjects of each population (`bench population --subset`'s draws), scale {scale}, world "
-            f"{world} without its sway and steps; at each forced blow's top and bottom one light cycle a head, "
+            f"{world} {scene}; at each forced blow's top and bottom one light cycle a head, "
             "reconstructed with the lights as built. The widths' distance: the two heads' trunk widths and the "
-            "baseline (two_head_distances), front head; truth: it does not move. Each read's gain: both heads' "
+            f"baseline (two_head_distances), front head; truth: {truth}. Each read's gain: both heads' "
             "levelled change over the blow's true volume change (a body's mean gain is what its calibration takes "
-            "out, each blow's about it what it cannot). {:.0f} s.\n\n".format(time.perf_counter() - started) + sides_table(rows))
+            "out, each blow's about it what it cannot). {:.0f} s.\n\n".format(time.perf_counter() - started)
+            + sides_table(rows))
     return text, rows
 
 
@@ -229,5 +229,10 @@ def add(what: argparse._SubParsersAction) -> None:
 
     p = what.add_parser("sides", help="how the two heads' distance from their trunk widths moves with a forced blow, "
                                       "and what it does to the levelled change, on both populations")
-    add_subset_arguments(p, "the simulated world (its sway and steps left out)")
-    p.set_defaults(run=lambda args: run_on_subsets(args, "sides", "Distance from the sides", run_sides_bench))
+    add_subset_arguments(p, "the simulated world (its steps left out)")
+    p.add_argument("--sway", action="store_true", help="keep the world's sway (a translation), each map at its "
+                                                        "true distance")
+    p.set_defaults(run=lambda args: run_on_subsets(args, "sides-sway" if args.sway else "sides",
+                                                   "Distance from the sides" + (", with sway" if args.sway else ""),
+                                                   partial(run_sides_bench, sway=args.sway), "sides",
+                                                   " --sway" if args.sway else ""))

@@ -183,9 +183,10 @@ def add_subset_arguments(p: argparse.ArgumentParser, world_help: str) -> None:
     p.add_argument("--no-write", action="store_true", help="print only")
 
 
-def run_on_subsets(args: argparse.Namespace, name: str, title: str, bench) -> int:
+def run_on_subsets(args: argparse.Namespace, name: str, title: str, bench, command: str | None = None,
+                   flags: str = "") -> int:
     """`bench(subjects, scale, seed, world)` -> (text, rows), published under `name` with `title` followed by
-    the command's arguments; a missing body mesh one line."""
+    the command (`command`, default `name`), its arguments and `flags`; a missing body mesh one line."""
     from app.errors import UserError
     from core.sim.makehuman import MeshDataError
 
@@ -193,7 +194,8 @@ def run_on_subsets(args: argparse.Namespace, name: str, title: str, bench) -> in
         text, _ = bench(args.subjects, args.scale, args.seed, args.world)
     except MeshDataError as exc:  # the test population's bodies need ../shared/data/makehuman
         raise UserError(str(exc)) from exc
-    return publish(args, name, f"{title} (`photopft bench {name} --subjects {args.subjects} --scale {args.scale}`)", text)
+    return publish(args, name, f"{title} (`photopft bench {command or name} --subjects {args.subjects} "
+                               f"--scale {args.scale}{flags}`)", text)
 
 
 def add(what: argparse._SubParsersAction) -> None:
