@@ -11,7 +11,10 @@ FVC and FEV1 (at the true blow's start and one second on; no back-extrapolation)
 - levelled: each head's displacement referred to the level at the trunk's sides (RimModel), as
   `process` reads it;
 - plain: the displacement along each pixel's ray with no level, which needs each map's absolute
-  depth to within a fraction of a millimetre: what the heads could give, not what `process` can.
+  depth to within a fraction of a millimetre: what the heads could give, not what `process` can;
+- less the neck: the plain displacement less the neck's (DisplacementSums.neck_mm), which a shift
+  of the whole map, its absolute depth's error included, leaves alone: what `process` could give on
+  bodies whose necks move only with the whole body.
 No noise and no reconstruction: it separates how a signal follows each body's breathing from the
 noise the population bench adds. The truth is what is measured here; tuned on neither population.
 """
@@ -26,7 +29,7 @@ import numpy as np
 
 from benchmarks.common import SHARED
 
-SIGNALS = ("levelled", "plain")
+SIGNALS = ("levelled", "plain", "less the neck")
 VALUES = ("TV", "VC", "FVC", "FEV1")
 CALIBRATION_MAPS = 48  # maps through the calibration segment (the fit takes at least MIN_FIT_MAPS)
 TIDAL_MAPS = 16  # maps through the quiet breathing after the mouthpiece comes off
@@ -97,8 +100,9 @@ def regional_series(scene, rig, config, digitisers, times: np.ndarray) -> dict[s
                 inside = [r for r in regions if r in sums.reference]
                 levelled = sum(head_volume_l(sums.reference[r], sums.current[r], 1.0, 1.0) for r in inside)
                 plain = -1e-6 * sum(sums.displaced[r] for r in inside)
-                out["levelled"].setdefault(f"{name} {part}", []).append(float(levelled) if inside else np.nan)
-                out["plain"].setdefault(f"{name} {part}", []).append(float(plain) if inside else np.nan)
+                necked = -1e-6 * sum(sums.displaced[r] - sums.neck_mm * sums.areas[r] for r in inside)
+                for signal, value in zip(SIGNALS, (levelled, plain, necked)):
+                    out[signal].setdefault(f"{name} {part}", []).append(float(value) if inside else np.nan)
     return {s: {k: np.asarray(v, dtype=float) for k, v in series.items()} for s, series in out.items()}
 
 

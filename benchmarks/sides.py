@@ -4,9 +4,10 @@ blow, and what that does to each head's levelled change, on both populations' su
 Two heads at a known baseline see the same trunk sides, so their widths in pixels give each head's
 distance (core/volume/maps.py, two_head_distances), and `process` scales every map to it. A head's
 levelled signal sums its whole relief above the sides (10-25 L), which scales with the distance
-cubed (relief and footprint), so a millimetre at 2 m is 15-40 mL. Here no sway and no steps: the
-true distance does not move, and any change of the widths' distance between a blow's top and bottom
-is breathing read as distance.
+cubed (relief and footprint), so a millimetre at 2 m is 15-40 mL. Here no steps and, unless --sway,
+no sway: the true distance does not move, and any change of the widths' distance between a blow's
+top and bottom is breathing read as distance. With --sway the world's sway (a translation) stays and
+each map is registered at its true distance.
 
 For each subject of `bench population --subset` (same draws), at each forced blow's highest and
 lowest true volume, one light cycle of each head is rendered (no motion within it) and reconstructed
@@ -15,11 +16,10 @@ the widths' front distance on the true and on the reconstructed maps at the top 
 both heads' levelled change over the blow's true volume change (its gain) read four ways: on the true
 maps, on the true normals integrated as the reconstruction integrates them, on the reconstruction at
 the true distance, and on its maps scaled to the widths' distance; and the plain change (no level:
-each pixel's displacement along its ray) on the true maps and on the reconstruction anchored at the
-true map's median depth, and referred to the displacement of the trunk mask's top rows (the neck)
-on the true maps and on the reconstruction. A body's mean gain is what its
-calibration takes out; each blow's gain about it is what it cannot. Tuned on neither population: the truth is what is
-measured here.
+each pixel's displacement along its ray) on the true maps, on the reconstruction anchored at the true
+map's median depth, and less the neck's displacement (DisplacementSums.neck_mm) on the true maps and
+on the reconstruction. A body's mean gain is what its calibration takes out; each blow's gain about it
+is what it cannot. Tuned on neither population: the truth is what is measured here.
 """
 
 from __future__ import annotations
@@ -44,10 +44,10 @@ class BlowSides:
     volume_change_l: float  # the blow's true volume change, top to bottom (its FVC)
     # where the widths put the front head's distance (mm), at the top and the bottom, on true and reconstructed maps
     front_mm: dict[str, tuple[float, float]]
-    change_l: dict[str, dict[str, float]]  # READS -> head -> levelled change
+    change_l: dict[str, dict[str, float]]  # READS and PLAIN_READS -> head -> change (L), top to bottom
 
     def gain(self, read: str) -> float:
-        """Both heads' levelled change read so over the blow's true volume change."""
+        """Both heads' change read so over the blow's true volume change."""
         return sum(self.change_l[read].values()) / self.volume_change_l
 
     def moved_mm(self, maps: str) -> float:
@@ -228,7 +228,7 @@ def add(what: argparse._SubParsersAction) -> None:
     from benchmarks.visible import add_subset_arguments, run_on_subsets
 
     p = what.add_parser("sides", help="how the two heads' distance from their trunk widths moves with a forced blow, "
-                                      "and what it does to the levelled change, on both populations")
+                                      "and how much of a blow each optical signal keeps, on both populations")
     add_subset_arguments(p, "the simulated world (its steps left out)")
     p.add_argument("--sway", action="store_true", help="keep the world's sway (a translation), each map at its "
                                                         "true distance")

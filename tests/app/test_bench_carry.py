@@ -41,8 +41,9 @@ def test_the_table_gives_each_body_each_signal_and_each_population_its_counts():
     bad = {"TV": 0.1, "VC": -0.05, "FVC": -0.04, "FEV1": -0.2}
     rows = [CarryRow("mesh", "mesh:101000", {s: good for s in SIGNALS}, {s: {"FVC": 0.02, "FEV1": -0.025} for s in SIGNALS},
                      {s: "one gain" for s in SIGNALS}, {s: 0.03 for s in SIGNALS}, 1.0),
-            CarryRow("mesh", "mesh:101001", {"levelled": bad, "plain": good},
-                     {"levelled": {"FVC": -0.05, "FEV1": -0.22}, "plain": {"FVC": 0.01, "FEV1": 0.02}},
+            CarryRow("mesh", "mesh:101001", {"levelled": bad, "plain": good, "less the neck": good},
+                     {"levelled": {"FVC": -0.05, "FEV1": -0.22}, "plain": {"FVC": 0.01, "FEV1": 0.02},
+                      "less the neck": {"FVC": 0.01, "FEV1": 0.02}},
                      {s: "each head" for s in SIGNALS}, {s: 0.04 for s in SIGNALS}, 1.0)]
     text = carry_table(rows)
     assert "| mesh | mesh:101001 | levelled | each head | 40 | +10.0 | -5.0 | -4.0 (-5.0) | -20.0 (-22.0) |" in text
