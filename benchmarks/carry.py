@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -82,7 +82,7 @@ def manoeuvre_times(scene, waveform) -> tuple[float, np.ndarray, np.ndarray, dic
 def regional_series(scene, rig, config, digitisers, times: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
     """signal -> `<head> chest|abdomen` -> litres at `times` from the true depth maps, each head's
     distance the true one (the sway's axial part followed)."""
-    from core.reconstruction.pipeline import trunk_mask
+    from benchmarks.true_surfaces import true_trunk
     from core.volume.maps import DisplacementTracker, head_volume_l
     from core.volume.subject_calibration import ABDOMEN, CHEST
 
@@ -93,8 +93,7 @@ def regional_series(scene, rig, config, digitisers, times: np.ndarray) -> dict[s
         distances = {"front": config.distance_mm + axial, "back": config.distance_back_mm - axial}
         for name, head in rig.heads.items():
             _, maps = scene.render(head, float(t), 0, np.uint64(1), digitisers[name], want_maps=True)
-            subject = np.isfinite(maps.depth_mm) & np.isfinite(maps.normals[..., 2])
-            trunk = trunk_mask(subject, np.nan_to_num(maps.normals))
+            subject, trunk = true_trunk(maps.depth_mm, maps.normals)
             sums = trackers[name].add(np.where(trunk, maps.depth_mm, np.nan), trunk, subject, distances[name])
             for part, regions in (("chest", CHEST), ("abdomen", ABDOMEN)):
                 inside = [r for r in regions if r in sums.reference]
@@ -139,15 +138,11 @@ def carry_errors(times: np.ndarray, truth_l: np.ndarray, signals: dict[str, np.n
 
 def carry_row(population: str, subject, scale: float, world: str) -> CarryRow:
     """One subject's true maps through its session, calibrated on its segment, each signal's errors."""
-    from benchmarks.population import session_config
-    from core.sim.simulate import build_scene, sim_digitisers, thesis_rig
+    from benchmarks.true_surfaces import subject_scene
 
     started = time.perf_counter()
-    config = replace(session_config(subject, scale, world, "clinical", None), steps=0)  # the sway stays
-    rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
-    scene, waveform = build_scene(config, rig)
-    rig = replace(rig, baseline_mm=float(scene.baseline_mm))
-    digitisers = sim_digitisers(config, rig)
+    made = subject_scene(subject, scale, world, steps=0)  # the sway stays
+    config, rig, scene, waveform, digitisers = made.config, made.rig, made.scene, made.waveform, made.digitisers
     off, calibration, tidal, marks = manoeuvre_times(scene, waveform)
     extra = sorted({t for times in marks.values() for t in times})
     times = np.concatenate([calibration, tidal, extra])
@@ -160,8 +155,7 @@ def carry_row(population: str, subject, scale: float, world: str) -> CarryRow:
         errors[signal], worst[signal], fitted = carry_errors(times, truth, series[signal], (0.0, off), tidal, marks)
         grouping[signal] = fitted.extra.get("grouping", "refused") + (" (refused)" if fitted.refused else "")
         residual[signal] = fitted.residual_l
-    body = subject.body if subject.body != "random" else f"random-{subject.seed}"
-    return CarryRow(population, body, errors, worst, grouping, residual, time.perf_counter() - started)
+    return CarryRow(population, made.body, errors, worst, grouping, residual, time.perf_counter() - started)
 
 
 def _percent(x: float | None) -> str:

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -89,6 +89,7 @@ def blow_sides(population: str, body: str, name: str, times: tuple[float, float]
     """One blow's top and bottom read each way (module doc); distances_mm: each head's true distance at
     the two times (the world's sway along the axis, where it has one)."""
     from core.reconstruction.integrate import depth_from_normals
+    from benchmarks.true_surfaces import true_trunk
     from core.reconstruction.pipeline import HeadReconstructor, trunk_mask
     from core.volume.maps import trunk_width_px, two_head_distances
 
@@ -105,8 +106,7 @@ def blow_sides(population: str, body: str, name: str, times: tuple[float, float]
                 image, true_maps = scene.render(head, float(t), light, key, digitisers[head_name], want_maps=True)
                 frames.append(image.astype(float))
             dark = frames[-1]
-            subject = np.isfinite(true_maps.depth_mm) & np.isfinite(true_maps.normals[..., 2])
-            trunk = trunk_mask(subject, np.nan_to_num(true_maps.normals))
+            subject, trunk = true_trunk(true_maps.depth_mm, true_maps.normals)
             for store, value in zip(maps["true"][head_name], (true_maps.depth_mm, trunk, subject)):
                 store.append(value)
             integrated = depth_from_normals(true_maps.normals, trunk, head.fx, head.fy, head.cx, head.cy,
@@ -150,19 +150,12 @@ def blow_sides(population: str, body: str, name: str, times: tuple[float, float]
 def subject_sides(population: str, subject, scale: float, world: str, sway: bool = False) -> list[BlowSides]:
     """Each forced blow of one subject's clinical session, without its steps and, unless `sway`, its sway."""
     from benchmarks.carry import manoeuvre_times
-    from benchmarks.population import session_config
+    from benchmarks.true_surfaces import subject_scene
     from core.sim.breathing import Sway
-    from core.sim.simulate import build_scene, sim_digitisers, thesis_rig
 
-    config = replace(session_config(subject, scale, world, "clinical", None), steps=0)
-    if not sway:
-        config = replace(config, sway=Sway(0.0, 0.0, 0.0))
-    rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
-    scene, waveform = build_scene(config, rig)
-    rig = replace(rig, baseline_mm=float(scene.baseline_mm))
-    digitisers = sim_digitisers(config, rig)
-    _, _, _, marks = manoeuvre_times(scene, waveform)
-    body = subject.body if subject.body != "random" else f"random-{subject.seed}"
+    made = subject_scene(subject, scale, world, steps=0, **({} if sway else {"sway": Sway(0.0, 0.0, 0.0)}))
+    config, rig, scene, digitisers, body = made.config, made.rig, made.scene, made.digitisers, made.body
+    _, _, _, marks = manoeuvre_times(scene, made.waveform)
     rows = []
     for name, times in marks.items():
         if not name.startswith("blow"):

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -43,8 +43,8 @@ def signal_shares(depths: dict[str, list[np.ndarray]], normals: dict[str, list[n
                   distances_mm: dict[str, float], truth_l: np.ndarray) -> dict[str, dict[str, float]]:
     """Each signal's slope on the true volume change, per head and summed, from true maps (H, W) per time;
     distances_mm: each head's distance to the subject, which does not sway here (the body frame's scale)."""
+    from benchmarks.true_surfaces import true_trunk
     from core.reconstruction.integrate import depth_from_normals
-    from core.reconstruction.pipeline import trunk_mask
     from core.volume.maps import DisplacementTracker, head_volume_l
 
     volumes = {s: {} for s in SIGNALS}
@@ -53,8 +53,7 @@ def signal_shares(depths: dict[str, list[np.ndarray]], normals: dict[str, list[n
         series = {s: [] for s in SIGNALS}
         reference = None
         for depth, normal in zip(depths[name], normals[name]):
-            subject = np.isfinite(depth) & np.isfinite(normal[..., 2])
-            trunk = trunk_mask(subject, np.nan_to_num(normal))
+            subject, trunk = true_trunk(depth, normal)
             if reference is None:
                 reference = (depth, trunk)
             both = trunk & reference[1]
@@ -81,17 +80,13 @@ def signal_shares(depths: dict[str, list[np.ndarray]], normals: dict[str, list[n
 
 def visible_row(population: str, subject, scale: float, world: str, span_maps: int = SPAN_MAPS) -> VisibleRow:
     """One subject's true maps through its slow VC, read by each signal."""
-    from benchmarks.population import session_config
+    from benchmarks.true_surfaces import subject_scene
     from core.sim.breathing import Sway
-    from core.sim.simulate import build_scene, sim_digitisers, thesis_rig
 
     started = time.perf_counter()
     # the signals' share of a breath, not their sway: the world's sway and steps left out
-    config = replace(session_config(subject, scale, world, "clinical", None), sway=Sway(0.0, 0.0, 0.0), steps=0)
-    rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
-    scene, waveform = build_scene(config, rig)
-    rig = replace(rig, baseline_mm=float(scene.baseline_mm))
-    digitisers = sim_digitisers(config, rig)
+    made = subject_scene(subject, scale, world, sway=Sway(0.0, 0.0, 0.0), steps=0)
+    config, rig, scene, waveform, digitisers = made.config, made.rig, made.scene, made.waveform, made.digitisers
     low, high = vc_span_s(scene, waveform)
     times = np.linspace(max(0.0, low - SPAN_MARGIN_S), min(waveform.duration_s, high + SPAN_MARGIN_S), span_maps)
     depths = {name: [] for name in rig.heads}
@@ -104,8 +99,7 @@ def visible_row(population: str, subject, scale: float, world: str, span_maps: i
     truth_l = np.asarray(scene.truth_volume_l(times), dtype=float)
     distances = {"front": config.distance_mm, "back": config.distance_back_mm}
     shares = signal_shares(depths, normals, rig.heads, distances, truth_l)
-    body = subject.body if subject.body != "random" else f"random-{subject.seed}"  # as simulate --body names it
-    return VisibleRow(population, body, float(np.ptp(truth_l)), shares, time.perf_counter() - started)
+    return VisibleRow(population, made.body, float(np.ptp(truth_l)), shares, time.perf_counter() - started)
 
 
 def vc_span_s(scene, waveform) -> tuple[float, float]:
