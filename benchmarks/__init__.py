@@ -5,4 +5,4 @@ order `photopft bench --help` shows them."""
 
 
 BENCHES = ("accuracy", "speed", "integration", "motion", "record", "volume", "scales", "process", "population",
-           "visible", "carry", "sides", "live", "lights", "blows", "tidal", "compression", "gui")
+           "visible", "carry", "sides", "anchors", "live", "lights", "blows", "tidal", "compression", "gui")
