@@ -109,8 +109,7 @@ def anchor_row(population: str, subject, scale: float, world: str, seconds: floa
             stored = r.displacement_sums()
         with SessionFile(session) as s:
             truth_t, truth_l = s.truth()["timestamp_ns"][:], s.truth()["volume_l"][:]
-    body = subject.body if subject.body != "random" else f"random-{subject.seed}"
-    return AnchorRow(population, body, *read_anchors(stored, truth_t, truth_l), time.perf_counter() - started)
+    return AnchorRow(population, subject.body_name, *read_anchors(stored, truth_t, truth_l), time.perf_counter() - started)
 
 
 def _three(values: dict[str, float], digits: int = 3) -> str:

@@ -55,6 +55,11 @@ class VirtualSubject:
     led_offset_mm: float
     standard: str | None  # a .wf file, or None for the simulator's own blow model
 
+    @property
+    def body_name(self) -> str:
+        """The body as `simulate --body` names it."""
+        return self.body if self.body != "random" else f"random-{self.seed}"
+
 
 def standard_blows(folder: Path | None) -> list[Path]:
     if folder is None or not folder.is_dir():

@@ -88,8 +88,8 @@ def blow_sides(population: str, body: str, name: str, times: tuple[float, float]
                distances_mm: dict[str, tuple[float, float]]) -> BlowSides:
     """One blow's top and bottom read each way (module doc); distances_mm: each head's true distance at
     the two times (the world's sway along the axis, where it has one)."""
-    from core.reconstruction.integrate import depth_from_normals
     from benchmarks.true_surfaces import true_trunk
+    from core.reconstruction.integrate import depth_from_normals
     from core.reconstruction.pipeline import HeadReconstructor, trunk_mask
     from core.volume.maps import trunk_width_px, two_head_distances
 

@@ -30,8 +30,7 @@ def subject_scene(subject, scale: float, world: str, **changes) -> SubjectScene:
     rig = thesis_rig(config.scale, tuple(config.heads), config.bit_depth, config.frame_rate_hz)
     scene, waveform = build_scene(config, rig)
     rig = replace(rig, baseline_mm=float(scene.baseline_mm))
-    body = subject.body if subject.body != "random" else f"random-{subject.seed}"
-    return SubjectScene(config, rig, scene, waveform, sim_digitisers(config, rig), body)
+    return SubjectScene(config, rig, scene, waveform, sim_digitisers(config, rig), subject.body_name)
 
 
 def true_trunk(depth_mm: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
