@@ -182,9 +182,10 @@ def run_on_subsets(args: argparse.Namespace, name: str, title: str, bench, comma
     """`bench(subjects, scale, seed, world)` -> (text, rows), published under `name` with `title` followed by
     the command (`command`, default `name`), its arguments and `flags`; a missing body mesh one line."""
     from app.errors import UserError
-    from core.sim.makehuman import MeshDataError
+    from core.sim.makehuman import MeshDataError, load_mesh_data
 
     try:
+        load_mesh_data()  # the test population's bodies, read before the first subject rather than after the first half
         text, _ = bench(args.subjects, args.scale, args.seed, args.world)
     except MeshDataError as exc:  # the test population's bodies need ../shared/data/makehuman
         raise UserError(str(exc)) from exc
