@@ -49,8 +49,10 @@ class AnchorRow:
 
 def signal_series(sums: dict) -> dict[str, np.ndarray]:
     """Each read (SIGNALS) of one head's stored sums (ResultsFile.displacement_sums()[head]), litres on its maps."""
+    from core.volume.maps import head_volume_l
+
     k = list(sums["parts"]).index("all")
-    return {"levelled": 1e-6 * (sums["reference"][:, k] - sums["current"][:, k]),
+    return {"levelled": head_volume_l(sums["reference"][:, k], sums["current"][:, k], 1.0, 1.0),
             "less the neck": -1e-6 * (sums["displaced"][:, k] - sums["neck_mm"] * sums["areas"][:, k]),
             "plain": -1e-6 * sums["displaced"][:, k]}
 
@@ -86,7 +88,8 @@ def read_anchors(stored: dict[str, dict], truth_t_ns: np.ndarray, truth_l: np.nd
                                else np.full(len(t_front), np.nan))
     truth_front = np.interp(t_front, truth_t_ns.astype(float), truth_l)
     for signal in SIGNALS:
-        slope[signal][BOTH], residual[signal][BOTH], map_to_map[signal][BOTH] = fit_to_truth(truth_front, summed[signal])
+        fitted = fit_to_truth(truth_front, summed[signal])
+        slope[signal][BOTH], residual[signal][BOTH], map_to_map[signal][BOTH] = fitted
     no_neck = {head: int(np.isnan(stored[head]["neck_mm"]).sum()) for head in HEADS}
     return slope, residual, map_to_map, no_neck, len(t_front)
 
@@ -109,7 +112,8 @@ def anchor_row(population: str, subject, scale: float, world: str, seconds: floa
             stored = r.displacement_sums()
         with SessionFile(session) as s:
             truth_t, truth_l = s.truth()["timestamp_ns"][:], s.truth()["volume_l"][:]
-    return AnchorRow(population, subject.body_name, *read_anchors(stored, truth_t, truth_l), time.perf_counter() - started)
+    return AnchorRow(population, subject.body_name, *read_anchors(stored, truth_t, truth_l),
+                     time.perf_counter() - started)
 
 
 def _three(values: dict[str, float], digits: int = 3) -> str:
