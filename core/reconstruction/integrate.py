@@ -38,6 +38,9 @@ _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}  # no 'nnan': NaN marks pi
 # silhouette's outermost pixels (partly background) would throw the surface around them
 MAX_VIEW_ANGLE_DEG = 85.0
 MIN_VIEW_COSINE = float(np.cos(np.radians(MAX_VIEW_ANGLE_DEG)))
+# scipy's threaded transforms cost more than they save below about a million pixels (a 500 x 350 box:
+# 2.0 ms a Poisson solve on one thread, 4.1 ms on two; docs/benchmarks.md, "Process")
+THREADED_DCT_MIN_PIXELS = 1_000_000
 # Reweighted solves after the first, and the Cauchy scale in median absolute edge residuals
 # (module doc): more iterations or another scale from 5 to 20 changed the bear's error by < 0.01 mm.
 ROBUST_ITERATIONS = 3
@@ -268,10 +271,10 @@ def _cg_step(z, residual, direction, product, mask, step):
 
 def _dct_poisson(image: np.ndarray, workers: int | None) -> np.ndarray:
     """The rectangle's Neumann Poisson solve of a right-hand side (the DCT path), single precision.
-    workers None: as many as the numba kernels of this thread use (numba.set_num_threads is per
-    thread), so a thread given one core keeps to it."""
+    workers None: one thread below THREADED_DCT_MIN_PIXELS, else as many as the numba kernels of
+    this thread use (numba.set_num_threads is per thread), so a thread given one core keeps to it."""
     if workers is None:
-        workers = numba.get_num_threads()
+        workers = numba.get_num_threads() if image.size >= THREADED_DCT_MIN_PIXELS else 1
     transformed = dctn(image.astype(np.float32, copy=False), type=2, norm="ortho", workers=workers)
     transformed *= _dct_eigenvalues(*image.shape)
     transformed[0, 0] = 0.0
