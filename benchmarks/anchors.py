@@ -49,12 +49,12 @@ class AnchorRow:
 
 def signal_series(sums: dict) -> dict[str, np.ndarray]:
     """Each read (SIGNALS) of one head's stored sums (ResultsFile.displacement_sums()[head]), litres on its maps."""
-    from core.volume.maps import head_volume_l
+    from core.volume.maps import head_volume_l, neck_referred_volume_l, plain_volume_l
 
     k = list(sums["parts"]).index("all")
     return {"levelled": head_volume_l(sums["reference"][:, k], sums["current"][:, k], 1.0, 1.0),
-            "less the neck": -1e-6 * (sums["displaced"][:, k] - sums["neck_mm"] * sums["areas"][:, k]),
-            "plain": -1e-6 * sums["displaced"][:, k]}
+            "less the neck": neck_referred_volume_l(sums["displaced"][:, k], sums["areas"][:, k], sums["neck_mm"]),
+            "plain": plain_volume_l(sums["displaced"][:, k])}
 
 
 def fit_to_truth(truth_l: np.ndarray, signal_l: np.ndarray) -> tuple[float, float, float]:

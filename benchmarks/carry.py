@@ -83,7 +83,7 @@ def regional_series(scene, rig, config, digitisers, times: np.ndarray) -> dict[s
     """signal -> `<head> chest|abdomen` -> litres at `times` from the true depth maps, each head's
     distance the true one (the sway's axial part followed)."""
     from benchmarks.true_surfaces import true_trunk
-    from core.volume.maps import DisplacementTracker, head_volume_l
+    from core.volume.maps import DisplacementTracker, head_volume_l, neck_referred_volume_l, plain_volume_l
     from core.volume.subject_calibration import ABDOMEN, CHEST
 
     out: dict[str, dict[str, list[float]]] = {s: {} for s in SIGNALS}
@@ -98,8 +98,8 @@ def regional_series(scene, rig, config, digitisers, times: np.ndarray) -> dict[s
             for part, regions in (("chest", CHEST), ("abdomen", ABDOMEN)):
                 inside = [r for r in regions if r in sums.reference]
                 levelled = sum(head_volume_l(sums.reference[r], sums.current[r], 1.0, 1.0) for r in inside)
-                plain = -1e-6 * sum(sums.displaced[r] for r in inside)
-                necked = -1e-6 * sum(sums.displaced[r] - sums.neck_mm * sums.areas[r] for r in inside)
+                plain = sum(plain_volume_l(sums.displaced[r]) for r in inside)
+                necked = sum(neck_referred_volume_l(sums.displaced[r], sums.areas[r], sums.neck_mm) for r in inside)
                 for signal, value in zip(SIGNALS, (levelled, plain, necked)):
                     out[signal].setdefault(f"{name} {part}", []).append(float(value) if inside else np.nan)
     return {s: {k: np.asarray(v, dtype=float) for k, v in series.items()} for s, series in out.items()}

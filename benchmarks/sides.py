@@ -72,15 +72,15 @@ def _changes(depths: list[np.ndarray], trunks: list[np.ndarray], subjects: list[
     distance (DisplacementTracker): levelled referred to the level at the trunk's sides (RimModel), plain each
     pixel's displacement along its ray with no level, and that less the neck's (neck_mm): a shift of the
     whole map, its anchor's error included, cancels; a neck or head that moves on its own does not."""
-    from core.volume.maps import DisplacementTracker, head_volume_l
+    from core.volume.maps import DisplacementTracker, head_volume_l, neck_referred_volume_l, plain_volume_l
 
     tracker = DisplacementTracker(head)
     levelled, plain, necked = [], [], []
     for depth, trunk, subject, distance in zip(depths, trunks, subjects, distances_mm):
         sums = tracker.add(np.where(trunk, depth, np.nan), trunk, subject, distance)
         levelled.append(head_volume_l(sums.reference["all"], sums.current["all"], 1.0, 1.0))
-        plain.append(-1e-6 * sums.displaced["all"])
-        necked.append(-1e-6 * (sums.displaced["all"] - sums.neck_mm * sums.areas["all"]))
+        plain.append(plain_volume_l(sums.displaced["all"]))
+        necked.append(neck_referred_volume_l(sums.displaced["all"], sums.areas["all"], sums.neck_mm))
     return float(levelled[0] - levelled[1]), float(plain[0] - plain[1]), float(necked[0] - necked[1])
 
 

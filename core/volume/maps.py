@@ -773,6 +773,18 @@ def head_volume_l(reference, current, k_reference, k):
     return k_reference ** 2 * (k_reference * np.asarray(reference) - np.asarray(k) * np.asarray(current)) * 1e-6
 
 
+def plain_volume_l(displaced_mm3):
+    """Volume (L) a head saw the trunk gain since its reference map along its rays, with no level:
+    -sum fp (z - Z_ref) (DisplacementSums.displaced)."""
+    return -1e-6 * np.asarray(displaced_mm3)
+
+
+def neck_referred_volume_l(displaced_mm3, areas_mm2, neck_mm):
+    """The plain volume (plain_volume_l) less the neck's displacement over the same footprint
+    (DisplacementSums.neck_mm): a shift of the whole map cancels; NaN where the map showed no neck."""
+    return -1e-6 * (np.asarray(displaced_mm3) - np.asarray(neck_mm) * np.asarray(areas_mm2))
+
+
 def metric_head_volume_l(reference: np.ndarray, current: np.ndarray, side_mm: np.ndarray,
                          side_target_mm: np.ndarray) -> np.ndarray:
     """Volume (L) a head saw the trunk gain since its reference map, from the DisplacementSums
