@@ -303,7 +303,7 @@ class DisplacementSums:
     # shift at the map's distance): what core/volume/steps.py finds steps in
     body_shift_mm: tuple[float, float] = (float("nan"), float("nan"))
     # the median of z - Z_ref over the reference trunk's top NECK_ROWS rows (the neck), at the map's own
-    # scale: displaced - neck_mm * areas is the plain displacement referred to the neck (NaN: too few pixels)
+    # scale (NaN: too few pixels); neck_referred_volume_l reads the plain displacement referred to it
     neck_mm: float = float("nan")
 
 
